@@ -1,0 +1,47 @@
+"""Command-line interface: one argparse sub-command per module in app/commands/.
+
+Each command module defines ``register(subparsers)`` which adds its parser and sets
+``func`` (called with the parsed namespace, returning an exit code). Errors the user
+can fix (bad files, bad arguments) are raised as ``UserError`` and exit with code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Order here is the order shown in --help.
+COMMAND_MODULES = [
+    "app.commands.solve",
+]
+
+
+class UserError(Exception):
+    """An input problem the user can fix; printed without a traceback, exit code 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m app",
+        description="RD3G racing stack: game solver, simulator, race loop and tools.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # validation errors from the packages name the field at fault
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
