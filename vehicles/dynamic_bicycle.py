@@ -1,0 +1,299 @@
+"""Dynamic bicycle model with a simplified Pacejka tyre and a DC-motor/drag drive model.
+
+State ``[x, y, heading, vx, vy, yaw_rate]`` (world position of the centre of gravity, heading
+in rad, body-frame velocities at the CG, yaw rate), input ``[throttle, steering]`` (throttle
+-1..1, steering command in rad). Everything is vectorised: ``state`` has shape (..., 6), ``u``
+(..., 2), and the coefficients broadcast against the leading dimensions (one value, or one per
+car along the last leading axis). Equations and the low-speed blend: docs/vehicles.md.
+
+The model applies the static part of ``CarParams.corrections`` (steering gain/offset, extra drag,
+grip scale); actuation delays, actuator limits and rate limits are not part of ``f`` (the
+simulator and the planner handle them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from vehicles.params import GRAVITY_MPS2, CarParams
+
+STATE_DIM = 6
+INPUT_DIM = 2
+IX, IY, IHEADING, IVX, IVY, IYAW_RATE = range(STATE_DIM)
+ITHROTTLE, ISTEERING = range(INPUT_DIM)
+
+
+@dataclass(frozen=True)
+class ModelCoefficients:
+    """Flat numeric coefficients of the model; each is a float or an array (one per car)."""
+
+    mass: np.ndarray
+    yaw_inertia: np.ndarray
+    lf: np.ndarray
+    lr: np.ndarray
+    front_b: np.ndarray
+    front_c: np.ndarray
+    front_peak_force: np.ndarray  # D * grip * static normal load [N]
+    front_e: np.ndarray
+    rear_b: np.ndarray
+    rear_c: np.ndarray
+    rear_peak_force: np.ndarray
+    rear_e: np.ndarray
+    motor_force: np.ndarray
+    motor_speed_loss: np.ndarray
+    rolling_resistance: np.ndarray
+    drag: np.ndarray
+    rolling_smoothing_speed: np.ndarray
+    throttle_smoothing: np.ndarray
+    steering_gain: np.ndarray
+    steering_offset: np.ndarray
+    blend_low: np.ndarray
+    blend_high: np.ndarray
+    relax_time: np.ndarray
+
+    @classmethod
+    def from_params(
+        cls,
+        params: CarParams | Sequence[CarParams],
+        *,
+        steering_gain_scale: float | Sequence[float] = 1.0,
+        steering_offset_add: float | Sequence[float] = 0.0,
+        extra_drag_add: float | Sequence[float] = 0.0,
+        grip_scale: float | Sequence[float] = 1.0,
+    ) -> "ModelCoefficients":
+        """Coefficients for one car (floats) or a list of cars (arrays of shape (n,)).
+
+        The keyword arguments stack further deviations on top of ``params.corrections``
+        (the simulator passes its hidden effects through them).
+        """
+        single = isinstance(params, CarParams)
+        plist = [params] if single else list(params)
+        if not plist:
+            raise ValueError("params: need at least one CarParams")
+
+        def arr(values: list[float]) -> np.ndarray:
+            return np.asarray(values, dtype=float)
+
+        def per_car(v: float | Sequence[float], what: str) -> np.ndarray:
+            a = np.broadcast_to(np.asarray(v, dtype=float), (len(plist),))
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"{what}: must be finite")
+            return a
+
+        grip = arr([p.corrections.tire_grip_scale for p in plist]) * per_car(grip_scale, "grip_scale")
+        mass = arr([p.inertia.mass_kg for p in plist])
+        lf = arr([p.geometry.lf_m for p in plist])
+        lr = arr([p.geometry.lr_m for p in plist])
+        weight = mass * GRAVITY_MPS2
+        # Static axle loads: the CG splits the weight in inverse proportion to the axle distances.
+        front_load = weight * lr / (lf + lr)
+        rear_load = weight * lf / (lf + lr)
+        values = dict(
+            mass=mass,
+            yaw_inertia=arr([p.inertia.yaw_inertia_kgm2 for p in plist]),
+            lf=lf,
+            lr=lr,
+            front_b=arr([p.front_tire.b for p in plist]),
+            front_c=arr([p.front_tire.c for p in plist]),
+            front_peak_force=arr([p.front_tire.d for p in plist]) * grip * front_load,
+            front_e=arr([p.front_tire.e for p in plist]),
+            rear_b=arr([p.rear_tire.b for p in plist]),
+            rear_c=arr([p.rear_tire.c for p in plist]),
+            rear_peak_force=arr([p.rear_tire.d for p in plist]) * grip * rear_load,
+            rear_e=arr([p.rear_tire.e for p in plist]),
+            motor_force=arr([p.longitudinal.motor_force_n for p in plist]),
+            motor_speed_loss=arr([p.longitudinal.motor_speed_loss_n_per_mps for p in plist]),
+            rolling_resistance=arr([p.longitudinal.rolling_resistance_n for p in plist]),
+            drag=arr([p.longitudinal.drag_n_per_mps2 + p.corrections.extra_drag_n_per_mps2 for p in plist])
+            + per_car(extra_drag_add, "extra_drag_add"),
+            rolling_smoothing_speed=arr([p.longitudinal.rolling_smoothing_speed_mps for p in plist]),
+            throttle_smoothing=arr([p.longitudinal.throttle_smoothing for p in plist]),
+            steering_gain=arr([p.corrections.steering_gain for p in plist])
+            * per_car(steering_gain_scale, "steering_gain_scale"),
+            steering_offset=arr([p.corrections.steering_offset_rad for p in plist])
+            + per_car(steering_offset_add, "steering_offset_add"),
+            blend_low=arr([p.model.blend_speed_low_mps for p in plist]),
+            blend_high=arr([p.model.blend_speed_high_mps for p in plist]),
+            relax_time=arr([p.model.kinematic_relax_time_s for p in plist]),
+        )
+        if np.any(values["drag"] < 0):
+            raise ValueError("drag: total drag coefficient (nominal + corrections + extra) must be >= 0")
+        if single:
+            values = {k: float(v[0]) for k, v in values.items()}
+        return cls(**values)
+
+    @property
+    def wheelbase(self) -> np.ndarray:
+        return self.lf + self.lr
+
+
+def as_coefficients(params: CarParams | Sequence[CarParams] | ModelCoefficients) -> ModelCoefficients:
+    if isinstance(params, ModelCoefficients):
+        return params
+    return ModelCoefficients.from_params(params)
+
+
+def pacejka(slip: np.ndarray, b, c, peak, e) -> tuple[np.ndarray, np.ndarray]:
+    """Lateral force and its slope dF/dslip of the simplified magic formula."""
+    bs = b * slip
+    atan_bs = np.arctan(bs)
+    phi = bs - e * (bs - atan_bs)
+    angle = c * np.arctan(phi)
+    force = peak * np.sin(angle)
+    dphi = b - e * (b - b / (1.0 + bs * bs))
+    slope = peak * np.cos(angle) * c / (1.0 + phi * phi) * dphi
+    return force, slope
+
+
+def drive_force(vx: np.ndarray, throttle: np.ndarray, k: ModelCoefficients):
+    """Longitudinal force at the rear axle and its partials (dF/dvx, dF/dthrottle).
+
+    F = Cm1*u - Cm2*vx*|u| - Cr0*tanh(vx/v_s) - Cd*vx*|vx|, with |u| smoothed so the
+    force is differentiable at zero throttle.
+    """
+    eps = k.throttle_smoothing
+    root = np.sqrt(throttle * throttle + eps * eps)
+    abs_u = root - eps
+    tanh_v = np.tanh(vx / k.rolling_smoothing_speed)
+    abs_vx = np.abs(vx)
+    force = (
+        k.motor_force * throttle
+        - k.motor_speed_loss * vx * abs_u
+        - k.rolling_resistance * tanh_v
+        - k.drag * vx * abs_vx
+    )
+    d_vx = (
+        -k.motor_speed_loss * abs_u
+        - k.rolling_resistance / k.rolling_smoothing_speed * (1.0 - tanh_v * tanh_v)
+        - 2.0 * k.drag * abs_vx
+    )
+    d_u = k.motor_force - k.motor_speed_loss * vx * throttle / root
+    return force, d_vx, d_u
+
+
+def _blend_weight(vx: np.ndarray, k: ModelCoefficients):
+    """Smoothstep weight of the dynamic model (0 below blend_low, 1 above blend_high)."""
+    width = k.blend_high - k.blend_low
+    z = np.clip((vx - k.blend_low) / width, 0.0, 1.0)
+    return z * z * (3.0 - 2.0 * z), 6.0 * z * (1.0 - z) / width
+
+
+def _check_shapes(state: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    state = np.asarray(state, dtype=float)
+    u = np.asarray(u, dtype=float)
+    if state.shape[-1:] != (STATE_DIM,):
+        raise ValueError(f"state: last dimension must be {STATE_DIM}, got shape {state.shape}")
+    if u.shape[-1:] != (INPUT_DIM,):
+        raise ValueError(f"u: last dimension must be {INPUT_DIM}, got shape {u.shape}")
+    return state, u
+
+
+def _evaluate(state, u, params, with_jacobians: bool):
+    state, u = _check_shapes(state, u)
+    k = as_coefficients(params)
+    heading, vx, vy, r = state[..., IHEADING], state[..., IVX], state[..., IVY], state[..., IYAW_RATE]
+    throttle = u[..., ITHROTTLE]
+    delta = k.steering_gain * u[..., ISTEERING] + k.steering_offset
+    cos_h, sin_h = np.cos(heading), np.sin(heading)
+    cos_d, sin_d = np.cos(delta), np.sin(delta)
+    m, iz, lf, lr = k.mass, k.yaw_inertia, k.lf, k.lr
+
+    fx, fx_vx, fx_u = drive_force(vx, throttle, k)
+
+    # Dynamic part. Below blend_low its weight is zero, so clamping vx there only keeps it finite.
+    vxs = np.maximum(vx, k.blend_low)
+    a_f = (vy + lf * r) / vxs
+    a_r = (vy - lr * r) / vxs
+    slip_f = delta - np.arctan(a_f)
+    slip_r = -np.arctan(a_r)
+    fy_f, fy_f_slope = pacejka(slip_f, k.front_b, k.front_c, k.front_peak_force, k.front_e)
+    fy_r, fy_r_slope = pacejka(slip_r, k.rear_b, k.rear_c, k.rear_peak_force, k.rear_e)
+    dyn_vx = (fx - fy_f * sin_d) / m + vy * r
+    dyn_vy = (fy_r + fy_f * cos_d) / m - vx * r
+    dyn_r = (lf * fy_f * cos_d - lr * fy_r) / iz
+
+    # Kinematic part: vx from the drive force alone; vy and r relax to the no-slip values.
+    wheelbase = lf + lr
+    tan_d = np.tan(delta)
+    r_kin = vx * tan_d / wheelbase
+    tau = k.relax_time
+    kin_vx = fx / m
+    kin_vy = (lr * r_kin - vy) / tau
+    kin_r = (r_kin - r) / tau
+
+    w, dw = _blend_weight(vx, k)
+    xdot = np.stack(
+        [
+            vx * cos_h - vy * sin_h,
+            vx * sin_h + vy * cos_h,
+            r,
+            w * dyn_vx + (1.0 - w) * kin_vx,
+            w * dyn_vy + (1.0 - w) * kin_vy,
+            w * dyn_r + (1.0 - w) * kin_r,
+        ],
+        axis=-1,
+    )
+    if not with_jacobians:
+        return xdot
+
+    shape = xdot.shape[:-1]
+    A = np.zeros(shape + (STATE_DIM, STATE_DIM))
+    B = np.zeros(shape + (STATE_DIM, INPUT_DIM))
+    A[..., IX, IHEADING] = -vx * sin_h - vy * cos_h
+    A[..., IX, IVX] = cos_h
+    A[..., IX, IVY] = -sin_h
+    A[..., IY, IHEADING] = vx * cos_h - vy * sin_h
+    A[..., IY, IVX] = sin_h
+    A[..., IY, IVY] = cos_h
+    A[..., IHEADING, IYAW_RATE] = 1.0
+
+    # Slip-angle partials (vx partial vanishes where vx is clamped).
+    active = (vx > k.blend_low).astype(float)
+    inv_f = 1.0 / (1.0 + a_f * a_f)
+    inv_r = 1.0 / (1.0 + a_r * a_r)
+    sf_vx, sf_vy, sf_r = inv_f * a_f / vxs * active, -inv_f / vxs, -inv_f * lf / vxs
+    sr_vx, sr_vy, sr_r = inv_r * a_r / vxs * active, -inv_r / vxs, inv_r * lr / vxs
+    gf, gr = fy_f_slope, fy_r_slope
+
+    # Partials of the dynamic part: rows (vx, vy, r) x columns (vx, vy, r, throttle, delta).
+    dvx = [(fx_vx - gf * sf_vx * sin_d) / m, -gf * sf_vy * sin_d / m + r, -gf * sf_r * sin_d / m + vy,
+           fx_u / m, (-gf * sin_d - fy_f * cos_d) / m]
+    dvy = [(gr * sr_vx + gf * sf_vx * cos_d) / m - r, (gr * sr_vy + gf * sf_vy * cos_d) / m,
+           (gr * sr_r + gf * sf_r * cos_d) / m - vx, 0.0, (gf * cos_d - fy_f * sin_d) / m]
+    dr = [(lf * gf * sf_vx * cos_d - lr * gr * sr_vx) / iz, (lf * gf * sf_vy * cos_d - lr * gr * sr_vy) / iz,
+          (lf * gf * sf_r * cos_d - lr * gr * sr_r) / iz, 0.0, lf * (gf * cos_d - fy_f * sin_d) / iz]
+    # Kinematic part, same layout.
+    sec2 = 1.0 + tan_d * tan_d
+    kvx = [fx_vx / m, 0.0, 0.0, fx_u / m, 0.0]
+    kvy = [lr * tan_d / (wheelbase * tau), -1.0 / tau, 0.0, 0.0, lr * vx * sec2 / (wheelbase * tau)]
+    kr = [tan_d / (wheelbase * tau), 0.0, -1.0 / tau, 0.0, vx * sec2 / (wheelbase * tau)]
+
+    for row, d_dyn, d_kin, dyn_val, kin_val in (
+        (IVX, dvx, kvx, dyn_vx, kin_vx),
+        (IVY, dvy, kvy, dyn_vy, kin_vy),
+        (IYAW_RATE, dr, kr, dyn_r, kin_r),
+    ):
+        blended = [w * a + (1.0 - w) * b for a, b in zip(d_dyn, d_kin)]
+        A[..., row, IVX] = blended[0] + dw * (dyn_val - kin_val)
+        A[..., row, IVY] = blended[1]
+        A[..., row, IYAW_RATE] = blended[2]
+        B[..., row, ITHROTTLE] = blended[3]
+        B[..., row, ISTEERING] = blended[4] * k.steering_gain
+    return xdot, A, B
+
+
+def derivative(state, u, params: CarParams | Sequence[CarParams] | ModelCoefficients) -> np.ndarray:
+    """Continuous-time state derivative f(state, u), shape (..., 6)."""
+    return _evaluate(state, u, params, with_jacobians=False)
+
+
+f = derivative
+
+
+def jacobians(state, u, params: CarParams | Sequence[CarParams] | ModelCoefficients):
+    """Return (f, df/dstate (..., 6, 6), df/du (..., 6, 2)), all analytic."""
+    return _evaluate(state, u, params, with_jacobians=True)
+

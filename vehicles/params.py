@@ -1,0 +1,274 @@
+"""Typed car parameters, loaded from and written back to TOML.
+
+A car file (e.g. ``vehicles/buzzracer.toml``) has one table per dataclass below; every
+field is optional and falls back to the BuzzRacer 1/28-scale defaults documented in
+docs/vehicles.md. Unknown tables or keys, wrong types and out-of-range values raise
+:class:`CarParamsError` naming the file and the field (``geometry.lf_m``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable
+
+VEHICLES_DIR = Path(__file__).resolve().parent
+GRAVITY_MPS2 = 9.81
+
+
+class CarParamsError(ValueError):
+    """A car parameter file or value is invalid; the message names the field at fault."""
+
+
+# Each field carries a validator in its metadata: check(value) -> error text or None.
+def _positive(v: float) -> str | None:
+    return None if v > 0 else "must be > 0"
+
+
+def _non_negative(v: float) -> str | None:
+    return None if v >= 0 else "must be >= 0"
+
+
+def _between(lo: float, hi: float) -> Callable[[float], str | None]:
+    def check(v: float) -> str | None:
+        return None if lo <= v <= hi else f"must be in [{lo}, {hi}]"
+
+    return check
+
+
+def _any(_v: float) -> str | None:
+    return None
+
+
+def _num(default: float, check: Callable[[float], str | None] = _positive, doc: str = "") -> Any:
+    return field(default=default, metadata={"check": check, "doc": doc})
+
+
+def _int(default: int, check: Callable[[float], str | None] = _non_negative, doc: str = "") -> Any:
+    return field(default=default, metadata={"check": check, "doc": doc, "int": True})
+
+
+@dataclass(frozen=True)
+class GeometryParams:
+    lf_m: float = _num(0.04824, doc="centre of gravity to front axle")
+    lr_m: float = _num(0.04176, doc="centre of gravity to rear axle")
+    footprint_length_m: float = _num(0.16, doc="collision rectangle length (body outline)")
+    footprint_width_m: float = _num(0.07, doc="collision rectangle width")
+    footprint_offset_m: float = _num(0.0, _any, doc="collision rectangle centre ahead of the CG")
+
+    @property
+    def wheelbase_m(self) -> float:
+        return self.lf_m + self.lr_m
+
+
+@dataclass(frozen=True)
+class InertiaParams:
+    mass_kg: float = _num(0.1667)
+    yaw_inertia_kgm2: float = _num(0.1667 * (0.15**2 + 0.10**2) / 12.0)
+
+
+@dataclass(frozen=True)
+class TireParams:
+    """Simplified Pacejka magic formula F_y = D*F_z*sin(C*atan(B*a - E*(B*a - atan(B*a))))."""
+
+    b: float = _num(2.3, doc="stiffness factor [1/rad]")
+    c: float = _num(1.6, _between(0.1, 2.0), doc="shape factor")
+    d: float = _num(1.1, doc="peak friction coefficient (peak force / normal load)")
+    e: float = _num(0.0, _between(-10.0, 1.0), doc="curvature factor")
+
+
+@dataclass(frozen=True)
+class LongitudinalParams:
+    """Drive force F = Cm1*u - Cm2*vx*|u| - Cr0*tanh(vx/v_s) - Cd*vx*|vx| (u = throttle in -1..1)."""
+
+    motor_force_n: float = _num(1.0285, doc="Cm1: force at full throttle from standstill")
+    motor_speed_loss_n_per_mps: float = _num(0.282, _non_negative, doc="Cm2: back-EMF loss per m/s")
+    rolling_resistance_n: float = _num(0.034, _non_negative, doc="Cr0: rolling + drivetrain friction")
+    drag_n_per_mps2: float = _num(6.5e-4, _non_negative, doc="Cd: aerodynamic drag, F = Cd*v^2")
+    rolling_smoothing_speed_mps: float = _num(0.02, doc="v_s: tanh smoothing of sign(vx)")
+    throttle_smoothing: float = _num(0.02, doc="eps in |u| ~ sqrt(u^2+eps^2)-eps")
+
+
+@dataclass(frozen=True)
+class ActuatorParams:
+    max_steering_rad: float = _num(math.radians(27.0), _between(1e-3, 1.2))
+    steering_rate_limit_radps: float = _num(10.5)
+    throttle_min: float = _num(-1.0, _between(-1.0, 0.0))
+    throttle_max: float = _num(1.0, _between(0.0, 1.0))
+    throttle_rate_limit_per_s: float = _num(20.0)
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """Low-speed handling of the dynamic model (blend to a kinematic model)."""
+
+    blend_speed_low_mps: float = _num(0.15, doc="below this vx the model is purely kinematic")
+    blend_speed_high_mps: float = _num(0.35, doc="above this vx the model is purely dynamic")
+    kinematic_relax_time_s: float = _num(0.02, doc="time constant pulling vy, r to kinematic values")
+
+
+@dataclass(frozen=True)
+class MarkerParams:
+    aruco_id: int = _int(0, _between(0, 999))
+    height_m: float = _num(0.045, _non_negative, doc="marker plane above the ground")
+
+
+@dataclass(frozen=True)
+class Corrections:
+    """Deviations of the real car from the nominal model, filled in by model identification.
+
+    All neutral by default. Wheel angle = steering_gain * command + steering_offset_rad.
+    """
+
+    steering_delay_s: float = _num(0.0, _between(0.0, 1.0))
+    throttle_delay_s: float = _num(0.0, _between(0.0, 1.0))
+    steering_offset_rad: float = _num(0.0, _between(-0.3, 0.3))
+    steering_gain: float = _num(1.0, _between(0.2, 5.0))
+    extra_drag_n_per_mps2: float = _num(0.0, _between(-1.0, 10.0), doc="added to Cd")
+    tire_grip_scale: float = _num(1.0, _between(0.05, 5.0), doc="multiplies D of both axles")
+
+
+@dataclass(frozen=True)
+class CarParams:
+    name: str = "buzzracer"
+    geometry: GeometryParams = field(default_factory=GeometryParams)
+    inertia: InertiaParams = field(default_factory=InertiaParams)
+    front_tire: TireParams = field(default_factory=TireParams)
+    rear_tire: TireParams = field(default_factory=lambda: TireParams(d=1.265))
+    longitudinal: LongitudinalParams = field(default_factory=LongitudinalParams)
+    actuators: ActuatorParams = field(default_factory=ActuatorParams)
+    model: ModelParams = field(default_factory=ModelParams)
+    marker: MarkerParams = field(default_factory=MarkerParams)
+    corrections: Corrections = field(default_factory=Corrections)
+
+    def __post_init__(self) -> None:
+        _check_cross_fields(self, source="CarParams")
+
+
+_SECTION_TYPES = {
+    "geometry": GeometryParams,
+    "inertia": InertiaParams,
+    "front_tire": TireParams,
+    "rear_tire": TireParams,
+    "longitudinal": LongitudinalParams,
+    "actuators": ActuatorParams,
+    "model": ModelParams,
+    "marker": MarkerParams,
+    "corrections": Corrections,
+}
+
+
+def _check_cross_fields(p: CarParams, source: str) -> None:
+    if p.model.blend_speed_high_mps <= p.model.blend_speed_low_mps:
+        raise CarParamsError(
+            f"{source}: model.blend_speed_high_mps must exceed model.blend_speed_low_mps "
+            f"({p.model.blend_speed_high_mps} <= {p.model.blend_speed_low_mps})"
+        )
+    if p.actuators.throttle_max <= p.actuators.throttle_min:
+        raise CarParamsError(f"{source}: actuators.throttle_max must exceed actuators.throttle_min")
+    for sec, obj in _sections_of(p):
+        for f in fields(obj):
+            _validate_value(source, f"{sec}.{f.name}", f, getattr(obj, f.name))
+
+
+def _sections_of(p: CarParams) -> list[tuple[str, Any]]:
+    return [(name, getattr(p, name)) for name in _SECTION_TYPES]
+
+
+def _validate_value(source: str, key: str, f: dataclasses.Field, value: Any) -> Any:
+    is_int = f.metadata.get("int", False)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        kind = "an integer" if is_int else "a number"
+        raise CarParamsError(f"{source}: {key}: must be {kind}, got {value!r}")
+    if is_int and not isinstance(value, int):
+        raise CarParamsError(f"{source}: {key}: must be an integer, got {value!r}")
+    if not math.isfinite(value):
+        raise CarParamsError(f"{source}: {key}: must be finite, got {value!r}")
+    problem = f.metadata["check"](value)
+    if problem:
+        raise CarParamsError(f"{source}: {key}: {problem}, got {value!r}")
+    return value if is_int else float(value)
+
+
+def car_params_from_dict(data: dict[str, Any], source: str = "<dict>") -> CarParams:
+    """Build CarParams from a parsed TOML mapping; missing fields take the defaults."""
+    unknown = set(data) - set(_SECTION_TYPES) - {"name"}
+    if unknown:
+        raise CarParamsError(
+            f"{source}: unknown key(s) {sorted(unknown)}; expected 'name' or tables {sorted(_SECTION_TYPES)}"
+        )
+    name = data.get("name", CarParams.name)
+    if not isinstance(name, str) or not name:
+        raise CarParamsError(f"{source}: name: must be a non-empty string, got {name!r}")
+    defaults = CarParams()
+    sections: dict[str, Any] = {}
+    for sec, cls in _SECTION_TYPES.items():
+        raw = data.get(sec, {})
+        if not isinstance(raw, dict):
+            raise CarParamsError(f"{source}: {sec}: must be a table, got {raw!r}")
+        known = {f.name: f for f in fields(cls)}
+        bad = set(raw) - set(known)
+        if bad:
+            raise CarParamsError(f"{source}: {sec}: unknown key(s) {sorted(bad)}; expected {sorted(known)}")
+        values = {k: _validate_value(source, f"{sec}.{k}", known[k], v) for k, v in raw.items()}
+        sections[sec] = dataclasses.replace(getattr(defaults, sec), **values)
+    try:
+        return CarParams(name=name, **sections)
+    except CarParamsError as exc:
+        raise CarParamsError(str(exc).replace("CarParams", source, 1)) from None
+
+
+def resolve_car_path(path_or_name: str | Path) -> Path:
+    """A bare name ("buzzracer") means vehicles/<name>.toml; anything else is a path."""
+    text = str(path_or_name)
+    if "/" not in text and "\\" not in text and not text.endswith(".toml"):
+        return VEHICLES_DIR / f"{text}.toml"
+    return Path(text)
+
+
+def load_car_params(path_or_name: str | Path) -> CarParams:
+    path = resolve_car_path(path_or_name)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise CarParamsError(f"{path}: car parameter file not found") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise CarParamsError(f"{path}: not valid TOML: {exc}") from None
+    return car_params_from_dict(data, source=str(path))
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v)  # shortest string that round-trips exactly
+    if isinstance(v, str):
+        escaped = v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
+        return f'"{escaped}"'
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dump_car_params(params: CarParams) -> str:
+    """TOML text for params; load_car_params of it gives back an equal CarParams."""
+    lines = [f"name = {_toml_value(params.name)}"]
+    for sec, obj in _sections_of(params):
+        lines.append("")
+        lines.append(f"[{sec}]")
+        for f in fields(obj):
+            doc = f.metadata.get("doc")
+            comment = f"  # {doc}" if doc else ""
+            lines.append(f"{f.name} = {_toml_value(getattr(obj, f.name))}{comment}")
+    return "\n".join(lines) + "\n"
+
+
+def save_car_params(params: CarParams, path: str | Path) -> Path:
+    path = Path(path)
+    path.write_text(dump_car_params(params), encoding="utf-8")
+    return path
