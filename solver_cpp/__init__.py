@@ -1,1 +1,10 @@
-from . import _core  # noqa: F401
+"""RD3G game solver: Python API over the C++ core (solver_cpp/src, bindings in solver_cpp/bindings)."""
+from . import _core
+from .models import KinematicBicycle, KinematicBicycleFrenet, LinearModel
+from .problem import Agent, Collision, GameProblem, Obstacle, QuadraticCost
+from .solve import GameResult, Solver, WarmStart, make_settings, settings_dict, solve
+
+__all__ = [
+    "_core", "KinematicBicycle", "KinematicBicycleFrenet", "LinearModel", "Agent", "Collision", "GameProblem",
+    "Obstacle", "QuadraticCost", "GameResult", "Solver", "WarmStart", "make_settings", "settings_dict", "solve",
+]

@@ -1,3 +1,9 @@
-#include <pybind11/pybind11.h>
-namespace py = pybind11;
-PYBIND11_MODULE(_core, m) { m.doc() = "RD3G C++ core"; }
+#include "bindings.hpp"
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() = "RD3G C++ core: dynamics models, game problem, settings and the Newton solver";
+  bind_dynamics(m);
+  bind_problem(m);
+  bind_settings(m);
+  bind_solver(m);
+}

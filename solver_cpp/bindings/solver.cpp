@@ -1,0 +1,66 @@
+#include <pybind11/eigen.h>
+#include <pybind11/stl.h>
+
+#include "bindings.hpp"
+#include "rd3g/solver.hpp"
+
+using namespace rd3g;
+
+void bind_solver(py::module_& m) {
+  py::enum_<Status>(m, "Status")
+      .value("converged", Status::Converged)
+      .value("max_iterations", Status::MaxIterations)
+      .value("line_search_failed", Status::LineSearchFailed)
+      .value("numerical_error", Status::NumericalError)
+      .value("time_limit", Status::TimeLimit);
+  m.def("status_name", &status_name);
+  py::class_<Timings>(m, "Timings")
+      .def_readonly("total", &Timings::total)
+      .def_readonly("assembly", &Timings::assembly)
+      .def_readonly("linear_solve", &Timings::linear_solve)
+      .def_readonly("line_search", &Timings::line_search);
+  py::class_<Info>(m, "Info")
+      .def_readonly("status", &Info::status)
+      .def_readonly("iterations", &Info::iterations)
+      .def_readonly("residual_norm", &Info::residual_norm)
+      .def_readonly("max_violation", &Info::max_violation)
+      .def_readonly("rho", &Info::rho)
+      .def_readonly("active_constraints", &Info::active_constraints)
+      .def_readonly("symbolic_factorizations", &Info::symbolic_factorizations)
+      .def_readonly("qr_fallbacks", &Info::qr_fallbacks)
+      .def_readonly("residual_history", &Info::residual_history)
+      .def_readonly("step_history", &Info::step_history)
+      .def_readonly("timings", &Info::timings);
+  py::class_<WarmStart>(m, "WarmStart")
+      .def(py::init<>())
+      .def_readwrite("u", &WarmStart::u)
+      .def_readwrite("lam", &WarmStart::lambda)
+      .def_readwrite("mu", &WarmStart::mu);
+  py::class_<Result>(m, "Result")
+      .def_readonly("x", &Result::x)
+      .def_readonly("u", &Result::u)
+      .def_readonly("lam", &Result::lambda)
+      .def_readonly("mu", &Result::mu)
+      .def_readonly("h", &Result::h)
+      .def_readonly("info", &Result::info);
+  py::enum_<Constraint::Kind>(m, "ConstraintKind")
+      .value("pair", Constraint::Kind::Pair)
+      .value("obstacle", Constraint::Kind::Obstacle)
+      .value("state_max", Constraint::Kind::StateMax)
+      .value("state_min", Constraint::Kind::StateMin)
+      .value("control_max", Constraint::Kind::ControlMax)
+      .value("control_min", Constraint::Kind::ControlMin);
+  py::class_<Constraint>(m, "Constraint")
+      .def_readonly("kind", &Constraint::kind)
+      .def_readonly("i", &Constraint::i)
+      .def_readonly("j", &Constraint::j)
+      .def_readonly("k", &Constraint::k)
+      .def_readonly("idx", &Constraint::idx);
+  py::class_<Solver>(m, "Solver")
+      .def(py::init<>())
+      .def("setup", &Solver::setup, py::arg("problem"), py::arg("settings"))
+      .def(
+          "solve", [](Solver& s, const WarmStart* w) { return s.solve(w); }, py::arg("warm_start") = nullptr,
+          py::call_guard<py::gil_scoped_release>())
+      .def("constraints", &Solver::constraints);
+}

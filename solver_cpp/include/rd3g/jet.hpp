@@ -1,0 +1,63 @@
+// Second-order forward-mode dual numbers: value, gradient and Hessian with respect to K inputs.
+// Used to give models exact (not finite-difference) second derivatives where deriving them by
+// hand would be error-prone; the finite-difference test in tests/test_derivatives.py checks them.
+#pragma once
+#include <Eigen/Dense>
+#include <cmath>
+
+namespace rd3g {
+
+template <int K>
+struct Jet2 {
+  using G = Eigen::Matrix<double, K, 1>;
+  using H = Eigen::Matrix<double, K, K>;
+  double v = 0.0;
+  G g = G::Zero();
+  H h = H::Zero();
+
+  static Jet2 constant(double c) { Jet2 r; r.v = c; return r; }
+  static Jet2 variable(double c, int i) { Jet2 r; r.v = c; r.g[i] = 1.0; return r; }
+};
+
+// Chain rule for a scalar function with value f0, first derivative f1, second derivative f2.
+template <int K>
+inline Jet2<K> apply(const Jet2<K>& a, double f0, double f1, double f2) {
+  Jet2<K> r;
+  r.v = f0;
+  r.g = f1 * a.g;
+  r.h = f1 * a.h + f2 * (a.g * a.g.transpose());
+  return r;
+}
+
+template <int K> inline Jet2<K> operator+(const Jet2<K>& a, const Jet2<K>& b) { Jet2<K> r; r.v = a.v + b.v; r.g = a.g + b.g; r.h = a.h + b.h; return r; }
+template <int K> inline Jet2<K> operator-(const Jet2<K>& a, const Jet2<K>& b) { Jet2<K> r; r.v = a.v - b.v; r.g = a.g - b.g; r.h = a.h - b.h; return r; }
+template <int K> inline Jet2<K> operator+(const Jet2<K>& a, double c) { Jet2<K> r = a; r.v += c; return r; }
+template <int K> inline Jet2<K> operator+(double c, const Jet2<K>& a) { return a + c; }
+template <int K> inline Jet2<K> operator-(const Jet2<K>& a, double c) { Jet2<K> r = a; r.v -= c; return r; }
+template <int K> inline Jet2<K> operator-(double c, const Jet2<K>& a) { Jet2<K> r; r.v = c - a.v; r.g = -a.g; r.h = -a.h; return r; }
+template <int K> inline Jet2<K> operator*(double c, const Jet2<K>& a) { Jet2<K> r; r.v = c * a.v; r.g = c * a.g; r.h = c * a.h; return r; }
+template <int K> inline Jet2<K> operator*(const Jet2<K>& a, double c) { return c * a; }
+template <int K>
+inline Jet2<K> operator*(const Jet2<K>& a, const Jet2<K>& b) {
+  Jet2<K> r;
+  r.v = a.v * b.v;
+  r.g = a.v * b.g + b.v * a.g;
+  r.h = a.v * b.h + b.v * a.h + a.g * b.g.transpose() + b.g * a.g.transpose();
+  return r;
+}
+template <int K> inline Jet2<K> inv(const Jet2<K>& a) { const double i = 1.0 / a.v; return apply(a, i, -i * i, 2.0 * i * i * i); }
+template <int K> inline Jet2<K> operator/(const Jet2<K>& a, const Jet2<K>& b) { return a * inv(b); }
+template <int K> inline Jet2<K> sin(const Jet2<K>& a) { return apply(a, std::sin(a.v), std::cos(a.v), -std::sin(a.v)); }
+template <int K> inline Jet2<K> cos(const Jet2<K>& a) { return apply(a, std::cos(a.v), -std::sin(a.v), -std::cos(a.v)); }
+template <int K>
+inline Jet2<K> tan(const Jet2<K>& a) {
+  const double t = std::tan(a.v), s = 1.0 + t * t;
+  return apply(a, t, s, 2.0 * t * s);
+}
+template <int K>
+inline Jet2<K> atan(const Jet2<K>& a) {
+  const double d = 1.0 + a.v * a.v;
+  return apply(a, std::atan(a.v), 1.0 / d, -2.0 * a.v / (d * d));
+}
+
+}  // namespace rd3g

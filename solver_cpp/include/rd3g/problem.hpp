@@ -1,0 +1,132 @@
+// Plain structs describing a game, the solver settings and the result (OSQP/proxsuite style).
+#pragma once
+#include <limits>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "rd3g/dynamics.hpp"
+
+namespace rd3g {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+/// Quadratic tracking cost of one agent, all weights diagonal (stored as vectors):
+///   J = sum_{k=0}^{T-1} u_k' R u_k + sum_{k=1}^{T-1} [(x_k-x_ref)' Q_ref (x_k-x_ref) + x_k' Q x_k]
+///       + (x_T-x_ref)' Qf_ref (x_T-x_ref) + x_T' Qf x_T.
+struct QuadraticCost {
+  Vec x_ref;   ///< reference state (state units)
+  Vec Q_ref;   ///< weights on x - x_ref (1/state unit^2)
+  Vec Q;       ///< weights on x itself
+  Vec R;       ///< weights on u (1/control unit^2)
+  Vec Qf_ref;  ///< terminal weights on x_T - x_ref
+  Vec Qf;      ///< terminal weights on x_T
+};
+
+/// Cost coupling agents: agent i pays weight * (x^j[index] - x^i[index]) summed over k = 1..T for every
+/// other agent j (the racing "lead" term Q_d (s_j - s_i) with index = progress coordinate).
+/// Linear, so its Hessian is zero; it changes the equilibrium through the gradient.
+struct LeadCost {
+  double weight = 0.0;  ///< Q_d (cost units per state unit)
+  int index = 0;        ///< state component measuring progress (e.g. s in Frenet coordinates)
+};
+
+enum class CollisionForm { Distance, Squared };
+
+/// Pairwise collision avoidance between every pair of agents at k = 1..T:
+///   Distance: h = d_min - ||p^i - p^j|| <= 0;  Squared: h = d_min^2 - ||p^i - p^j||^2 <= 0,
+/// with p the state components (pos_x, pos_y).
+struct CollisionSpec {
+  bool enabled = true;
+  double min_distance = 0.0;  ///< d_min (m)
+  CollisionForm form = CollisionForm::Distance;
+  int pos_x = 0, pos_y = 1;   ///< state indices of the position used by the constraint
+};
+
+/// A moving obstacle every agent avoids (used by a single-agent MPC that predicts its opponent):
+/// h = d_min - ||p^i_k - o_k|| <= 0 for k = 1..T (form as in CollisionSpec).
+struct Obstacle {
+  Eigen::MatrixXd positions;  ///< (T+1) x 2, o_k in the same coordinates as the agents' positions
+  double min_distance = 0.0;  ///< (m)
+};
+
+struct Problem {
+  int horizon = 0;  ///< T, number of control steps
+  double dt = 0.0;  ///< (s), informational: each Dynamics carries its own discretisation
+  std::vector<std::shared_ptr<const Dynamics>> dynamics;  ///< per agent; all agents share nx, nu
+  std::vector<Vec> x0;                                    ///< per agent initial state
+  std::vector<QuadraticCost> costs;                       ///< per agent
+  std::vector<LeadCost> lead;                             ///< per agent (weight 0 = none)
+  CollisionSpec collision;
+  std::vector<Vec> u_min, u_max;  ///< per agent control bounds (+-inf = none), length nu
+  std::vector<Vec> x_min, x_max;  ///< per agent state bounds on x_1..x_T (+-inf = none), length nx
+  std::vector<Obstacle> obstacles;
+
+  int num_agents() const { return static_cast<int>(dynamics.size()); }
+};
+
+enum class LinearSolver {
+  SparseLU,  ///< default: variational multipliers (mu_ij = mu_ji), square system, Eigen SparseLU with reused symbolic analysis
+  LSCG,      ///< paper: per-agent multipliers, least-squares conjugate gradient, SparseQR fallback
+  SparseQR,  ///< paper's fallback alone: per-agent multipliers, Eigen SparseQR
+};
+
+struct Settings {
+  double tol = 5e-4;             ///< stop when ||r||_2 < tol (and the other conditions hold)
+  int max_iter = 100;            ///< Newton iterations
+  double time_limit = 0.0;       ///< (s), 0 = none
+  double rho_init = 0.1;         ///< initial barrier weight rho
+  double rho_kappa = 0.2;        ///< rho <- max(tol/10, min(kappa rho, rho^beta))
+  double rho_beta = 1.5;
+  double ls_alpha = 1e-2;        ///< sufficient decrease: ||r(y+t dy)|| <= (1 - alpha t) ||r(y)||
+  double ls_beta = 0.5;          ///< step shrink factor
+  int ls_max_steps = 30;         ///< backtracking steps before the line search fails
+  double violation_tol = 1e-6;   ///< converged only if every h <= violation_tol (constraint units)
+  double multiplier_tol = 1e-6;  ///< active constraints need mu >= -multiplier_tol (true equilibrium)
+  double barrier_margin = 1e-4;  ///< released constraints re-enter the barrier once h < -barrier_margin
+  double regularization = 1e-9;  ///< tiny diagonal shift tried when the Newton matrix is singular
+  LinearSolver linear_solver = LinearSolver::SparseLU;
+  double lscg_tol = 1e-10;       ///< LSCG relative tolerance
+  int lscg_max_iter = 2000;
+  bool verbose = false;
+};
+
+enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit };
+std::string status_name(Status s);
+
+/// Timings in seconds, accumulated over the whole solve.
+struct Timings {
+  double total = 0, assembly = 0, linear_solve = 0, line_search = 0;
+};
+
+struct Info {
+  Status status = Status::MaxIterations;
+  int iterations = 0;
+  double residual_norm = 0;    ///< final ||r||_2
+  double max_violation = 0;    ///< max(0, max h) over all constraints (constraint units)
+  double rho = 0;              ///< final barrier weight
+  int active_constraints = 0;  ///< constraints held as equalities at the end
+  int symbolic_factorizations = 0;  ///< how often the sparse pattern was analysed
+  int qr_fallbacks = 0;        ///< linear solves that fell back to SparseQR
+  std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
+  std::vector<double> step_history;      ///< accepted line-search step t per iteration
+  Timings timings;
+};
+
+/// Initial guess / warm start. Empty members mean "use the default" (zero controls, zero multipliers).
+struct WarmStart {
+  std::vector<Mat> u;       ///< per agent T x nu
+  std::vector<Mat> lambda;  ///< per agent T x nx
+  Vec mu;                   ///< one per constraint in Solver::constraint order
+};
+
+struct Result {
+  std::vector<Mat> x;       ///< per agent (T+1) x nx
+  std::vector<Mat> u;       ///< per agent T x nu
+  std::vector<Mat> lambda;  ///< per agent T x nx, dynamics multipliers
+  Vec mu;                   ///< per constraint: equality multiplier (active) or barrier-implied -rho/h (inactive)
+  Vec h;                    ///< per constraint value at the solution
+  Info info;
+};
+
+}  // namespace rd3g

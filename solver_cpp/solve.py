@@ -1,0 +1,163 @@
+"""solve(): run RD3G on a GameProblem and return numpy results; settings map one-to-one onto the
+C++ Settings struct (defaults live only there, in solver_cpp/include/rd3g/problem.hpp)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _core
+from .problem import GameProblem
+
+LINEAR_SOLVERS = ("sparse_lu", "lscg", "sparse_qr")
+
+
+def make_settings(**overrides) -> _core.Settings:
+    """C++ defaults, with keyword overrides; unknown names or bad values raise ValueError naming them."""
+    s = _core.Settings()
+    for name, value in overrides.items():
+        if name.startswith("_") or not hasattr(s, name):
+            raise ValueError(f"solver.{name} is not a solver setting")
+        if name == "linear_solver":
+            if isinstance(value, str):
+                if value not in LINEAR_SOLVERS:
+                    raise ValueError(f"solver.linear_solver must be one of {LINEAR_SOLVERS}, got {value!r}")
+                value = getattr(_core.LinearSolver, value)
+        elif isinstance(getattr(s, name), bool):
+            value = bool(value)
+        elif isinstance(getattr(s, name), int):
+            if isinstance(value, bool) or int(value) != value:
+                raise ValueError(f"solver.{name} must be an integer, got {value!r}")
+            value = int(value)
+        elif isinstance(getattr(s, name), float):
+            value = float(value)
+            if not np.isfinite(value):
+                raise ValueError(f"solver.{name} must be finite")
+        setattr(s, name, value)
+    return s
+
+
+def settings_dict(settings: _core.Settings) -> dict:
+    out = {}
+    for name in dir(settings):
+        if name.startswith("_"):
+            continue
+        v = getattr(settings, name)
+        if callable(v):
+            continue
+        out[name] = v.name if isinstance(v, _core.LinearSolver) else v
+    return out
+
+
+@dataclass
+class GameResult:
+    """Solution of a game. Shapes: x (N, T+1, nx), u (N, T, nu), lam (N, T, nx); mu and h hold one
+    entry per constraint (see `constraints`): the equality multiplier of an active constraint or the
+    barrier-implied -rho/h of an inactive one. Times in seconds."""
+
+    status: str
+    x: np.ndarray
+    u: np.ndarray
+    lam: np.ndarray
+    mu: np.ndarray
+    h: np.ndarray
+    iterations: int
+    residual_norm: float
+    max_violation: float
+    residual_history: np.ndarray
+    solve_time_s: float
+    assembly_time_s: float
+    linear_solve_time_s: float
+    line_search_time_s: float
+    active_constraints: int
+    symbolic_factorizations: int
+    constraints: list = field(repr=False, default_factory=list)
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    def pair_multipliers(self) -> np.ndarray:
+        """mu for the pairwise collision constraints as an array (T, N, N) for k = 1..T (symmetric)."""
+        N = self.x.shape[0]
+        T = self.u.shape[1]
+        out = np.zeros((T, N, N))
+        for c, con in enumerate(self.constraints):
+            if con.kind == _core.ConstraintKind.pair:
+                out[con.k - 1, con.i, con.j] = out[con.k - 1, con.j, con.i] = self.mu[c]
+        return out
+
+
+@dataclass
+class WarmStart:
+    """Controls (N, T, nu), dynamics multipliers (N, T, nx), constraint multipliers (one per constraint)."""
+
+    u: np.ndarray
+    lam: np.ndarray | None = None
+    mu: np.ndarray | None = None
+
+    @staticmethod
+    def shifted(result: GameResult) -> "WarmStart":
+        """Receding horizon: drop the first step and repeat the last one."""
+        u = np.concatenate([result.u[:, 1:], result.u[:, -1:]], axis=1)
+        lam = np.concatenate([result.lam[:, 1:], result.lam[:, -1:]], axis=1)
+        return WarmStart(u=u, lam=lam, mu=None)
+
+
+class Solver:
+    """Set up once (validation + allocation), solve many times (e.g. with warm starts)."""
+
+    def __init__(self, problem: GameProblem, settings: _core.Settings | None = None, **overrides):
+        self.problem = problem
+        self.settings = settings if settings is not None else make_settings(**overrides)
+        self._core_problem = problem.to_core()
+        self._solver = _core.Solver()
+        self._solver.setup(self._core_problem, self.settings)
+        self._constraints = list(self._solver.constraints())
+
+    @property
+    def constraints(self):
+        return self._constraints
+
+    def solve(self, warm_start: WarmStart | None = None) -> GameResult:
+        ws = None
+        if warm_start is not None:
+            ws = _to_core_warm(warm_start, self.problem, len(self._constraints))
+        r = self._solver.solve(ws)
+        i = r.info
+        return GameResult(
+            status=_core.status_name(i.status),
+            x=np.stack(r.x), u=np.stack(r.u), lam=np.stack(r.lam), mu=np.asarray(r.mu), h=np.asarray(r.h),
+            iterations=i.iterations, residual_norm=i.residual_norm, max_violation=i.max_violation,
+            residual_history=np.asarray(i.residual_history), solve_time_s=i.timings.total,
+            assembly_time_s=i.timings.assembly, linear_solve_time_s=i.timings.linear_solve,
+            line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
+            symbolic_factorizations=i.symbolic_factorizations, constraints=self._constraints)
+
+
+def _to_core_warm(w: WarmStart, problem: GameProblem, n_constraints: int) -> _core.WarmStart:
+    N, T = problem.num_agents, int(problem.horizon)
+    nu = problem.agents[0].dynamics.nu
+    nx = problem.agents[0].dynamics.nx
+    ws = _core.WarmStart()
+    u = np.asarray(w.u, dtype=float)
+    if u.shape != (N, T, nu) or not np.all(np.isfinite(u)):
+        raise ValueError(f"warm_start.u must be finite with shape ({N}, {T}, {nu}), got {u.shape}")
+    ws.u = list(u)
+    if w.lam is not None:
+        lam = np.asarray(w.lam, dtype=float)
+        if lam.shape != (N, T, nx) or not np.all(np.isfinite(lam)):
+            raise ValueError(f"warm_start.lam must be finite with shape ({N}, {T}, {nx}), got {lam.shape}")
+        ws.lam = list(lam)
+    if w.mu is not None:
+        mu = np.asarray(w.mu, dtype=float)
+        if mu.shape != (n_constraints,) or not np.all(np.isfinite(mu)):
+            raise ValueError(f"warm_start.mu must be finite with shape ({n_constraints},), got {mu.shape}")
+        ws.mu = mu
+    return ws
+
+
+def solve(problem: GameProblem, settings: _core.Settings | None = None, warm_start: WarmStart | None = None,
+          **overrides) -> GameResult:
+    """Solve a game once. Keyword overrides are solver settings (tol, max_iter, linear_solver, ...)."""
+    return Solver(problem, settings, **overrides).solve(warm_start)

@@ -1,0 +1,562 @@
+#include "rd3g/solver.hpp"
+
+#include <Eigen/IterativeLinearSolvers>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <stdexcept>
+#include <string>
+
+namespace rd3g {
+
+namespace {
+using Clock = std::chrono::steady_clock;
+inline double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+void require(bool ok, const std::string& what) {
+  if (!ok) throw std::invalid_argument(what);
+}
+bool finite(const Vec& v) { return v.allFinite(); }
+}  // namespace
+
+std::string status_name(Status s) {
+  switch (s) {
+    case Status::Converged: return "converged";
+    case Status::MaxIterations: return "max_iterations";
+    case Status::LineSearchFailed: return "line_search_failed";
+    case Status::NumericalError: return "numerical_error";
+    case Status::TimeLimit: return "time_limit";
+  }
+  return "unknown";
+}
+
+// -------------------------------------------------------------------------------------------------
+void Solver::setup(const Problem& p, const Settings& s) {
+  N_ = p.num_agents();
+  T_ = p.horizon;
+  require(N_ >= 1, "problem needs at least one agent");
+  require(T_ >= 1, "horizon must be >= 1");
+  require(p.dt > 0 && std::isfinite(p.dt), "dt must be positive and finite");
+  nx_ = p.dynamics[0]->nx();
+  nu_ = p.dynamics[0]->nu();
+  for (int i = 0; i < N_; ++i) {
+    const std::string a = "agents[" + std::to_string(i) + "]";
+    require(p.dynamics[i] != nullptr, a + ".dynamics is missing");
+    require(p.dynamics[i]->nx() == nx_ && p.dynamics[i]->nu() == nu_, a + ".dynamics: all agents must share state/control sizes");
+    require(static_cast<int>(p.x0.size()) == N_ && p.x0[i].size() == nx_ && finite(p.x0[i]), a + ".x0 must have nx finite values");
+    const QuadraticCost& c = p.costs.at(i);
+    for (auto* v : {&c.x_ref, &c.Q_ref, &c.Q, &c.Qf_ref, &c.Qf})
+      require(v->size() == nx_ && finite(*v), a + ".cost: state-sized weights must have nx finite values");
+    require(c.R.size() == nu_ && finite(c.R), a + ".cost.R must have nu finite values");
+    require((c.R.array() >= 0).all() && (c.Q.array() >= 0).all() && (c.Q_ref.array() >= 0).all(),
+            a + ".cost: weights must be non-negative");
+  }
+  require(s.tol > 0 && s.max_iter >= 0 && s.rho_init > 0 && s.rho_kappa > 0 && s.rho_kappa < 1 && s.rho_beta > 1 &&
+              s.ls_alpha > 0 && s.ls_alpha < 1 && s.ls_beta > 0 && s.ls_beta < 1 && s.ls_max_steps >= 1,
+          "settings out of range");
+  prob_ = p;
+  if (prob_.lead.empty()) prob_.lead.assign(N_, LeadCost{});
+  auto fill_bounds = [&](std::vector<Vec>& b, int n, double val, const char* name) {
+    if (b.empty()) b.assign(N_, Vec::Constant(n, val));
+    require(static_cast<int>(b.size()) == N_, std::string(name) + " must have one entry per agent");
+    for (int i = 0; i < N_; ++i) {
+      require(b[i].size() == n, std::string(name) + " has the wrong length");
+      for (int q = 0; q < n; ++q) require(!std::isnan(b[i][q]), std::string(name) + " has NaN");
+    }
+  };
+  fill_bounds(prob_.u_min, nu_, -kInf, "u_min");
+  fill_bounds(prob_.u_max, nu_, kInf, "u_max");
+  fill_bounds(prob_.x_min, nx_, -kInf, "x_min");
+  fill_bounds(prob_.x_max, nx_, kInf, "x_max");
+  for (int i = 0; i < N_; ++i)
+    for (int q = 0; q < nu_; ++q) require(prob_.u_min[i][q] < prob_.u_max[i][q], "u_min must be below u_max");
+  for (const auto& o : prob_.obstacles)
+    require(o.positions.rows() == T_ + 1 && o.positions.cols() == 2 && o.positions.allFinite() && o.min_distance > 0,
+            "obstacle positions must be (T+1) x 2 finite with min_distance > 0");
+  if (prob_.collision.enabled && N_ > 1)
+    require(prob_.collision.min_distance > 0 && prob_.collision.pos_x >= 0 && prob_.collision.pos_x < nx_ &&
+                prob_.collision.pos_y >= 0 && prob_.collision.pos_y < nx_,
+            "collision.min_distance must be positive and position indices valid");
+  settings_ = s;
+  per_agent_multipliers_ = s.linear_solver != LinearSolver::SparseLU;
+
+  // Constraint list, in time order (keeps the multiplier numbering close to the stage ordering).
+  cons_.clear();
+  using K = Constraint::Kind;
+  for (int k = 0; k <= T_; ++k) {
+    if (k >= 1) {
+      if (prob_.collision.enabled)
+        for (int i = 0; i < N_; ++i)
+          for (int j = i + 1; j < N_; ++j) cons_.push_back({K::Pair, i, j, k, -1});
+      for (int i = 0; i < N_; ++i) {
+        for (int o = 0; o < static_cast<int>(prob_.obstacles.size()); ++o) cons_.push_back({K::Obstacle, i, o, k, -1});
+        for (int q = 0; q < nx_; ++q) {
+          if (std::isfinite(prob_.x_max[i][q])) cons_.push_back({K::StateMax, i, -1, k, q});
+          if (std::isfinite(prob_.x_min[i][q])) cons_.push_back({K::StateMin, i, -1, k, q});
+        }
+      }
+    }
+    if (k < T_)
+      for (int i = 0; i < N_; ++i)
+        for (int q = 0; q < nu_; ++q) {
+          if (std::isfinite(prob_.u_max[i][q])) cons_.push_back({K::ControlMax, i, -1, k, q});
+          if (std::isfinite(prob_.u_min[i][q])) cons_.push_back({K::ControlMin, i, -1, k, q});
+        }
+  }
+  const int C = static_cast<int>(cons_.size());
+  n_primal_ = N_ * T_ * stage_size();
+
+  for (Iterate* it : {&y_, &trial_}) {
+    it->x.assign(N_, Mat::Zero(nx_, T_ + 1));
+    it->u.assign(N_, Mat::Zero(nu_, T_));
+    it->lam.assign(N_, Mat::Zero(nx_, T_));
+    it->mu = Vec::Zero(C);
+    it->mu2 = Vec::Zero(C);
+  }
+  A_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nx_)));
+  B_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nu_)));
+  fx_ = Mat::Zero(nx_, 1);
+  Hl_ = Mat::Zero(nx_ + nu_, nx_ + nu_);
+  Atmp_ = Mat::Zero(nx_, nx_);
+  Btmp_ = Mat::Zero(nx_, nu_);
+  h_ = Vec::Zero(C);
+  h_trial_ = Vec::Zero(C);
+  state_.assign(C, ConstraintState::Barrier);
+  pattern_state_.clear();
+  mu_col_.assign(C, -1);
+  mu2_col_.assign(C, -1);
+  const int max_vars = n_primal_ + 2 * C;
+  r_ = Vec::Zero(max_vars);
+  r_trial_ = Vec::Zero(max_vars);
+  dy_ = Vec::Zero(max_vars);
+  // Per stage and agent: dense (nx+nu)^2 Hessian, A, B, identities; per constraint up to ~20 entries.
+  trip_.reserve(static_cast<size_t>(N_) * T_ * (3 * (nx_ + nu_) * (nx_ + nu_) + 4 * nx_) + 24 * C);
+  lu_analyzed_ = false;
+}
+
+// -------------------------------------------------------------------------------------------------
+void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const {
+  const Constraint& cn = cons_[c];
+  using K = Constraint::Kind;
+  g.setZero();
+  H.setZero();
+  auto distance_like = [&](const Eigen::Vector2d& d, double dmin) {
+    // h = dmin - |d| (Distance) or dmin^2 - |d|^2 (Squared); g = dh/dd, H = d2h/dd2.
+    if (prob_.collision.form == CollisionForm::Squared) {
+      h = dmin * dmin - d.squaredNorm();
+      g = -2.0 * d;
+      H = -2.0 * Eigen::Matrix2d::Identity();
+    } else {
+      const double n = std::max(d.norm(), 1e-12);
+      const Eigen::Vector2d e = d / n;
+      h = dmin - n;
+      g = -e;
+      H = -(Eigen::Matrix2d::Identity() - e * e.transpose()) / n;
+    }
+  };
+  const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
+  switch (cn.kind) {
+    case K::Pair: {
+      const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
+      distance_like(d, prob_.collision.min_distance);
+      break;
+    }
+    case K::Obstacle: {
+      const Obstacle& o = prob_.obstacles[cn.j];
+      const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y.x[cn.i](py, cn.k) - o.positions(cn.k, 1));
+      distance_like(d, o.min_distance);
+      break;
+    }
+    case K::StateMax: h = y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx]; g[0] = 1; break;
+    case K::StateMin: h = prob_.x_min[cn.i][cn.idx] - y.x[cn.i](cn.idx, cn.k); g[0] = -1; break;
+    case K::ControlMax: h = y.u[cn.i](cn.idx, cn.k) - prob_.u_max[cn.i][cn.idx]; g[0] = 1; break;
+    case K::ControlMin: h = prob_.u_min[cn.i][cn.idx] - y.u[cn.i](cn.idx, cn.k); g[0] = -1; break;
+  }
+}
+
+void Solver::eval_all_constraints(const Iterate& y, Vec& h) const {
+  Eigen::Vector2d g;
+  Eigen::Matrix2d H;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) eval_constraint(y, c, h[c], g, H);
+}
+
+double Solver::violation_sum(const Vec& h) const { return h.cwiseMax(0.0).sum(); }
+
+// Partition (paper, Sec. III-A) with two safeguards: an active constraint stays an equality while it
+// sits at h ~ 0 (the barrier is undefined there), and one whose multiplier turns negative is released
+// (Free) until it is far enough inside to be handed to the barrier.
+void Solver::classify(const Vec& h, bool first) {
+  const double margin = settings_.barrier_margin;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    ConstraintState& st = state_[c];
+    if (first) {
+      st = h[c] >= 0 ? ConstraintState::Active : (h[c] < -margin ? ConstraintState::Barrier : ConstraintState::Free);
+      continue;
+    }
+    switch (st) {
+      case ConstraintState::Barrier:
+        if (h[c] >= 0) st = ConstraintState::Active;  // only possible if the line search was bypassed
+        break;
+      case ConstraintState::Active: {
+        const bool wrong_sign = y_.mu[c] < -settings_.multiplier_tol ||
+                                (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol);
+        if (h[c] < -margin) st = ConstraintState::Barrier;
+        else if (wrong_sign && h[c] <= settings_.violation_tol) st = ConstraintState::Free;
+        break;
+      }
+      case ConstraintState::Free:
+        if (h[c] < -margin) st = ConstraintState::Barrier;
+        else if (h[c] > settings_.violation_tol) st = ConstraintState::Active;
+        break;
+    }
+    if (st != ConstraintState::Active) { y_.mu[c] = 0; y_.mu2[c] = 0; }
+  }
+}
+
+void Solver::number_multipliers() {
+  int next = n_primal_;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    mu_col_[c] = mu2_col_[c] = -1;
+    if (state_[c] != ConstraintState::Active) continue;
+    mu_col_[c] = next++;
+    if (per_agent_multipliers_ && cons_[c].kind == Constraint::Kind::Pair) mu2_col_[c] = next++;
+  }
+  n_vars_ = next;
+}
+
+// -------------------------------------------------------------------------------------------------
+bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r) {
+  const int ss = stage_size();
+  r.head(n_vars_).setZero();
+  if (jac) trip_.clear();
+  auto add_block = [&](int r0, int c0, const Mat& M) {
+    for (int a = 0; a < M.rows(); ++a)
+      for (int b = 0; b < M.cols(); ++b) trip_.emplace_back(r0 + a, c0 + b, M(a, b));
+  };
+  auto add_neg_identity = [&](int r0, int c0, int n) {
+    for (int a = 0; a < n; ++a) trip_.emplace_back(r0 + a, c0 + a, -1.0);
+  };
+  (void)ss;
+
+  for (int i = 0; i < N_; ++i) {
+    const Dynamics& f = *prob_.dynamics[i];
+    const QuadraticCost& cost = prob_.costs[i];
+    const LeadCost& lead = prob_.lead[i];
+    for (int k = 0; k < T_; ++k) {
+      const int ru = col_u(i, k), rf = col_lam(i, k), rx1 = col_x(i, k + 1);
+      Mat& A = A_[i][k];
+      Mat& B = B_[i][k];
+      f.eval(y.x[i].col(k), y.u[i].col(k), fx_.col(0), A, B);
+      const auto lk = y.lam[i].col(k);
+      // dL/du_k = 2 R u_k + B' lambda_k
+      r.segment(ru, nu_) = 2.0 * cost.R.cwiseProduct(y.u[i].col(k)) + B.transpose() * lk;
+      // F_k = f(x_k, u_k) - x_{k+1}
+      r.segment(rf, nx_) = fx_.col(0) - y.x[i].col(k + 1);
+      // dL/dx_{k+1}: cost gradient - lambda_k (+ A_{k+1}' lambda_{k+1}, added at stage k+1)
+      const bool terminal = (k + 1 == T_);
+      const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
+      const Vec& q = terminal ? cost.Qf : cost.Q;
+      const auto x1 = y.x[i].col(k + 1);
+      r.segment(rx1, nx_) += 2.0 * (qr.cwiseProduct(x1 - cost.x_ref) + q.cwiseProduct(x1)) - lk;
+      if (lead.weight != 0.0 && N_ > 1) r[rx1 + lead.index] += -lead.weight * (N_ - 1);
+      if (k >= 1) r.segment(col_x(i, k), nx_) += A.transpose() * lk;
+
+      if (jac) {
+        f.lambda_hessian(y.x[i].col(k), y.u[i].col(k), lk, Hl_);
+        // rows dL/du_k
+        Mat Huu = Hl_.bottomRightCorner(nu_, nu_);
+        Huu.diagonal() += 2.0 * cost.R;
+        add_block(ru, ru, Huu);
+        add_block(ru, rf, B.transpose());
+        // rows F_k
+        add_block(rf, ru, B);
+        add_neg_identity(rf, rx1, nx_);
+        // rows dL/dx_{k+1}
+        add_neg_identity(rx1, rf, nx_);
+        Mat Hc = Mat::Zero(nx_, nx_);
+        Hc.diagonal() = 2.0 * (qr + q);
+        add_block(rx1, rx1, Hc);
+        if (k >= 1) {
+          const int rxk = col_x(i, k);
+          add_block(ru, rxk, Hl_.bottomLeftCorner(nu_, nx_));
+          add_block(rxk, ru, Hl_.topRightCorner(nx_, nu_));
+          add_block(rxk, rxk, Hl_.topLeftCorner(nx_, nx_));
+          add_block(rxk, rf, A.transpose());
+          add_block(rf, rxk, A);
+        }
+      }
+    }
+  }
+
+  // Constraints: equality rows + multiplier columns (Active), barrier terms (Barrier), nothing (Free).
+  using Kd = Constraint::Kind;
+  const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
+  const double rho = rho_;
+  Eigen::Vector2d g;
+  Eigen::Matrix2d H;
+  double hv;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    const ConstraintState st = state_[c];
+    if (st == ConstraintState::Free) continue;
+    const Constraint& cn = cons_[c];
+    eval_constraint(y, c, hv, g, H);
+    if (st == ConstraintState::Barrier && !(hv < 0)) return false;
+    const bool pos = cn.kind == Kd::Pair || cn.kind == Kd::Obstacle;
+    const bool on_u = cn.kind == Kd::ControlMax || cn.kind == Kd::ControlMin;
+    // Row offset of the variable block the constraint acts on, for agent i (and j for pairs).
+    const int base_i = on_u ? col_u(cn.i, cn.k) : col_x(cn.i, cn.k);
+    const int base_j = cn.kind == Kd::Pair ? col_x(cn.j, cn.k) : -1;
+    int ci[2], cj[2];
+    int nidx = 1;
+    if (pos) { ci[0] = base_i + px; ci[1] = base_i + py; nidx = 2; }
+    else ci[0] = base_i + cn.idx;
+    if (base_j >= 0) { cj[0] = base_j + px; cj[1] = base_j + py; }
+    // g is dh/d(own position) (or dh/d(component)); for pairs dh/dp_j = -g.
+    double wi, wj;  // stationarity weights of agent i and j
+    if (st == ConstraintState::Active) {
+      wi = y.mu[c];
+      wj = mu2_col_[c] >= 0 ? y.mu2[c] : y.mu[c];
+    } else {
+      wi = wj = -rho / hv;
+    }
+    for (int a = 0; a < nidx; ++a) r[ci[a]] += wi * g[a];
+    if (base_j >= 0)
+      for (int a = 0; a < nidx; ++a) r[cj[a]] += -wj * g[a];
+    if (st == ConstraintState::Active) {
+      r[mu_col_[c]] = hv;
+      if (mu2_col_[c] >= 0) r[mu2_col_[c]] = hv;
+    }
+    if (!jac) continue;
+    if (st == ConstraintState::Active) {
+      const int m1 = mu_col_[c], m2 = mu2_col_[c] >= 0 ? mu2_col_[c] : mu_col_[c];
+      for (int a = 0; a < nidx; ++a) {
+        trip_.emplace_back(ci[a], m1, g[a]);
+        trip_.emplace_back(m1, ci[a], g[a]);
+        if (mu2_col_[c] >= 0) trip_.emplace_back(m2, ci[a], g[a]);
+        if (base_j >= 0) {
+          trip_.emplace_back(cj[a], m2, -g[a]);
+          trip_.emplace_back(m1, cj[a], -g[a]);
+          if (mu2_col_[c] >= 0) trip_.emplace_back(m2, cj[a], -g[a]);
+        }
+      }
+      if (pos)
+        for (int a = 0; a < 2; ++a)
+          for (int b = 0; b < 2; ++b) {
+            trip_.emplace_back(ci[a], ci[b], wi * H(a, b));
+            if (base_j >= 0) {
+              trip_.emplace_back(ci[a], cj[b], -wi * H(a, b));
+              trip_.emplace_back(cj[a], cj[b], wj * H(a, b));
+              trip_.emplace_back(cj[a], ci[b], -wj * H(a, b));
+            }
+          }
+    } else {
+      // d/dz of (-rho/h) grad h = rho/h^2 grad h grad h' + (-rho/h) hess h
+      const double s2 = rho / (hv * hv);
+      for (int a = 0; a < nidx; ++a)
+        for (int b = 0; b < nidx; ++b) {
+          const double v = s2 * g[a] * g[b] + (pos ? wi * H(a, b) : 0.0);
+          trip_.emplace_back(ci[a], ci[b], v);
+          if (base_j >= 0) {
+            trip_.emplace_back(ci[a], cj[b], -v);
+            trip_.emplace_back(cj[a], cj[b], v);
+            trip_.emplace_back(cj[a], ci[b], -v);
+          }
+        }
+    }
+  }
+  (void)h;
+  return r.head(n_vars_).allFinite();
+}
+
+// -------------------------------------------------------------------------------------------------
+bool Solver::solve_linear(Vec& dy) {
+  J_.resize(n_vars_, n_vars_);
+  J_.setFromTriplets(trip_.begin(), trip_.end());
+  J_.makeCompressed();
+  const Vec rhs = -r_.head(n_vars_);
+  auto qr_solve = [&]() -> bool {
+    Eigen::SparseQR<SpMat, Eigen::COLAMDOrdering<int>> qr;
+    qr.compute(J_);
+    if (qr.info() != Eigen::Success) return false;
+    dy.head(n_vars_) = qr.solve(rhs);
+    info_->qr_fallbacks++;
+    return qr.info() == Eigen::Success && dy.head(n_vars_).allFinite();
+  };
+  switch (settings_.linear_solver) {
+    case LinearSolver::SparseLU: {
+      // The sparsity pattern depends only on which constraints are equalities: analyse it only when that changes.
+      if (!lu_analyzed_ || pattern_state_ != state_) {
+        lu_.analyzePattern(J_);
+        pattern_state_ = state_;
+        lu_analyzed_ = true;
+        info_->symbolic_factorizations++;
+      }
+      lu_.factorize(J_);
+      if (lu_.info() == Eigen::Success) {
+        dy.head(n_vars_) = lu_.solve(rhs);
+        if (lu_.info() == Eigen::Success && dy.head(n_vars_).allFinite()) return true;
+      }
+      lu_analyzed_ = false;  // a failed factorisation may leave the symbolic data unusable
+      return qr_solve();
+    }
+    case LinearSolver::LSCG: {
+      Eigen::LeastSquaresConjugateGradient<SpMat> cg;
+      cg.setTolerance(settings_.lscg_tol);
+      cg.setMaxIterations(settings_.lscg_max_iter);
+      cg.compute(J_);
+      dy.head(n_vars_) = cg.solve(rhs);
+      if (cg.info() == Eigen::Success && dy.head(n_vars_).allFinite()) return true;
+      return qr_solve();
+    }
+    case LinearSolver::SparseQR: {
+      const bool ok = qr_solve();
+      info_->qr_fallbacks--;  // not a fallback when QR is the chosen method
+      return ok;
+    }
+  }
+  return false;
+}
+
+void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const {
+  for (int i = 0; i < N_; ++i) {
+    out.x[i].col(0) = y.x[i].col(0);
+    for (int k = 0; k < T_; ++k) {
+      out.u[i].col(k) = y.u[i].col(k) + t * dy.segment(col_u(i, k), nu_);
+      out.lam[i].col(k) = y.lam[i].col(k) + t * dy.segment(col_lam(i, k), nx_);
+      out.x[i].col(k + 1) = y.x[i].col(k + 1) + t * dy.segment(col_x(i, k + 1), nx_);
+    }
+  }
+  out.mu = y.mu;
+  out.mu2 = y.mu2;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    if (mu_col_[c] >= 0) out.mu[c] = y.mu[c] + t * dy[mu_col_[c]];
+    if (mu2_col_[c] >= 0) out.mu2[c] = y.mu2[c] + t * dy[mu2_col_[c]];
+  }
+}
+
+// -------------------------------------------------------------------------------------------------
+Result Solver::solve(const WarmStart* warm) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before solve()");
+  const auto t_start = Clock::now();
+  Result res;
+  Info& info = res.info;
+  info_ = &info;
+  const int C = static_cast<int>(cons_.size());
+
+  // Initial guess: given (or zero) controls, rolled out so that the dynamics hold exactly.
+  for (int i = 0; i < N_; ++i) {
+    y_.x[i].col(0) = prob_.x0[i];
+    if (warm && static_cast<int>(warm->u.size()) == N_) {
+      require(warm->u[i].rows() == T_ && warm->u[i].cols() == nu_ && warm->u[i].allFinite(), "warm start u has the wrong shape or non-finite values");
+      y_.u[i] = warm->u[i].transpose();
+    } else {
+      y_.u[i].setZero();
+    }
+    if (warm && static_cast<int>(warm->lambda.size()) == N_) {
+      require(warm->lambda[i].rows() == T_ && warm->lambda[i].cols() == nx_ && warm->lambda[i].allFinite(), "warm start lambda has the wrong shape or non-finite values");
+      y_.lam[i] = warm->lambda[i].transpose();
+    } else {
+      y_.lam[i].setZero();
+    }
+    for (int k = 0; k < T_; ++k) {
+      prob_.dynamics[i]->eval(y_.x[i].col(k), y_.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
+      y_.x[i].col(k + 1) = fx_.col(0);
+    }
+  }
+  y_.mu.setZero();
+  y_.mu2.setZero();
+  if (warm && warm->mu.size() == C) {
+    require(warm->mu.allFinite(), "warm start mu has non-finite values");
+    y_.mu = warm->mu;
+    y_.mu2 = warm->mu;
+  }
+  rho_ = settings_.rho_init;
+  const double rho_floor = settings_.tol / 10.0;
+  lu_analyzed_ = false;
+
+  bool first = true;
+  info.status = Status::MaxIterations;
+  for (int it = 0;; ++it) {
+    auto t0 = Clock::now();
+    eval_all_constraints(y_, h_);
+    classify(h_, first);
+    first = false;
+    number_multipliers();
+    const bool ok = evaluate(y_, h_, true, r_);
+    info.timings.assembly += seconds_since(t0);
+    if (!ok) { info.status = Status::NumericalError; break; }
+    const double rnorm = r_.head(n_vars_).norm();
+    info.residual_history.push_back(rnorm);
+    info.residual_norm = rnorm;
+    info.iterations = it;
+    bool signs_ok = true;
+    for (int c = 0; c < C; ++c)
+      if (state_[c] == ConstraintState::Active &&
+          (y_.mu[c] < -settings_.multiplier_tol || (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol)))
+        signs_ok = false;
+    const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
+    if (settings_.verbose)
+      std::printf("it %3d  |r| %.3e  rho %.2e  viol %.2e  active %d\n", it, rnorm, rho_, maxviol, n_vars_ - n_primal_);
+    if (rnorm < settings_.tol && maxviol <= settings_.violation_tol && signs_ok && rho_ <= rho_floor * (1 + 1e-9)) {
+      info.status = Status::Converged;
+      break;
+    }
+    if (it >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
+    if (settings_.time_limit > 0 && seconds_since(t_start) > settings_.time_limit) { info.status = Status::TimeLimit; break; }
+
+    t0 = Clock::now();
+    const bool solved = solve_linear(dy_);
+    info.timings.linear_solve += seconds_since(t0);
+    if (!solved) { info.status = Status::NumericalError; break; }
+
+    // Backtracking line search (paper, Algorithm 1), with the partition and rho of this iteration.
+    t0 = Clock::now();
+    const double hsum = violation_sum(h_);
+    double t = 1.0;
+    bool accepted = false;
+    for (int ls = 0; ls < settings_.ls_max_steps; ++ls, t *= settings_.ls_beta) {
+      apply_step(y_, dy_, t, trial_);
+      eval_all_constraints(trial_, h_trial_);
+      if (violation_sum(h_trial_) > hsum + 1e-12) continue;
+      if (!evaluate(trial_, h_trial_, false, r_trial_)) continue;
+      if (r_trial_.head(n_vars_).norm() <= (1.0 - settings_.ls_alpha * t) * rnorm) { accepted = true; break; }
+    }
+    info.timings.line_search += seconds_since(t0);
+    if (!accepted) { info.status = Status::LineSearchFailed; break; }
+    std::swap(y_, trial_);
+    info.step_history.push_back(t);
+    rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
+  }
+
+  // Result: trajectories, multipliers (barrier-implied -rho/h for inactive constraints).
+  eval_all_constraints(y_, h_);
+  res.x.resize(N_);
+  res.u.resize(N_);
+  res.lambda.resize(N_);
+  for (int i = 0; i < N_; ++i) {
+    res.x[i] = y_.x[i].transpose();
+    res.u[i] = y_.u[i].transpose();
+    res.lambda[i] = y_.lam[i].transpose();
+  }
+  res.mu = Vec::Zero(C);
+  int nact = 0;
+  for (int c = 0; c < C; ++c) {
+    if (state_[c] == ConstraintState::Active) {
+      res.mu[c] = mu2_col_[c] >= 0 ? 0.5 * (y_.mu[c] + y_.mu2[c]) : y_.mu[c];
+      ++nact;
+    } else if (state_[c] == ConstraintState::Barrier && h_[c] < 0) {
+      res.mu[c] = -rho_ / h_[c];
+    }
+  }
+  res.h = h_;
+  info.active_constraints = nact;
+  info.max_violation = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
+  info.rho = rho_;
+  info.timings.total = seconds_since(t_start);
+  info_ = nullptr;
+  return res;
+}
+
+}  // namespace rd3g
