@@ -20,7 +20,7 @@ import binascii
 import math
 import struct
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Mapping
 
 SYNC = b"\xa5\x5a"
