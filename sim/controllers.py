@@ -20,7 +20,8 @@ class PurePursuitController:
     Geometry is taken at the rear axle, where pure pursuit's arc construction is exact for a
     kinematic bicycle: steering = atan(2 L sin(alpha) / d) with alpha the bearing of the target
     point and d its distance. The speed reference is the lower of ``target_speed_mps`` and the
-    curvature limit sqrt(max_lateral_accel / |kappa|) over the next ``preview_m`` metres.
+    curvature limit sqrt(max_lateral_accel / |kappa|) of the track ahead, braking at
+    ``brake_decel_mps2`` to reach it (see speed_reference).
     Throttle = steady-state feed-forward of the drive model + PI on the speed error.
     """
 
@@ -33,14 +34,16 @@ class PurePursuitController:
         lookahead_min_m: float = 0.15,
         lookahead_time_s: float = 0.2,
         preview_m: float = 0.6,
-        speed_kp: float = 0.4,
-        speed_ki: float = 0.8,
+        brake_decel_mps2: float = 3.0,
+        speed_kp: float = 0.8,
+        speed_ki: float = 0.3,
         lateral_offset_m: float = 0.0,
     ) -> None:
         for name, value in (
             ("target_speed_mps", target_speed_mps),
             ("max_lateral_accel_mps2", max_lateral_accel_mps2),
             ("lookahead_min_m", lookahead_min_m),
+            ("brake_decel_mps2", brake_decel_mps2),
         ):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: must be > 0, got {value!r}")
@@ -55,6 +58,7 @@ class PurePursuitController:
         self.lookahead_min_m = lookahead_min_m
         self.lookahead_time_s = lookahead_time_s
         self.preview_m = preview_m
+        self.brake_decel_mps2 = brake_decel_mps2
         self.speed_kp = speed_kp
         self.speed_ki = speed_ki
         self.lateral_offset_m = lateral_offset_m
@@ -64,11 +68,15 @@ class PurePursuitController:
         self._integral = 0.0
 
     def speed_reference(self, s: float) -> float:
-        samples = s + np.linspace(0.0, self.preview_m, 13)
-        kappa = float(np.max(np.abs(np.asarray(self.track.curvature(np.mod(samples, self.track.length))))))
-        if kappa <= 1e-9:
-            return self.target_speed_mps
-        return min(self.target_speed_mps, math.sqrt(self.max_lateral_accel_mps2 / kappa))
+        """Fastest speed from which every point of the preview can be reached at its cornering
+        speed sqrt(a_lat / |kappa|) while braking at ``brake_decel_mps2``."""
+        v = self.target_speed_mps
+        horizon = max(self.preview_m, v * v / (2.0 * self.brake_decel_mps2) + self.lookahead_min_m)
+        dist = np.linspace(0.0, horizon, 25)
+        kappa = np.abs(np.asarray(self.track.curvature(np.mod(s + dist, self.track.length)), dtype=float))
+        corner_v2 = self.max_lateral_accel_mps2 / np.maximum(kappa, 1e-9)
+        reachable = np.sqrt(corner_v2 + 2.0 * self.brake_decel_mps2 * dist)
+        return float(min(v, reachable.min()))
 
     def feedforward_throttle(self, speed: float) -> float:
         """Throttle that holds ``speed`` on a straight in the nominal drive model."""
