@@ -9,7 +9,6 @@ import numpy as np
 from . import _core
 from .problem import GameProblem
 
-LINEAR_SOLVERS = ("sparse_lu", "lscg", "sparse_qr")
 
 
 def make_settings(**overrides) -> _core.Settings:
@@ -18,11 +17,13 @@ def make_settings(**overrides) -> _core.Settings:
     for name, value in overrides.items():
         if name.startswith("_") or not hasattr(s, name):
             raise ValueError(f"solver.{name} is not a solver setting")
-        if name == "linear_solver":
+        current = getattr(s, name)
+        if hasattr(type(current), "__members__"):  # a C++ enum: accept its value names
+            choices = tuple(type(current).__members__)
             if isinstance(value, str):
-                if value not in LINEAR_SOLVERS:
-                    raise ValueError(f"solver.linear_solver must be one of {LINEAR_SOLVERS}, got {value!r}")
-                value = getattr(_core.LinearSolver, value)
+                if value not in choices:
+                    raise ValueError(f"solver.{name} must be one of {choices}, got {value!r}")
+                value = type(current).__members__[value]
         elif isinstance(getattr(s, name), bool):
             value = bool(value)
         elif isinstance(getattr(s, name), int):
@@ -45,7 +46,7 @@ def settings_dict(settings: _core.Settings) -> dict:
         v = getattr(settings, name)
         if callable(v):
             continue
-        out[name] = v.name if isinstance(v, _core.LinearSolver) else v
+        out[name] = v.name if hasattr(type(v), "__members__") else v
     return out
 
 

@@ -12,7 +12,8 @@ void bind_solver(py::module_& m) {
       .value("max_iterations", Status::MaxIterations)
       .value("line_search_failed", Status::LineSearchFailed)
       .value("numerical_error", Status::NumericalError)
-      .value("time_limit", Status::TimeLimit);
+      .value("time_limit", Status::TimeLimit)
+      .value("stalled", Status::Stalled);
   m.def("status_name", &status_name);
   py::class_<Timings>(m, "Timings")
       .def_readonly("total", &Timings::total)
@@ -28,6 +29,8 @@ void bind_solver(py::module_& m) {
       .def_readonly("active_constraints", &Info::active_constraints)
       .def_readonly("symbolic_factorizations", &Info::symbolic_factorizations)
       .def_readonly("qr_fallbacks", &Info::qr_fallbacks)
+      .def_readonly("lm_steps", &Info::lm_steps)
+      .def_readonly("attempts", &Info::attempts)
       .def_readonly("residual_history", &Info::residual_history)
       .def_readonly("step_history", &Info::step_history)
       .def_readonly("timings", &Info::timings);
@@ -62,5 +65,13 @@ void bind_solver(py::module_& m) {
       .def(
           "solve", [](Solver& s, const WarmStart* w) { return s.solve(w); }, py::arg("warm_start") = nullptr,
           py::call_guard<py::gil_scoped_release>())
-      .def("constraints", &Solver::constraints);
+      .def("constraints", &Solver::constraints)
+      .def("column_of", &Solver::column_of, py::arg("i"), py::arg("k"), py::arg("kind"))
+      .def("debug_residual", [](Solver& s, const std::vector<Mat>& x, const std::vector<Mat>& u,
+                                const std::vector<Mat>& lam, const Vec& mu, double rho) {
+        Vec r;
+        Mat J;
+        auto cols = s.debug_residual(x, u, lam, mu, rho, r, J);
+        return py::make_tuple(r, J, cols);
+      });
 }

@@ -5,6 +5,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <random>
 #include <stdexcept>
 #include <string>
 
@@ -28,6 +29,7 @@ std::string status_name(Status s) {
     case Status::LineSearchFailed: return "line_search_failed";
     case Status::NumericalError: return "numerical_error";
     case Status::TimeLimit: return "time_limit";
+    case Status::Stalled: return "stalled";
   }
   return "unknown";
 }
@@ -114,6 +116,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
     it->lam.assign(N_, Mat::Zero(nx_, T_));
     it->mu = Vec::Zero(C);
     it->mu2 = Vec::Zero(C);
+    it->z = Vec::Zero(C);
   }
   A_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nx_)));
   B_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nu_)));
@@ -123,6 +126,9 @@ void Solver::setup(const Problem& p, const Settings& s) {
   Btmp_ = Mat::Zero(nx_, nu_);
   h_ = Vec::Zero(C);
   h_trial_ = Vec::Zero(C);
+  rc_ = Vec::Zero(C);
+  rc_trial_ = Vec::Zero(C);
+  dz_ = Vec::Zero(C);
   state_.assign(C, ConstraintState::Barrier);
   pattern_state_.clear();
   mu_col_.assign(C, -1);
@@ -130,6 +136,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   const int max_vars = n_primal_ + 2 * C;
   r_ = Vec::Zero(max_vars);
   r_trial_ = Vec::Zero(max_vars);
+  rhs_ = Vec::Zero(max_vars);
   dy_ = Vec::Zero(max_vars);
   // Per stage and agent: dense (nx+nu)^2 Hessian, A, B, identities; per constraint up to ~20 entries.
   trip_.reserve(static_cast<size_t>(N_) * T_ * (3 * (nx_ + nu_) * (nx_ + nu_) + 4 * nx_) + 24 * C);
@@ -212,6 +219,8 @@ void Solver::classify(const Vec& h, bool first) {
         break;
     }
     if (st != ConstraintState::Active) { y_.mu[c] = 0; y_.mu2[c] = 0; }
+    if (st != ConstraintState::Barrier) y_.z[c] = 0;
+    else if (!(y_.z[c] > 0)) y_.z[c] = rho_ / -h[c];  // enter on the central path
   }
 }
 
@@ -227,10 +236,15 @@ void Solver::number_multipliers() {
 }
 
 // -------------------------------------------------------------------------------------------------
-bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r) {
+bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc) {
+  const bool pd = settings_.barrier == BarrierMode::PrimalDual;
+  rc.setZero();
   const int ss = stage_size();
   r.head(n_vars_).setZero();
-  if (jac) trip_.clear();
+  if (jac) {
+    trip_.clear();
+    rhs_.head(n_vars_).setZero();
+  }
   auto add_block = [&](int r0, int c0, const Mat& M) {
     for (int a = 0; a < M.rows(); ++a)
       for (int b = 0; b < M.cols(); ++b) trip_.emplace_back(r0 + a, c0 + b, M(a, b));
@@ -319,7 +333,8 @@ bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r) {
       wi = y.mu[c];
       wj = mu2_col_[c] >= 0 ? y.mu2[c] : y.mu[c];
     } else {
-      wi = wj = -rho / hv;
+      wi = wj = pd ? y.z[c] : -rho / hv;
+      if (pd) rc[c] = -hv * y.z[c] - rho;
     }
     for (int a = 0; a < nidx; ++a) r[ci[a]] += wi * g[a];
     if (base_j >= 0)
@@ -352,8 +367,16 @@ bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r) {
             }
           }
     } else {
-      // d/dz of (-rho/h) grad h = rho/h^2 grad h grad h' + (-rho/h) hess h
-      const double s2 = rho / (hv * hv);
+      // Primal: d/dx of (-rho/h) grad h = rho/h^2 grad h grad h' + (-rho/h) hess h.
+      // Primal-dual (z eliminated): z/(-h) grad h grad h' + z hess h, and the right-hand side becomes the
+      // paper's barrier residual: shift the rows by (-rho/h - z) grad h.
+      const double s2 = pd ? y.z[c] / -hv : rho / (hv * hv);
+      if (pd) {
+        const double shift = -rho / hv - y.z[c];
+        for (int a = 0; a < nidx; ++a) rhs_[ci[a]] += shift * g[a];
+        if (base_j >= 0)
+          for (int a = 0; a < nidx; ++a) rhs_[cj[a]] -= shift * g[a];
+      }
       for (int a = 0; a < nidx; ++a)
         for (int b = 0; b < nidx; ++b) {
           const double v = s2 * g[a] * g[b] + (pos ? wi * H(a, b) : 0.0);
@@ -367,7 +390,39 @@ bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r) {
     }
   }
   (void)h;
-  return r.head(n_vars_).allFinite();
+  if (jac) {
+    // rhs_ collected only the barrier shifts so far; add the residual itself.
+    rhs_.head(n_vars_) += r.head(n_vars_);
+  }
+  return r.head(n_vars_).allFinite() && rc.allFinite();
+}
+
+void Solver::recover_dual_step(const Iterate& y, const Vec& h, const Vec& rc, const Vec& dy, Vec& dz) const {
+  // From the complementarity row: -z grad h' dp - h dz = -rc  =>  dz = (z grad h' dp - rc) / (-h).
+  using Kd = Constraint::Kind;
+  const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
+  Eigen::Vector2d g;
+  Eigen::Matrix2d H;
+  double hv;
+  dz.setZero();
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    if (state_[c] != ConstraintState::Barrier) continue;
+    const Constraint& cn = cons_[c];
+    eval_constraint(y, c, hv, g, H);
+    double gdp;
+    if (cn.kind == Kd::Pair || cn.kind == Kd::Obstacle) {
+      const int bi = col_x(cn.i, cn.k);
+      gdp = g[0] * dy[bi + px] + g[1] * dy[bi + py];
+      if (cn.kind == Kd::Pair) {
+        const int bj = col_x(cn.j, cn.k);
+        gdp -= g[0] * dy[bj + px] + g[1] * dy[bj + py];
+      }
+    } else {
+      const bool on_u = cn.kind == Kd::ControlMax || cn.kind == Kd::ControlMin;
+      gdp = g[0] * dy[(on_u ? col_u(cn.i, cn.k) : col_x(cn.i, cn.k)) + cn.idx];
+    }
+    dz[c] = (y.z[c] * gdp - rc[c]) / -h[c];
+  }
 }
 
 // -------------------------------------------------------------------------------------------------
@@ -375,7 +430,7 @@ bool Solver::solve_linear(Vec& dy) {
   J_.resize(n_vars_, n_vars_);
   J_.setFromTriplets(trip_.begin(), trip_.end());
   J_.makeCompressed();
-  const Vec rhs = -r_.head(n_vars_);
+  const Vec rhs = -rhs_.head(n_vars_);
   auto qr_solve = [&]() -> bool {
     Eigen::SparseQR<SpMat, Eigen::COLAMDOrdering<int>> qr;
     qr.compute(J_);
@@ -430,10 +485,80 @@ void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out)
   }
   out.mu = y.mu;
   out.mu2 = y.mu2;
+  out.z = y.z + t * dz_;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
     if (mu_col_[c] >= 0) out.mu[c] = y.mu[c] + t * dy[mu_col_[c]];
     if (mu2_col_[c] >= 0) out.mu2[c] = y.mu2[c] + t * dy[mu2_col_[c]];
   }
+}
+
+// Backtracking line search (paper, Algorithm 1), with the partition and rho of this iteration:
+// accept t when ||r(y + t dy)|| <= (1 - alpha t) ||r(y)|| and the total violation does not grow.
+double Solver::line_search(double merit0) {
+  const double hsum = violation_sum(h_);
+  double t = 1.0;
+  if (settings_.barrier == BarrierMode::PrimalDual) {
+    recover_dual_step(y_, h_, rc_, dy_, dz_);
+    // Fraction to the boundary: barrier duals stay positive.
+    for (int c = 0; c < static_cast<int>(cons_.size()); ++c)
+      if (state_[c] == ConstraintState::Barrier && dz_[c] < 0)
+        t = std::min(t, -settings_.fraction_to_boundary * y_.z[c] / dz_[c]);
+  } else {
+    dz_.setZero();
+  }
+  for (int ls = 0; ls < settings_.ls_max_steps; ++ls, t *= settings_.ls_beta) {
+    apply_step(y_, dy_, t, trial_);
+    eval_all_constraints(trial_, h_trial_);
+    if (violation_sum(h_trial_) > hsum + 1e-12) {
+      if (settings_.verbose) std::printf("   t %.2e rejected: violation %.3e > %.3e\n", t, violation_sum(h_trial_), hsum);
+      continue;
+    }
+    if (!evaluate(trial_, h_trial_, false, r_trial_, rc_trial_)) {
+      if (settings_.verbose) std::printf("   t %.2e rejected: barrier constraint crossed\n", t);
+      continue;
+    }
+    const double mt = merit(r_trial_, rc_trial_);
+    if (mt <= (1.0 - settings_.ls_alpha * t) * merit0) return t;
+    if (settings_.verbose) std::printf("   t %.2e rejected: |r| %.3e vs %.3e\n", t, mt, merit0);
+  }
+  return 0.0;
+}
+
+// Levenberg-Marquardt direction on ||r||^2: (J'J + nu I) dy = -J' r, always a descent direction.
+bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
+  // J_ still holds the Newton matrix of this iteration (built by solve_linear).
+  SpMat JtJ = J_.transpose() * J_;
+  for (int d = 0; d < n_vars_; ++d) JtJ.coeffRef(d, d) += nu;
+  Eigen::SimplicialLDLT<SpMat> ldlt(JtJ);
+  if (ldlt.info() != Eigen::Success) return false;
+  dy.head(n_vars_) = ldlt.solve(-(J_.transpose() * rhs_.head(n_vars_)));
+  if (settings_.verbose) std::printf("   Levenberg-Marquardt step, nu %.2e\n", nu);
+  return ldlt.info() == Eigen::Success && dy.head(n_vars_).allFinite();
+}
+
+std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::vector<Mat>& u,
+                                       const std::vector<Mat>& lam, const Vec& mu, double rho, Vec& r, Mat& J) {
+  for (int i = 0; i < N_; ++i) {
+    y_.x[i] = x[i].transpose();
+    y_.u[i] = u[i].transpose();
+    y_.lam[i] = lam[i].transpose();
+  }
+  y_.mu = mu;
+  y_.mu2 = mu;
+  y_.z.setZero();  // barrier duals start on the central path
+  rho_ = rho;
+  eval_all_constraints(y_, h_);
+  classify(h_, true);
+  number_multipliers();
+  Info info;
+  info_ = &info;
+  evaluate(y_, h_, true, r_, rc_);
+  info_ = nullptr;
+  r = r_.head(n_vars_);
+  SpMat Js(n_vars_, n_vars_);
+  Js.setFromTriplets(trip_.begin(), trip_.end());
+  J = Mat(Js);
+  return mu_col_;
 }
 
 // -------------------------------------------------------------------------------------------------
@@ -446,88 +571,107 @@ Result Solver::solve(const WarmStart* warm) {
   const int C = static_cast<int>(cons_.size());
 
   // Initial guess: given (or zero) controls, rolled out so that the dynamics hold exactly.
+  std::vector<Mat> u_init(N_), lam_init(N_);
   for (int i = 0; i < N_; ++i) {
-    y_.x[i].col(0) = prob_.x0[i];
     if (warm && static_cast<int>(warm->u.size()) == N_) {
       require(warm->u[i].rows() == T_ && warm->u[i].cols() == nu_ && warm->u[i].allFinite(), "warm start u has the wrong shape or non-finite values");
-      y_.u[i] = warm->u[i].transpose();
+      u_init[i] = warm->u[i].transpose();
     } else {
-      y_.u[i].setZero();
+      u_init[i] = Mat::Zero(nu_, T_);
     }
     if (warm && static_cast<int>(warm->lambda.size()) == N_) {
       require(warm->lambda[i].rows() == T_ && warm->lambda[i].cols() == nx_ && warm->lambda[i].allFinite(), "warm start lambda has the wrong shape or non-finite values");
-      y_.lam[i] = warm->lambda[i].transpose();
+      lam_init[i] = warm->lambda[i].transpose();
     } else {
-      y_.lam[i].setZero();
-    }
-    for (int k = 0; k < T_; ++k) {
-      prob_.dynamics[i]->eval(y_.x[i].col(k), y_.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
-      y_.x[i].col(k + 1) = fx_.col(0);
+      lam_init[i] = Mat::Zero(nx_, T_);
     }
   }
-  y_.mu.setZero();
-  y_.mu2.setZero();
-  if (warm && warm->mu.size() == C) {
-    require(warm->mu.allFinite(), "warm start mu has non-finite values");
-    y_.mu = warm->mu;
-    y_.mu2 = warm->mu;
-  }
-  rho_ = settings_.rho_init;
+  const bool have_mu = warm && warm->mu.size() == C;
+  if (have_mu) require(warm->mu.allFinite(), "warm start mu has non-finite values");
   const double rho_floor = settings_.tol / 10.0;
-  lu_analyzed_ = false;
+  std::mt19937 rng(12345);
+  std::normal_distribution<double> noise(0.0, 1.0);
+  int total_iter = 0;
 
-  bool first = true;
-  info.status = Status::MaxIterations;
-  for (int it = 0;; ++it) {
-    auto t0 = Clock::now();
-    eval_all_constraints(y_, h_);
-    classify(h_, first);
-    first = false;
-    number_multipliers();
-    const bool ok = evaluate(y_, h_, true, r_);
-    info.timings.assembly += seconds_since(t0);
-    if (!ok) { info.status = Status::NumericalError; break; }
-    const double rnorm = r_.head(n_vars_).norm();
-    info.residual_history.push_back(rnorm);
-    info.residual_norm = rnorm;
-    info.iterations = it;
-    bool signs_ok = true;
-    for (int c = 0; c < C; ++c)
-      if (state_[c] == ConstraintState::Active &&
-          (y_.mu[c] < -settings_.multiplier_tol || (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol)))
-        signs_ok = false;
-    const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
-    if (settings_.verbose)
-      std::printf("it %3d  |r| %.3e  rho %.2e  viol %.2e  active %d\n", it, rnorm, rho_, maxviol, n_vars_ - n_primal_);
-    if (rnorm < settings_.tol && maxviol <= settings_.violation_tol && signs_ok && rho_ <= rho_floor * (1 + 1e-9)) {
-      info.status = Status::Converged;
+  for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
+    info.attempts = attempt + 1;
+    for (int i = 0; i < N_; ++i) {
+      y_.x[i].col(0) = prob_.x0[i];
+      y_.u[i] = u_init[i];
+      if (attempt >= 2)
+        for (int k = 0; k < T_; ++k)
+          for (int q = 0; q < nu_; ++q) y_.u[i](q, k) += settings_.restart_u_std * noise(rng);
+      y_.lam[i] = attempt == 0 ? lam_init[i] : Mat::Zero(nx_, T_);
+      for (int k = 0; k < T_; ++k) {
+        prob_.dynamics[i]->eval(y_.x[i].col(k), y_.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
+        y_.x[i].col(k + 1) = fx_.col(0);
+      }
+    }
+    y_.mu.setZero();
+    y_.mu2.setZero();
+    y_.z.setZero();
+    if (have_mu && attempt == 0) { y_.mu = warm->mu; y_.mu2 = warm->mu; }
+    rho_ = settings_.rho_init * (attempt == 1 ? 10.0 : 1.0);
+    lu_analyzed_ = false;
+    std::vector<double> merits;
+    bool first = true, stalled = false;
+    info.status = Status::MaxIterations;
+    for (;; ++total_iter) {
+      auto t0 = Clock::now();
+      eval_all_constraints(y_, h_);
+      classify(h_, first);
+      first = false;
+      number_multipliers();
+      const bool ok = evaluate(y_, h_, true, r_, rc_);
+      info.timings.assembly += seconds_since(t0);
+      if (!ok) { info.status = Status::NumericalError; break; }
+      const double rnorm = merit(r_, rc_);
+      info.residual_history.push_back(rnorm);
+      merits.push_back(rnorm);
+      info.residual_norm = rnorm;
+      info.iterations = total_iter;
+      bool signs_ok = true;
+      for (int c = 0; c < C; ++c)
+        if (state_[c] == ConstraintState::Active &&
+            (y_.mu[c] < -settings_.multiplier_tol || (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol)))
+          signs_ok = false;
+      const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
+      if (settings_.verbose)
+        std::printf("it %3d  |r| %.3e  rho %.2e  viol %.2e  active %d\n", total_iter, rnorm, rho_, maxviol, n_vars_ - n_primal_);
+      if (rnorm < settings_.tol && maxviol <= settings_.violation_tol && signs_ok && rho_ <= rho_floor * (1 + 1e-9)) {
+        info.status = Status::Converged;
+        break;
+      }
+      if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
+      if (settings_.time_limit > 0 && seconds_since(t_start) > settings_.time_limit) { info.status = Status::TimeLimit; break; }
+      const int w = settings_.stall_window;
+      if (w > 0 && static_cast<int>(merits.size()) > w && rnorm > 0.99 * merits[merits.size() - 1 - w]) { stalled = true; break; }
+
+      t0 = Clock::now();
+      const bool solved = solve_linear(dy_);
+      info.timings.linear_solve += seconds_since(t0);
+      if (!solved) { info.status = Status::NumericalError; break; }
+
+      t0 = Clock::now();
+      double t = line_search(rnorm);
+      for (int q = 0; t == 0.0 && q < settings_.lm_tries; ++q) {
+        if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+        t = line_search(rnorm);
+        if (t > 0) info.lm_steps++;
+      }
+      info.timings.line_search += seconds_since(t0);
+      if (t == 0.0) { info.status = Status::LineSearchFailed; break; }
+      std::swap(y_, trial_);
+      info.step_history.push_back(t);
+      if (settings_.rho_progress <= 0 || rnorm <= settings_.rho_progress * rho_)
+        rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
+    }
+    if (info.status == Status::Converged || info.status == Status::TimeLimit || info.status == Status::NumericalError ||
+        total_iter >= settings_.max_iter)
       break;
-    }
-    if (it >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
-    if (settings_.time_limit > 0 && seconds_since(t_start) > settings_.time_limit) { info.status = Status::TimeLimit; break; }
-
-    t0 = Clock::now();
-    const bool solved = solve_linear(dy_);
-    info.timings.linear_solve += seconds_since(t0);
-    if (!solved) { info.status = Status::NumericalError; break; }
-
-    // Backtracking line search (paper, Algorithm 1), with the partition and rho of this iteration.
-    t0 = Clock::now();
-    const double hsum = violation_sum(h_);
-    double t = 1.0;
-    bool accepted = false;
-    for (int ls = 0; ls < settings_.ls_max_steps; ++ls, t *= settings_.ls_beta) {
-      apply_step(y_, dy_, t, trial_);
-      eval_all_constraints(trial_, h_trial_);
-      if (violation_sum(h_trial_) > hsum + 1e-12) continue;
-      if (!evaluate(trial_, h_trial_, false, r_trial_)) continue;
-      if (r_trial_.head(n_vars_).norm() <= (1.0 - settings_.ls_alpha * t) * rnorm) { accepted = true; break; }
-    }
-    info.timings.line_search += seconds_since(t0);
-    if (!accepted) { info.status = Status::LineSearchFailed; break; }
-    std::swap(y_, trial_);
-    info.step_history.push_back(t);
-    rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
+    if (stalled) info.status = Status::Stalled;  // reported if no attempt is left
+    if (settings_.verbose) std::printf("attempt %d ended (%s), restarting\n", attempt, stalled ? "stalled" : status_name(info.status).c_str());
+    ++total_iter;
   }
 
   // Result: trajectories, multipliers (barrier-implied -rho/h for inactive constraints).
@@ -547,7 +691,7 @@ Result Solver::solve(const WarmStart* warm) {
       res.mu[c] = mu2_col_[c] >= 0 ? 0.5 * (y_.mu[c] + y_.mu2[c]) : y_.mu[c];
       ++nact;
     } else if (state_[c] == ConstraintState::Barrier && h_[c] < 0) {
-      res.mu[c] = -rho_ / h_[c];
+      res.mu[c] = settings_.barrier == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h_[c];
     }
   }
   res.h = h_;

@@ -65,6 +65,12 @@ struct Problem {
   int num_agents() const { return static_cast<int>(dynamics.size()); }
 };
 
+enum class BarrierMode {
+  Primal,      ///< paper: Newton on the barrier gradient -rho/h grad h (Hessian term rho/h^2 grad h grad h')
+  PrimalDual,  ///< default: the same log barrier in primal-dual form: dual z with (-h) z = rho, Hessian term
+               ///< z/(-h) grad h grad h' (IPOPT); better conditioned off the central path, same solutions
+};
+
 enum class LinearSolver {
   SparseLU,  ///< default: variational multipliers (mu_ij = mu_ji), square system, Eigen SparseLU with reused symbolic analysis
   LSCG,      ///< paper: per-agent multipliers, least-squares conjugate gradient, SparseQR fallback
@@ -75,23 +81,39 @@ struct Settings {
   double tol = 5e-4;             ///< stop when ||r||_2 < tol (and the other conditions hold)
   int max_iter = 100;            ///< Newton iterations
   double time_limit = 0.0;       ///< (s), 0 = none
-  double rho_init = 0.1;         ///< initial barrier weight rho
+  double rho_init = 0.01;        ///< initial barrier weight rho
   double rho_kappa = 0.2;        ///< rho <- max(tol/10, min(kappa rho, rho^beta))
   double rho_beta = 1.5;
+  /// 0: update rho every iteration (paper). > 0: update only once ||r|| <= rho_progress * rho, i.e. the
+  /// barrier subproblem is nearly solved (IPOPT's monotone rule); keeps iterates near the central path.
+  double rho_progress = 0.0;
   double ls_alpha = 1e-2;        ///< sufficient decrease: ||r(y+t dy)|| <= (1 - alpha t) ||r(y)||
   double ls_beta = 0.5;          ///< step shrink factor
   int ls_max_steps = 30;         ///< backtracking steps before the line search fails
   double violation_tol = 1e-6;   ///< converged only if every h <= violation_tol (constraint units)
   double multiplier_tol = 1e-6;  ///< active constraints need mu >= -multiplier_tol (true equilibrium)
   double barrier_margin = 1e-4;  ///< released constraints re-enter the barrier once h < -barrier_margin
-  double regularization = 1e-9;  ///< tiny diagonal shift tried when the Newton matrix is singular
+  /// When the Newton step fails the line search (near-singular Jacobian), try Levenberg-Marquardt steps
+  /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = lm_nu_init * 10^q, q = 0..lm_tries-1.
+  int lm_tries = 4;
+  double lm_nu_init = 1e-6;
   LinearSolver linear_solver = LinearSolver::SparseLU;
+  BarrierMode barrier = BarrierMode::PrimalDual;
+  double fraction_to_boundary = 0.99;  ///< primal-dual: keep z >= (1 - tau) z along a step
   double lscg_tol = 1e-10;       ///< LSCG relative tolerance
   int lscg_max_iter = 2000;
+  /// Globalisation for nonconvex games: when an attempt stalls (merit down < 1% over stall_window
+  /// iterations) or its line search fails, restart from the initial guess with rho_init * 10 (attempt 1),
+  /// then with the initial controls plus seeded Gaussian noise of std restart_u_std (attempts >= 2).
+  /// Every attempt counts towards iterations, max_iter and the reported time.
+  int restarts = 3;
+  int stall_window = 8;
+  double restart_u_std = 0.2;  ///< (control units)
   bool verbose = false;
 };
 
-enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit };
+/// stalled: every attempt (see restarts) stopped making progress before max_iter.
+enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit, Stalled };
 std::string status_name(Status s);
 
 /// Timings in seconds, accumulated over the whole solve.
@@ -108,6 +130,8 @@ struct Info {
   int active_constraints = 0;  ///< constraints held as equalities at the end
   int symbolic_factorizations = 0;  ///< how often the sparse pattern was analysed
   int qr_fallbacks = 0;        ///< linear solves that fell back to SparseQR
+  int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
+  int attempts = 0;            ///< 1 + restarts used
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
   std::vector<double> step_history;      ///< accepted line-search step t per iteration
   Timings timings;

@@ -4,6 +4,7 @@
 #pragma once
 #include <Eigen/Sparse>
 #include <Eigen/SparseLU>
+#include <Eigen/SparseCholesky>
 #include <Eigen/SparseQR>
 #include <vector>
 
@@ -36,6 +37,14 @@ class Solver {
   Result solve(const WarmStart* warm = nullptr);
 
   const std::vector<Constraint>& constraints() const { return cons_; }
+
+  /// For tests: residual r and dense Newton matrix J at a given primal-dual point (x per agent (T+1) x nx,
+  /// u T x nu, lambda T x nx, mu one per constraint) and barrier weight rho, with the constraints
+  /// partitioned as at the first iteration (h >= 0 active). Returns the multiplier column of each constraint.
+  std::vector<int> debug_residual(const std::vector<Mat>& x, const std::vector<Mat>& u, const std::vector<Mat>& lam,
+                                  const Vec& mu, double rho, Vec& r, Mat& J);
+  /// Column of every primal variable: (agent, k, kind 0=u,1=lambda,2=x_{k+1}) -> first index.
+  int column_of(int i, int k, int kind) const { return kind == 0 ? col_u(i, k) : kind == 1 ? col_lam(i, k) : col_x(i, k + 1); }
   Settings& settings() { return settings_; }
   const Problem& problem() const { return prob_; }
 
@@ -48,6 +57,7 @@ class Solver {
     std::vector<Mat> u;    // per agent nu x T
     std::vector<Mat> lam;  // per agent nx x T
     Vec mu, mu2;           // per constraint; mu2 = other agent's multiplier for Pair (per-agent formulation)
+    Vec z;                 // per constraint: barrier dual (primal-dual mode), -rho/h on the central path
   };
 
   // index helpers
@@ -62,8 +72,16 @@ class Solver {
   void number_multipliers();
   /// Residual (and, if jac, the Jacobian triplets) at y with the current partition and rho.
   /// Returns false if a barrier constraint is not strictly satisfied (residual undefined).
-  bool evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r);
+  /// Also fills rc (complementarity (-h) z - rho of barrier constraints, primal-dual mode) and, if jac,
+  /// rhs_ (the condensed right-hand side, i.e. the paper's barrier residual) and the triplets.
+  bool evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc);
+  double merit(const Vec& r, const Vec& rc) const { return std::sqrt(r.head(n_vars_).squaredNorm() + rc.squaredNorm()); }
+  /// Primal-dual: recover dz of the barrier constraints from the condensed step.
+  void recover_dual_step(const Iterate& y, const Vec& h, const Vec& rc, const Vec& dy, Vec& dz) const;
   bool solve_linear(Vec& dy);
+  bool solve_levenberg_marquardt(double nu, Vec& dy);
+  /// Backtracking line search along dy_ from y_ into trial_; returns the accepted t or 0.
+  double line_search(double merit0);
   void apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const;
   double violation_sum(const Vec& h) const;
 
@@ -81,7 +99,7 @@ class Solver {
   Iterate y_, trial_;
   std::vector<std::vector<Mat>> A_, B_;
   Mat fx_, Hl_, Atmp_, Btmp_;
-  Vec h_, h_trial_, r_, r_trial_, dy_;
+  Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_;
   std::vector<Triplet> trip_;
   SpMat J_;
   Eigen::SparseLU<SpMat, Eigen::COLAMDOrdering<int>> lu_;
