@@ -12,7 +12,10 @@ import sys
 
 # Order here is the order shown in --help.
 COMMAND_MODULES = [
+    "app.commands.demo",
     "app.commands.solve",
+    "app.commands.scenario",
+    "app.commands.bench",
 ]
 
 

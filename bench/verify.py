@@ -1,0 +1,419 @@
+"""Solver-independent checks of a claimed open-loop (generalised) Nash equilibrium of a GameProblem.
+
+Everything here works from the returned trajectories (x, u) alone, plus the C++ models' `eval` for the
+dynamics (the only shared code with the solver; the models' derivatives are checked against finite
+differences in tests/test_derivatives.py). Costs, constraint values and their gradients are written
+here from the definitions in solver_cpp/problem.py, not taken from the solver. The benchmark harness
+applies `verify_equilibrium` to every solver's output; the tests use the individual checks.
+
+Conventions: x has shape (N, T+1, nx) with x[:, 0] the initial states, u has shape (N, T, nu).
+Collision and obstacle constraints are imposed at k = 1..T (the initial states are given data), state
+bounds on x_1..x_T, control bounds on u_0..u_{T-1}. Violations of collision constraints are reported in
+metres (d_min - distance) whatever the constraint form the solver used.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import lsq_linear, minimize
+
+from solver_cpp import GameProblem
+
+# Recommended default tolerances (see verify_equilibrium's docstring for the reasoning).
+DYNAMICS_TOL = 1e-6  # state units
+VIOLATION_TOL_M = 1e-6  # m, collision/obstacle; the same number in state/control units for bounds
+ACTIVE_TOL = 1e-2  # m (collision) or state/control units (bounds): "nearly active" for the KKT check
+STATIONARITY_REL_TOL = 1e-3  # stationarity residual / norm of all players' stacked cost gradients
+BEST_RESPONSE_TOL = 1e-3  # relative cost decrease a player may find by deviating alone
+
+
+# ------------------------------------------------------------------------------------------------
+# Problem data in plain numpy
+@dataclass(frozen=True)
+class _CostData:
+    x_ref: np.ndarray
+    Q_ref: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    Qf_ref: np.ndarray
+    Qf: np.ndarray
+    lead_weight: float
+    lead_index: int
+
+
+def _cost_data(problem: GameProblem, i: int, nx: int, nu: int) -> _CostData:
+    a = problem.agents[i]
+    c = a.cost
+    vec = lambda v, n: np.zeros(n) if v is None else np.asarray(v, dtype=float).reshape(n)  # noqa: E731
+    Q_ref, Q = vec(c.Q_ref, nx), vec(c.Q, nx)
+    return _CostData(x_ref=vec(c.x_ref, nx), Q_ref=Q_ref, Q=Q, R=vec(c.R, nu),
+                     Qf_ref=Q_ref if c.Qf_ref is None else vec(c.Qf_ref, nx),
+                     Qf=Q if c.Qf is None else vec(c.Qf, nx),
+                     lead_weight=float(a.lead_weight), lead_index=int(a.lead_index))
+
+
+def _bounds(values, n: int, fill: float) -> np.ndarray:
+    return np.full(n, fill) if values is None else np.asarray(values, dtype=float).reshape(n)
+
+
+def _check_shapes(problem: GameProblem, x: np.ndarray, u: np.ndarray | None = None) -> tuple[int, int, int, int]:
+    N, T = problem.num_agents, int(problem.horizon)
+    nx, nu = problem.agents[0].dynamics.nx, problem.agents[0].dynamics.nu
+    if x.shape != (N, T + 1, nx):
+        raise ValueError(f"x must have shape ({N}, {T + 1}, {nx}), got {x.shape}")
+    if u is not None and u.shape != (N, T, nu):
+        raise ValueError(f"u must have shape ({N}, {T}, {nu}), got {u.shape}")
+    return N, T, nx, nu
+
+
+def _collision_settings(problem: GameProblem) -> tuple[bool, float, int, int]:
+    """(pairs enabled, d_min, pos_x, pos_y); positions default to state components 0, 1."""
+    col = problem.collision
+    if col is None:
+        return False, 0.0, 0, 1
+    enabled = bool(col.enabled) and problem.num_agents >= 2
+    return enabled, float(col.min_distance), int(col.pos_x), int(col.pos_y)
+
+
+# ------------------------------------------------------------------------------------------------
+def dynamics_defect(problem: GameProblem, x, u) -> float:
+    """max |f(x_k, u_k) - x_{k+1}| over agents, steps and components, plus |x_0 - x0 given|."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    N, T, _, _ = _check_shapes(problem, x, u)
+    worst = 0.0
+    for i, agent in enumerate(problem.agents):
+        f = agent.dynamics.build(problem.dt)
+        worst = max(worst, float(np.max(np.abs(x[i, 0] - np.asarray(agent.x0, dtype=float)))))
+        for k in range(T):
+            x_next = f.eval(x[i, k], u[i, k])[0]
+            worst = max(worst, float(np.max(np.abs(x_next - x[i, k + 1]))))
+    return worst
+
+
+def collision_gaps_m(problem: GameProblem, x) -> np.ndarray:
+    """d_min - distance (m) of every pair (i < j) and every agent-obstacle pair at k = 1..T, flattened;
+    positive = violated. Empty if the problem has no such constraint."""
+    x = np.asarray(x, dtype=float)
+    N, T, _, _ = _check_shapes(problem, x)
+    enabled, d_min, px, py = _collision_settings(problem)
+    p = x[:, 1:, [px, py]]  # (N, T, 2)
+    gaps = []
+    if enabled:
+        iu, ju = np.triu_indices(N, k=1)
+        gaps.append((d_min - np.linalg.norm(p[iu] - p[ju], axis=-1)).ravel())
+    for o in problem.obstacles:
+        pos = np.asarray(o.positions, dtype=float)[1:]  # (T, 2)
+        gaps.append((float(o.min_distance) - np.linalg.norm(p - pos[None], axis=-1)).ravel())
+    return np.concatenate(gaps) if gaps else np.zeros(0)
+
+
+def max_collision_violation_m(problem: GameProblem, x) -> float:
+    """Largest d_min - distance (m) over pairs and obstacles at k = 1..T (positive = violated);
+    -inf if the problem has no collision or obstacle constraint."""
+    gaps = collision_gaps_m(problem, x)
+    return float(gaps.max()) if gaps.size else -np.inf
+
+
+def max_bound_violation(problem: GameProblem, x, u) -> float:
+    """Largest violation of the state (x_1..x_T) and control bounds, in their own units (<= 0 = fine);
+    -inf if there are no bounds."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    N, T, nx, nu = _check_shapes(problem, x, u)
+    worst = -np.inf
+    for i, a in enumerate(problem.agents):
+        for lo, hi, vals in ((_bounds(a.x_min, nx, -np.inf), _bounds(a.x_max, nx, np.inf), x[i, 1:]),
+                             (_bounds(a.u_min, nu, -np.inf), _bounds(a.u_max, nu, np.inf), u[i])):
+            with np.errstate(invalid="ignore"):
+                v = np.concatenate([(vals - hi)[:, np.isfinite(hi)].ravel(), (lo - vals)[:, np.isfinite(lo)].ravel()])
+            if v.size:
+                worst = max(worst, float(v.max()))
+    return worst
+
+
+def player_cost(problem: GameProblem, x, u, i: int) -> float:
+    """J^i from the definition in solver_cpp.QuadraticCost (no 1/2 factor) plus the lead term
+    lead_weight * sum_{k=1..T} sum_{j != i} (x^j_k[idx] - x^i_k[idx])."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    N, T, nx, nu = _check_shapes(problem, x, u)
+    c = _cost_data(problem, i, nx, nu)
+    xi = x[i]
+    e = xi[1:T] - c.x_ref
+    J = float(np.sum(u[i] ** 2 * c.R))
+    J += float(np.sum(e ** 2 * c.Q_ref) + np.sum(xi[1:T] ** 2 * c.Q))
+    J += float(np.sum((xi[T] - c.x_ref) ** 2 * c.Qf_ref) + np.sum(xi[T] ** 2 * c.Qf))
+    if c.lead_weight != 0.0 and N > 1:
+        others = np.delete(x[:, 1:, c.lead_index], i, axis=0)  # (N-1, T)
+        J += c.lead_weight * float(np.sum(others - xi[None, 1:, c.lead_index]))
+    return J
+
+
+def _cost_gradient(problem: GameProblem, x: np.ndarray, u: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
+    """(dJ^i/dx^i_{1..T} as (T, nx), dJ^i/du^i as (T, nu))."""
+    N, T, nx, nu = _check_shapes(problem, x, u)
+    c = _cost_data(problem, i, nx, nu)
+    gx = np.empty((T, nx))
+    gx[:T - 1] = 2.0 * (c.Q_ref * (x[i, 1:T] - c.x_ref) + c.Q * x[i, 1:T])
+    gx[T - 1] = 2.0 * (c.Qf_ref * (x[i, T] - c.x_ref) + c.Qf * x[i, T])
+    if c.lead_weight != 0.0 and N > 1:
+        gx[:, c.lead_index] -= c.lead_weight * (N - 1)
+    return gx, 2.0 * c.R * u[i]
+
+
+# ------------------------------------------------------------------------------------------------
+# Player i's inequality constraints as rows g(z) <= 0 with gradients, z = (x^i_1..T, u^i_0..T-1)
+def _player_inequalities(problem: GameProblem, x: np.ndarray, u: np.ndarray, i: int):
+    """Yields (value, step k (1..T states / 0..T-1 controls), 'x' or 'u', gradient wrt that block)."""
+    N, T, nx, nu = _check_shapes(problem, x, u)
+    enabled, d_min, px, py = _collision_settings(problem)
+    others = [(x[j, :, [px, py]].T, d_min) for j in range(N) if enabled and j != i]
+    others += [(np.asarray(o.positions, dtype=float), float(o.min_distance)) for o in problem.obstacles]
+    for other, dmin in others:
+        for k in range(1, T + 1):
+            d = x[i, k, [px, py]] - other[k]
+            dist = max(float(np.linalg.norm(d)), 1e-12)
+            g = np.zeros(nx)
+            g[px], g[py] = -d / dist
+            yield dmin - dist, k, "x", g
+    a = problem.agents[i]
+    for name, lo, hi, vals, n, first in (("x", _bounds(a.x_min, nx, -np.inf), _bounds(a.x_max, nx, np.inf), x[i], nx, 1),
+                                         ("u", _bounds(a.u_min, nu, -np.inf), _bounds(a.u_max, nu, np.inf), u[i], nu, 0)):
+        for q in range(n):
+            for k in range(first, first + T):
+                if np.isfinite(hi[q]):
+                    yield vals[k, q] - hi[q], k, name, np.eye(n)[q]
+                if np.isfinite(lo[q]):
+                    yield lo[q] - vals[k, q], k, name, -np.eye(n)[q]
+
+
+def _player_kkt(problem: GameProblem, x: np.ndarray, u: np.ndarray, i: int, active_tol: float):
+    """Cost gradient g, and the matrix whose columns are the equality / nearly-active inequality
+    gradients, for player i's optimal-control problem with the other players fixed."""
+    N, T, nx, nu = _check_shapes(problem, x, u)
+    nz = T * (nx + nu)
+    col_x = lambda k: (k - 1) * nx  # noqa: E731  (x_k, k = 1..T)
+    col_u = lambda k: T * nx + k * nu  # noqa: E731  (u_k, k = 0..T-1)
+    gx, gu = _cost_gradient(problem, x, u, i)
+    g = np.concatenate([gx.ravel(), gu.ravel()])
+    f = problem.agents[i].dynamics.build(problem.dt)
+    # Dynamics F_k = f(x_k, u_k) - x_{k+1} = 0, k = 0..T-1: rows of G_eq.
+    G_eq = np.zeros((T * nx, nz))
+    for k in range(T):
+        _, A, B = f.eval(x[i, k], u[i, k])
+        rows = slice(k * nx, (k + 1) * nx)
+        G_eq[rows, col_x(k + 1):col_x(k + 1) + nx] = -np.eye(nx)
+        if k >= 1:
+            G_eq[rows, col_x(k):col_x(k) + nx] = A
+        G_eq[rows, col_u(k):col_u(k) + nu] = B
+    G_in = []
+    for h, k, block, grad in _player_inequalities(problem, x, u, i):
+        if h > -active_tol:
+            row = np.zeros(nz)
+            c0 = col_x(k) if block == "x" else col_u(k)
+            row[c0:c0 + grad.size] = grad
+            G_in.append(row)
+    G_in = np.array(G_in).reshape(-1, nz)
+    return g, G_eq, G_in
+
+
+def cost_gradient_scale(problem: GameProblem, x, u) -> float:
+    """Norm of all players' stacked own-variable cost gradients, the scale against which stationarity
+    residuals are judged (a game-wide scale: a player sitting at its reference has a tiny gradient of
+    its own, while a solver's tolerance is on the residual of the whole game)."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    N = _check_shapes(problem, x, u)[0]
+    sq = sum(float(np.sum(gx ** 2) + np.sum(gu ** 2)) for gx, gu in (_cost_gradient(problem, x, u, i) for i in range(N)))
+    return float(np.sqrt(sq))
+
+
+def stationarity_residual(problem: GameProblem, x, u, active_tol: float = ACTIVE_TOL,
+                          relative: bool = False) -> np.ndarray:
+    """Per player i: min over multipliers (dynamics free, inequalities >= 0) of
+    || grad J^i + G_eq' lam + G_in' mu ||_2, the open-loop KKT stationarity residual of player i's
+    optimal-control problem with the others' trajectories fixed, over z = (x^i_1..T, u^i_0..T-1).
+    G_eq holds the dynamics f(x_k, u_k) - x_{k+1}; G_in the collision (distance form, metres),
+    obstacle and bound constraints with h > -active_tol. With relative=True the entries are divided by
+    cost_gradient_scale (recommended tolerance: STATIONARITY_REL_TOL, see verify_equilibrium)."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    N = _check_shapes(problem, x, u)[0]
+    out = np.empty(N)
+    for i in range(N):
+        g, G_eq, G_in = _player_kkt(problem, x, u, i, active_tol)
+        M = np.vstack([G_eq, G_in]).T
+        lo = np.concatenate([np.full(G_eq.shape[0], -np.inf), np.zeros(G_in.shape[0])])
+        sol = lsq_linear(M, -g, bounds=(lo, np.full(M.shape[1], np.inf)), method="bvls", tol=1e-14)
+        out[i] = float(np.linalg.norm(M @ sol.x + g))
+    if relative:
+        out /= max(cost_gradient_scale(problem, x, u), 1e-300)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+class _ShootingProblem:
+    """Player i's optimal-control problem over its controls alone (single shooting through the C++
+    rollout, so the dynamics hold exactly), others fixed. Constraints c(U) >= 0 with analytic
+    gradients via forward sensitivities S_k = dx_k/dU."""
+
+    def __init__(self, problem: GameProblem, x: np.ndarray, u: np.ndarray, i: int):
+        self.problem, self.i = problem, i
+        self.N, self.T, self.nx, self.nu = _check_shapes(problem, x, u)
+        self.x_all, self.u_all = x.copy(), u.copy()
+        self.f = problem.agents[i].dynamics.build(problem.dt)
+        self.x0 = np.asarray(problem.agents[i].x0, dtype=float)
+        a = problem.agents[i]
+        self.u_lo, self.u_hi = _bounds(a.u_min, self.nu, -np.inf), _bounds(a.u_max, self.nu, np.inf)
+        self.x_lo, self.x_hi = _bounds(a.x_min, self.nx, -np.inf), _bounds(a.x_max, self.nx, np.inf)
+        enabled, d_min, self.px, self.py = _collision_settings(problem)
+        # Points to keep away from at k = 1..T: (positions (T, 2), d_min).
+        self.avoid = [(x[j, 1:][:, [self.px, self.py]], d_min) for j in range(self.N) if enabled and j != i]
+        self.avoid += [(np.asarray(o.positions, dtype=float)[1:], float(o.min_distance)) for o in problem.obstacles]
+        self._key = None
+
+    def _eval(self, z: np.ndarray) -> None:
+        key = z.tobytes()
+        if key == self._key:
+            return
+        T, nx, nu = self.T, self.nx, self.nu
+        U = z.reshape(T, nu)
+        X = np.empty((T + 1, nx))
+        S = np.zeros((T + 1, nx, T * nu))
+        X[0] = self.x0
+        for k in range(T):
+            X[k + 1], A, B = self.f.eval(X[k], U[k])
+            S[k + 1] = A @ S[k]
+            S[k + 1][:, k * nu:(k + 1) * nu] += B
+        self.X, self.S, self._key = X, S, key
+
+    def trajectories(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self._eval(z)
+        x, u = self.x_all.copy(), self.u_all.copy()
+        x[self.i] = self.X
+        u[self.i] = z.reshape(self.T, self.nu)
+        return x, u
+
+    def cost(self, z: np.ndarray) -> float:
+        x, u = self.trajectories(z)
+        return player_cost(self.problem, x, u, self.i)
+
+    def cost_grad(self, z: np.ndarray) -> np.ndarray:
+        x, u = self.trajectories(z)
+        gx, gu = _cost_gradient(self.problem, x, u, self.i)
+        return np.einsum("kx,kxz->z", gx, self.S[1:]) + gu.ravel()
+
+    def constraints(self, z: np.ndarray) -> np.ndarray:
+        """c >= 0: |p - o|^2 - d_min^2 (smooth), x_max - x, x - x_min."""
+        self._eval(z)
+        p = self.X[1:, [self.px, self.py]]
+        c = [np.sum((p - o) ** 2, axis=1) - d ** 2 for o, d in self.avoid]
+        hi, lo = np.isfinite(self.x_hi), np.isfinite(self.x_lo)
+        c += [(self.x_hi[hi] - self.X[1:, hi]).ravel(), (self.X[1:, lo] - self.x_lo[lo]).ravel()]
+        return np.concatenate(c)
+
+    def constraints_jac(self, z: np.ndarray) -> np.ndarray:
+        self._eval(z)
+        Sp = self.S[1:, [self.px, self.py]]  # (T, 2, nz)
+        p = self.X[1:, [self.px, self.py]]
+        rows = [np.einsum("kc,kcz->kz", 2.0 * (p - o), Sp) for o, _ in self.avoid]
+        hi, lo = np.isfinite(self.x_hi), np.isfinite(self.x_lo)
+        rows += [-self.S[1:, hi].reshape(-1, self.S.shape[-1]), self.S[1:, lo].reshape(-1, self.S.shape[-1])]
+        return np.concatenate(rows, axis=0)
+
+
+def _player_violation(problem: GameProblem, x: np.ndarray, u: np.ndarray, i: int) -> float:
+    """Largest violation of player i's own constraints (collision in m, bounds in their units)."""
+    worst = -np.inf
+    for h, _, _, _ in _player_inequalities(problem, x, u, i):
+        worst = max(worst, h)
+    return worst
+
+
+def best_response_gap(problem: GameProblem, x, u, i: int, starts: int = 2, perturbation: float = 0.05,
+                      seed: int = 0, feasibility_tol: float = VIOLATION_TOL_M, max_iter: int = 200) -> float:
+    """Best relative decrease (J^i(sol) - J^i(best)) / |J^i(sol)| of player i's cost that SLSQP finds
+    over player i's controls alone (others' trajectories fixed, dynamics by rollout, collision,
+    obstacle and bound constraints), started from the solution and from `starts` seeded perturbations
+    of it (Gaussian, std `perturbation` in control units). Only points violating player i's
+    constraints by at most feasibility_tol count. <= ~0 means no profitable unilateral deviation was
+    found (a local check: SLSQP finds local optima near its starts). NaN if no feasible point was found."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    _check_shapes(problem, x, u)
+    sp = _ShootingProblem(problem, x, u, i)
+    J_sol = player_cost(problem, x, u, i)
+    scale = max(abs(J_sol), 1e-12)
+    rng = np.random.default_rng(seed)
+    z_sol = u[i].ravel().copy()
+    bounds = list(zip(np.tile(sp.u_lo, sp.T), np.tile(sp.u_hi, sp.T)))
+    bounds = [(None if not np.isfinite(lo) else lo, None if not np.isfinite(hi) else hi) for lo, hi in bounds]
+    lo_arr = np.tile(sp.u_lo, sp.T)
+    hi_arr = np.tile(sp.u_hi, sp.T)
+    cons = [{"type": "ineq", "fun": sp.constraints, "jac": sp.constraints_jac}] if sp.constraints(z_sol).size else []
+    best = np.nan
+    candidates = [z_sol] + [np.clip(z_sol + perturbation * rng.standard_normal(z_sol.size), lo_arr, hi_arr)
+                            for _ in range(starts)]
+    for z0 in candidates:
+        res = minimize(sp.cost, z0, jac=sp.cost_grad, method="SLSQP", bounds=bounds, constraints=cons,
+                       options={"maxiter": max_iter, "ftol": 1e-12})
+        for z in (res.x, z0):  # the start itself counts too (e.g. the solution when SLSQP wanders off)
+            if _player_violation(problem, *sp.trajectories(z), i) <= feasibility_tol:
+                gap = (J_sol - sp.cost(z)) / scale
+                best = gap if np.isnan(best) else max(best, gap)
+    return float(best)
+
+
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class EquilibriumReport:
+    """Outcome of verify_equilibrium. Units: dynamics_defect in state units, collision in metres,
+    bounds in their own units; stationarity relative to cost_gradient_scale."""
+
+    dynamics_defect: float
+    max_collision_violation_m: float
+    max_bound_violation: float
+    stationarity: np.ndarray  # absolute, per player
+    stationarity_relative: np.ndarray  # per player
+    best_response_gaps: np.ndarray | None  # per player, relative cost decrease; None if not run
+    passed: bool
+    failures: list[str] = field(default_factory=list)
+
+
+def verify_equilibrium(problem: GameProblem, result_x, result_u, *, dynamics_tol: float = DYNAMICS_TOL,
+                       violation_tol_m: float = VIOLATION_TOL_M, active_tol: float = ACTIVE_TOL,
+                       stationarity_tol: float = STATIONARITY_REL_TOL, best_response: bool = True,
+                       best_response_tol: float = BEST_RESPONSE_TOL, best_response_starts: int = 2,
+                       seed: int = 0) -> EquilibriumReport:
+    """Check a claimed equilibrium: dynamics, feasibility, per-player KKT stationarity and (optionally)
+    unilateral best responses.
+
+    Tolerances. Dynamics 1e-6 and violation 1e-6 m are what a converged Newton solve reaches easily.
+    Stationarity is judged relative to ||grad J^i||: the dynamics multipliers must cancel that
+    gradient, so an absolute residual means nothing without it; 1e-3 leaves room for the barrier
+    terms a solver with barrier weight rho ~ tol/10 leaves on constraints farther than active_tol
+    (each contributes about rho/|h| |grad h|) and for a solver tolerance around 1e-4 on the
+    residual norm. A best-response gap below 1e-3 relative means no player found a feasible
+    unilateral deviation worth more than 0.1% of its cost."""
+    x, u = np.asarray(result_x, dtype=float), np.asarray(result_u, dtype=float)
+    N = _check_shapes(problem, x, u)[0]
+    failures = []
+    defect = dynamics_defect(problem, x, u)
+    coll = max_collision_violation_m(problem, x)
+    bnd = max_bound_violation(problem, x, u)
+    stat = stationarity_residual(problem, x, u, active_tol)
+    stat_rel = stat / max(cost_gradient_scale(problem, x, u), 1e-300)
+    if not np.isfinite(defect) or defect > dynamics_tol:
+        failures.append(f"dynamics defect {defect:.3e} > {dynamics_tol:.1e}")
+    if not coll <= violation_tol_m:
+        failures.append(f"collision violation {coll:.3e} m > {violation_tol_m:.1e} m")
+    if not bnd <= violation_tol_m:
+        failures.append(f"bound violation {bnd:.3e} > {violation_tol_m:.1e}")
+    for i in np.flatnonzero(~(stat_rel <= stationarity_tol)):
+        failures.append(f"player {i}: stationarity residual {stat[i]:.3e} "
+                        f"({stat_rel[i]:.3e} of |grad J|) > {stationarity_tol:.1e}")
+    gaps = None
+    if best_response:
+        gaps = np.array([best_response_gap(problem, x, u, i, starts=best_response_starts, seed=seed + i)
+                         for i in range(N)])
+        for i in np.flatnonzero(~(gaps <= best_response_tol)):
+            failures.append(f"player {i}: unilateral deviation lowers its cost by {gaps[i]:.3e} (relative)")
+    return EquilibriumReport(dynamics_defect=defect, max_collision_violation_m=coll, max_bound_violation=bnd,
+                             stationarity=stat, stationarity_relative=stat_rel, best_response_gaps=gaps,
+                             passed=not failures, failures=failures)
