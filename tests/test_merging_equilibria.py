@@ -1,0 +1,109 @@
+"""Merging games whose equilibria have active collision constraints: the solver's answer checked with
+bench.verify (dynamics, feasibility, per-player KKT stationarity by bounded least squares, SLSQP best
+responses) and by single-coordinate control perturbations.
+
+Seeds chosen with a search over merging_problem(N, seed), seeds 0-14, at tol 1e-8: in these the closest
+approach of two cars is 2.0 m to within 1e-6, i.e. a collision constraint is active at the solution."""
+import numpy as np
+import pytest
+
+from bench.merging import MIN_DISTANCE, merging_problem
+from bench.verify import (best_response_gap, collision_gaps_m, dynamics_defect, max_collision_violation_m,
+                          player_cost, stationarity_residual, verify_equilibrium)
+from solver_cpp import solve
+
+INSTANCES = [(3, 2), (3, 4), (3, 10), (5, 3)]  # (cars, seed)
+SOLVE_TOL = 1e-8
+_solutions = {}
+
+
+def _solved(num_cars, seed, linear_solver="sparse_lu"):
+    key = (num_cars, seed, linear_solver)
+    if key not in _solutions:
+        problem = merging_problem(num_cars, seed)
+        _solutions[key] = (problem, solve(problem, tol=SOLVE_TOL, linear_solver=linear_solver))
+    return _solutions[key]
+
+
+@pytest.mark.parametrize("num_cars, seed", INSTANCES)
+def test_merging_solution_is_an_equilibrium_with_active_collision_constraints(num_cars, seed):
+    problem, result = _solved(num_cars, seed)
+    assert result.status == "converged"
+    x, u = result.x, result.u
+    # The instance exercises the constraints: some pair is at the collision radius.
+    closest = -collision_gaps_m(problem, x).max() + MIN_DISTANCE
+    assert abs(closest - MIN_DISTANCE) < 1e-2
+    # (a) dynamics, (b) feasibility in metres
+    assert dynamics_defect(problem, x, u) < 1e-6
+    assert max_collision_violation_m(problem, x) <= 1e-6
+    # (e) each player's KKT stationarity (multipliers recomputed from the trajectories alone)
+    assert stationarity_residual(problem, x, u, relative=True).max() < 1e-5
+    # (c) no player lowers its cost by more than 1e-3 (relative) alone while staying feasible, from
+    # the solution and from two perturbed starts
+    for i in range(num_cars):
+        gap = best_response_gap(problem, x, u, i, starts=2, perturbation=0.05, seed=seed * 10 + i)
+        assert gap <= 1e-3, f"player {i} improves by {gap:.3e}"
+
+
+@pytest.mark.parametrize("num_cars, seed", INSTANCES)
+def test_feasible_single_control_perturbations_do_not_lower_cost(num_cars, seed):
+    """(d) u^i_k[q] +- 1e-3, rolled out through player i's model, others fixed: if still collision free,
+    player i's cost must not drop (beyond rounding and the solve tolerance)."""
+    problem, result = _solved(num_cars, seed)
+    x, u = result.x, result.u
+    checked = 0
+    for i, agent in enumerate(problem.agents):
+        f = agent.dynamics.build(problem.dt)
+        J_star = player_cost(problem, x, u, i)
+        for k in range(problem.horizon):
+            for q in range(u.shape[2]):
+                for step in (1e-3, -1e-3):
+                    u2 = u.copy()
+                    u2[i, k, q] += step
+                    x2 = x.copy()
+                    x2[i] = f.rollout(x[i, 0], u2[i])
+                    if max_collision_violation_m(problem, x2) > 0:
+                        continue
+                    checked += 1
+                    assert player_cost(problem, x2, u2, i) - J_star > -1e-9, (i, k, q, step)
+    assert checked > 0.5 * 2 * u.size  # most perturbations are feasible; the check is not vacuous
+
+
+def test_linear_solvers_find_the_same_equilibrium():
+    base_problem, base = _solved(3, 4)
+    for linear_solver in ("sparse_qr", "lscg"):
+        _, other = _solved(3, 4, linear_solver)
+        assert other.status == "converged", linear_solver
+        np.testing.assert_allclose(other.x, base.x, atol=1e-6, rtol=0, err_msg=linear_solver)
+        np.testing.assert_allclose(other.u, base.u, atol=1e-6, rtol=0, err_msg=linear_solver)
+
+
+def test_verification_rejects_a_non_equilibrium():
+    """The checks have teeth: a feasible, dynamically consistent but perturbed solution fails them."""
+    problem, result = _solved(3, 4)
+    f = problem.agents[2].dynamics.build(problem.dt)
+    u = result.u.copy()
+    u[2, :, 0] += 0.3  # car 2 accelerates harder than it wants to
+    x = result.x.copy()
+    x[2] = f.rollout(x[2, 0], u[2])
+    assert max_collision_violation_m(problem, x) < 0
+    report = verify_equilibrium(problem, x, u, best_response_starts=0)
+    assert report.dynamics_defect < 1e-8
+    assert report.stationarity_relative[2] > 1e-2
+    assert report.best_response_gaps[2] > 1e-2
+    assert not report.passed and any("player 2" in msg for msg in report.failures)
+    # ... while the untouched solution passes the same checks.
+    assert verify_equilibrium(problem, result.x, result.u, best_response_starts=0).passed
+
+
+@pytest.mark.xfail(strict=False, reason=(
+    "solver_cpp: with linear_solver='lscg', merging_problem(3, 2) at tol 1e-8 reports 'converged' (51 iterations, "
+    "after a restart) at a first-order point (stationarity ~1e-8, feasible) with cars 0 and 1 side by side at "
+    "exactly 2 m for 17 steps; it is not a Nash equilibrium: 1e-3 control perturbations let SLSQP lower player 0's "
+    "cost by 29% and player 1's by 10% unilaterally. sparse_lu/sparse_qr find a genuine equilibrium there. "
+    "Newton on the KKT conditions cannot tell such saddles from equilibria; a second-order check is missing"))
+def test_lscg_solution_is_an_equilibrium():
+    problem, result = _solved(3, 2, "lscg")
+    assert result.status == "converged"
+    for i in range(problem.num_agents):
+        assert best_response_gap(problem, result.x, result.u, i, starts=2, perturbation=1e-3, seed=i) <= 1e-3
