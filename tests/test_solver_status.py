@@ -1,0 +1,83 @@
+"""Every solver status is reachable, and each is reported for the reason it names; warm starts help."""
+import numpy as np
+
+from bench.merging import merging_problem
+from bench.verify import dynamics_defect, max_collision_violation_m
+from solver_cpp import WarmStart, _core, solve
+
+ALL_STATUSES = {"converged", "max_iterations", "line_search_failed", "numerical_error", "time_limit", "stalled"}
+
+
+def test_status_list_is_the_tested_one():
+    # A status added to the C++ enum without a test here makes this fail.
+    assert set(_core.Status.__members__) == ALL_STATUSES
+
+
+def test_converged():
+    problem = merging_problem(3, 2)
+    result = solve(problem)
+    assert result.status == "converged" and result.converged
+    assert result.residual_norm < 5e-4  # the default tol
+    assert result.residual_history[-1] == result.residual_norm
+    assert dynamics_defect(problem, result.x, result.u) < 5e-4
+    assert max_collision_violation_m(problem, result.x) <= 1e-6
+
+
+def test_max_iterations():
+    result = solve(merging_problem(3, 2), max_iter=1)
+    assert result.status == "max_iterations" and not result.converged
+    assert result.iterations == 1
+    assert result.residual_norm > 5e-4
+
+
+def test_time_limit():
+    # An 8-car merge needs ~40 Newton iterations; a 1 microsecond budget is spent before the first step.
+    result = solve(merging_problem(8, 0), time_limit=1e-6)
+    assert result.status == "time_limit"
+    assert result.iterations == 0
+    assert result.x.shape == (8, 21, 4)  # trajectories of the initial guess are still returned
+    assert solve(merging_problem(8, 0)).status == "converged"  # the limit, not the problem, stopped it
+
+
+def test_stalled():
+    # merging_problem(4, 36): every attempt (initial guess, rho_init x 10, two noisy restarts) stops
+    # making progress (merit down < 1% over stall_window iterations) with |r| ~ 7e-2.
+    result = solve(merging_problem(4, 36))
+    assert result.status == "stalled"
+    assert result.residual_norm > 1e-2
+    assert result.iterations < 100  # stopped before max_iter
+
+
+def test_line_search_failed():
+    # The same instance with stall detection and restarts off runs into a point where neither the Newton
+    # step nor the Levenberg-Marquardt fallbacks decrease the merit.
+    result = solve(merging_problem(4, 36), restarts=0, stall_window=0)
+    assert result.status == "line_search_failed"
+    assert result.residual_norm > 5e-4
+    assert result.iterations < 100
+
+
+def test_numerical_error():
+    # Input validation accepts any finite number; an initial speed of 1e300 m/s overflows the cost
+    # gradient (2 Q (v - v_ref) -> inf) at the first residual evaluation.
+    problem = merging_problem(3, 0)
+    problem.agents[0].x0 = [0.0, 1.1, 1e300, 0.0]
+    result = solve(problem)
+    assert result.status == "numerical_error"
+    assert result.iterations == 0
+
+
+def test_warm_start_from_shifted_solution_needs_fewer_iterations():
+    # Receding horizon: solve, advance every car one step along its equilibrium trajectory, solve again
+    # cold and warm (controls and multipliers shifted by one step).
+    first = solve(merging_problem(4, 0), tol=1e-8)
+    assert first.status == "converged"
+    problem = merging_problem(4, 0)
+    for i, agent in enumerate(problem.agents):
+        agent.x0 = first.x[i, 1]
+    cold = solve(problem, tol=1e-8)
+    warm = solve(problem, tol=1e-8, warm_start=WarmStart.shifted(first))
+    assert cold.status == warm.status == "converged"
+    assert warm.iterations < cold.iterations
+    # Same equilibrium either way.
+    np.testing.assert_allclose(warm.x, cold.x, atol=1e-5, rtol=0)
