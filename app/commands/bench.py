@@ -36,6 +36,17 @@ def register(sub) -> None:
     s.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
     s.set_defaults(func=run_solver)
 
+    m = kinds.add_parser("merge", help="RD3G vs iLQGames vs ALGames on the paper's merging games (Table I)")
+    m.add_argument("--cars", default="2-8")
+    m.add_argument("--instances", type=int, default=100)
+    m.add_argument("--solvers", default="rd3g,ilqgames,algames")
+    m.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
+    m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver)")
+    m.add_argument("--json", help="write the per-solver, per-size figures here")
+    m.add_argument("--figures", default="docs/figures", help="folder for the PNG figures")
+    m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    m.set_defaults(func=run_merge)
+
 
 def run_solver(args) -> int:
     from bench import solver_bench
@@ -56,4 +67,41 @@ def run_solver(args) -> int:
     print(md)
     if not args.no_docs:
         print(f"\nrecorded in {write_section('solver-bench', md)}")
+    return 0
+
+
+def run_merge(args) -> int:
+    import json
+    from pathlib import Path
+
+    from bench import merge_bench
+    from bench.report import machine_description, write_section
+
+    cars = parse_range(args.cars)
+    solvers = [x.strip() for x in args.solvers.split(",") if x.strip()]
+    for s in solvers:
+        if s not in merge_bench.SOLVERS:
+            raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
+    if args.instances < 1 or args.workers < 1:
+        raise UserError("--instances and --workers must be at least 1")
+    t0 = time.perf_counter()
+    records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit)
+    summary = merge_bench.summarize(records)
+    fig_dir = Path(args.figures)
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    figures = [merge_bench.plot_times(summary, str(fig_dir / "merge_times.png")),
+               merge_bench.plot_merge(3, 1, str(fig_dir / "merge_3cars.png")),
+               merge_bench.plot_merge(8, 1, str(fig_dir / "merge_8cars.png"))]
+    command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    docs_rel = [str(Path(f).resolve().relative_to(Path("docs").resolve())) if Path(f).resolve().is_relative_to(Path("docs").resolve()) else f
+                for f in figures]
+    md = merge_bench.markdown(summary, command, machine_description(), time.perf_counter() - t0, docs_rel)
+    print(md)
+    for r in summary:
+        print(f"{r['solver']:9s} {r['cars']} cars: {r['converged']}/{r['instances']} successful")
+    if args.json:
+        Path(args.json).write_text(json.dumps(merge_bench.records_json(summary), indent=1))
+        print(f"wrote {args.json}")
+    if not args.no_docs:
+        print(f"recorded in {write_section('merge-bench', md)}")
     return 0

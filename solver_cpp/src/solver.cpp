@@ -638,7 +638,11 @@ Result Solver::solve(const WarmStart* warm) {
       const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
       if (settings_.verbose)
         std::printf("it %3d  |r| %.3e  rho %.2e  viol %.2e  active %d\n", total_iter, rnorm, rho_, maxviol, n_vars_ - n_primal_);
-      if (rnorm < settings_.tol && maxviol <= settings_.violation_tol && signs_ok && rho_ <= rho_floor * (1 + 1e-9)) {
+      double max_defect = 0;
+      for (int i = 0; i < N_; ++i)
+        for (int k = 0; k < T_; ++k) max_defect = std::max(max_defect, r_.segment(col_lam(i, k), nx_).cwiseAbs().maxCoeff());
+      if (rnorm < settings_.tol && maxviol <= settings_.violation_tol && max_defect <= settings_.dynamics_tol && signs_ok &&
+          rho_ <= rho_floor * (1 + 1e-9)) {
         info.status = Status::Converged;
         break;
       }

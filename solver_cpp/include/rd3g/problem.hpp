@@ -91,6 +91,7 @@ struct Settings {
   double ls_beta = 0.5;          ///< step shrink factor
   int ls_max_steps = 30;         ///< backtracking steps before the line search fails
   double violation_tol = 1e-6;   ///< converged only if every h <= violation_tol (constraint units)
+  double dynamics_tol = 1e-7;    ///< converged only if every dynamics defect |f(x_k,u_k) - x_{k+1}| <= dynamics_tol (state units)
   double multiplier_tol = 1e-6;  ///< active constraints need mu >= -multiplier_tol (true equilibrium)
   double barrier_margin = 1e-4;  ///< released constraints re-enter the barrier once h < -barrier_margin
   /// When the Newton step fails the line search (near-singular Jacobian), try Levenberg-Marquardt steps

@@ -1,0 +1,235 @@
+"""`python -m app bench merge`: RD3G, iLQGames and ALGames on the same merging instances, one harness.
+
+Every solver gets the same instances and time limit; success is decided here, by one common test on
+the returned trajectories (bench/verify.py), not by the solvers' own status."""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from bench.merging import merging_problem
+
+PAPER_MS = {  # Table I of the paper (mean ms over converged runs, i7-7700K)
+    "rd3g": {2: 18, 3: 29, 4: 83, 5: 137, 6: 226, 7: 339, 8: 430},
+    "algames": {2: 48, 3: 95, 4: 198, 5: 366, 6: 653, 7: 1103, 8: 1833},
+    "ilqgames": {2: 324, 3: 505, 4: 657, 5: 829, 6: 1037, 7: 2253, 8: None},  # None: no convergence
+}
+SOLVERS = ("rd3g", "ilqgames", "algames")
+
+# Common success test (applied to every solver's output).
+DYNAMICS_TOL = 1e-6  # state units
+COLLISION_TOL_M = 1e-3  # m
+STATIONARITY_REL_TOL = 1e-3  # per-player KKT residual / cost-gradient scale (bench/verify.py)
+ACTIVE_GAP_M = 1e-2  # a collision constraint counts as active when the gap is within this of d_min
+
+
+def run_solver(name: str, problem, time_limit_s: float):
+    if name == "rd3g":
+        from solver_cpp import solve
+
+        return solve(problem, time_limit=time_limit_s)
+    from bench import baselines
+
+    if name == "ilqgames":
+        return baselines.solve_ilqgames(problem, time_limit=time_limit_s)
+    if name == "algames":
+        return baselines.solve_algames(problem, time_limit=time_limit_s)
+    raise ValueError(f"unknown solver {name!r}; choose from {SOLVERS}")
+
+
+@dataclass
+class RunRecord:
+    solver: str
+    cars: int
+    seed: int
+    status: str
+    solve_ms: float
+    iterations: int
+    success: bool
+    failure: str
+    active_collision: bool
+    min_slack_m: float  # smallest distance - d_min over all pairs and steps
+
+
+def one_run(job: tuple[str, int, int, float]) -> RunRecord:
+    from bench import verify
+
+    name, cars, seed, time_limit = job
+    problem = merging_problem(cars, seed)
+    r = run_solver(name, problem, time_limit)
+    x, u = np.asarray(r.x), np.asarray(r.u)
+    failure = ""
+    defect = verify.dynamics_defect(problem, x, u)
+    viol = verify.max_collision_violation_m(problem, x)
+    gaps = verify.collision_gaps_m(problem, x)
+    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(u)):
+        failure = "non-finite trajectory"
+    elif defect > DYNAMICS_TOL:
+        failure = f"dynamics defect {defect:.1e}"
+    elif viol > COLLISION_TOL_M:
+        failure = f"collision violation {viol:.1e} m"
+    else:
+        stat = verify.stationarity_residual(problem, x, u, relative=True)
+        if not np.all(stat <= STATIONARITY_REL_TOL):
+            failure = f"stationarity {stat.max():.1e}"
+    # collision_gaps_m is h in metres (d_min - distance, positive = violated): slack = -h.
+    min_slack = float(-np.max(gaps)) if np.size(gaps) else float("inf")
+    return RunRecord(name, cars, seed, r.status, 1e3 * r.solve_time_s, int(r.iterations), failure == "",
+                     failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack)
+
+
+def run(solvers: list[str], cars: list[int], instances: int, workers: int, time_limit_s: float) -> list[RunRecord]:
+    jobs = [(s, n, seed, time_limit_s) for n in cars for s in solvers for seed in range(instances)]
+    records: list[RunRecord] = []
+    with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:
+        if workers <= 1:
+            for job in jobs:
+                records.append(one_run(job))
+                bar.update()
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                for rec in pool.map(one_run, jobs, chunksize=4):
+                    records.append(rec)
+                    bar.update()
+    return records
+
+
+def summarize(records: list[RunRecord]) -> list[dict]:
+    out = []
+    keys = sorted({(r.solver, r.cars) for r in records}, key=lambda k: (SOLVERS.index(k[0]) if k[0] in SOLVERS else 9, k[1]))
+    for s, n in keys:
+        rs = [r for r in records if r.solver == s and r.cars == n]
+        ok = [r for r in rs if r.success]
+        t = np.array([r.solve_ms for r in ok])
+        nan = None
+        out.append({
+            "solver": s, "cars": n, "instances": len(rs), "converged": len(ok),
+            "mean_ms": float(t.mean()) if len(t) else nan, "median_ms": float(np.median(t)) if len(t) else nan,
+            "p90_ms": float(np.percentile(t, 90)) if len(t) else nan,
+            "mean_iterations": float(np.mean([r.iterations for r in ok])) if ok else nan,
+            "active_fraction": float(np.mean([r.active_collision for r in ok])) if ok else nan,
+        })
+    return out
+
+
+def _fmt(v, spec=".1f"):
+    return "—" if v is None else format(v, spec)
+
+
+def markdown(summary: list[dict], command: str, machine: str, seconds: float, figures: list[str]) -> str:
+    by = {(r["solver"], r["cars"]): r for r in summary}
+    solvers = [s for s in SOLVERS if any(k[0] == s for k in by)]
+    cars = sorted({k[1] for k in by})
+    head = "| cars | " + " | ".join(f"{s} ours: median / mean ms (success) | {s} paper mean ms" for s in solvers) + " |"
+    lines = [
+        "## Merging benchmark: RD3G vs iLQGames vs ALGames (paper Table I)",
+        "",
+        f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
+        "All solvers in C++ sharing the models and derivatives, run on the same instances with the same time limit.",
+        f"Success = the common test on the returned trajectories: dynamics defect <= {DYNAMICS_TOL:g}, collision violation <= "
+        f"{COLLISION_TOL_M:g} m, every player's stationarity residual (least-squares multipliers, bench/verify.py) <= "
+        f"{STATIONARITY_REL_TOL:g} of the cost-gradient scale. Times over successful runs. 'active' = share of successful runs "
+        f"with a collision constraint within {ACTIVE_GAP_M:g} m of active.",
+        "",
+        head,
+        "|---|" + "---|---|" * len(solvers),
+    ]
+    for n in cars:
+        cells = []
+        for s in solvers:
+            r = by.get((s, n))
+            paper = PAPER_MS.get(s, {}).get(n)
+            if r is None:
+                cells += ["", ""]
+                continue
+            rate = 100 * r["converged"] / r["instances"]
+            cells.append(f"{_fmt(r['median_ms'])} / {_fmt(r['mean_ms'])} ({rate:.0f}%, active {_fmt(r['active_fraction'], '.0%') if r['active_fraction'] is not None else '—'})")
+            cells.append("N/C" if s == "ilqgames" and n == 8 else _fmt(paper, "d") if paper else "")
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines += [""] + [f"![{f}]({f})" for f in figures]
+    return "\n".join(lines)
+
+
+def plot_times(summary: list[dict], path: str) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for s in SOLVERS:
+        rows = [r for r in summary if r["solver"] == s and r["median_ms"] is not None]
+        if rows:
+            ax.plot([r["cars"] for r in rows], [r["median_ms"] for r in rows], "o-", label=f"{s} (ours, median)")
+        paper = PAPER_MS[s]
+        ax.plot([n for n, v in paper.items() if v], [v for v in paper.values() if v], "x--", alpha=0.6, label=f"{s} (paper, mean)")
+    ax.set_yscale("log")
+    ax.set_xlabel("cars")
+    ax.set_ylabel("solve time (ms)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_merge(cars: int, seed: int, path: str) -> str:
+    """Lanes, car footprints at several instants and the trajectories of one RD3G solution."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+    from matplotlib.transforms import Affine2D
+
+    from bench.merging import MAIN_LANE_Y, MERGE_LANE_Y, lane_counts
+    from solver_cpp import solve
+
+    problem = merging_problem(cars, seed)
+    r = solve(problem)
+    n_main, _ = lane_counts(cars)
+    x = r.x
+    fig, ax = plt.subplots(figsize=(10, 2.8))
+    lo, hi = x[:, :, 0].min() - 3, x[:, :, 0].max() + 3
+    for y in (MAIN_LANE_Y, MERGE_LANE_Y):
+        ax.axhline(y, color="0.7", ls="--", lw=0.8)
+    for y in (MAIN_LANE_Y + 1.1, 0.0, MERGE_LANE_Y - 1.1):
+        ax.axhline(y, color="0.3", lw=1.0 if y else 0.6)
+    colors = plt.cm.tab10(np.arange(cars) % 10)
+    instants = np.linspace(0, problem.horizon, 5).astype(int)
+    for i in range(cars):
+        ax.plot(x[i, :, 0], x[i, :, 1], "-", color=colors[i], lw=1.2,
+                label=f"car {i} ({'main' if i < n_main else 'merging'})")
+        for a, k in enumerate(instants):
+            px, py, _, th = x[i, k]
+            rect = Rectangle((-1.0, -0.45), 2.0, 0.9, color=colors[i], alpha=0.15 + 0.7 * a / len(instants))
+            rect.set_transform(Affine2D().rotate(th).translate(px, py) + ax.transData)
+            ax.add_patch(rect)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(-2.6, 2.6)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{cars}-car merge, seed {seed}: {r.status}, {1e3 * r.solve_time_s:.0f} ms "
+                 f"(footprints at t = {', '.join(f'{k * problem.dt:.1f}' for k in instants)} s)", fontsize=9)
+    ax.legend(fontsize=6, ncol=min(cars, 4), loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def records_json(summary: list[dict]) -> dict:
+    return {"results": summary}
+
+
+def default_workers() -> int:
+    return max(1, min(2, os.cpu_count() or 1))
+
+
+__all__ = ["run", "summarize", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]
