@@ -10,7 +10,7 @@ import pytest
 from bench.merging import MIN_DISTANCE, merging_problem
 from bench.verify import (best_response_gap, collision_gaps_m, dynamics_defect, max_collision_violation_m,
                           player_cost, stationarity_residual, verify_equilibrium)
-from solver_cpp import solve
+from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, Obstacle, QuadraticCost, solve
 
 INSTANCES = [(3, 2), (3, 4), (3, 10), (5, 3)]  # (cars, seed)
 SOLVE_TOL = 1e-8
@@ -76,6 +76,33 @@ def test_linear_solvers_find_the_same_equilibrium():
         assert other.status == "converged", linear_solver
         np.testing.assert_allclose(other.x, base.x, atol=1e-6, rtol=0, err_msg=linear_solver)
         np.testing.assert_allclose(other.u, base.u, atol=1e-6, rtol=0, err_msg=linear_solver)
+
+
+def _two_car_merge(control_bounds: bool, obstacle: bool) -> GameProblem:
+    """Car 1 merges ahead of car 0 into its lane; optionally steering/acceleration limits and a parked
+    car (disc of 1 m at (8, 1.8)) in the target lane."""
+    T = 20
+    cost = QuadraticCost(x_ref=(0.0, 1.0, 2.0, 0.0), Q_ref=(0.0, 0.1, 0.01, 1.0), R=(0.3, 0.3))
+    limits = dict(u_min=[-1.0, -0.3], u_max=[1.0, 0.3]) if control_bounds else {}
+    agents = [Agent(KinematicBicycle(1.0, 1.0), [0.0, 1.0, 2.0, 0.0], cost, **limits),
+              Agent(KinematicBicycle(1.0, 1.0), [1.0, -1.1, 2.5, 0.0], cost, **limits)]
+    parked = Obstacle(np.column_stack([np.full(T + 1, 8.0), np.full(T + 1, 1.8)]), min_distance=1.0)
+    return GameProblem(dt=0.2, horizon=T, agents=agents, collision=Collision(2.0, form="squared"),
+                       obstacles=[parked] if obstacle else [])
+
+
+@pytest.mark.parametrize("control_bounds, obstacle", [(True, False), (False, True)], ids=["bounds", "obstacle"])
+def test_equilibrium_with_active_bounds_or_obstacle(control_bounds, obstacle):
+    problem = _two_car_merge(control_bounds, obstacle)
+    result = solve(problem, tol=SOLVE_TOL)
+    assert result.status == "converged"
+    if control_bounds:  # a steering limit is reached
+        assert abs(np.abs(result.u[:, :, 1]).max() - 0.3) < 1e-6
+    if obstacle:  # a car grazes the parked one
+        parked = problem.obstacles[0].positions[None, 1:]
+        assert abs(np.linalg.norm(result.x[:, 1:, :2] - parked, axis=-1).min() - 1.0) < 1e-6
+    report = verify_equilibrium(problem, result.x, result.u, best_response_starts=2)
+    assert report.passed, report.failures
 
 
 def test_verification_rejects_a_non_equilibrium():
