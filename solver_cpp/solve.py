@@ -18,23 +18,27 @@ def make_settings(**overrides) -> _core.Settings:
         if name.startswith("_") or not hasattr(s, name):
             raise ValueError(f"solver.{name} is not a solver setting")
         current = getattr(s, name)
-        if hasattr(type(current), "__members__"):  # a C++ enum: accept its value names
-            choices = tuple(type(current).__members__)
-            if isinstance(value, str):
-                if value not in choices:
+        try:
+            if hasattr(type(current), "__members__"):  # a C++ enum: accept its value names
+                choices = tuple(type(current).__members__)
+                if not isinstance(value, str) or value not in choices:
                     raise ValueError(f"solver.{name} must be one of {choices}, got {value!r}")
                 value = type(current).__members__[value]
-        elif isinstance(getattr(s, name), bool):
-            value = bool(value)
-        elif isinstance(getattr(s, name), int):
-            if isinstance(value, bool) or int(value) != value:
-                raise ValueError(f"solver.{name} must be an integer, got {value!r}")
-            value = int(value)
-        elif isinstance(getattr(s, name), float):
-            value = float(value)
-            if not np.isfinite(value):
-                raise ValueError(f"solver.{name} must be finite")
-        setattr(s, name, value)
+            elif isinstance(current, bool):
+                value = bool(value)
+            elif isinstance(current, int):
+                if isinstance(value, bool) or int(value) != value:
+                    raise ValueError(f"solver.{name} must be an integer, got {value!r}")
+                value = int(value)
+            elif isinstance(current, float):
+                value = float(value)
+                if not np.isfinite(value):
+                    raise ValueError(f"solver.{name} must be finite")
+            setattr(s, name, value)
+        except (TypeError, ValueError) as exc:
+            if str(exc).startswith(f"solver.{name}"):
+                raise
+            raise ValueError(f"solver.{name}: invalid value {value!r}") from None
     return s
 
 

@@ -134,10 +134,6 @@ def test_lead_weight_changes_the_equilibrium():
     np.testing.assert_allclose(result.u, u_none, atol=1e-6, rtol=0)
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "solver_cpp: convergence also requires rho <= tol/10 even when the game has no inequality constraint, "
-    "so an unconstrained LQ game whose residual is ~1e-14 after one Newton step reports converged only after "
-    "the rho schedule reaches its floor (4 iterations at tol 1e-9 with the default rho_init 0.01)"))
 def test_unconstrained_game_converges_with_default_barrier_schedule():
     problem = _random_game(3, 1)
     result = solve(problem, tol=TOL, restarts=0)

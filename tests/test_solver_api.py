@@ -110,9 +110,6 @@ SETTINGS_WITHOUT_FIELD_NAME = [
 ]
 
 
-@pytest.mark.xfail(strict=False, reason="solver_cpp: out-of-range settings are rejected without naming the field "
-                   "(C++ 'settings out of range'), raise TypeError, or are accepted (restarts < 0 returns zero "
-                   "trajectories with status max_iterations; fraction_to_boundary 0, violation_tol < 0, time_limit < 0)")
 @pytest.mark.parametrize("settings, field", SETTINGS_WITHOUT_FIELD_NAME, ids=[str(s[0]) for s in SETTINGS_WITHOUT_FIELD_NAME])
 def test_out_of_range_setting_is_rejected_naming_the_field(settings, field):
     with pytest.raises(ValueError) as err:
@@ -182,10 +179,6 @@ def test_bad_inputs_do_not_crash_the_process():
     assert "survived" in child.stdout
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "solver_cpp: KinematicBicycleFrenet::curvature casts floor(s/ds) of a non-finite s to int and indexes the "
-    "table with it (segfault). Reached through validated input: a Frenet agent with x0 ey = 1/kappa makes "
-    "1 - kappa*ey = 0, s becomes inf/NaN after one step; also eval(x=[nan, ...]) directly"))
 @pytest.mark.parametrize("code", [
     """
     from solver_cpp import Agent, GameProblem, KinematicBicycleFrenet, QuadraticCost, solve
@@ -207,10 +200,6 @@ def test_frenet_singularity_does_not_crash(code):
     assert child.returncode == 0, f"child exited with {child.returncode}: {child.stderr[-1000:]}"
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "solver_cpp core (below the Python validation): Solver.setup reads problem.dynamics[0]->nx() before checking "
-    "for a missing model (segfault on dynamics[0] = None), and never checks len(problem.lead) == num_agents "
-    "(out-of-bounds read in evaluate); debug_residual does not check its argument shapes"))
 @pytest.mark.parametrize("code", [
     """
     from bench.merging import merging_problem

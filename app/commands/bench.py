@@ -66,7 +66,7 @@ def run_solver(args) -> int:
     md = solver_bench.markdown(rows, command, machine_description(), time.perf_counter() - t0)
     print(md)
     if not args.no_docs:
-        print(f"\nrecorded in {write_section('solver-bench', md)}")
+        print(f"\nrecorded in {write_section('solver-bench-' + '-'.join(options), md)}")
     return 0
 
 

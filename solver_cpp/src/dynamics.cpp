@@ -1,6 +1,7 @@
 #include "rd3g/dynamics.hpp"
 
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 
 #include "rd3g/jet.hpp"
@@ -94,6 +95,10 @@ KinematicBicycleFrenet::KinematicBicycleFrenet(double lf, double lr, double dt, 
 
 void KinematicBicycleFrenet::curvature(double s, double& kappa, double& dkappa) const {
   const int n = static_cast<int>(kappa_.size());
+  if (!std::isfinite(s)) {  // propagate instead of indexing the table with garbage
+    kappa = dkappa = std::numeric_limits<double>::quiet_NaN();
+    return;
+  }
   double q = s / ds_;
   int i0;
   double w;
