@@ -5,3 +5,4 @@ void bind_dynamics(py::module_& m);
 void bind_problem(py::module_& m);
 void bind_settings(py::module_& m);
 void bind_solver(py::module_& m);
+void bind_baselines(py::module_& m);

@@ -6,4 +6,5 @@ PYBIND11_MODULE(_core, m) {
   bind_problem(m);
   bind_settings(m);
   bind_solver(m);
+  bind_baselines(m);
 }

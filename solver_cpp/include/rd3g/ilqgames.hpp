@@ -83,16 +83,18 @@ class LQGameSolver {
 // -------------------------------------------------------------------------------------------------
 /// iLQGames settings. Units: state/control units of the model unless stated.
 struct ILQGamesSettings {
-  /// Converged when one iteration changes no state or control by more than tol (inf-norm over agents,
-  /// steps and components) and every constraint satisfies h <= violation_tol.
+  /// Converged when the full step of the current LQ game would change no state or control by more than
+  /// tol (inf-norm over agents, steps and components) and every constraint satisfies h <= violation_tol.
   double tol = 1e-4;
-  int max_iter = 500;             ///< LQ game solves in total, over all penalty rounds
+  int max_iter = 500;             ///< LQ game solves (= iterations) in total, over all penalty rounds
   double time_limit = 0.0;        ///< (s), 0 = none
   /// Trust region of the line search: a step is accepted only if no state moves by more than this
   /// (inf-norm; m, m/s, rad for the bicycle models).
   double max_state_change = 1.0;
-  double ls_beta = 0.5;           ///< feedforward step size alpha <- ls_beta * alpha while rejected
-  int ls_max_steps = 20;          ///< halvings before the line search fails (step 2^-20 with the default)
+  /// Feedforward step size: step <- ls_beta * step while rejected; also the factor by which the starting
+  /// step of the next iterations shrinks when the full-step change did not decrease (and grows back).
+  double ls_beta = 0.5;
+  int ls_max_steps = 20;          ///< shrinks before the line search fails; the smallest step is ls_beta^ls_max_steps
   double violation_tol = 1e-4;    ///< constraint units (m for the distance form, m^2 for the squared form)
   double rho_init = 10.0;         ///< initial penalty weight (cost units per constraint unit^2)
   double rho_growth = 10.0;       ///< rho <- min(rho_max, rho_growth * rho) after every penalty round
@@ -105,8 +107,9 @@ struct ILQGamesSettings {
 };
 
 /// iLQGames on an rd3g::Problem. setup() validates and allocates; solve() starts from zero controls
-/// (or warm->u; lambda/mu of the warm start are ignored). Result: x, u, info (residual_norm = last
-/// iteration's max state/control change, max_violation = max(0, max h)); lambda/mu are left empty.
+/// (or warm->u; lambda/mu of the warm start are ignored). Result: x, u, info (residual_norm = the
+/// full-step change at the last iterate, the convergence measure; max_violation = max(0, max h)), h, and
+/// mu = the penalty multipliers lambda (one per constraint); lambda (dynamics multipliers) is left empty.
 class ILQGamesSolver {
  public:
   void setup(const Problem& problem, const ILQGamesSettings& settings);
