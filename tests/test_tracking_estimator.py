@@ -1,0 +1,150 @@
+"""EKF tests against analytic trajectories and finite differences."""
+import math
+
+import numpy as np
+import pytest
+
+from tracking.estimator import CarEKF, EstimatorConfig, MultiCarEstimator
+from tracking.motion import ctrv_jacobian, ctrv_transition, wrap_angle
+
+RATE_HZ = 60.0
+
+
+def numeric_jacobian(state, dt, eps=1e-6):
+    jac = np.zeros((5, 5))
+    for j in range(5):
+        d = np.zeros(5)
+        d[j] = eps
+        jac[:, j] = (ctrv_transition(state + d, dt) - ctrv_transition(state - d, dt)) / (2 * eps)
+    return jac
+
+
+@pytest.mark.parametrize("yaw_rate", [0.0, 1e-5, 2e-3, 0.7, -2.5])
+def test_jacobian_matches_finite_differences(yaw_rate):
+    state = np.array([1.2, -0.4, 2.3, 1.7, yaw_rate])
+    for dt in (1 / 60, 0.2):
+        np.testing.assert_allclose(ctrv_jacobian(state, dt), numeric_jacobian(state, dt), atol=1e-7)
+
+
+def test_transition_matches_circle_geometry():
+    # Analytic circle: centre at (0, R) for a car at the origin heading +x turning left.
+    v, radius, dt = 1.5, 0.8, 0.37
+    w = v / radius
+    out = ctrv_transition(np.array([0.0, 0.0, 0.0, v, w]), dt)
+    ang = w * dt
+    np.testing.assert_allclose(out[:3], [radius * math.sin(ang), radius * (1 - math.cos(ang)), ang], atol=1e-12)
+
+
+def circle_measurements(v, radius, duration_s, rng, pos_std=0.002, head_std=math.radians(0.5)):
+    t = np.arange(0, duration_s, 1 / RATE_HZ)
+    ang = v / radius * t
+    x = 2.5 + radius * np.sin(ang)
+    y = 1.5 - radius * np.cos(ang)
+    heading = wrap_angle(ang)
+    noisy = np.column_stack([x + rng.normal(0, pos_std, t.size), y + rng.normal(0, pos_std, t.size),
+                             heading + rng.normal(0, head_std, t.size)])
+    return t, np.column_stack([x, y, heading]), noisy
+
+
+def test_circle_recovers_speed_and_yaw_rate():
+    rng = np.random.default_rng(0)
+    v, radius = 1.8, 0.9
+    t, truth, meas = circle_measurements(v, radius, 4.0, rng)
+    config = EstimatorConfig(position_std_m=0.002, heading_std_rad=math.radians(0.5), accel_noise=1.0,
+                             yaw_accel_noise=1.0)
+    ekf = CarEKF(config)
+    speeds, yaw_rates = [], []
+    for ti, z in zip(t, meas):
+        assert ekf.update(ti, *z).accepted  # heading wraps through +-pi several times
+        speeds.append(ekf.x[3])
+        yaw_rates.append(ekf.x[4])
+    tail = slice(len(t) // 2, None)
+    assert abs(np.mean(speeds[tail]) - v) < 0.02
+    assert abs(np.mean(yaw_rates[tail]) - v / radius) < 0.03
+    assert np.max(np.abs(np.array(speeds[tail]) - v)) < 0.3
+    state = ekf.predict_to(t[-1])
+    assert math.hypot(state.x - truth[-1, 0], state.y - truth[-1, 1]) < 0.004
+
+
+def straight_measurements(rng, v=1.2, heading=0.6, duration_s=3.0):
+    t = np.arange(0, duration_s, 1 / RATE_HZ)
+    x = 0.5 + v * t * math.cos(heading)
+    y = 0.4 + v * t * math.sin(heading)
+    meas = np.column_stack([x + rng.normal(0, 0.002, t.size), y + rng.normal(0, 0.002, t.size),
+                            heading + rng.normal(0, math.radians(0.5), t.size)])
+    return t, np.column_stack([x, y]), meas
+
+
+def test_prediction_through_one_second_occlusion_on_straight():
+    rng = np.random.default_rng(1)
+    t, truth, meas = straight_measurements(rng)
+    # Low process noise: the car drives straight at constant speed (the default is tuned for racing).
+    config = EstimatorConfig(position_std_m=0.002, heading_std_rad=math.radians(0.5), accel_noise=0.3,
+                             yaw_accel_noise=0.3)
+    ekf = CarEKF(config)
+    occluded = (t > 1.5) & (t <= 2.5)
+    for ti, z in zip(t[t <= 1.5], meas[t <= 1.5]):
+        ekf.update(ti, *z)
+    snapshot = ekf.x.copy()
+    for ti, xy in zip(t[occluded], truth[occluded]):
+        state = ekf.predict_to(ti)
+        err = np.array([state.x - xy[0], state.y - xy[1]])
+        assert np.linalg.norm(err) < 0.01 + 0.06 * (ti - 1.5)  # 6 cm after 1 s at 1.2 m/s
+        assert err @ np.linalg.solve(state.covariance[:2, :2], err) < 13.8  # inside the 99.9 % ellipse
+    np.testing.assert_array_equal(ekf.x, snapshot)  # predict_to leaves the filter alone
+    assert ekf.is_lost(t[occluded][-1])  # 1 s > default 0.5 s
+    # After the gap the next measurement restarts the filter (counted as an initialisation).
+    first_after = np.argmax(t > 2.5)
+    assert ekf.update(t[first_after], *meas[first_after]).reason == "initialized"
+
+
+def test_gating_rejects_injected_outlier():
+    rng = np.random.default_rng(2)
+    t, truth, meas = straight_measurements(rng, duration_s=1.0)
+    ekf = CarEKF()
+    for ti, z in zip(t[:40], meas[:40]):
+        ekf.update(ti, *z)
+    before = ekf.predict_to(t[40])
+    result = ekf.update(t[40], meas[40, 0] + 0.25, meas[40, 1], meas[40, 2])
+    assert not result.accepted and result.reason == "gated" and result.mahalanobis_sq > 16.27
+    assert ekf.counts["gated"] == 1
+    np.testing.assert_allclose(ekf.x, before.vector)  # rejected measurement changes nothing but time
+    for ti, z in zip(t[41:], meas[41:]):
+        assert ekf.update(ti, *z).accepted
+    assert ekf.counts["gated"] == 1
+
+
+def test_heading_outlier_across_wrap_is_accepted_when_close():
+    ekf = CarEKF()
+    ekf.update(0.0, 1.0, 1.0, math.pi - 0.01)
+    result = ekf.update(1 / 60, 1.0, 1.0, -math.pi + 0.01)  # 0.02 rad apart across the wrap
+    assert result.accepted
+    assert abs(wrap_angle(ekf.x[2] - math.pi)) < 0.02
+
+
+def test_nan_and_out_of_order_rejected_with_reason():
+    ekf = CarEKF()
+    assert ekf.update(0.0, float("nan"), 1.0, 0.0).reason == "nan"
+    assert not ekf.initialized
+    ekf.update(0.1, 1.0, 1.0, 0.0)
+    assert ekf.update(0.2, 1.0, float("inf"), 0.0).reason == "nan"
+    assert ekf.update(0.05, 1.0, 1.0, 0.0).reason == "out_of_order"
+    assert ekf.counts["nan"] == 2 and ekf.counts["out_of_order"] == 1
+
+
+def test_lost_after_configurable_timeout():
+    ekf = CarEKF(EstimatorConfig(lost_after_s=0.2))
+    ekf.update(0.0, 1.0, 1.0, 0.0)
+    assert not ekf.is_lost(0.19)
+    assert ekf.is_lost(0.21)
+    multi = MultiCarEstimator(EstimatorConfig(lost_after_s=0.2))
+    multi.update(0.0, [(3, 1.0, 1.0, 0.0), (5, 2.0, 1.0, 0.0)])
+    multi.update(0.15, [(3, 1.0, 1.0, 0.0)])
+    assert multi.lost_ids(0.3) == [5]
+    assert set(multi.states_at(0.3)) == {3}
+    assert set(multi.states_at(0.3, include_lost=True)) == {3, 5}
+
+
+def test_config_validation_names_field():
+    with pytest.raises(ValueError, match="lost_after_s"):
+        EstimatorConfig(lost_after_s=-1)

@@ -1,0 +1,175 @@
+"""Per-car extended Kalman filter on the CTRV model (tracking.motion) with pose measurements.
+
+State ``[x, y, heading, speed, yaw_rate]``; measurement ``[x, y, heading]`` from a car marker.
+Process noise: white longitudinal acceleration (``accel_noise`` = square root of its spectral
+density, m/s^1.5) and white yaw acceleration (``yaw_accel_noise``), held constant over each step.
+Heading innovations are wrapped to [-pi, pi). Measurements whose squared Mahalanobis distance
+exceeds ``gate_chi2`` (chi-square, 3 dof; default 99.9 %) are rejected and counted. A filter
+with no accepted measurement for ``lost_after_s`` is lost; the next measurement restarts it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tracking.motion import ctrv_jacobian, ctrv_transition, wrap_angle
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    position_std_m: float = 0.003  # measurement noise of x and y
+    heading_std_rad: float = math.radians(1.0)
+    accel_noise: float = 2.0  # sqrt of the white-acceleration spectral density, m/s^1.5
+    yaw_accel_noise: float = 5.0  # same for yaw acceleration, rad/s^1.5
+    initial_speed_std: float = 2.0
+    initial_yaw_rate_std: float = 3.0
+    gate_chi2: float = 16.27  # chi2(3 dof).ppf(0.999)
+    lost_after_s: float = 0.5
+
+    def __post_init__(self):
+        for name in ("position_std_m", "heading_std_rad", "accel_noise", "yaw_accel_noise",
+                     "initial_speed_std", "initial_yaw_rate_std", "gate_chi2", "lost_after_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"EstimatorConfig.{name}: must be a positive finite number, got {value!r}")
+
+
+@dataclass
+class CarState:
+    t_s: float
+    x: float
+    y: float
+    heading: float
+    speed: float
+    yaw_rate: float
+    covariance: np.ndarray = field(repr=False)
+
+    @property
+    def vector(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.heading, self.speed, self.yaw_rate])
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    accepted: bool
+    reason: str  # "initialized", "accepted", "gated", "nan", "out_of_order"
+    mahalanobis_sq: float = float("nan")
+
+
+_H = np.hstack([np.eye(3), np.zeros((3, 2))])
+
+
+class CarEKF:
+    def __init__(self, config: EstimatorConfig = EstimatorConfig()):
+        self.config = config
+        self._r = np.diag([config.position_std_m ** 2] * 2 + [config.heading_std_rad ** 2])
+        self.x: np.ndarray | None = None
+        self.P: np.ndarray | None = None
+        self.t_s: float | None = None
+        self.t_last_accepted_s: float | None = None
+        self.counts = {"initialized": 0, "accepted": 0, "gated": 0, "nan": 0, "out_of_order": 0}
+
+    @property
+    def initialized(self) -> bool:
+        return self.x is not None
+
+    def process_noise(self, state: np.ndarray, dt: float) -> np.ndarray:
+        """Q for white acceleration / yaw acceleration over ``dt`` (noise input matrix G q G^T)."""
+        th = state[2]
+        g = np.array([
+            [0.5 * dt * dt * math.cos(th), 0.0],
+            [0.5 * dt * dt * math.sin(th), 0.0],
+            [0.0, 0.5 * dt * dt],
+            [dt, 0.0],
+            [0.0, dt],
+        ])
+        q = np.diag([self.config.accel_noise ** 2 / dt if dt > 0 else 0.0,
+                     self.config.yaw_accel_noise ** 2 / dt if dt > 0 else 0.0])
+        # Spectral density -> discrete: variance of the mean acceleration over dt is S/dt.
+        return g @ q @ g.T
+
+    def _predicted(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        dt = t_s - self.t_s
+        if dt <= 0:
+            return self.x.copy(), self.P.copy()
+        f = ctrv_jacobian(self.x, dt)
+        x = ctrv_transition(self.x, dt)
+        p = f @ self.P @ f.T + self.process_noise(self.x, dt)
+        return x, 0.5 * (p + p.T)
+
+    def predict_to(self, t_s: float) -> CarState:
+        """State predicted to ``t_s`` (e.g. when a command will take effect); the filter is unchanged."""
+        if not self.initialized:
+            raise RuntimeError("predict_to: filter has no measurement yet")
+        x, p = self._predicted(max(t_s, self.t_s))
+        return CarState(max(t_s, self.t_s), *map(float, x), covariance=p)
+
+    def is_lost(self, t_s: float) -> bool:
+        return self.t_last_accepted_s is None or t_s - self.t_last_accepted_s > self.config.lost_after_s
+
+    def _initialize(self, t_s, z):
+        c = self.config
+        self.x = np.array([z[0], z[1], float(wrap_angle(z[2])), 0.0, 0.0])
+        self.P = np.diag([c.position_std_m ** 2, c.position_std_m ** 2, c.heading_std_rad ** 2,
+                          c.initial_speed_std ** 2, c.initial_yaw_rate_std ** 2])
+        self.t_s = self.t_last_accepted_s = t_s
+        self.counts["initialized"] += 1
+        return UpdateResult(True, "initialized")
+
+    def update(self, t_s: float, x: float, y: float, heading: float) -> UpdateResult:
+        """Fuse a pose measured at ``t_s``; predicts through any missed frames first."""
+        z = np.array([x, y, heading], float)
+        if not (np.all(np.isfinite(z)) and math.isfinite(t_s)):
+            self.counts["nan"] += 1
+            return UpdateResult(False, "nan")
+        if not self.initialized or self.is_lost(t_s):
+            return self._initialize(t_s, z)
+        if t_s < self.t_s:
+            self.counts["out_of_order"] += 1
+            return UpdateResult(False, "out_of_order")
+        x_pred, p_pred = self._predicted(t_s)
+        innovation = z - _H @ x_pred
+        innovation[2] = wrap_angle(innovation[2])
+        s = _H @ p_pred @ _H.T + self._r
+        d2 = float(innovation @ np.linalg.solve(s, innovation))
+        # The prediction is kept even when the measurement is rejected (time moves on).
+        self.x, self.P, self.t_s = x_pred, p_pred, t_s
+        if d2 > self.config.gate_chi2:
+            self.counts["gated"] += 1
+            return UpdateResult(False, "gated", d2)
+        gain = np.linalg.solve(s, _H @ p_pred).T  # P H^T S^-1 (S symmetric)
+        self.x = x_pred + gain @ innovation
+        self.x[2] = wrap_angle(self.x[2])
+        i_kh = np.eye(5) - gain @ _H
+        self.P = i_kh @ p_pred @ i_kh.T + gain @ self._r @ gain.T  # Joseph form keeps P symmetric PD
+        self.t_last_accepted_s = t_s
+        self.counts["accepted"] += 1
+        return UpdateResult(True, "accepted", d2)
+
+
+class MultiCarEstimator:
+    """One :class:`CarEKF` per marker id, created on the id's first measurement."""
+
+    def __init__(self, config: EstimatorConfig = EstimatorConfig()):
+        self.config = config
+        self.filters: dict[int, CarEKF] = {}
+
+    def update(self, t_s: float, measurements) -> dict[int, UpdateResult]:
+        """``measurements``: iterable of objects with marker_id, x, y, heading (e.g. CarMeasurement)
+        or of (marker_id, x, y, heading) tuples, all captured at ``t_s``."""
+        results = {}
+        for m in measurements:
+            marker_id, x, y, heading = (m.marker_id, m.x, m.y, m.heading) if hasattr(m, "marker_id") else m
+            ekf = self.filters.setdefault(int(marker_id), CarEKF(self.config))
+            results[int(marker_id)] = ekf.update(t_s, x, y, heading)
+        return results
+
+    def states_at(self, t_s: float, include_lost: bool = False) -> dict[int, CarState]:
+        """Every tracked car predicted to ``t_s`` (lost cars left out unless ``include_lost``)."""
+        return {i: f.predict_to(t_s) for i, f in self.filters.items()
+                if f.initialized and (include_lost or not f.is_lost(t_s))}
+
+    def lost_ids(self, t_s: float) -> list[int]:
+        return sorted(i for i, f in self.filters.items() if f.is_lost(t_s))
