@@ -132,7 +132,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   const int C = static_cast<int>(cons_.size());
   n_primal_ = N_ * T_ * stage_size();
 
-  for (Iterate* it : {&y_, &trial_}) {
+  for (Iterate* it : {&y_, &trial_, &best_}) {
     it->x.assign(N_, Mat::Zero(nx_, T_ + 1));
     it->u.assign(N_, Mat::Zero(nu_, T_));
     it->lam.assign(N_, Mat::Zero(nx_, T_));
@@ -476,6 +476,14 @@ bool Solver::solve_linear(Vec& dy) {
       lu_.factorize(J_);
       if (lu_.info() == Eigen::Success) {
         dy.head(n_vars_) = lu_.solve(rhs);
+        // Iterative refinement with the same factors: the Newton matrix can be badly scaled (barrier
+        // curvature z/(-h) next to O(1) entries), and an inaccurate step is not a descent direction.
+        for (int ref = 0; ref < settings_.refinement_steps; ++ref) {
+          const Vec res = rhs - J_ * dy.head(n_vars_);
+          if (settings_.verbose) std::printf("   linear residual %.2e (rhs %.2e)\n", res.norm(), rhs.norm());
+          if (res.norm() <= 1e-12 * rhs.norm()) break;
+          dy.head(n_vars_) += lu_.solve(res);
+        }
         if (lu_.info() == Eigen::Success && dy.head(n_vars_).allFinite()) return true;
       }
       lu_analyzed_ = false;  // a failed factorisation may leave the symbolic data unusable
@@ -632,8 +640,12 @@ Result Solver::solve(const WarmStart* warm) {
       y_.x[i].col(0) = prob_.x0[i];
       y_.u[i] = u_init[i];
       if (attempt >= 2)
-        for (int k = 0; k < T_; ++k)
-          for (int q = 0; q < nu_; ++q) y_.u[i](q, k) += settings_.restart_u_std * noise(rng);
+        // A constant offset per agent and control component (not white noise, which averages out):
+        // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
+        for (int q = 0; q < nu_; ++q) {
+          const double offset = settings_.restart_u_std * noise(rng);
+          y_.u[i].row(q).array() += offset;
+        }
       y_.lam[i] = attempt == 0 ? lam_init[i] : Mat::Zero(nx_, T_);
       for (int k = 0; k < T_; ++k) {
         prob_.dynamics[i]->eval(y_.x[i].col(k), y_.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
@@ -691,6 +703,23 @@ Result Solver::solve(const WarmStart* warm) {
 
       t0 = Clock::now();
       double t = line_search(rnorm);
+      if (t > 0 && t < settings_.lm_below_step) {
+        // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
+        // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it.
+        best_ = trial_;
+        double best_m = merit(r_trial_, rc_trial_);
+        bool lm_won = false;
+        for (int q = 0; q < settings_.lm_tries; ++q) {
+          if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+          const double tl = line_search(rnorm);
+          if (tl > 0) {
+            const double m = merit(r_trial_, rc_trial_);
+            if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
+          }
+        }
+        std::swap(trial_, best_);
+        if (lm_won) info.lm_steps++;
+      }
       for (int q = 0; t == 0.0 && q < settings_.lm_tries; ++q) {
         if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
         t = line_search(rnorm);

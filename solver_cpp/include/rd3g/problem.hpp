@@ -97,8 +97,10 @@ struct Settings {
   /// When the Newton step fails the line search (near-singular Jacobian), try Levenberg-Marquardt steps
   /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = lm_nu_init * 10^q, q = 0..lm_tries-1.
   int lm_tries = 4;
+  double lm_below_step = 1e-2;  ///< also try LM when the accepted Newton step t is below this
   double lm_nu_init = 1e-6;
   LinearSolver linear_solver = LinearSolver::SparseLU;
+  int refinement_steps = 2;      ///< iterative refinement steps after each sparse LU solve
   BarrierMode barrier = BarrierMode::PrimalDual;
   double fraction_to_boundary = 0.99;  ///< primal-dual: keep z >= (1 - tau) z along a step
   double lscg_tol = 1e-10;       ///< LSCG relative tolerance

@@ -96,7 +96,7 @@ class Solver {
   double rho_ = 0;
 
   // buffers (allocated in setup)
-  Iterate y_, trial_;
+  Iterate y_, trial_, best_;
   std::vector<std::vector<Mat>> A_, B_;
   Mat fx_, Hl_, Atmp_, Btmp_;
   Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_;
