@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline, CubicSpline
+from scipy.interpolate import CubicHermiteSpline, make_interp_spline
 
 
 def wrap_angle(angle):
@@ -76,10 +76,12 @@ def _advance(x0, y0, th0, k, sigma):
 
 
 class SplineCenterline:
-    """Smooth (C2) centre line: cubic spline through points, reparametrised by arc length.
+    """Smooth centre line: interpolating spline through points, reparametrised by arc length.
 
-    Closed tracks use a periodic spline (continuous curvature across the start/finish seam);
-    open tracks use a not-a-knot spline. The spline parameter is the cumulative chord length;
+    Quintic (C4) so that curvature AND its derivative are continuous: with a cubic spline the
+    curvature derivative jumps at every point. Closed tracks use a periodic spline (smooth across
+    the start/finish seam); open tracks the default not-a-knot ends (lower degree when there are
+    fewer than 6 points). The spline parameter is the cumulative chord length;
     arc length is integrated with 5-point Gauss-Legendre quadrature on a fine sub-grid and
     inverted with a cubic Hermite spline (du/ds = 1/|r'(u)| is known exactly), which keeps the
     arc-length error around 1e-9 m.
@@ -94,10 +96,11 @@ class SplineCenterline:
         chord = np.hypot(*np.diff(points, axis=0).T)
         self.u_knots = np.concatenate([[0.0], np.cumsum(chord)])
         self.widths_at_knots = widths
-        self.spline = CubicSpline(self.u_knots, points, axis=0, bc_type="periodic" if closed else "not-a-knot")
+        degree = 5 if len(points) >= 6 else (3 if len(points) >= 4 else 2)
+        self.spline = make_interp_spline(self.u_knots, points, k=degree, axis=0, bc_type="periodic" if closed else None)
         self.d1 = self.spline.derivative(1)
         self.d2 = self.spline.derivative(2)
-        self.d3 = self.spline.derivative(3)
+        self.d3 = self.spline.derivative(3) if degree >= 3 else None
 
         # Fine parameter grid: every knot interval cut into equal sub-intervals.
         n_sub = max(8, int(np.ceil(8000 / len(chord))))
@@ -121,7 +124,8 @@ class SplineCenterline:
 
     def evaluate(self, s) -> CenterlineSample:
         u = self.parameter(s)
-        p, r1, r2, r3 = self.spline(u), self.d1(u), self.d2(u), self.d3(u)
+        p, r1, r2 = self.spline(u), self.d1(u), self.d2(u)
+        r3 = self.d3(u) if self.d3 is not None else np.zeros_like(r2)
         xp, yp = r1[..., 0], r1[..., 1]
         xpp, ypp = r2[..., 0], r2[..., 1]
         xppp, yppp = r3[..., 0], r3[..., 1]

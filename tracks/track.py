@@ -206,17 +206,19 @@ class Track:
             raise ValueError("to_frenet: x and y must be finite")
         _, nearest = self._lookup_tree.query(q)
         s = self._lookup_s[nearest]
+        active = np.arange(len(s))  # points still iterating
         for _ in range(_PROJECTION_MAX_ITERATIONS):
-            c = self._sample(s)
+            c = self._sample(s[active])
             cos_h, sin_h = np.cos(c.heading), np.sin(c.heading)
-            dx, dy = q[:, 0] - c.x, q[:, 1] - c.y
+            dx, dy = q[active, 0] - c.x, q[active, 1] - c.y
             along = dx * cos_h + dy * sin_h
             lateral = -dx * sin_h + dy * cos_h
             # Newton on f(s) = (q - p(s)) . t(s); f'(s) = -(1 - kappa * ey). The clamp keeps the
             # step sane for points beyond the centre of curvature (far outside any valid track).
             step = along / np.maximum(1.0 - c.curvature * lateral, 0.05)
-            s = self.wrap_s(s + step)
-            if np.max(np.abs(step), initial=0.0) < _PROJECTION_TOLERANCE:
+            s[active] = self.wrap_s(s[active] + step)
+            active = active[np.abs(step) >= _PROJECTION_TOLERANCE]
+            if len(active) == 0:
                 break
         c = self._sample(s)
         ey = -(q[:, 0] - c.x) * np.sin(c.heading) + (q[:, 1] - c.y) * np.cos(c.heading)
