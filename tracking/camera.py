@@ -86,7 +86,8 @@ class OpenCVCamera:
 
 
 class VideoFileCamera:
-    """Frames of a video file; ``t_capture_s`` is the frame's presentation time in the file."""
+    """Frames of a video file; ``t_capture_s`` is frame index / frame rate (the container's position
+    in milliseconds if it reports no frame rate)."""
 
     def __init__(self, path):
         import os
@@ -102,11 +103,15 @@ class VideoFileCamera:
         self._index = 0
 
     def read(self) -> Frame:
-        t_ms = self._cap.get(cv2.CAP_PROP_POS_MSEC)
         ok, image = self._cap.read()
         if not ok:
             raise EndOfStream(f"{self.path}: end of video after {self._index} frames")
-        t = t_ms / 1000.0 if (t_ms > 0 or self._index == 0 or self.fps is None) else self._index / self.fps
+        # Backends differ in what CAP_PROP_POS_MSEC means around a read; with a known frame
+        # rate the frame index is the reliable clock (constant-frame-rate files).
+        if self.fps is not None:
+            t = self._index / self.fps
+        else:
+            t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         frame = Frame(image, t, self._index)
         self._index += 1
         return frame

@@ -44,7 +44,8 @@ def default_detector_parameters() -> cv2.aruco.DetectorParameters:
 
 _ECC_PX_PER_CELL = 6  # template resolution; 4 loses accuracy on ~12 px markers, 8 only costs time
 _ECC_MARGIN_CELLS = 0.5  # white quiet zone included in the template (labels must be at least this wide)
-_ECC_MAX_SHIFT_PX = 2.0  # a refinement moving a corner further than this is treated as diverged
+_ECC_MAX_SHIFT = 0.15  # a refinement moving a corner further than this (in marker sides, at least
+# 2 px) is treated as diverged
 
 
 class MarkerDetector:
@@ -59,7 +60,7 @@ class MarkerDetector:
     so uneven lighting does not bias it). On markers of 10-15 px this brings corner errors from
     ~0.5 px (ArUco's own sub-pixel step, which has too few pixels per edge) to ~0.05 px; see
     docs/tracking.md. ``refine="aruco"`` keeps the detector's corners. Refinements that fail
-    or move a corner more than 2 px keep the detector's corners and are counted in
+    or move a corner more than 15 % of the marker side (at least 2 px) keep the detector's corners and are counted in
     ``refine_failures``.
     """
 
@@ -110,7 +111,7 @@ class MarkerDetector:
             self.refine_failures += 1
             return corners
         refined = cv2.perspectiveTransform(t_corners.reshape(-1, 1, 2).astype(np.float32), warp).reshape(4, 2) + offset
-        if not np.all(np.isfinite(refined)) or np.max(np.linalg.norm(refined - corners, axis=1)) > _ECC_MAX_SHIFT_PX:
+        if not np.all(np.isfinite(refined)) or np.max(np.linalg.norm(refined - corners, axis=1)) > max(2.0, _ECC_MAX_SHIFT * side_px):
             self.refine_failures += 1
             return corners
         return refined.astype(float)
