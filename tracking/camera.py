@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Protocol, Sequence
 
 import cv2
@@ -224,7 +224,6 @@ class _RenderCanvas:
 
 
 _SUPERSAMPLE = 4
-_LABEL_INSET = 0.0
 
 
 class SyntheticCamera:
