@@ -16,6 +16,7 @@ COMMAND_MODULES = [
     "app.commands.solve",
     "app.commands.scenario",
     "app.commands.bench",
+    "app.commands.calibrate",
 ]
 
 

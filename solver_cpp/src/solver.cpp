@@ -262,7 +262,7 @@ void Solver::number_multipliers() {
 
 // -------------------------------------------------------------------------------------------------
 bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc) {
-  const bool pd = settings_.barrier == BarrierMode::PrimalDual;
+  const bool pd = barrier_ == BarrierMode::PrimalDual;
   rc.setZero();
   const int ss = stage_size();
   r.head(n_vars_).setZero();
@@ -530,7 +530,7 @@ void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out)
 double Solver::line_search(double merit0) {
   const double hsum = violation_sum(h_);
   double t = 1.0;
-  if (settings_.barrier == BarrierMode::PrimalDual) {
+  if (barrier_ == BarrierMode::PrimalDual) {
     recover_dual_step(y_, h_, rc_, dy_, dz_);
     // Fraction to the boundary: barrier duals stay positive.
     for (int c = 0; c < static_cast<int>(cons_.size()); ++c)
@@ -587,6 +587,7 @@ std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::ve
   y_.mu = mu;
   y_.mu2 = mu;
   y_.z.setZero();  // barrier duals start at zero, as in solve()
+  barrier_ = settings_.barrier;
   rho_ = rho;
   eval_all_constraints(y_, h_);
   classify(h_, true);
@@ -639,7 +640,7 @@ Result Solver::solve(const WarmStart* warm) {
     for (int i = 0; i < N_; ++i) {
       y_.x[i].col(0) = prob_.x0[i];
       y_.u[i] = u_init[i];
-      if (attempt >= 2)
+      if (attempt >= 4)
         // A constant offset per agent and control component (not white noise, which averages out):
         // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
         for (int q = 0; q < nu_; ++q) {
@@ -656,7 +657,13 @@ Result Solver::solve(const WarmStart* warm) {
     y_.mu2.setZero();
     y_.z.setZero();
     if (have_mu && attempt == 0) { y_.mu = warm->mu; y_.mu2 = warm->mu; }
-    rho_ = settings_.rho_init * (attempt == 1 ? 10.0 : 1.0);
+    // Restart schedule (measured on the merging games, each variant rescues different instances):
+    // attempt 1: 10x rho_init; 2: the other barrier form; 3: both; >= 4: the same four with perturbed controls.
+    const int variant = attempt % 4;
+    rho_ = settings_.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
+    barrier_ = settings_.barrier;
+    if (variant >= 2)
+      barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
     lu_analyzed_ = false;
     std::vector<double> merits;
     bool first = true, stalled = false;
@@ -757,7 +764,7 @@ Result Solver::solve(const WarmStart* warm) {
       res.mu[c] = mu2_col_[c] >= 0 ? 0.5 * (y_.mu[c] + y_.mu2[c]) : y_.mu[c];
       ++nact;
     } else if (state_[c] == ConstraintState::Barrier && h_[c] < 0) {
-      res.mu[c] = settings_.barrier == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h_[c];
+      res.mu[c] = barrier_ == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h_[c];
     }
   }
   res.h = h_;

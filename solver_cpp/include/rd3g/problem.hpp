@@ -79,7 +79,7 @@ enum class LinearSolver {
 
 struct Settings {
   double tol = 5e-4;             ///< stop when ||r||_2 < tol (and the other conditions hold)
-  int max_iter = 100;            ///< Newton iterations
+  int max_iter = 200;            ///< Newton iterations, all restart attempts together
   double time_limit = 0.0;       ///< (s), 0 = none
   double rho_init = 0.01;        ///< initial barrier weight rho
   double rho_kappa = 0.2;        ///< rho <- max(tol/10, min(kappa rho, rho^beta))
@@ -107,9 +107,10 @@ struct Settings {
   int lscg_max_iter = 2000;
   /// Globalisation for nonconvex games: when an attempt stalls (merit down < 1% over stall_window
   /// iterations) or its line search fails, restart from the initial guess with rho_init * 10 (attempt 1),
-  /// then with the initial controls plus seeded Gaussian noise of std restart_u_std (attempts >= 2).
+  /// the other barrier form (2), both (3), then the same four from the initial controls plus a seeded
+  /// constant offset per agent and control of std restart_u_std (attempts 4..7).
   /// Every attempt counts towards iterations, max_iter and the reported time.
-  int restarts = 3;
+  int restarts = 7;
   int stall_window = 8;
   double restart_u_std = 0.2;  ///< (control units)
   bool verbose = false;

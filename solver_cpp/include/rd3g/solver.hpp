@@ -94,6 +94,7 @@ class Solver {
   std::vector<int> mu_col_, mu2_col_;  // variable/row index of each constraint's multiplier(s), -1 if none
   int n_vars_ = 0;
   double rho_ = 0;
+  BarrierMode barrier_ = BarrierMode::PrimalDual;  // barrier form of the current attempt
 
   // buffers (allocated in setup)
   Iterate y_, trial_, best_;
