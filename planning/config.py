@@ -1,0 +1,67 @@
+"""Planner parameters (one typed dataclass; every field validated, errors name the field)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+
+class PlannerConfigError(ValueError):
+    """A planner parameter is invalid; the message names the field."""
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Receding-horizon racing planner settings shared by RD3G and the MPC opponent.
+
+    Costs per planning step (k = 1..T), in the solver's QuadraticCost form:
+    q_speed (v - top_speed)^2 + q_lateral (ey - raceline_ey)^2 + q_heading epsi^2
+    + r_accel a^2 + r_steer delta^2, minus lead_weight * (own progress - opponent progress).
+    """
+
+    horizon: int = 10                 # planning steps T
+    plan_dt_s: float = 0.1            # planning step (s); the plan covers horizon * plan_dt_s
+    top_speed_mps: float = 2.0        # speed reference and upper speed bound of this car
+    lead_weight: float = 0.5          # Q_d: cost per metre of progress difference per step
+    q_speed: float = 1.0              # 1/(m/s)^2
+    q_lateral: float = 2.0            # 1/m^2, pulls towards raceline_ey
+    q_heading: float = 2.0            # 1/rad^2
+    r_accel: float = 0.05             # 1/(m/s^2)^2
+    r_steer: float = 1.0              # 1/rad^2
+    raceline_ey_m: float = 0.0        # lateral reference (m, left positive); 0 = centre line
+    track_margin_m: float = 0.03      # extra clearance to the track edge beyond the car's half-extent
+    heading_allowance_rad: float = 0.15  # yaw assumed when computing the lateral half-extent of the footprint
+    collision_margin_m: float = 0.02  # added to the footprints' circumscribed-circle distance
+    max_brake_mps2: float = 4.0       # planner's braking bound (tyre-limited; the motor could brake harder)
+    steering_margin: float = 0.95     # fraction of the steering range the planner may use
+    curvature_table_ds_m: float = 0.02
+    # Solver: deterministic iteration cap rather than a wall-clock limit (reproducible races); the
+    # barrier weight is only reduced once its subproblem is nearly solved (rho_progress), restarts
+    # are off (a restart's result can be worse than the first attempt's).
+    max_iterations: int = 40
+    solver_tol: float = 5e-4
+    rho_progress: float = 1.0
+    solver_restarts: int = 0
+    solver_time_limit_s: float = 0.0  # 0 = none; > 0 makes races depend on machine speed
+    # A non-converged solve is still used if its constraint violation is at most this (m), otherwise
+    # the previous plan, shifted, is used.
+    accept_violation_m: float = 0.01
+
+    def __post_init__(self) -> None:
+        positive = {"plan_dt_s", "top_speed_mps", "max_brake_mps2", "curvature_table_ds_m", "solver_tol", "steering_margin"}
+        ints = {"horizon": 1, "max_iterations": 1, "solver_restarts": 0}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in ints:
+                if isinstance(v, bool) or not isinstance(v, int) or v < ints[f.name]:
+                    raise PlannerConfigError(f"planner.{f.name}: must be an integer >= {ints[f.name]}, got {v!r}")
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise PlannerConfigError(f"planner.{f.name}: must be a finite number, got {v!r}")
+            if f.name == "raceline_ey_m":
+                continue
+            if f.name in positive and v <= 0:
+                raise PlannerConfigError(f"planner.{f.name}: must be > 0, got {v!r}")
+            if v < 0:
+                raise PlannerConfigError(f"planner.{f.name}: must be >= 0, got {v!r}")
+        if self.steering_margin > 1:
+            raise PlannerConfigError(f"planner.steering_margin: must be in (0, 1], got {self.steering_margin!r}")

@@ -1,0 +1,109 @@
+"""Track geometry as the planners see it: the Frenet kinematic bicycle on the track's curvature
+table, track limits as bounds on ey, the collision distance, continuous (unwrapped) progress."""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+
+from solver_cpp import KinematicBicycleFrenet
+from vehicles.params import CarParams
+
+from .config import PlannerConfig
+
+S, EY, V, EPSI = range(4)
+
+
+def frenet_state(track, state) -> np.ndarray:
+    """Simulator/estimator state [x, y, heading, vx, vy, yaw_rate] -> planner state [s, ey, v, epsi]
+    with s wrapped to [0, length) and v the speed of the CG (the kinematic model's v)."""
+    x, y, heading, vx, vy = (float(c) for c in np.asarray(state, dtype=float)[:5])
+    s, ey, epsi = track.to_frenet(np.array([x]), np.array([y]), np.array([heading]))
+    return np.array([float(s[0]), float(ey[0]), math.hypot(vx, vy), float(epsi[0])])
+
+
+class ProgressUnwrapper:
+    """Continuous progress along a closed track for several cars.
+
+    The planners work with unwrapped s (it grows past the track length instead of jumping back
+    to 0), so the lead term s_j - s_i and the collision constraint stay correct across the
+    start/finish line. The curvature table is periodic, so the model accepts any s.
+    """
+
+    def __init__(self, track, s0) -> None:
+        s0 = np.asarray(s0, dtype=float).reshape(-1)
+        self.track = track
+        # Place every car within half a lap of car 0, so a car just behind the line is behind.
+        self.s = s0[0] + np.asarray(track.progress_difference(s0, s0[0]), dtype=float)
+        self._last = np.mod(s0, track.length)
+
+    def update(self, s_wrapped) -> np.ndarray:
+        """Feed wrapped arc lengths (one per car); returns the unwrapped ones. Samples must be less
+        than half a lap apart in time."""
+        s_wrapped = np.mod(np.asarray(s_wrapped, dtype=float).reshape(-1), self.track.length)
+        self.s = self.s + np.asarray(self.track.progress_difference(s_wrapped, self._last), dtype=float)
+        self._last = s_wrapped
+        return self.s.copy()
+
+
+class FrenetTrackModel:
+    """The planning model of one car on one track and the geometric limits derived from it.
+
+    * model: KinematicBicycleFrenet(lf, lr) of the car on the track's curvature table (periodic).
+    * lateral bound: |ey| <= width/2 - (half the footprint width, plus the corner swing at
+      heading_allowance_rad) - track_margin_m, at the narrowest point of the planning window.
+    * collision distance: the cars are discs of the footprint's circumscribed radius, so in
+      Cartesian coordinates d_min = r_a + r_b + collision_margin_m. The constraint is evaluated
+      on (s, ey), where an arc-length gap ds at lateral offset ey is only (1 - kappa ey) ds long
+      on the inside of a curve; d_min is divided by (1 - |kappa|max ey_max) over the window so the
+      Frenet distance never under-estimates the Cartesian one (it over-estimates it on the
+      outside of curves and is exact on straights).
+    """
+
+    def __init__(self, track, car: CarParams, config: PlannerConfig) -> None:
+        if not track.closed:
+            raise ValueError(f"track: racing needs a closed track, {track.name!r} is open")
+        self.track = track
+        self.car = car
+        self.config = config
+        s_grid, kappa = track.curvature_table(config.curvature_table_ds_m)
+        self.table_ds = float(s_grid[1] - s_grid[0])
+        self.kappa = np.asarray(kappa[:-1], dtype=float)  # periodic: sample N is sample 0
+        self.model = KinematicBicycleFrenet(lf=car.geometry.lf_m, lr=car.geometry.lr_m, kappa=self.kappa,
+                                            ds=self.table_ds, closed=True)
+        g = car.geometry
+        a = config.heading_allowance_rad
+        self.lateral_half_extent = 0.5 * g.footprint_width_m * math.cos(a) + (
+            0.5 * g.footprint_length_m + abs(g.footprint_offset_m)) * math.sin(a)
+        self.footprint_radius = math.hypot(0.5 * g.footprint_length_m + abs(g.footprint_offset_m),
+                                           0.5 * g.footprint_width_m)
+
+    @lru_cache(maxsize=8)
+    def rollout_model(self, dt: float):
+        """C++ model with time step dt (for predicting the state over the actuation delay)."""
+        return self.model.build(dt)
+
+    def window(self, s_values) -> np.ndarray:
+        """Arc lengths covering the planning window from the given progress values (1 cm spacing)."""
+        s_values = np.asarray(s_values, dtype=float)
+        reach = self.config.top_speed_mps * self.config.horizon * self.config.plan_dt_s + 0.5
+        return np.arange(float(s_values.min()) - 0.2, float(s_values.max()) + reach, 0.01)
+
+    def ey_bound(self, s_values) -> float:
+        """Largest |ey| the planner allows over the window ahead of the given progress values (m)."""
+        w = float(np.min(self.track.width(np.mod(self.window(s_values), self.track.length))))
+        bound = 0.5 * w - self.lateral_half_extent - self.config.track_margin_m
+        if bound <= 0:
+            raise ValueError(f"track: {self.track.name!r} is too narrow for car {self.car.name!r} "
+                             f"(half-width {0.5 * w:.3f} m, car needs {self.lateral_half_extent + self.config.track_margin_m:.3f} m)")
+        return bound
+
+    def collision_distance(self, s_values, other_radius: float | None = None) -> float:
+        """Frenet d_min (m) between this car and another over the window (see class doc)."""
+        r_other = self.footprint_radius if other_radius is None else other_radius
+        d_cart = self.footprint_radius + r_other + self.config.collision_margin_m
+        s = np.mod(self.window(s_values), self.track.length)
+        kappa_max = float(np.max(np.abs(self.track.curvature(s))))
+        ey_max = self.ey_bound(s_values)
+        return d_cart / max(1.0 - kappa_max * ey_max, 0.2)

@@ -1,0 +1,177 @@
+"""Receding-horizon racing planners on the track (Frenet kinematic bicycle, state [s, ey, v, epsi],
+control [a, delta]); both solved with the project's C++ solver (solver_cpp).
+
+RacingPlanner (RD3G): a 2-agent game, agent 0 = our car, agent 1 = the opponent, both with the racing
+cost (lead term lead_weight * (s_j - s_i) per step plus tracking terms), a shared collision constraint
+on (s, ey), track limits as bounds on ey, the car's acceleration/steering limits as control bounds.
+
+MPCOpponent: one agent with the same cost; the other car is predicted at constant speed along the track
+at its current lateral offset and avoided as a moving obstacle. It does not model that the other car
+reacts to it. With a single agent the solver's lead term has no opponent, so the progress reward
+-lead_weight * s is written as the quadratic lead_weight/(2D) (s - (s0 + D))^2 with D far ahead
+(its gradient is -lead_weight (1 - (s - s0)/D), within 2 % over the plan for D = 100 m); the
+opponent's progress is a constant for this planner.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, QuadraticCost, Solver, WarmStart
+
+from .commands import CommandMapper
+from .config import PlannerConfig
+from .frenet import EY, S, V, FrenetTrackModel
+
+_PROGRESS_ANCHOR_M = 100.0  # D above
+
+
+@dataclass
+class Plan:
+    """One planning step. x: (N, T+1, 4) planned (or predicted) trajectories, agent 0 = the planning
+    car; u: (T, 2) the planning car's controls; `used` says whether the solve was used ("converged",
+    "accepted": not converged but feasible within accept_violation_m) or the previous plan, shifted,
+    was applied instead ("fallback")."""
+
+    x: np.ndarray
+    u: np.ndarray
+    status: str
+    iterations: int
+    solve_time_s: float
+    max_violation: float
+    used: str
+    d_min: float
+    ey_bound: float
+
+    @property
+    def control(self) -> np.ndarray:
+        return self.u[0]
+
+
+class _RecedingHorizon:
+    n_agents = 1
+
+    def __init__(self, track_model: FrenetTrackModel, mapper: CommandMapper, config: PlannerConfig,
+                 control_period_s: float) -> None:
+        self.tm = track_model
+        self.mapper = mapper
+        self.config = config
+        self.control_period_s = float(control_period_s)
+        self._prev: GameResult | None = None
+        self._settings = dict(max_iter=config.max_iterations, tol=config.solver_tol,
+                              rho_progress=config.rho_progress, restarts=config.solver_restarts,
+                              time_limit=config.solver_time_limit_s)
+
+    def reset(self) -> None:
+        self._prev = None
+        self.mapper.reset()
+
+    def _cost(self, top_speed: float) -> QuadraticCost:
+        c = self.config
+        return QuadraticCost(x_ref=[0.0, c.raceline_ey_m, top_speed, 0.0], Q_ref=[0.0, c.q_lateral, c.q_speed, c.q_heading],
+                             R=[c.r_accel, c.r_steer])
+
+    def _agent(self, x0, top_speed: float, ey_bound: float, cost: QuadraticCost, lead: float) -> Agent:
+        a_min, a_max = self.mapper.acceleration_bounds(float(x0[V]))
+        return Agent(self.tm.model, x0=list(map(float, x0)), cost=cost,
+                     u_min=[a_min, self.mapper.delta_min], u_max=[a_max, self.mapper.delta_max],
+                     x_min=[-np.inf, -ey_bound, -np.inf, -np.inf], x_max=[np.inf, ey_bound, top_speed, np.inf],
+                     lead_weight=lead, lead_index=S)
+
+    def _warm_start(self) -> WarmStart | None:
+        """Previous plan shifted by one control period (interpolated: the planning step is longer)."""
+        if self._prev is None:
+            return None
+        shift = self.control_period_s / self.config.plan_dt_s
+        T = self.config.horizon
+        t = np.minimum(np.arange(T) + shift, T - 1)
+        i0 = np.floor(t).astype(int)
+        i1 = np.minimum(i0 + 1, T - 1)
+        w = (t - i0)[None, :, None]
+        u = (1 - w) * self._prev.u[:, i0] + w * self._prev.u[:, i1]
+        lam = (1 - w) * self._prev.lam[:, i0] + w * self._prev.lam[:, i1]
+        return WarmStart(u=u, lam=lam)
+
+    def _finish(self, problem: GameProblem, d_min: float, ey_bound: float) -> Plan:
+        warm = self._warm_start()
+        result = Solver(problem, **self._settings).solve(warm)
+        ok = bool(np.all(np.isfinite(result.x)) and np.all(np.isfinite(result.u)))
+        if result.converged and ok:
+            used = "converged"
+        elif ok and result.max_violation <= self.config.accept_violation_m:
+            used = "accepted"
+        else:
+            used = "fallback"
+        if used != "fallback" or warm is None:
+            self._prev = result if ok else None
+            u = result.u[0] if ok else np.zeros_like(result.u[0])
+            x = result.x
+        else:
+            u = warm.u[0]
+            x = np.stack([np.asarray(self.tm.rollout_model(self.config.plan_dt_s).rollout(problem.agents[i].x0, warm.u[i]))
+                          for i in range(problem.num_agents)])
+            self._prev = GameResult(**{**result.__dict__, "u": warm.u, "lam": warm.lam, "x": x})
+        return Plan(x=np.asarray(x), u=np.asarray(u), status=result.status, iterations=result.iterations,
+                    solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
+                    d_min=d_min, ey_bound=ey_bound)
+
+
+class RacingPlanner(_RecedingHorizon):
+    """RD3G racing planner: the 2-car game of our car (agent 0) and the opponent (agent 1).
+
+    The opponent is modelled with the same cost and car model and its own top speed
+    (`opponent_top_speed_mps`, known before the race)."""
+
+    n_agents = 2
+
+    def __init__(self, track_model: FrenetTrackModel, mapper: CommandMapper, config: PlannerConfig,
+                 control_period_s: float, opponent_top_speed_mps: float) -> None:
+        super().__init__(track_model, mapper, config, control_period_s)
+        self.opponent_top_speed = float(opponent_top_speed_mps)
+
+    def plan(self, x_self, x_other) -> Plan:
+        """x_self, x_other: [s (unwrapped, same origin), ey, v, epsi]; x_self already delay-predicted."""
+        c = self.config
+        s_now = [x_self[S], x_other[S]]
+        ey_bound = self.tm.ey_bound(s_now)
+        d_min = self.tm.collision_distance(s_now)
+        x_other = np.array(x_other, dtype=float)
+        x_other[EY] = np.clip(x_other[EY], -ey_bound, ey_bound)
+        agents = [self._agent(x_self, c.top_speed_mps, ey_bound, self._cost(c.top_speed_mps), c.lead_weight),
+                  self._agent(x_other, self.opponent_top_speed, ey_bound, self._cost(self.opponent_top_speed), c.lead_weight)]
+        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
+                              collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY))
+        return self._finish(problem, d_min, ey_bound)
+
+
+class MPCOpponent(_RecedingHorizon):
+    """Single-car MPC with the racing cost, avoiding a constant-speed prediction of the other car."""
+
+    def predict_other(self, x_other) -> np.ndarray:
+        """(T+1, 2) positions (s, ey) of the other car at constant speed and lateral offset."""
+        c = self.config
+        t = np.arange(c.horizon + 1) * c.plan_dt_s
+        return np.column_stack([x_other[S] + max(float(x_other[V]), 0.0) * t, np.full(t.shape, float(x_other[EY]))])
+
+    def plan(self, x_self, x_other) -> Plan:
+        c = self.config
+        s_now = [x_self[S], x_other[S]]
+        ey_bound = self.tm.ey_bound(s_now)
+        d_min = self.tm.collision_distance(s_now)
+        cost = self._cost(c.top_speed_mps)
+        if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
+            cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]
+            cost.Q_ref = [c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M), *cost.Q_ref[1:]]
+        other = self.predict_other(x_other)
+        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon,
+                              agents=[self._agent(x_self, c.top_speed_mps, ey_bound, cost, 0.0)],
+                              collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
+                              obstacles=[Obstacle(positions=other, min_distance=d_min)])
+        plan = self._finish(problem, d_min, ey_bound)
+        predicted = np.zeros((1, c.horizon + 1, 4))
+        predicted[0, :, S], predicted[0, :, EY] = other[:, 0], other[:, 1]
+        predicted[0, :, V] = max(float(x_other[V]), 0.0)
+        plan.x = np.concatenate([plan.x, predicted], axis=0)
+        return plan
