@@ -38,7 +38,7 @@ class RaceSetup:
     max_time_s: float = 60.0            # a race not won by then is "unfinished"
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     start_s_m: tuple[float, float] = (0.25, 0.45)   # front car's start s range (just after the line)
-    start_gap_car_lengths: tuple[float, float] = (1.25, 1.75)  # centre-to-centre, along the track
+    start_gap_car_lengths: tuple[float, float] = (1.75, 2.25)  # centre-to-centre along the track: about one car length of free space
     start_ey_m: float = 0.12            # |ey| of each car at the start, uniform in [-start_ey_m, start_ey_m]
 
     def __post_init__(self) -> None:
@@ -73,6 +73,9 @@ class RaceOutcome:
     fallbacks: int                  # RD3G steps that applied the previous plan
     off_track: dict[str, int]
     start_states: np.ndarray
+    trace_t: np.ndarray = field(default_factory=lambda: np.zeros(0))       # (n,) s, every control step
+    trace_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 6)))  # (n, 2, 6) true states
+    trace_progress: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))   # (n, 2) unwrapped s (m)
 
     def summary(self) -> dict:
         """The `race --json` record (docs/racing.md)."""
@@ -89,8 +92,8 @@ def _percentiles(ms: np.ndarray) -> tuple[float | None, float | None]:
 
 
 def start_states(setup: RaceSetup) -> np.ndarray:
-    """Seeded standing start: the front car just after the line, the other about one and a half car
-    lengths (centre to centre) behind along the track, each at a random lateral offset, aligned with
+    """Seeded standing start: the front car just after the line, the other about one car
+    lengths of free space (2 +- 0.25 car lengths centre to centre) behind along the track, each at a random lateral offset, aligned with
     the track, at rest. Rows: [x, y, heading, vx, vy, yaw_rate] for (rd3g, opponent)."""
     rng = np.random.default_rng(setup.seed)
     tr = setup.track
@@ -212,6 +215,7 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcom
     unwrap = ProgressUnwrapper(track, [frenet_state(track, x0[i])[S] for i in range(2)])
     solve_ms, opp_ms, collisions = [], [], []
     min_gap = math.inf
+    trace_t, trace_x, trace_s = [], [], []
     fallbacks = 0
     period = setup.control_period_s
     n_steps = int(math.ceil(setup.max_time_s / period))
@@ -221,6 +225,7 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcom
         fs = np.array([frenet_state(track, states[i]) for i in range(2)])
         fs[:, S] = unwrap.update(fs[:, S])
         min_gap = min(min_gap, footprint_gap(states, car))
+        trace_t.append(sim.time); trace_x.append(states); trace_s.append(fs[:, S].copy())
         plans, ms = {}, {}
         commands = np.zeros((2, 2))
         # Our car: plan from the state predicted over the actuation delay.
@@ -263,4 +268,5 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcom
         lap_times_s={name: list(status.lap_times[i]) for i, name in enumerate(CAR_NAMES)},
         min_gap_m=float(min_gap), collisions=collisions, solve_ms=np.array(solve_ms), opponent_solve_ms=np.array(opp_ms),
         control_period_ms=1e3 * period, race_time_s=sim.time, fallbacks=int(fallbacks),
-        off_track={name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)}, start_states=x0)
+        off_track={name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)}, start_states=x0,
+        trace_t=np.array(trace_t), trace_states=np.array(trace_x), trace_progress=np.array(trace_s))

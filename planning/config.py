@@ -23,7 +23,7 @@ class PlannerConfig:
     top_speed_mps: float = 2.0        # speed reference and upper speed bound of this car
     lead_weight: float = 0.5          # Q_d: cost per metre of progress difference per step
     q_speed: float = 1.0              # 1/(m/s)^2
-    q_lateral: float = 2.0            # 1/m^2, pulls towards raceline_ey
+    q_lateral: float = 0.5            # 1/m^2, pulls towards raceline_ey
     q_heading: float = 2.0            # 1/rad^2
     r_accel: float = 0.05             # 1/(m/s^2)^2
     r_steer: float = 1.0              # 1/rad^2
@@ -31,24 +31,27 @@ class PlannerConfig:
     track_margin_m: float = 0.03      # extra clearance to the track edge beyond the car's half-extent
     heading_allowance_rad: float = 0.15  # yaw assumed when computing the lateral half-extent of the footprint
     collision_margin_m: float = 0.02  # added to the footprints' circumscribed-circle distance
+    lateral_reach_m: float = 0.1      # lateral motion over a plan assumed when correcting d_min for curvature
     max_brake_mps2: float = 4.0       # planner's braking bound (tyre-limited; the motor could brake harder)
     steering_margin: float = 0.95     # fraction of the steering range the planner may use
     curvature_table_ds_m: float = 0.02
     # Solver: deterministic iteration cap rather than a wall-clock limit (reproducible races); the
     # barrier weight is only reduced once its subproblem is nearly solved (rho_progress), restarts
     # are off (a restart's result can be worse than the first attempt's).
-    max_iterations: int = 40
+    max_iterations: int = 15
     solver_tol: float = 5e-4
     rho_progress: float = 1.0
     solver_restarts: int = 0
     solver_time_limit_s: float = 0.0  # 0 = none; > 0 makes races depend on machine speed
+    line_search_steps: int = 8        # backtracking steps before the line search fails
+    lm_tries: int = 0                 # Levenberg-Marquardt fallback steps per failed Newton step
     # A non-converged solve is still used if its constraint violation is at most this (m), otherwise
     # the previous plan, shifted, is used.
     accept_violation_m: float = 0.01
 
     def __post_init__(self) -> None:
         positive = {"plan_dt_s", "top_speed_mps", "max_brake_mps2", "curvature_table_ds_m", "solver_tol", "steering_margin"}
-        ints = {"horizon": 1, "max_iterations": 1, "solver_restarts": 0}
+        ints = {"horizon": 1, "max_iterations": 1, "solver_restarts": 0, "line_search_steps": 1, "lm_tries": 0}
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name in ints:

@@ -99,11 +99,15 @@ class FrenetTrackModel:
                              f"(half-width {0.5 * w:.3f} m, car needs {self.lateral_half_extent + self.config.track_margin_m:.3f} m)")
         return bound
 
-    def collision_distance(self, s_values, other_radius: float | None = None) -> float:
-        """Frenet d_min (m) between this car and another over the window (see class doc)."""
+    def collision_distance(self, s_values, ey_values=None, other_radius: float | None = None) -> float:
+        """Frenet d_min (m) between this car and another over the window (see class doc). With
+        ey_values (the cars' current lateral offsets) the curvature factor uses the largest of them
+        plus lateral_reach_m instead of the track-limit bound, which is less conservative."""
         r_other = self.footprint_radius if other_radius is None else other_radius
         d_cart = self.footprint_radius + r_other + self.config.collision_margin_m
         s = np.mod(self.window(s_values), self.track.length)
         kappa_max = float(np.max(np.abs(self.track.curvature(s))))
         ey_max = self.ey_bound(s_values)
+        if ey_values is not None:
+            ey_max = min(ey_max, float(np.max(np.abs(ey_values))) + self.config.lateral_reach_m)
         return d_cart / max(1.0 - kappa_max * ey_max, 0.2)

@@ -14,7 +14,7 @@ opponent's progress is a constant for this planner.
 """
 from __future__ import annotations
 
-import math
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +26,7 @@ from .config import PlannerConfig
 from .frenet import EY, S, V, FrenetTrackModel
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
+_COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=30)
 
 
 @dataclass
@@ -62,7 +63,8 @@ class _RecedingHorizon:
         self._prev: GameResult | None = None
         self._settings = dict(max_iter=config.max_iterations, tol=config.solver_tol,
                               rho_progress=config.rho_progress, restarts=config.solver_restarts,
-                              time_limit=config.solver_time_limit_s)
+                              time_limit=config.solver_time_limit_s,
+                              ls_max_steps=config.line_search_steps, lm_tries=config.lm_tries)
 
     def reset(self) -> None:
         self._prev = None
@@ -94,26 +96,48 @@ class _RecedingHorizon:
         lam = (1 - w) * self._prev.lam[:, i0] + w * self._prev.lam[:, i1]
         return WarmStart(u=u, lam=lam)
 
+    def _rollout(self, problem: GameProblem, u: np.ndarray) -> np.ndarray:
+        model = self.tm.rollout_model(self.config.plan_dt_s)
+        return np.stack([np.asarray(model.rollout(np.asarray(a.x0, dtype=float), u[i]))
+                         for i, a in enumerate(problem.agents)])
+
+    def _violation(self, problem: GameProblem, x: np.ndarray, d_min: float, ey_bound: float) -> float:
+        """Largest violation (m or m/s) of track limits, top speed and separation along trajectories x."""
+        worst = float(np.max(np.abs(x[:, 1:, EY])) - ey_bound)
+        for i, a in enumerate(problem.agents):
+            worst = max(worst, float(np.max(x[i, 1:, V]) - a.x_max[V]))
+        positions = [x[i, 1:, :2] for i in range(len(problem.agents))] + [o.positions[1:] for o in problem.obstacles]
+        for i in range(len(positions)):
+            for j in range(i + 1, len(positions)):
+                worst = max(worst, d_min - float(np.min(np.hypot(*(positions[i] - positions[j]).T))))
+        return max(worst, 0.0)
+
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float) -> Plan:
+        """Solve; a converged solve is used as is. A non-converged one is used only if its controls,
+        re-simulated with the planning model (removing any dynamics defect), keep every constraint
+        within accept_violation_m; otherwise the previous plan's controls, shifted, are applied."""
         warm = self._warm_start()
-        result = Solver(problem, **self._settings).solve(warm)
-        ok = bool(np.all(np.isfinite(result.x)) and np.all(np.isfinite(result.u)))
-        if result.converged and ok:
-            used = "converged"
-        elif ok and result.max_violation <= self.config.accept_violation_m:
-            used = "accepted"
+        # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
+        # its full globalisation (more iterations, restarts, Levenberg-Marquardt steps).
+        settings = self._settings if warm is not None else {**self._settings, **_COLD_START_SETTINGS}
+        result = Solver(problem, **settings).solve(warm)
+        finite = bool(np.all(np.isfinite(result.u)))
+        if result.converged and finite and np.all(np.isfinite(result.x)):
+            used, x, u_all = "converged", result.x, result.u
         else:
             used = "fallback"
-        if used != "fallback" or warm is None:
-            self._prev = result if ok else None
-            u = result.u[0] if ok else np.zeros_like(result.u[0])
-            x = result.x
-        else:
-            u = warm.u[0]
-            x = np.stack([np.asarray(self.tm.rollout_model(self.config.plan_dt_s).rollout(problem.agents[i].x0, warm.u[i]))
-                          for i in range(problem.num_agents)])
-            self._prev = GameResult(**{**result.__dict__, "u": warm.u, "lam": warm.lam, "x": x})
-        return Plan(x=np.asarray(x), u=np.asarray(u), status=result.status, iterations=result.iterations,
+            if finite:
+                x = self._rollout(problem, result.u)
+                if np.all(np.isfinite(x)) and self._violation(problem, x, d_min, ey_bound) <= self.config.accept_violation_m:
+                    used, u_all = "accepted", result.u
+            if used == "fallback":
+                u_all = warm.u if warm is not None else np.zeros_like(result.u)
+                x = self._rollout(problem, u_all)
+        if used == "fallback" and warm is None and finite:  # nothing better to fall back to
+            u_all, x = result.u, self._rollout(problem, result.u)
+        lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
+        self._prev = dataclasses.replace(result, u=np.asarray(u_all), x=np.asarray(x), lam=np.asarray(lam))
+        return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
                     solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
                     d_min=d_min, ey_bound=ey_bound)
 
@@ -136,7 +160,7 @@ class RacingPlanner(_RecedingHorizon):
         c = self.config
         s_now = [x_self[S], x_other[S]]
         ey_bound = self.tm.ey_bound(s_now)
-        d_min = self.tm.collision_distance(s_now)
+        d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
         x_other = np.array(x_other, dtype=float)
         x_other[EY] = np.clip(x_other[EY], -ey_bound, ey_bound)
         agents = [self._agent(x_self, c.top_speed_mps, ey_bound, self._cost(c.top_speed_mps), c.lead_weight),
@@ -159,7 +183,7 @@ class MPCOpponent(_RecedingHorizon):
         c = self.config
         s_now = [x_self[S], x_other[S]]
         ey_bound = self.tm.ey_bound(s_now)
-        d_min = self.tm.collision_distance(s_now)
+        d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
         cost = self._cost(c.top_speed_mps)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
             cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]

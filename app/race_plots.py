@@ -1,0 +1,57 @@
+"""PNG figures of example races for docs/racing.md: one overtake (RD3G starts behind and passes) and
+one block (RD3G starts in front on the slower car and keeps the faster MPC car behind)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _pick(records, cell, want):
+    for r in records:
+        if tuple(r["cell"]) == cell and r["winner"] == "rd3g" and "trace" in r and want(r["trace"][2]):
+            return r
+    return None
+
+
+def _plot(rec, track, title: str, path: Path) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tracks import draw_track
+
+    t, states, progress = rec["trace"]
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.2), gridspec_kw={"width_ratios": [1.6, 1]})
+    draw_track(ax, track)
+    for i, (name, cmap) in enumerate((("RD3G", "Reds"), ("MPC", "Blues"))):
+        ax.scatter(states[:, i, 0], states[:, i, 1], c=t, cmap=cmap, s=4, label=name)
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right")
+    ax.set_title(f"{title} (seed {rec['seed']}; darker = later)")
+    ax2.plot(t, progress[:, 0] - progress[:, 1], color="k")
+    ax2.axhline(0, color="grey", lw=0.8)
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylabel("RD3G progress minus MPC progress (m)")
+    ax2.set_title("lead along the track")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_examples(records, args, folder: Path) -> list[Path]:
+    from tracks import load_track
+
+    track = load_track(args.track)
+    out = []
+    overtake = _pick(records, ("rear", "fast"), lambda p: (p[0, 0] - p[0, 1]) < 0 < (p[-1, 0] - p[-1, 1]))
+    if overtake:
+        out.append(_plot(overtake, track, "Overtake: RD3G (faster) starts behind", folder / "race_overtake.png"))
+    # The block with the closest attack: the smallest lead RD3G kept while the faster MPC car was behind.
+    blocks = [r for r in records if tuple(r["cell"]) == ("front", "slow") and r["winner"] == "rd3g" and "trace" in r]
+    if blocks:
+        best = min(blocks, key=lambda r: float(np.min(r["trace"][2][:, 0] - r["trace"][2][:, 1])))
+        out.append(_plot(best, track, "Block: RD3G (slower) starts in front", folder / "race_block.png"))
+    return out

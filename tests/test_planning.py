@@ -1,0 +1,147 @@
+"""Racing planners: command inversion, corrections, delay prediction, bounds, obstacle avoidance."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner
+from planning.config import PlannerConfigError
+from tracks import load_track
+from vehicles.params import CarParams, Corrections, load_car_params
+
+PERIOD = 1.0 / 30.0
+
+
+@pytest.fixture(scope="module")
+def track():
+    return load_track("oval")
+
+
+@pytest.fixture(scope="module")
+def car():
+    return load_car_params("buzzracer")
+
+
+def _drive_accel(car, u, v):
+    """Independent longitudinal model (docs/vehicles.md), written out: F = Cm1 u - Cm2 v |u|_eps - Cr0 tanh(v/vs) - Cd v|v|."""
+    lon = car.longitudinal
+    abs_u = math.sqrt(u * u + lon.throttle_smoothing ** 2) - lon.throttle_smoothing
+    cd = lon.drag_n_per_mps2 + car.corrections.extra_drag_n_per_mps2
+    f = (lon.motor_force_n * u - lon.motor_speed_loss_n_per_mps * v * abs_u
+         - lon.rolling_resistance_n * math.tanh(v / lon.rolling_smoothing_speed_mps) - cd * v * abs(v))
+    return f / car.inertia.mass_kg
+
+
+def test_throttle_inversion_round_trip(car):
+    m = CommandMapper(car, PERIOD)
+    for v in (0.0, 0.5, 1.5, 2.5):
+        a_lo, a_hi = m.acceleration_bounds(v)
+        for a in np.linspace(a_lo, a_hi, 9):
+            u = m.throttle_for_acceleration(a, v)
+            assert -1.0 <= u <= 1.0
+            assert _drive_accel(car, u, v) == pytest.approx(a, abs=1e-6)
+    # Vectorised call agrees with the scalar one.
+    us = m.throttle_for_acceleration(np.array([1.0, -2.0]), np.array([1.0, 2.0]))
+    assert us[0] == pytest.approx(m.throttle_for_acceleration(1.0, 1.0))
+    # Out of reach: clipped to the throttle range.
+    assert m.throttle_for_acceleration(50.0, 1.0) == 1.0
+
+
+def test_extra_drag_correction_changes_throttle(car):
+    heavy = dataclasses.replace(car, corrections=Corrections(extra_drag_n_per_mps2=0.05))
+    u0 = CommandMapper(car, PERIOD).throttle_for_acceleration(0.0, 2.0)
+    u1 = CommandMapper(heavy, PERIOD).throttle_for_acceleration(0.0, 2.0)
+    # Holding 2 m/s needs extra force 0.05 * 4 = 0.2 N, i.e. about 0.2 / (Cm1 - Cm2 v) more throttle.
+    lon = car.longitudinal
+    assert u1 - u0 == pytest.approx(0.2 / (lon.motor_force_n - 2.0 * lon.motor_speed_loss_n_per_mps), rel=0.05)
+
+
+def test_steering_corrections_invert_gain_and_offset(car):
+    corr = Corrections(steering_gain=1.25, steering_offset_rad=0.04)
+    c2 = dataclasses.replace(car, corrections=corr)
+    m = CommandMapper(c2, PERIOD, steering_margin=1.0)
+    for delta in (-0.3, 0.0, 0.2):
+        cmd = m.steering_command(delta)
+        assert 1.25 * cmd + 0.04 == pytest.approx(delta)  # the car's wheel angle equals the plan
+    reach = 1.25 * car.actuators.max_steering_rad
+    assert (m.delta_min, m.delta_max) == pytest.approx((0.04 - reach, 0.04 + reach))
+
+
+def test_delay_prediction_on_straight(track, car):
+    """On the straight (kappa = 0) with delta = 0 the model is s += v dt, v += a dt (explicit Euler)."""
+    delayed = dataclasses.replace(car, corrections=Corrections(throttle_delay_s=0.05))
+    m = CommandMapper(delayed, PERIOD)
+    tm = FrenetTrackModel(track, delayed, PlannerConfig())
+    assert m.n_in_flight == 2
+    m.commands(1.0, 0.0, speed=1.0)
+    m.commands(2.0, 0.0, speed=1.0)
+    x = m.predict(tm, [0.2, 0.0, 1.0, 0.0])
+    # Oldest command acts for 0.05 - 1/30 s, the newest for a full period.
+    t1, t2 = 0.05 - PERIOD, PERIOD
+    s, v = 0.2 + 1.0 * t1, 1.0 + 1.0 * t1
+    s, v = s + v * t2, v + 2.0 * t2
+    assert x == pytest.approx([s, 0.0, v, 0.0], abs=1e-9)
+
+
+def test_progress_unwrapper_across_the_line(track):
+    L = track.length
+    u = ProgressUnwrapper(track, [L - 0.05, 0.2])  # car 0 just behind the line, car 1 after it
+    assert u.s[1] - u.s[0] == pytest.approx(0.25)
+    s = u.update([0.03, 0.3])
+    assert s[0] == pytest.approx(L + 0.03) and s[1] == pytest.approx(L + 0.3)
+
+
+def test_config_validation_names_field():
+    with pytest.raises(PlannerConfigError, match="planner.horizon"):
+        PlannerConfig(horizon=0)
+    with pytest.raises(PlannerConfigError, match="planner.q_speed"):
+        PlannerConfig(q_speed=-1.0)
+
+
+def _planner(cls, track, car, **kw):
+    cfg = PlannerConfig(**kw.pop("config", {}))
+    tm = FrenetTrackModel(track, car, cfg)
+    return cls(tm, CommandMapper(car, PERIOD), cfg, PERIOD, **kw)
+
+
+def test_rd3g_plan_respects_track_limits_and_control_bounds(track, car):
+    p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.8)
+    # Independent track-limit bound: half width minus the footprint's lateral half-extent at the
+    # allowed yaw, minus the margin.
+    cfg = p.config
+    g = car.geometry
+    ey_max = 0.3 - (0.5 * g.footprint_width_m * math.cos(cfg.heading_allowance_rad)
+                    + 0.5 * g.footprint_length_m * math.sin(cfg.heading_allowance_rad)) - cfg.track_margin_m
+    x_self, x_other = np.array([0.8, 0.15, 1.8, 0.1]), np.array([1.1, -0.05, 1.7, 0.0])
+    for _ in range(5):  # a few receding-horizon steps with warm starts, moving into the curve
+        plan = p.plan(x_self, x_other)
+        assert plan.ey_bound == pytest.approx(ey_max)
+        assert np.all(np.abs(plan.x[:, 1:, 1]) <= ey_max + p.config.accept_violation_m)
+        assert np.all(plan.x[0, 1:, 2] <= p.config.top_speed_mps + 1e-6)
+        a_lo, a_hi = p.mapper.acceleration_bounds(x_self[2])
+        assert np.all(plan.u[:, 0] >= a_lo - 1e-6) and np.all(plan.u[:, 0] <= a_hi + 1e-6)
+        assert np.all(np.abs(plan.u[:, 1]) <= 0.95 * car.actuators.max_steering_rad + 1e-6)
+        # The plan is a trajectory of the planning model: re-simulate its controls.
+        replay = p.tm.rollout_model(p.config.plan_dt_s).rollout(x_self, plan.u)
+        assert np.asarray(replay) == pytest.approx(plan.x[0], abs=1e-6)
+        # Cars keep the collision distance in (s, ey) at every planned step.
+        gap = np.hypot(*(plan.x[0, 1:, :2] - plan.x[1, 1:, :2]).T)
+        assert np.all(gap >= plan.d_min - p.config.accept_violation_m)
+        x_self, x_other = plan.x[0, 1], plan.x[1, 1]
+
+
+def test_mpc_avoids_constant_speed_obstacle(track, car):
+    """A slow car straight ahead on the straight: the MPC plan keeps d_min from its constant-speed path."""
+    p = _planner(MPCOpponent, track, car, config={"top_speed_mps": 2.0})
+    x_self = np.array([4.5, 0.0, 2.0, 0.0])  # the top straight is s in [1 + pi, 3 + pi]
+    x_other = np.array([5.1, 0.0, 1.0, 0.0])
+    plan = p.plan(x_self, x_other)
+    t = np.arange(p.config.horizon + 1) * p.config.plan_dt_s
+    other = np.column_stack([5.1 + 1.0 * t, np.zeros_like(t)])  # independent constant-speed prediction
+    assert plan.x[1, :, :2] == pytest.approx(other)
+    gap = np.hypot(*(plan.x[0, 1:, :2] - other[1:]).T)
+    assert plan.used in ("converged", "accepted")
+    assert np.all(gap >= plan.d_min - 1e-3)
+    # Without the obstacle constraint the car would have driven through it (sanity of the scenario).
+    assert np.min(np.abs(5.1 + 1.0 * t[1:] - (4.5 + 2.0 * t[1:]))) < plan.d_min

@@ -1,0 +1,87 @@
+"""Simulated races: a short deterministic race, fault and gap geometry, the JSON record."""
+import math
+
+import numpy as np
+import pytest
+
+from app.race_runner import RaceSetup, fault_of, footprint_gap, run_race, start_states
+from tracks import load_track
+from vehicles.params import load_car_params
+
+
+@pytest.fixture(scope="module")
+def track():
+    return load_track("oval")
+
+
+@pytest.fixture(scope="module")
+def car():
+    return load_car_params("buzzracer")
+
+
+@pytest.fixture(scope="module")
+def race(track, car, tmp_path_factory):
+    setup = RaceSetup(track=track, car=car, seed=3, start="front", rd3g_top_speed_mps=2.0, opponent_top_speed_mps=1.6)
+    return setup, run_race(setup, telemetry_path=tmp_path_factory.mktemp("runs") / "race.rrd")
+
+
+def test_short_race_finishes_without_collision(race, track):
+    setup, o = race
+    assert o.winner in ("rd3g", "opponent")
+    assert o.collisions == []
+    assert o.min_gap_m > 0
+    lap = o.lap_times_s[o.winner][0]
+    # The winner drove one lap (minus its start offset) at no more than its top speed on the inside line
+    # (|ey| <= 0.22 m on 1 m turns shortens the 2 pi m of turns by at most 22 %).
+    shortest = track.length - 2 * math.pi * 0.23 - 0.5
+    assert shortest / 2.0 < lap < 2 * track.length / 1.6
+    assert o.trace_progress[-1].max() - o.trace_progress[0].max() > track.length - 0.5
+    assert set(o.summary()) == {"winner", "lap_times_s", "min_gap_m", "collisions", "solve_ms_p50", "solve_ms_p99",
+                                "control_period_ms"}
+
+
+def test_race_is_deterministic(race):
+    setup, o = race
+    setup_short = setup.__class__(**{**setup.__dict__, "max_time_s": 1.0})
+    again = run_race(setup_short)
+    n = len(again.trace_t)
+    assert np.array_equal(again.trace_states, o.trace_states[:n])
+
+
+def test_start_states_one_car_length_apart(track, car):
+    for start in ("front", "rear"):
+        x = start_states(RaceSetup(track=track, car=car, seed=5, start=start))
+        s, ey, _ = track.to_frenet(x[:, 0], x[:, 1], x[:, 2])
+        ds = track.progress_difference(s[0], s[1])
+        assert (ds > 0) == (start == "front")
+        assert 1.75 * 0.16 - 1e-9 <= abs(ds) <= 2.25 * 0.16 + 1e-9
+        assert np.all(np.abs(ey) <= 0.12 + 1e-9) and np.all(x[:, 3:] == 0)
+
+
+def test_fault_is_the_car_whose_front_hits(car):
+    # Car 1 directly behind car 0, both heading +x: car 1's front hits car 0's rear.
+    states = np.array([[1.0, 0.0, 0.0, 1, 0, 0], [0.85, 0.0, 0.0, 2, 0, 0]])
+    assert fault_of(states) == 1
+    # Car 0 turned into car 1 from beside it: car 1 lies ahead along car 0's heading.
+    states = np.array([[1.0, 0.0, 0.6, 1, 0, 0], [1.05, 0.08, 0.0, 1, 0, 0]])
+    assert fault_of(states) == 0
+
+
+def test_footprint_gap_matches_geometry(car):
+    L, W = car.geometry.footprint_length_m, car.geometry.footprint_width_m
+    aligned = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [L + 0.1, 0.0, 0.0, 0, 0, 0]])
+    assert footprint_gap(aligned, car) == pytest.approx(0.1)
+    beside = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [0.0, W + 0.05, 0.0, 0, 0, 0]])
+    assert footprint_gap(beside, car) == pytest.approx(0.05)
+    # Corner to corner at 45 degrees: the gap is the distance between the nearest corners.
+    diag = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [L + 0.03, W + 0.04, 0.0, 0, 0, 0]])
+    assert footprint_gap(diag, car) == pytest.approx(0.05)
+    overlapping = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [0.05, 0.0, 0.3, 0, 0, 0]])
+    assert footprint_gap(overlapping, car) == 0.0
+
+
+def test_setup_validation_names_field(track, car):
+    with pytest.raises(ValueError, match="opponent"):
+        RaceSetup(track=track, car=car, opponent="human")
+    with pytest.raises(ValueError, match="start"):
+        RaceSetup(track=track, car=car, start="middle")
