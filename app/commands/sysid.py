@@ -1,0 +1,106 @@
+"""`python -m app sysid LOG ...` (model identification) and `python -m app sysid-generate ...`
+(synthetic logs with hidden effects). Formats, method and results: docs/sysid.md."""
+from __future__ import annotations
+
+import dataclasses
+import shlex
+import sys
+import time
+from pathlib import Path
+
+from app.cli import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("sysid", help="check the car model against a drive log; fit and write corrections")
+    p.add_argument("log", help="drive log (.csv; format in docs/sysid.md)")
+    p.add_argument("--car-params", default="buzzracer", help="car file (or bare name in vehicles/); default buzzracer")
+    p.add_argument("--report", required=True, help="Markdown report to write")
+    p.add_argument("--json", help="JSON summary to write")
+    p.add_argument("--params-out", help="car file with the identified corrections (default: <report stem>.toml "
+                                        "next to the report)")
+    p.add_argument("--figures", help="folder for the PNG plots (default: the report's folder)")
+    p.add_argument("--car", type=int, help="car id in the log (needed when the log has several cars)")
+    p.add_argument("--horizon", type=float, default=1.0, help="prediction horizon in seconds (default 1.0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
+    p.set_defaults(func=run)
+
+    g = sub.add_parser("sysid-generate", help="simulate a car with hidden effects and write an identification log")
+    g.add_argument("--effects", default="", help='e.g. "steering_offset=0.03,actuation_delay=0.08" (names in '
+                                                 "docs/sysid.md); empty for a clean log")
+    g.add_argument("--minutes", type=float, default=5.0)
+    g.add_argument("--out", required=True, help="CSV log to write")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--car-params", default="buzzracer", help="nominal car the effects are added to")
+    g.add_argument("--position-noise", type=float, default=None, help="camera position noise std [m] (default 0.002)")
+    g.add_argument("--heading-noise", type=float, default=None, help="camera heading noise std [rad] (default 0.01)")
+    g.set_defaults(func=run_generate)
+
+
+def run(args) -> int:
+    from sysid.data import build_trajectory
+    from sysid.diagnose import SysidSettings, identify
+    from sysid.log import read_log
+    from sysid.report import make_plots, markdown_report, write_json
+    from vehicles.params import load_car_params, resolve_car_path, save_car_params
+
+    if not args.horizon > 0:
+        raise UserError(f"--horizon must be > 0, got {args.horizon}")
+    started = time.perf_counter()
+    car = load_car_params(args.car_params)
+    log = read_log(args.log)
+    if args.car is None:
+        if len(log.cars) > 1:
+            raise UserError(f"{args.log}: the log has cars {log.cars}; choose one with --car")
+        car_id = log.cars[0]
+    else:
+        car_id = args.car
+    traj = build_trajectory(log.select_car(car_id))
+    result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed))
+
+    report = Path(args.report)
+    report.parent.mkdir(parents=True, exist_ok=True)
+    params_out = Path(args.params_out) if args.params_out else report.with_suffix(".toml")
+    params_out.parent.mkdir(parents=True, exist_ok=True)
+    out_car = dataclasses.replace(result.car_out, name=f"{car.name}-identified")
+    save_car_params(out_car, params_out)
+    figures = Path(args.figures) if args.figures else report.parent
+    plots = make_plots(result, figures, f"sysid_{report.stem}")
+    json_path = None
+    if args.json:
+        json_path = Path(args.json)
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(result, json_path, str(params_out))
+    command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["sysid"] else None
+    report.write_text(markdown_report(result, args.log, str(resolve_car_path(args.car_params)), str(params_out),
+                                      str(json_path) if json_path else None, plots, report.parent, command),
+                      encoding="utf-8")
+    elapsed = time.perf_counter() - started
+    if result.selected:
+        summary = ", ".join(f"{e.effect} ({100 * e.heldout_error_reduction:.0f} %)" for e in result.selected)
+    else:
+        summary = "no significant effect"
+    print(f"{summary}; held-out horizon position RMSE {100 * result.planner.heldout.horizon_pos_rmse_m:.1f} cm "
+          f"(planner) -> {100 * result.final.heldout.horizon_pos_rmse_m:.1f} cm; wrote {report}, {params_out}"
+          + (f", {json_path}" if json_path else "") + f" in {elapsed:.1f} s")
+    return 0
+
+
+def run_generate(args) -> int:
+    from sysid.generate import CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, generate_log, parse_effects
+    from sysid.log import write_log_csv
+    from vehicles.params import load_car_params
+
+    if not args.minutes > 0:
+        raise UserError(f"--minutes must be > 0, got {args.minutes}")
+    effects = parse_effects(args.effects)
+    car = load_car_params(args.car_params)
+    pos = CAMERA_POSITION_NOISE_M if args.position_noise is None else args.position_noise
+    head = CAMERA_HEADING_NOISE_RAD if args.heading_noise is None else args.heading_noise
+    started = time.perf_counter()
+    log = generate_log(car, effects, args.minutes, args.seed, position_noise_m=pos, heading_noise_rad=head)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_log_csv(out, log)
+    print(f"wrote {out}: {log.t.size} rows, {log.t[-1] - log.t[0]:.1f} s, in {time.perf_counter() - started:.1f} s")
+    return 0

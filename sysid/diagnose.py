@@ -1,0 +1,444 @@
+"""Residual, diagnosis and model update (docs/sysid.md).
+
+1. Predict from every measured state over the horizon with the planner's model (kinematic
+   bicycle + longitudinal model + current corrections); split starts into training and
+   held-out time blocks.
+2. Reference model: the planner's model, or the car's own dynamic model (same parameters) if
+   that predicts the training data significantly better (the car slides as its tyre
+   parameters say; that is model structure, not a parameter deviation).
+3. Candidates: each fitted on training data by least squares on the multi-step prediction
+   error; kept by forward selection when the held-out improvement is significant (block
+   bootstrap) and large enough (``min_reduction``). The sparse-regression fallback "other"
+   is tried last, on top of the physical effects.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from sysid.data import Trajectory
+from sysid.model import LIBRARY_TERMS, WARMUP_S, ExtraTerms, ModelSetup, PredictionErrors, predict, prediction_errors
+from sysid.sparse import coefficient_std, stlsq
+from vehicles.params import CarParams
+
+EFFECT_NAMES = ("actuation_delay", "steering_offset", "steering_gain", "tire_slip", "longitudinal_drag", "other")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    effect: str
+    params: tuple[str, ...]  # fields of [corrections]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    scale: tuple[float, ...]  # typical size, for the optimiser's scaling
+    dynamic: bool = False  # needs the dynamic model
+
+
+CANDIDATES: tuple[Candidate, ...] = (
+    Candidate("actuation_delay", ("steering_delay_s", "throttle_delay_s"), (0.0, 0.0), (0.4, 0.4), (0.03, 0.03)),
+    Candidate("steering_offset", ("steering_offset_rad",), (-0.3,), (0.3,), (0.01,)),
+    Candidate("steering_gain", ("steering_gain",), (0.2,), (5.0,), (0.05,)),
+    Candidate("tire_slip", ("tire_grip_scale",), (0.05,), (5.0,), (0.1,), dynamic=True),
+    Candidate("longitudinal_drag", ("extra_drag_n_per_mps2",), (-1.0,), (10.0,), (0.01,)),
+)
+
+# Scales of the fit residual: errors are divided by these so position, heading and speed weigh alike.
+POSITION_SCALE_M = 0.01
+HEADING_SCALE_RAD = 0.02
+SPEED_SCALE_MPS = 0.05
+
+
+@dataclass(frozen=True)
+class SysidSettings:
+    horizon_s: float = 1.0  # planning horizon over which predictions are compared
+    block_s: float | None = None  # time blocks of the split; None: duration / 9, clamped to [3, 10] s
+    heldout_every: int = 3  # every third block is held out
+    fit_max_starts: int = 300  # training windows used per fit (evenly spaced)
+    heldout_max_starts: int = 2000
+    fit_steps: int = 6  # horizon steps entering the fit residual (evenly spaced, last = horizon)
+    min_reduction: float = 0.10  # smallest held-out horizon RMSE reduction that counts as an effect
+    confidence: float = 0.95  # one-sided bootstrap confidence that the MSE reduction is > 0
+    bootstrap_block_s: float = 2.0
+    n_bootstrap: int = 1000
+    max_effects: int = 3
+    sparse_threshold: float = 0.2  # STLSQ threshold, fraction of the target's standard deviation
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class ErrorSummary:
+    one_step_pos_rmse_m: float
+    horizon_pos_rmse_m: float
+    horizon_heading_rmse_rad: float
+    horizon_speed_rmse_mps: float
+    one_step_pos_p50_m: float
+    one_step_pos_p95_m: float
+    horizon_pos_p50_m: float
+    horizon_pos_p90_m: float
+    horizon_pos_p95_m: float
+
+    def json_dict(self) -> dict[str, float]:
+        keys = ("one_step_pos_rmse_m", "horizon_pos_rmse_m", "horizon_heading_rmse_rad", "horizon_speed_rmse_mps")
+        return {k: float(getattr(self, k)) for k in keys}
+
+
+def summarize(e: PredictionErrors) -> ErrorSummary:
+    def rms(a: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(a * a)))
+
+    one, end = e.position[:, 0], e.position[:, -1]
+    return ErrorSummary(
+        one_step_pos_rmse_m=rms(one),
+        horizon_pos_rmse_m=rms(end),
+        horizon_heading_rmse_rad=rms(e.heading[:, -1]),
+        horizon_speed_rmse_mps=rms(e.speed[:, -1]),
+        one_step_pos_p50_m=float(np.percentile(one, 50)),
+        one_step_pos_p95_m=float(np.percentile(one, 95)),
+        horizon_pos_p50_m=float(np.percentile(end, 50)),
+        horizon_pos_p90_m=float(np.percentile(end, 90)),
+        horizon_pos_p95_m=float(np.percentile(end, 95)),
+    )
+
+
+@dataclass(frozen=True)
+class Split:
+    train: np.ndarray  # start indices of training windows
+    heldout: np.ndarray
+    fit: np.ndarray  # subset of train used by the fits
+
+
+def block_length(traj: Trajectory, s: SysidSettings) -> float:
+    if s.block_s is not None:
+        return float(s.block_s)
+    return float(np.clip((traj.t[-1] - traj.t[0]) / 9.0, 3.0, 10.0))
+
+
+def split_starts(traj: Trajectory, horizon: int, s: SysidSettings) -> Split:
+    """Windows that stay inside one segment and one time block; blocks alternate train / held-out."""
+    k = np.arange(traj.n)
+    block_s = block_length(traj, s)
+    block = np.floor((traj.t - traj.t[0]) / block_s).astype(int)
+    end = k + horizon
+    # Windows start WARMUP_S into a segment (the dynamic model's run-in) and end inside it.
+    valid = (end < traj.seg_end) & (k - traj.seg_start >= int(round(WARMUP_S / traj.dt)))
+    valid[valid] &= block[end[valid]] == block[valid]
+    heldout_mask = (block % s.heldout_every) == s.heldout_every - 1
+    train = k[valid & ~heldout_mask]
+    heldout = k[valid & heldout_mask]
+    if train.size < 20 or heldout.size < 20:
+        raise ValueError(
+            f"log too short for identification: {train.size} training and {heldout.size} held-out windows of "
+            f"{horizon} steps (need >= 20 each; blocks of {block_s:.1f} s, every {s.heldout_every}rd held out)"
+        )
+
+    def thin(a: np.ndarray, n: int) -> np.ndarray:
+        return a if a.size <= n else a[np.round(np.linspace(0, a.size - 1, n)).astype(int)]
+
+    return Split(train=train, heldout=thin(heldout, s.heldout_max_starts), fit=thin(train, s.fit_max_starts))
+
+
+def with_corrections(car: CarParams, values: dict[str, float]) -> CarParams:
+    return dataclasses.replace(car, corrections=dataclasses.replace(car.corrections, **values))
+
+
+@dataclass(frozen=True)
+class Fit:
+    effects: tuple[str, ...]
+    values: dict[str, float]  # fitted [corrections] fields
+    std: dict[str, float]
+    setup: ModelSetup
+    heldout_errors: PredictionErrors
+    heldout: ErrorSummary
+
+
+@dataclass(frozen=True)
+class CandidateResult:
+    effect: str
+    params: dict[str, float]
+    params_std: dict[str, float]
+    heldout_error_reduction: float  # 1 - RMSE_after / RMSE_before of the held-out horizon position error
+    confidence: float  # bootstrap probability that the held-out MSE reduction is > 0
+    significant: bool
+
+
+@dataclass
+class SysidResult:
+    settings: SysidSettings
+    horizon_steps: int
+    traj: Trajectory
+    split: Split
+    car_in: CarParams
+    car_out: CarParams
+    planner: Fit  # the planner's model, current corrections
+    dynamic_nominal: Fit  # the dynamic model, current corrections
+    reference: Fit  # what effects are measured against
+    reference_is_dynamic: bool
+    structure: CandidateResult  # dynamic model at current parameters vs the planner's model
+    candidates: list[CandidateResult]  # each alone on top of the reference
+    selected: list[CandidateResult]  # claimed effects in the order chosen; reductions are marginal
+    final: Fit
+    planner_after: Fit  # the planner's (kinematic) model with the new corrections
+    other_terms: ExtraTerms | None = None
+    effect_steps: list[tuple[Fit, Fit]] = field(default_factory=list)  # (before, after) per selected effect
+    switched_after: list[str] | None = None  # effects chosen before the switch to the dynamic model
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.selected)
+
+
+# ----------------------------------------------------------------------------- fitting
+def _fit_steps(horizon: int, n: int) -> np.ndarray:
+    return np.unique(np.round(np.linspace(horizon / n, horizon, n)).astype(int))
+
+
+def _residual(traj: Trajectory, starts: np.ndarray, pred: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    idx = starts[:, None] + steps[None, :]
+    p = pred[:, steps]
+    dth = np.angle(np.exp(1j * (p[..., 2] - traj.heading[idx])))
+    r = np.stack([
+        (p[..., 0] - traj.x[idx]) / POSITION_SCALE_M,
+        (p[..., 1] - traj.y[idx]) / POSITION_SCALE_M,
+        dth / HEADING_SCALE_RAD,
+        (p[..., 3] - traj.speed[idx]) / SPEED_SCALE_MPS,
+    ], axis=-1)
+    return r.reshape(-1)
+
+
+def _clusters(traj: Trajectory, starts: np.ndarray, per_start: int, block_s: float) -> np.ndarray:
+    block = np.floor((traj.t[starts] - traj.t[0]) / block_s).astype(int)
+    return np.repeat(block, per_start)
+
+
+def _sandwich_std(jac: np.ndarray, resid: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """Cluster-robust standard errors: windows overlap in time, so residuals are correlated within a block."""
+    bread = np.linalg.pinv(jac.T @ jac)
+    _, inverse = np.unique(clusters, return_inverse=True)
+    g = np.zeros((inverse.max() + 1, jac.shape[1]))
+    np.add.at(g, inverse, jac * resid[:, None])
+    cov = bread @ (g.T @ g) @ bread
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def evaluate(traj: Trajectory, split: Split, horizon: int, setup: ModelSetup, effects: tuple[str, ...] = (),
+             values: dict[str, float] | None = None, std: dict[str, float] | None = None) -> Fit:
+    pred = predict(traj, split.heldout, horizon, setup)
+    errors = prediction_errors(traj, split.heldout, pred)
+    return Fit(effects, dict(values or {}), dict(std or {}), setup, errors, summarize(errors))
+
+
+def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, cands: list[Candidate],
+                   s: SysidSettings, base_effects: tuple[str, ...] = ()) -> Fit:
+    """Least-squares fit of the parameters of ``cands`` (jointly) on top of ``base``."""
+    names = [p for c in cands for p in c.params]
+    lower = np.array([v for c in cands for v in c.lower])
+    upper = np.array([v for c in cands for v in c.upper])
+    scale = np.array([v for c in cands for v in c.scale])
+    dynamic = base.dynamic or any(c.dynamic for c in cands)
+    corr = base.car.corrections
+    x0 = np.clip(np.array([getattr(corr, n) for n in names], dtype=float), lower, upper)
+    steps = _fit_steps(horizon, s.fit_steps)
+    starts = split.fit
+
+    def setup_for(theta: np.ndarray) -> ModelSetup:
+        return ModelSetup(with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic, base.extra)
+
+    def resid(theta: np.ndarray) -> np.ndarray:
+        return _residual(traj, starts, predict(traj, starts, horizon, setup_for(theta)), steps)
+
+    # Delays make the cost non-convex over whole samples: start from the best of a coarse grid.
+    delay_idx = [i for i, n in enumerate(names) if n.endswith("_delay_s")]
+    if delay_idx:
+        best, best_cost = x0, float(np.sum(resid(x0) ** 2))
+        for d in np.arange(1, 6) * traj.dt * 1.5:
+            trial = x0.copy()
+            trial[delay_idx] = np.clip(x0[delay_idx] + d, lower[delay_idx], upper[delay_idx])
+            cost = float(np.sum(resid(trial) ** 2))
+            if cost < best_cost:
+                best, best_cost = trial, cost
+        x0 = best
+    res = least_squares(resid, x0, bounds=(lower, upper), x_scale=scale, diff_step=1e-3, max_nfev=30,
+                        xtol=1e-6, ftol=1e-8)
+    n_per = steps.size * 4
+    std = _sandwich_std(res.jac, res.fun, _clusters(traj, starts, n_per, s.bootstrap_block_s))
+    # Back to physical units: residuals were scaled, parameters were not.
+    values = dict(zip(names, res.x.tolist()))
+    effects = tuple(base_effects) + tuple(c.effect for c in cands if c.effect not in base_effects)
+    return evaluate(traj, split, horizon, setup_for(res.x), effects, values, dict(zip(names, std.tolist())))
+
+
+def improvement(traj: Trajectory, split: Split, before: Fit, after: Fit, s: SysidSettings) -> tuple[float, float]:
+    """(relative held-out horizon RMSE reduction, bootstrap confidence that the MSE reduction > 0)."""
+    e0 = before.heldout_errors.position[:, -1] ** 2
+    e1 = after.heldout_errors.position[:, -1] ** 2
+    reduction = 1.0 - math.sqrt(e1.mean() / e0.mean()) if e0.mean() > 0 else 0.0
+    blocks = np.floor((traj.t[split.heldout] - traj.t[0]) / s.bootstrap_block_s).astype(int)
+    _, inverse = np.unique(blocks, return_inverse=True)
+    diff_sum = np.bincount(inverse, weights=e0 - e1)
+    counts = np.bincount(inverse).astype(float)
+    rng = np.random.default_rng(s.seed)
+    pick = rng.integers(0, diff_sum.size, size=(s.n_bootstrap, diff_sum.size))
+    boot = diff_sum[pick].sum(axis=1) / counts[pick].sum(axis=1)
+    return reduction, float(np.mean(boot > 0))
+
+
+def _judge(traj, split, before: Fit, after: Fit, effect: str, s: SysidSettings, params=None, std=None) -> CandidateResult:
+    reduction, conf = improvement(traj, split, before, after, s)
+    return CandidateResult(
+        effect=effect,
+        params=dict(after.values if params is None else params),
+        params_std=dict(after.std if std is None else std),
+        heldout_error_reduction=reduction,
+        confidence=conf,
+        significant=bool(reduction >= s.min_reduction and conf >= s.confidence),
+    )
+
+
+# ----------------------------------------------------------------------------- sparse fallback
+def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidSettings) -> tuple[Fit, dict, dict]:
+    """STLSQ on the short-term rate residuals of speed and heading against the library terms."""
+    lag = max(1, int(round(0.1 / traj.dt)))
+    starts = split.train[split.train + lag < traj.seg_end[split.train]]
+    pred = predict(traj, starts, lag, dataclasses.replace(base.setup, extra=None))
+    end = starts + lag
+    r_v = (traj.speed[end] - pred[:, -1, 3]) / (lag * traj.dt)
+    r_th = (traj.headings[end] - pred[:, -1, 2]) / (lag * traj.dt)
+    car = base.setup.car
+    from sysid.model import inputs_at
+
+    throttle, steering = inputs_at(traj, starts, car)
+    delta = car.corrections.steering_gain * steering + car.corrections.steering_offset_rad
+    v = traj.speed[starts]
+    names = tuple(LIBRARY_TERMS)
+    theta = np.stack([LIBRARY_TERMS[n](v, throttle, delta) for n in names], axis=1)
+    clusters = np.floor((traj.t[starts] - traj.t[0]) / s.bootstrap_block_s).astype(int)
+
+    def sparse_fit(target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        coef = stlsq(theta, target, s.sparse_threshold * float(np.std(target)))
+        # Also drop terms that are not distinguishable from zero (|c| < 3 std), then refit the rest.
+        for _ in range(len(names)):
+            std = coefficient_std(theta, target, coef, clusters)
+            weak = (coef != 0) & (np.abs(coef) < 3.0 * std)
+            if not weak.any():
+                return coef, std
+            keep = (coef != 0) & ~weak
+            coef = np.zeros_like(coef)
+            if keep.any():
+                coef[keep] = np.linalg.lstsq(theta[:, keep], target, rcond=None)[0]
+        return coef, coefficient_std(theta, target, coef, clusters)
+
+    ca, sa = sparse_fit(r_v)
+    cy, sy = sparse_fit(r_th)
+    extra = ExtraTerms(names, ca, cy)
+    setup = dataclasses.replace(base.setup, extra=extra)
+    fit = evaluate(traj, split, horizon, setup, base.effects + ("other",), base.values, base.std)
+    params = {f"accel[{n}]": float(c) for n, c in zip(names, ca) if c != 0.0}
+    params |= {f"yaw_rate[{n}]": float(c) for n, c in zip(names, cy) if c != 0.0}
+    stds = {f"accel[{n}]": float(e) for n, c, e in zip(names, ca, sa) if c != 0.0}
+    stds |= {f"yaw_rate[{n}]": float(e) for n, c, e in zip(names, cy, sy) if c != 0.0}
+    return fit, params, stds
+
+
+# ----------------------------------------------------------------------------- driver
+def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSettings()) -> SysidResult:
+    s = settings
+    horizon = max(1, int(round(s.horizon_s / traj.dt)))
+    split = split_starts(traj, horizon, s)
+
+    planner = evaluate(traj, split, horizon, ModelSetup(car))
+    dynamic_nominal = evaluate(traj, split, horizon, ModelSetup(car, dynamic=True))
+    # The reference is chosen on training data so held-out data stays untouched by the choice.
+    train_split = Split(train=split.train, heldout=split.fit, fit=split.fit)
+    kin_train = evaluate(traj, train_split, horizon, ModelSetup(car))
+    dyn_train = evaluate(traj, train_split, horizon, ModelSetup(car, dynamic=True))
+    structure_train = _judge(traj, train_split, kin_train, dyn_train, "tire_slip", s, {}, {})
+    reference_is_dynamic = structure_train.significant
+    structure = _judge(traj, split, planner, dynamic_nominal, "tire_slip", s, {}, {})
+    reference = dynamic_nominal if reference_is_dynamic else planner
+
+    candidates: list[CandidateResult] = []
+    alone: dict[str, Fit] = {}
+    for cand in CANDIDATES:
+        fit = fit_candidates(traj, split, horizon, reference.setup, [cand], s)
+        alone[cand.effect] = fit
+        candidates.append(_judge(traj, split, reference, fit, cand.effect, s))
+    candidates.sort(key=lambda c: c.heldout_error_reduction, reverse=True)
+
+    current = reference
+    switched_after: list[str] | None = [] if reference_is_dynamic else None
+    effect_steps: list[tuple[Fit, Fit]] = []
+    chosen: list[Candidate] = []
+    selected: list[CandidateResult] = []
+    by_name = {c.effect: c for c in CANDIDATES}
+    while len(chosen) < s.max_effects:
+        # Later rounds only revisit candidates that helped at all on their own (keeps the joint refits
+        # few); an effect masked by a larger one still helps a little alone.
+        pool = [by_name[c.effect] for c in candidates if by_name[c.effect] not in chosen
+                and c.heldout_error_reduction > 0]
+        if not pool:
+            break
+        trials = []
+        for cand in pool:
+            fit = alone[cand.effect] if not chosen else fit_candidates(
+                traj, split, horizon, current.setup, chosen + [cand], s)
+            trials.append((_judge(traj, split, current, fit, cand.effect, s), cand, fit))
+        verdict, cand, fit = max(trials, key=lambda t: t[0].heldout_error_reduction)
+        if not verdict.significant:
+            break
+        if cand.dynamic and not current.setup.dynamic:
+            # Switching to the dynamic model can help even at the current grip: that part is model
+            # structure (the car slides as its tyre parameters say), not a tyre deviation. Switch,
+            # then claim tire_slip only if the fitted grip adds a significant improvement on top.
+            base = dataclasses.replace(current.setup, dynamic=True)
+            switched = (fit_candidates(traj, split, horizon, base, chosen, s, current.effects) if chosen
+                        else evaluate(traj, split, horizon, base, current.effects, current.values, current.std))
+            switch_verdict = _judge(traj, split, current, switched, "tire_slip", s, {}, {})
+            if switch_verdict.significant:
+                reference_is_dynamic = True
+                switched_after = [c.effect for c in chosen]
+                current = switched
+                verdict = _judge(traj, split, switched, fit, cand.effect, s)
+                if not verdict.significant:
+                    continue
+                before = switched
+            else:
+                before = current
+        else:
+            before = current
+        chosen.append(cand)
+        selected.append(verdict)
+        effect_steps.append((before, fit))
+        current = fit
+
+    other_terms = None
+    other_fit, other_params, other_std = fit_other(traj, split, horizon, current, s)
+    other_verdict = _judge(traj, split, current, other_fit, "other", s, other_params, other_std)
+    if other_verdict.significant:
+        selected.append(other_verdict)
+        other_terms = other_fit.setup.extra
+        effect_steps.append((current, other_fit))
+        current = other_fit
+    candidates.append(other_verdict)
+
+    # Reported parameters of each claimed physical effect come from the final joint fit.
+    final_values = dict(current.values)
+    final_std = dict(current.std)
+    for i, sel in enumerate(selected):
+        if sel.effect != "other":
+            keys = by_name[sel.effect].params
+            selected[i] = dataclasses.replace(sel, params={k: final_values[k] for k in keys},
+                                              params_std={k: final_std[k] for k in keys})
+    car_out = with_corrections(car, final_values)
+    planner_after = evaluate(traj, split, horizon, ModelSetup(car_out), tuple(final_values), final_values, final_std)
+    return SysidResult(
+        settings=s, horizon_steps=horizon, traj=traj, split=split, car_in=car, car_out=car_out,
+        planner=planner, dynamic_nominal=dynamic_nominal, reference=reference,
+        reference_is_dynamic=reference_is_dynamic, structure=structure, candidates=candidates,
+        selected=selected, final=current, planner_after=planner_after, other_terms=other_terms,
+        effect_steps=effect_steps, switched_after=switched_after,
+    )

@@ -1,0 +1,268 @@
+"""Synthetic identification logs: a simulated car with hidden effects, driven with excitation.
+
+The car (nominal parameters) runs in ``sim.Simulator`` with the requested ``SimEffects`` and
+camera noise. A pure-pursuit controller drives half the time counter-clockwise and half
+clockwise (two stints, separated by a pause that leaves a gap in the log), with a randomly
+changing speed target, a weaving lateral offset (left and right turns on the straights) and a
+small band-limited dither on both commands. The log holds only what a real logger records:
+time, pose measurements and the commands sent; the generating effects are not written.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from sim import PurePursuitController, SimEffects, Simulator
+from sysid.log import DriveLog
+from vehicles.params import CarParams
+
+# Generator effect names (docs/sysid.md) -> SimEffects fields they set.
+GENERATOR_EFFECTS: dict[str, tuple[str, ...]] = {
+    "actuation_delay": ("steering_delay_s", "throttle_delay_s"),
+    "steering_delay": ("steering_delay_s",),
+    "throttle_delay": ("throttle_delay_s",),
+    "steering_offset": ("steering_offset_rad",),
+    "steering_gain": ("steering_gain",),
+    "longitudinal_drag": ("extra_drag_n_per_mps2",),
+    "tire_slip": ("grip_scale",),
+}
+CAMERA_POSITION_NOISE_M = 0.002
+CAMERA_HEADING_NOISE_RAD = 0.01
+
+
+def parse_effects(text: str) -> dict[str, float]:
+    """'steering_offset=0.03,actuation_delay=0.08' -> {name: value}; names from GENERATOR_EFFECTS."""
+    out: dict[str, float] = {}
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        name, sep, value = part.partition("=")
+        name = name.strip()
+        if not sep:
+            raise ValueError(f"--effects: {part!r} must look like name=value")
+        if name not in GENERATOR_EFFECTS:
+            raise ValueError(f"--effects: unknown effect {name!r}; known: {sorted(GENERATOR_EFFECTS)}")
+        try:
+            v = float(value)
+        except ValueError:
+            raise ValueError(f"--effects: {name}: not a number: {value.strip()!r}") from None
+        if not math.isfinite(v):
+            raise ValueError(f"--effects: {name}: must be finite, got {value.strip()!r}")
+        if name in out:
+            raise ValueError(f"--effects: {name} given twice")
+        out[name] = v
+    return out
+
+
+def sim_effects(effects: dict[str, float], position_noise_m: float, heading_noise_rad: float) -> SimEffects:
+    values: dict[str, float] = {"position_noise_m": position_noise_m, "heading_noise_rad": heading_noise_rad}
+    for name, v in effects.items():
+        for f in GENERATOR_EFFECTS[name]:
+            values[f] = v
+    return SimEffects(**values)
+
+
+class StadiumTrack:
+    """Two straights joined by semicircles, counter-clockwise, s = 0 at the middle of the bottom
+    straight. Analytic stand-in used while tracks.load_track is not available."""
+
+    def __init__(self, straight_m: float = 2.0, radius_m: float = 0.6, half_width_m: float = 0.3) -> None:
+        self.straight, self.radius, self.half_width = straight_m, radius_m, half_width_m
+        self.arc = math.pi * radius_m
+        self.length = 2 * straight_m + 2 * self.arc
+        # Piece boundaries in s: half straight, right arc, top straight, left arc, half straight.
+        self._b = np.cumsum([0, straight_m / 2, self.arc, straight_m, self.arc, straight_m / 2])
+
+    def position(self, s):
+        s = np.mod(np.asarray(s, dtype=float), self.length)
+        b, half, r = self._b, self.straight / 2, self.radius
+        x = np.empty_like(s)
+        y = np.empty_like(s)
+        p0 = s < b[1]
+        x[p0], y[p0] = s[p0], -r
+        p1 = (s >= b[1]) & (s < b[2])
+        a = (s[p1] - b[1]) / r - math.pi / 2
+        x[p1], y[p1] = half + r * np.cos(a), r * np.sin(a)
+        p2 = (s >= b[2]) & (s < b[3])
+        x[p2], y[p2] = half - (s[p2] - b[2]), r
+        p3 = (s >= b[3]) & (s < b[4])
+        a = (s[p3] - b[3]) / r + math.pi / 2
+        x[p3], y[p3] = -half + r * np.cos(a), r * np.sin(a)
+        p4 = s >= b[4]
+        x[p4], y[p4] = -half + (s[p4] - b[4]), -r
+        return np.stack([x, y], axis=-1)
+
+    def heading(self, s):
+        s = np.mod(np.asarray(s, dtype=float), self.length)
+        b, r = self._b, self.radius
+        return np.select(
+            [s < b[1], s < b[2], s < b[3], s < b[4]],
+            [np.zeros_like(s), (s - b[1]) / r, np.full_like(s, math.pi), math.pi + (s - b[3]) / r],
+            np.zeros_like(s),
+        )
+
+    def curvature(self, s):
+        s = np.mod(np.asarray(s, dtype=float), self.length)
+        b = self._b
+        on_arc = ((s >= b[1]) & (s < b[2])) | ((s >= b[3]) & (s < b[4]))
+        return np.where(on_arc, 1.0 / self.radius, 0.0)
+
+    def to_frenet(self, x, y, heading):
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        half, r, b = self.straight / 2, self.radius, self._b
+        right, left = x > half, x < -half
+        ang_r = np.arctan2(y, x - half)
+        ang_l = np.arctan2(y, x + half)
+        dist_r, dist_l = np.hypot(x - half, y), np.hypot(x + half, y)
+        s = np.where(y < 0, np.mod(x, self.length), b[2] + (half - x))
+        ey = np.where(y < 0, y + r, r - y)
+        s = np.where(right, b[1] + (ang_r + math.pi / 2) * r, s)
+        ey = np.where(right, r - dist_r, ey)
+        s = np.where(left, b[3] + np.mod(ang_l - math.pi / 2, 2 * math.pi) * r, s)
+        ey = np.where(left, r - dist_l, ey)
+        s = np.mod(s, self.length)
+        epsi = np.angle(np.exp(1j * (np.asarray(heading) - self.heading(s))))
+        return s, ey, epsi
+
+    def is_inside(self, x, y, margin=0.0):
+        _, ey, _ = self.to_frenet(x, y, np.zeros_like(np.asarray(x, dtype=float)))
+        return np.abs(ey) <= self.half_width - margin
+
+
+class ReversedTrack:
+    """The same track driven the other way round (clockwise for a counter-clockwise track)."""
+
+    def __init__(self, track: Any) -> None:
+        self.base = track
+        self.length = track.length
+
+    def position(self, s):
+        return self.base.position(np.mod(self.length - np.asarray(s, dtype=float), self.length))
+
+    def heading(self, s):
+        return np.asarray(self.base.heading(np.mod(self.length - np.asarray(s, dtype=float), self.length))) + math.pi
+
+    def curvature(self, s):
+        return -np.asarray(self.base.curvature(np.mod(self.length - np.asarray(s, dtype=float), self.length)))
+
+    def to_frenet(self, x, y, heading):
+        s, ey, epsi = self.base.to_frenet(x, y, np.asarray(heading) + math.pi)
+        return np.mod(self.length - np.asarray(s), self.length), -np.asarray(ey), epsi
+
+    def is_inside(self, x, y, margin=0.0):
+        return self.base.is_inside(x, y, margin)
+
+
+def default_track() -> tuple[Any, str]:
+    """tracks.load_track('oval') when the tracks package provides it, else the analytic stadium."""
+    try:
+        from tracks import load_track  # type: ignore[attr-defined]
+    except ImportError:
+        return StadiumTrack(), "stadium (built-in, 2.0 m straights, 0.6 m radius)"
+    return load_track("oval"), "oval (tracks.load_track)"
+
+
+@dataclass(frozen=True)
+class ExcitationSettings:
+    """How the generator excites the car; defaults keep lateral acceleration moderate."""
+
+    control_rate_hz: float = 30.0
+    speed_min_mps: float = 0.7
+    speed_max_mps: float = 1.8
+    speed_hold_s: tuple[float, float] = (2.0, 5.0)
+    max_lateral_accel_mps2: float = 2.5
+    weave_amplitude_m: float = 0.08
+    weave_period_s: tuple[float, float] = (1.5, 3.5)
+    steering_dither_rad: float = 0.03
+    throttle_dither: float = 0.08
+    dither_corner_hz: float = 3.0
+    stint_pause_s: float = 1.0
+
+
+def _dither(rng: np.random.Generator, n: int, sigma: float, corner_hz: float, rate_hz: float) -> np.ndarray:
+    """First-order low-pass filtered white noise with standard deviation sigma."""
+    a = math.exp(-2 * math.pi * corner_hz / rate_hz)
+    w = rng.normal(size=n) * sigma * math.sqrt(1 - a * a)
+    out = np.empty(n)
+    acc = 0.0
+    for i in range(n):
+        acc = a * acc + w[i]
+        out[i] = acc
+    return out
+
+
+def _start_state(track: Any, s: float) -> list[float]:
+    xy = np.asarray(track.position(np.array([s])), dtype=float).reshape(2)
+    heading = float(np.asarray(track.heading(np.array([s]))).reshape(-1)[0])
+    return [xy[0], xy[1], heading, 0.3, 0.0, 0.0]
+
+
+def generate_log(
+    car: CarParams,
+    effects: dict[str, float],
+    minutes: float,
+    seed: int,
+    position_noise_m: float = CAMERA_POSITION_NOISE_M,
+    heading_noise_rad: float = CAMERA_HEADING_NOISE_RAD,
+    excitation: ExcitationSettings = ExcitationSettings(),
+    track: Any | None = None,
+    physics_dt: float = 0.001,
+) -> DriveLog:
+    if not (math.isfinite(minutes) and minutes > 0):
+        raise ValueError(f"minutes: must be > 0, got {minutes!r}")
+    if track is None:
+        track, _ = default_track()
+    eff = sim_effects(effects, position_noise_m, heading_noise_rad)
+    rng = np.random.default_rng(seed)
+    dt = 1.0 / excitation.control_rate_hz
+    stint_steps = int(round(minutes * 60.0 / 2 / dt))
+    rows: list[tuple[float, float, float, float, float, float]] = []
+    t_offset = 0.0
+    for stint, path in enumerate((track, ReversedTrack(track))):
+        sim = Simulator(path, [car], effects=eff, seed=int(rng.integers(2**31)) + stint, physics_dt=physics_dt,
+                        check_dt=0.01)
+        sim.reset([_start_state(path, float(rng.uniform(0, path.length)))])
+        ctrl = PurePursuitController(path, car, target_speed_mps=excitation.speed_min_mps,
+                                     max_lateral_accel_mps2=excitation.max_lateral_accel_mps2)
+        steer_dither = _dither(rng, stint_steps, excitation.steering_dither_rad, excitation.dither_corner_hz,
+                               excitation.control_rate_hz)
+        throttle_dither = _dither(rng, stint_steps, excitation.throttle_dither, excitation.dither_corner_hz,
+                                  excitation.control_rate_hz)
+        next_speed_change = 0.0
+        weave_phase, weave_freq, weave_amp = 0.0, 0.0, 0.0
+        act = car.actuators
+        for i in range(stint_steps):
+            t = sim.time
+            if t >= next_speed_change:
+                ctrl.target_speed_mps = float(rng.uniform(excitation.speed_min_mps, excitation.speed_max_mps))
+                next_speed_change = t + float(rng.uniform(*excitation.speed_hold_s))
+                weave_freq = 1.0 / float(rng.uniform(*excitation.weave_period_s))
+                weave_amp = float(rng.uniform(0.3, 1.0)) * excitation.weave_amplitude_m
+            weave_phase += 2 * math.pi * weave_freq * dt
+            ctrl.lateral_offset_m = weave_amp * math.sin(weave_phase)
+            meas = sim.measure(0)
+            throttle, steering = ctrl.command(sim.state(0), dt)
+            throttle = min(max(throttle + throttle_dither[i], act.throttle_min), act.throttle_max)
+            steering = min(max(steering + steer_dither[i], -act.max_steering_rad), act.max_steering_rad)
+            rows.append((t_offset + meas.t, meas.x, meas.y, meas.heading, throttle, steering))
+            sim.step([[throttle, steering]], dt)
+        t_offset += sim.time + excitation.stint_pause_s
+    data = np.array(rows)
+    n = data.shape[0]
+    return DriveLog(
+        source="<generated>", t=data[:, 0], car=np.zeros(n, dtype=int), x=data[:, 1], y=data[:, 2],
+        heading=data[:, 3], throttle=data[:, 4], steering=data[:, 5], speed=None, row=np.arange(2, n + 2),
+    )
+
+
+def effects_as_corrections(effects: dict[str, float]) -> dict[str, float]:
+    """The [corrections] values that describe generator effects (for comparisons in tests/docs)."""
+    mapping = {"steering_delay_s": "steering_delay_s", "throttle_delay_s": "throttle_delay_s",
+               "steering_offset_rad": "steering_offset_rad", "steering_gain": "steering_gain",
+               "extra_drag_n_per_mps2": "extra_drag_n_per_mps2", "grip_scale": "tire_grip_scale"}
+    eff = sim_effects(effects, 0.0, 0.0)
+    return {mapping[f.name]: getattr(eff, f.name) for f in fields(eff) if f.name in mapping}

@@ -1,0 +1,183 @@
+"""Drive logs for model identification: reading (CSV now, Rerun .rrd later) and writing CSV.
+
+Format (docs/sysid.md): one row per pose measurement with columns
+``t, car, x, y, heading, throttle, steering`` and optionally ``speed``. Commands are the values
+sent at time ``t``. Readers are chosen by file suffix through ``LOG_READERS``, so a second
+telemetry format is one more entry there.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+REQUIRED_COLUMNS = ("t", "car", "x", "y", "heading", "throttle", "steering")
+OPTIONAL_COLUMNS = ("speed",)
+# Plausibility bounds: values outside are logging errors, not driving.
+MAX_ABS_STEERING_RAD = 1.2
+MAX_ABS_POSITION_M = 1000.0
+MAX_SPEED_MPS = 50.0
+
+
+class LogFormatError(ValueError):
+    """The log is malformed; the message names the file, row (1-based line number) and column."""
+
+
+@dataclass(frozen=True)
+class DriveLog:
+    """All rows of a log, in file order. ``row`` holds each sample's line number in the file."""
+
+    source: str
+    t: np.ndarray
+    car: np.ndarray  # int
+    x: np.ndarray
+    y: np.ndarray
+    heading: np.ndarray
+    throttle: np.ndarray
+    steering: np.ndarray
+    speed: np.ndarray | None
+    row: np.ndarray  # int, line number in the file (header = 1)
+
+    @property
+    def cars(self) -> list[int]:
+        return sorted(set(self.car.tolist()))
+
+    def select_car(self, car: int) -> "DriveLog":
+        keep = self.car == car
+        if not keep.any():
+            raise LogFormatError(f"{self.source}: no rows for car {car}; the log has cars {self.cars}")
+        return DriveLog(
+            source=self.source,
+            t=self.t[keep], car=self.car[keep], x=self.x[keep], y=self.y[keep], heading=self.heading[keep],
+            throttle=self.throttle[keep], steering=self.steering[keep],
+            speed=None if self.speed is None else self.speed[keep], row=self.row[keep],
+        )
+
+
+def _read_csv(path: Path) -> DriveLog:
+    source = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise LogFormatError(f"{source}: log file not found") from None
+    except UnicodeDecodeError as exc:
+        raise LogFormatError(f"{source}: not a UTF-8 text file ({exc})") from None
+    lines = text.splitlines()
+    # Comment lines (#...) and blank lines are skipped but keep their line numbers.
+    numbered = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not numbered:
+        raise LogFormatError(f"{source}: empty log (no header row)")
+    reader = csv.reader([ln for _, ln in numbered])
+    rows = list(reader)
+    header_line, header = numbered[0][0], [h.strip() for h in rows[0]]
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        raise LogFormatError(
+            f"{source}: row {header_line}: header is missing column(s) {missing}; "
+            f"required {list(REQUIRED_COLUMNS)}, optional {list(OPTIONAL_COLUMNS)}"
+        )
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise LogFormatError(f"{source}: row {header_line}: duplicate column(s) {dup}")
+    columns = list(REQUIRED_COLUMNS) + [c for c in OPTIONAL_COLUMNS if c in header]
+    index = {c: header.index(c) for c in columns}
+    if len(rows) < 2:
+        raise LogFormatError(f"{source}: the log has a header but no data rows")
+
+    n = len(rows) - 1
+    values = {c: np.empty(n) for c in columns}
+    line_numbers = np.array([ln for ln, _ in numbered[1:]], dtype=int)
+    for k, fields in enumerate(rows[1:]):
+        line = line_numbers[k]
+        if len(fields) != len(header):
+            raise LogFormatError(f"{source}: row {line}: expected {len(header)} fields, got {len(fields)}")
+        for c in columns:
+            raw = fields[index[c]].strip()
+            try:
+                v = float(raw)
+            except ValueError:
+                raise LogFormatError(f"{source}: row {line}, column {c}: not a number: {raw!r}") from None
+            if not math.isfinite(v):
+                raise LogFormatError(f"{source}: row {line}, column {c}: must be finite, got {raw!r}")
+            values[c][k] = v
+    log = DriveLog(
+        source=source,
+        t=values["t"], car=values["car"].astype(int), x=values["x"], y=values["y"], heading=values["heading"],
+        throttle=values["throttle"], steering=values["steering"], speed=values.get("speed"), row=line_numbers,
+    )
+    _check_values(log, values["car"])
+    return log
+
+
+def _first_bad(mask: np.ndarray) -> int | None:
+    hits = np.flatnonzero(mask)
+    return int(hits[0]) if hits.size else None
+
+
+def _check_values(log: DriveLog, car_raw: np.ndarray) -> None:
+    """Range checks (vectorised); the first offending row and column are reported."""
+    checks: list[tuple[str, np.ndarray, str]] = [
+        ("car", (car_raw != np.round(car_raw)) | (car_raw < 0), "must be a non-negative integer id"),
+        ("x", np.abs(log.x) > MAX_ABS_POSITION_M, f"|x| must be <= {MAX_ABS_POSITION_M} m"),
+        ("y", np.abs(log.y) > MAX_ABS_POSITION_M, f"|y| must be <= {MAX_ABS_POSITION_M} m"),
+        ("heading", np.abs(log.heading) > 100.0, "heading must be in radians (|heading| <= 100)"),
+        ("throttle", np.abs(log.throttle) > 1.0, "throttle must be in [-1, 1]"),
+        ("steering", np.abs(log.steering) > MAX_ABS_STEERING_RAD,
+         f"steering must be a wheel angle in radians, |steering| <= {MAX_ABS_STEERING_RAD}"),
+    ]
+    if log.speed is not None:
+        checks.append(("speed", (log.speed < 0) | (log.speed > MAX_SPEED_MPS), f"speed must be in [0, {MAX_SPEED_MPS}] m/s"))
+    for column, bad, why in checks:
+        k = _first_bad(bad)
+        if k is not None:
+            value = getattr(log, column)[k] if column != "car" else car_raw[k]
+            raise LogFormatError(f"{log.source}: row {log.row[k]}, column {column}: {why}, got {value!r}")
+    # Time must not run backwards within a car (duplicates are allowed and merged later).
+    for car in log.cars:
+        idx = np.flatnonzero(log.car == car)
+        back = _first_bad(np.diff(log.t[idx]) < 0)
+        if back is not None:
+            k = idx[back + 1]
+            raise LogFormatError(
+                f"{log.source}: row {log.row[k]}, column t: time goes backwards for car {car} "
+                f"({log.t[k]!r} after {log.t[idx[back]]!r})"
+            )
+
+
+def _read_rrd(path: Path) -> DriveLog:
+    raise LogFormatError(
+        f"{path}: Rerun .rrd recordings are not supported yet (the race stack's telemetry layout is not "
+        f"defined); export the log to CSV (format in docs/sysid.md)"
+    )
+
+
+# Suffix -> reader. Add the Rerun reader here once the telemetry layout is defined.
+LOG_READERS: dict[str, Callable[[Path], DriveLog]] = {".csv": _read_csv, ".rrd": _read_rrd}
+
+
+def read_log(path: str | Path) -> DriveLog:
+    path = Path(path)
+    reader = LOG_READERS.get(path.suffix.lower())
+    if reader is None:
+        raise LogFormatError(f"{path}: unknown log format {path.suffix!r}; supported: {sorted(LOG_READERS)}")
+    return reader(path)
+
+
+def write_log_csv(path: str | Path, log: DriveLog) -> Path:
+    """Write ``log`` in the CSV format read by :func:`read_log`."""
+    path = Path(path)
+    columns = list(REQUIRED_COLUMNS) + (["speed"] if log.speed is not None else [])
+    data = [log.t, log.car, log.x, log.y, log.heading, log.throttle, log.steering]
+    if log.speed is not None:
+        data.append(log.speed)
+    with path.open("w", encoding="utf-8", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(columns)
+        for row in zip(*(np.asarray(d).tolist() for d in data)):
+            w.writerow([f"{v:.6f}" if isinstance(v, float) else str(v) for v in row])
+    return path
