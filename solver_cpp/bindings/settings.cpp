@@ -5,6 +5,7 @@ using namespace rd3g;
 
 void bind_settings(py::module_& m) {
   py::enum_<LinearSolver>(m, "LinearSolver")
+      .value("riccati", LinearSolver::Riccati)
       .value("sparse_lu", LinearSolver::SparseLU)
       .value("lscg", LinearSolver::LSCG)
       .value("sparse_qr", LinearSolver::SparseQR);

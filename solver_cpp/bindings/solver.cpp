@@ -29,6 +29,7 @@ void bind_solver(py::module_& m) {
       .def_readonly("active_constraints", &Info::active_constraints)
       .def_readonly("symbolic_factorizations", &Info::symbolic_factorizations)
       .def_readonly("qr_fallbacks", &Info::qr_fallbacks)
+      .def_readonly("riccati_solves", &Info::riccati_solves)
       .def_readonly("lm_steps", &Info::lm_steps)
       .def_readonly("attempts", &Info::attempts)
       .def_readonly("residual_history", &Info::residual_history)

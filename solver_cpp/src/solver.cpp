@@ -104,7 +104,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
                 prob_.collision.pos_y >= 0 && prob_.collision.pos_y < nx_,
             "collision.min_distance must be positive and position indices valid");
   settings_ = s;
-  per_agent_multipliers_ = s.linear_solver != LinearSolver::SparseLU;
+  per_agent_multipliers_ = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
 
   // Constraint list, in time order (keeps the multiplier numbering close to the stage ordering).
   cons_.clear();
@@ -163,6 +163,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   // Per stage and agent: dense (nx+nu)^2 Hessian, A, B, identities; per constraint up to ~20 entries.
   trip_.reserve(static_cast<size_t>(N_) * T_ * (3 * (nx_ + nu_) * (nx_ + nu_) + 4 * nx_) + 24 * C);
   lu_analyzed_ = false;
+  riccati_.setup(N_, T_, nx_, nu_);
 }
 
 // -------------------------------------------------------------------------------------------------
@@ -451,10 +452,29 @@ void Solver::recover_dual_step(const Iterate& y, const Vec& h, const Vec& rc, co
 }
 
 // -------------------------------------------------------------------------------------------------
-bool Solver::solve_linear(Vec& dy) {
+void Solver::build_J() {
+  if (J_built_) return;
   J_.resize(n_vars_, n_vars_);
   J_.setFromTriplets(trip_.begin(), trip_.end());
   J_.makeCompressed();
+  J_built_ = true;
+}
+
+bool Solver::solve_linear(Vec& dy) {
+  J_built_ = false;
+  if (settings_.linear_solver == LinearSolver::Riccati && n_vars_ == n_primal_) {
+    if (riccati_.solve(trip_, rhs_, dy)) {
+      // Check the step against the assembled system (O(nnz)); a poorly conditioned recursion falls back to LU.
+      Vec res = rhs_.head(n_vars_);
+      for (const auto& t : trip_) res[t.row()] += t.value() * dy[t.col()];
+      if (res.norm() <= 1e-9 * std::max(1.0, rhs_.head(n_vars_).norm())) {
+        info_->riccati_solves++;
+        return true;
+      }
+      if (settings_.verbose) std::printf("   Riccati residual %.2e: falling back to sparse LU\n", res.norm());
+    }
+  }
+  build_J();
   const Vec rhs = -rhs_.head(n_vars_);
   auto qr_solve = [&]() -> bool {
     Eigen::SparseQR<SpMat, Eigen::COLAMDOrdering<int>> qr;
@@ -465,6 +485,7 @@ bool Solver::solve_linear(Vec& dy) {
     return qr.info() == Eigen::Success && dy.head(n_vars_).allFinite();
   };
   switch (settings_.linear_solver) {
+    case LinearSolver::Riccati:
     case LinearSolver::SparseLU: {
       // The sparsity pattern depends only on which constraints are equalities: analyse it only when that changes.
       if (!lu_analyzed_ || pattern_state_ != state_) {
@@ -559,7 +580,7 @@ double Solver::line_search(double merit0) {
 
 // Levenberg-Marquardt direction on ||r||^2: (J'J + nu I) dy = -J' r, always a descent direction.
 bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
-  // J_ still holds the Newton matrix of this iteration (built by solve_linear).
+  build_J();
   SpMat JtJ = J_.transpose() * J_;
   for (int d = 0; d < n_vars_; ++d) JtJ.coeffRef(d, d) += nu;
   Eigen::SimplicialLDLT<SpMat> ldlt(JtJ);

@@ -72,7 +72,9 @@ enum class BarrierMode {
 };
 
 enum class LinearSolver {
-  SparseLU,  ///< default: variational multipliers (mu_ij = mu_ji), square system, Eigen SparseLU with reused symbolic analysis
+  Riccati,   ///< default: variational multipliers; a stage-wise (coupled, nonsymmetric) Riccati recursion when no
+             ///< constraint is held as an equality, otherwise (or if it fails its residual check) SparseLU
+  SparseLU,  ///< variational multipliers (mu_ij = mu_ji), square system, Eigen SparseLU with reused symbolic analysis
   LSCG,      ///< paper: per-agent multipliers, least-squares conjugate gradient, SparseQR fallback
   SparseQR,  ///< paper's fallback alone: per-agent multipliers, Eigen SparseQR
 };
@@ -99,7 +101,7 @@ struct Settings {
   int lm_tries = 4;
   double lm_below_step = 1e-2;  ///< also try LM when the accepted Newton step t is below this
   double lm_nu_init = 1e-6;
-  LinearSolver linear_solver = LinearSolver::SparseLU;
+  LinearSolver linear_solver = LinearSolver::Riccati;
   int refinement_steps = 2;      ///< iterative refinement steps after each sparse LU solve
   BarrierMode barrier = BarrierMode::PrimalDual;
   double fraction_to_boundary = 0.99;  ///< primal-dual: keep z >= (1 - tau) z along a step
@@ -134,6 +136,7 @@ struct Info {
   int active_constraints = 0;  ///< constraints held as equalities at the end
   int symbolic_factorizations = 0;  ///< how often the sparse pattern was analysed
   int qr_fallbacks = 0;        ///< linear solves that fell back to SparseQR
+  int riccati_solves = 0;      ///< Newton steps solved by the stage-wise Riccati recursion
   int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
   int attempts = 0;            ///< 1 + restarts used
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)

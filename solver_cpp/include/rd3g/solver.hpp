@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "rd3g/problem.hpp"
+#include "rd3g/riccati.hpp"
 
 namespace rd3g {
 
@@ -105,6 +106,9 @@ class Solver {
   SpMat J_;
   Eigen::SparseLU<SpMat, Eigen::COLAMDOrdering<int>> lu_;
   bool lu_analyzed_ = false;
+  bool J_built_ = false;  // J_ holds this iteration's matrix (the Riccati path does not need it)
+  StageRiccati riccati_;
+  void build_J();
   Info* info_ = nullptr;
 };
 
