@@ -71,9 +71,9 @@ def markdown(rows: list[SolverBenchRow], command: str, machine: str, seconds: fl
     by = {(r.linear_solver, r.cars): r for r in rows}
     ratios = []
     for n in sorted({r.cars for r in rows}):
-        a, b = by.get(("sparse_lu", n)), by.get(("lscg", n))
+        a, b = by.get(("riccati", n)), by.get(("lscg", n))
         if a and b and a.ms_per_iteration == a.ms_per_iteration and b.ms_per_iteration == b.ms_per_iteration:
             ratios.append(f"{n} cars: {b.ms_per_iteration / a.ms_per_iteration:.1f}x")
     if ratios:
-        lines += ["", "Time per Newton iteration, LSCG+SparseQR (paper) / SparseLU (default), same run: " + ", ".join(ratios) + "."]
+        lines += ["", "Time per Newton iteration, LSCG+SparseQR (paper) / Riccati (default), same run: " + ", ".join(ratios) + "."]
     return "\n".join(lines)

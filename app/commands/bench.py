@@ -31,7 +31,7 @@ def register(sub) -> None:
     s = kinds.add_parser("solver", help="RD3G on merging games for each linear-solver option")
     s.add_argument("--cars", default="2-8")
     s.add_argument("--instances", type=int, default=50)
-    s.add_argument("--linear-solvers", default="sparse_lu,lscg,sparse_qr")
+    s.add_argument("--linear-solvers", default="riccati,sparse_lu,lscg,sparse_qr")
     s.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds")
     s.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
     s.set_defaults(func=run_solver)
@@ -55,8 +55,8 @@ def run_solver(args) -> int:
     cars = parse_range(args.cars)
     options = [x.strip() for x in args.linear_solvers.split(",") if x.strip()]
     for o in options:
-        if o not in ("sparse_lu", "lscg", "sparse_qr"):
-            raise UserError(f"--linear-solvers: unknown option {o!r} (sparse_lu, lscg, sparse_qr)")
+        if o not in ("riccati", "sparse_lu", "lscg", "sparse_qr"):
+            raise UserError(f"--linear-solvers: unknown option {o!r} (riccati, sparse_lu, lscg, sparse_qr)")
     if args.instances < 1:
         raise UserError("--instances must be at least 1")
     t0 = time.perf_counter()
