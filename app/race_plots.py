@@ -9,7 +9,8 @@ import numpy as np
 
 def _pick(records, cell, want):
     for r in records:
-        if tuple(r["cell"]) == cell and r["winner"] == "rd3g" and "trace" in r and want(r["trace"][2]):
+        if (tuple(r["cell"]) == cell and r["winner"] == "rd3g" and "trace" in r
+                and r.get("rd3g_off_track", 0) == 0 and want(r["trace"][2])):
             return r
     return None
 
@@ -50,7 +51,8 @@ def plot_examples(records, args, folder: Path) -> list[Path]:
     if overtake:
         out.append(_plot(overtake, track, "Overtake: RD3G (faster) starts behind", folder / "race_overtake.png"))
     # The block with the closest attack: the smallest lead RD3G kept while the faster MPC car was behind.
-    blocks = [r for r in records if tuple(r["cell"]) == ("front", "slow") and r["winner"] == "rd3g" and "trace" in r]
+    blocks = [r for r in records if tuple(r["cell"]) == ("front", "slow") and r["winner"] == "rd3g" and "trace" in r
+              and r.get("rd3g_off_track", 0) == 0]
     if blocks:
         best = min(blocks, key=lambda r: float(np.min(r["trace"][2][:, 0] - r["trace"][2][:, 1])))
         out.append(_plot(best, track, "Block: RD3G (slower) starts in front", folder / "race_block.png"))

@@ -42,7 +42,8 @@ def _one(job):
     o = run_race(setup)
     rec = {"cell": cell, "seed": args.seed + r, "winner": o.winner, "collisions": len(o.collisions),
            "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in o.collisions), "solve_ms": o.solve_ms.astype(np.float32),
-           "min_gap_m": o.min_gap_m, "fallbacks": o.fallbacks}
+           "min_gap_m": o.min_gap_m, "fallbacks": o.fallbacks,
+           "rd3g_off_track": o.off_track["rd3g"], "opponent_off_track": o.off_track["opponent"]}
     if keep_trace:
         rec["trace"] = (o.trace_t, o.trace_states, o.trace_progress)
     return rec
@@ -59,6 +60,9 @@ def summarise(records, races: int) -> list[dict]:
                       "collisions": int(sum(r["collisions"] for r in rs)),
                       "rd3g_at_fault": int(sum(r["rd3g_at_fault"] for r in rs)),
                       "unfinished": int(sum(r["winner"] is None for r in rs)),
+                      # a car that leaves the drivable area may shortcut the infield: such wins are suspect
+                      "rd3g_off_track_races": int(sum(r.get("rd3g_off_track", 0) > 0 for r in rs)),
+                      "rd3g_wins_off_track": int(sum(r["winner"] == "rd3g" and r.get("rd3g_off_track", 0) > 0 for r in rs)),
                       "solve_ms_p50": float(np.percentile(ms, 50)) if len(ms) else None,
                       "solve_ms_p99": float(np.percentile(ms, 99)) if len(ms) else None})
     return cells
@@ -73,10 +77,11 @@ def table(cells) -> str:
             c = by[(start, speed)]
             row.append(f"{c['win_rate']:.2f} / {PAPER_WIN_RATES[(start, speed)]:.2f} ({c['rd3g_wins']}/{c['races']})")
         lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "| cell | races | collisions | RD3G at fault | unfinished | planner p50 / p99 (ms) |", "|---|---|---|---|---|---|"]
+    lines += ["", "| cell | races | collisions | RD3G at fault | unfinished | RD3G off track (races / of its wins) | planner p50 / p99 (ms) |",
+              "|---|---|---|---|---|---|---|"]
     for c in cells:
         lines.append(f"| {c['start']}/{c['speed']} | {c['races']} | {c['collisions']} | {c['rd3g_at_fault']} | {c['unfinished']} | "
-                     f"{c['solve_ms_p50']:.1f} / {c['solve_ms_p99']:.1f} |")
+                     f"{c['rd3g_off_track_races']} / {c['rd3g_wins_off_track']} | {c['solve_ms_p50']:.1f} / {c['solve_ms_p99']:.1f} |")
     return "\n".join(lines)
 
 
