@@ -12,6 +12,8 @@ import sys
 
 # Order here is the order shown in --help.
 COMMAND_MODULES = [
+    "app.commands.race",
+    "app.commands.batch",
     "app.commands.demo",
     "app.commands.solve",
     "app.commands.scenario",
