@@ -1,0 +1,634 @@
+"""The real-time race loop: frame -> detect -> estimate -> plan -> command -> telemetry at a fixed rate.
+
+One loop for the hardware-in-the-loop simulation (``--hil``) and real hardware (``--camera``):
+only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.hardware.CameraFeed``).
+
+* Tick k starts at t_go + k T (T = 1 / rate_hz) and must issue its command by t_go + (k+1) T (its
+  deadline). Every stage is timed. A tick that starts more than a period late skips the ticks it
+  missed (each counted as a deadline miss).
+* :class:`DeadlineMonitor` (its own thread) sends neutral at the deadline of a tick that has not
+  issued its command yet, and logs which stage was running.
+* Safety holds: a lost car (no accepted measurement for ``lost_after_s``), a non-finite state, a
+  failed or stale plan, an invalid command, and (HIL, where the box is observable) a corrupt serial
+  stream each put every car to neutral: a neutral frame is written at once (not at the sender's
+  next tick) and an event is logged; the race resumes when every hold has cleared. A serial link
+  fault (device gone) ends the race: the link cannot be reopened (docs/serial-protocol.md); the
+  transmitter box's failsafe keeps the cars neutral.
+* Planning is asynchronous (``app.realtime.planning.PlannerWorker``): a job every
+  rate_hz / plan_hz ticks with the states predicted ``plan_latency_s`` ahead; the latest plan's
+  first control is applied (zero-order hold) until the next plan arrives.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app.realtime.config import STAGES, FaultSpec, LoopConfig
+from app.realtime.planning import CAR_NAMES, PlanJob, PlannerWorker, PlanResult, RacePlanners
+from planning.frenet import EY, S
+from vehicles.protocol import CarCommand, ProtocolError
+
+
+class LoopError(RuntimeError):
+    """The race could not start or had to stop for a reason the operator must see."""
+
+
+@dataclass(frozen=True)
+class CarBinding:
+    name: str          # "rd3g" or "opponent"
+    marker_id: int     # ArUco id on the roof
+    radio_id: int      # id in the serial protocol
+
+
+class DeadlineMonitor:
+    """Watchdog thread: if the armed tick has not finished its command by the deadline, call
+    ``on_miss(tick, stage)`` (which sends neutral) from this thread."""
+
+    def __init__(self, on_miss) -> None:
+        self.on_miss = on_miss
+        self.stage = "-"
+        self._cv = threading.Condition()
+        self._deadline: float | None = None
+        self._tick = -1
+        self._fired = False
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="DeadlineMonitor", daemon=True)
+        self._thread.start()
+
+    def arm(self, tick: int, deadline: float) -> None:
+        with self._cv:
+            self._tick, self._deadline, self._fired = tick, deadline, False
+            self._cv.notify()
+
+    def disarm(self) -> bool:
+        """Returns True if the monitor fired for the armed tick."""
+        with self._cv:
+            self._deadline = None
+            return self._fired
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        with self._cv:
+            while not self._stop:
+                if self._deadline is None:
+                    self._cv.wait()
+                    continue
+                remaining = self._deadline - time.monotonic()
+                if remaining > 0:
+                    self._cv.wait(remaining)
+                    continue
+                self._fired = True
+                self._deadline = None
+                tick, stage = self._tick, self.stage
+                self._cv.release()
+                try:
+                    self.on_miss(tick, stage)
+                finally:
+                    self._cv.acquire()
+
+
+@dataclass
+class LoopOutcome:
+    reason: str                                  # finished, time_limit, serial_fault, interrupted, world_error
+    mode: str
+    winner: str | None = None
+    lap_times_s: dict = field(default_factory=dict)
+    min_gap_m: float | None = None
+    collisions: list = field(default_factory=list)
+    race_time_s: float = 0.0
+    ticks: int = 0
+    deadline_misses: int = 0
+    period_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stage_ms: dict = field(default_factory=dict)
+    busy_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stage_overruns: dict = field(default_factory=dict)
+    solve_ms: dict = field(default_factory=dict)
+    plans: int = 0
+    plan_failures: int = 0
+    frames: int = 0
+    frames_dropped: int = 0
+    render_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tracking_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    detection_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    events: list = field(default_factory=list)   # (race time s, kind, text)
+    control_period_ms: float = 0.0
+    recording: str | None = None
+    load_average: tuple | None = None
+
+    def summary(self) -> dict:
+        """The `race --hil/--camera --json` record: the simulated race's keys plus loop statistics."""
+        def pct(a, q):
+            return float(np.percentile(a, q)) if len(a) else None
+
+        solve = self.solve_ms.get("rd3g", np.zeros(0))
+        kinds: dict[str, int] = {}
+        for _, kind, _ in self.events:
+            kinds[kind] = kinds.get(kind, 0) + 1
+        return {
+            "winner": self.winner, "lap_times_s": self.lap_times_s, "min_gap_m": self.min_gap_m,
+            "collisions": len(self.collisions), "solve_ms_p50": pct(solve, 50), "solve_ms_p99": pct(solve, 99),
+            "control_period_ms": self.control_period_ms,
+            "mode": self.mode, "end_reason": self.reason, "race_time_s": self.race_time_s, "ticks": self.ticks,
+            "loop_hz_median": 1e3 / float(np.median(self.period_ms)) if len(self.period_ms) else None,
+            "loop_period_p99_ms": pct(self.period_ms, 99), "deadline_misses": self.deadline_misses,
+            "deadline_miss_rate": self.deadline_misses / self.ticks if self.ticks else None,
+            "stage_ms_p50": {k: pct(v, 50) for k, v in self.stage_ms.items()},
+            "stage_ms_p99": {k: pct(v, 99) for k, v in self.stage_ms.items()},
+            "busy_ms_p50": pct(self.busy_ms, 50), "busy_ms_p99": pct(self.busy_ms, 99),
+            "stage_overruns": self.stage_overruns,
+            "opponent_solve_ms_p50": pct(self.solve_ms.get("opponent", np.zeros(0)), 50),
+            "plans": self.plans, "plan_failures": self.plan_failures,
+            "frames": self.frames, "frames_dropped": self.frames_dropped,
+            "render_ms_p50": pct(self.render_ms, 50), "render_ms_p99": pct(self.render_ms, 99),
+            "tracking_error_mm_median": pct(self.tracking_error_mm, 50),
+            "tracking_error_mm_p95": pct(self.tracking_error_mm, 95),
+            "detection_error_mm_median": pct(self.detection_error_mm, 50),
+            "events": kinds, "recording": self.recording,
+            "load_average": list(self.load_average) if self.load_average else None,
+        }
+
+
+class RaceLoop:
+    """One real-time race. ``feed.poll(timeout) -> WorldPacket``; ``world`` is the HilWorld (None
+    on hardware: laps are then counted from the estimated states)."""
+
+    def __init__(self, *, setup, config: LoopConfig, feed, tracker, estimator, link, planners: RacePlanners,
+                 cars: list[CarBinding], recorder=None, faults: tuple[FaultSpec, ...] = (), world=None,
+                 mode: str = "hil") -> None:
+        self.setup, self.cfg, self.feed, self.tracker, self.estimator = setup, config, feed, tracker, estimator
+        self.link, self.planners, self.cars, self.rec, self.world, self.mode = link, planners, cars, recorder, world, mode
+        self.faults = tuple(faults)
+        self.track = setup.track
+        self.max_steer = setup.car.actuators.max_steering_rad
+        self.by_marker = {c.marker_id: c for c in cars}
+        self.commanded = [c for c in cars if c.name in planners.commanded]
+        self.worker = PlannerWorker(planners, inject_failure=self._solver_fault_active)
+        self.t_go: float | None = None
+        self.holds: dict[str, str] = {}
+        self.events: list[tuple] = []
+        self.k = 0
+        self._link_fault: BaseException | None = None
+        self._nan_done: set[int] = set()
+        self._active: PlanResult | None = None
+        self._last_seq = 0
+        self._last_corrupt = 0
+        self._last_corrupt_t = -math.inf
+        self._frames_since_full = 0
+        self._last_frame_index = -1
+        self._lock = threading.Lock()
+        self._misses_by_monitor: set[int] = set()
+        self.monitor: DeadlineMonitor | None = None
+        self._laps = None
+        # statistics
+        self.period_ms: list[float] = []
+        self.busy_ms: list[float] = []
+        self.stage_ms = {s: [] for s in STAGES}
+        self.overruns = {s: 0 for s in STAGES}
+        self.deadline_misses = 0
+        self.solve_ms = {name: [] for name in CAR_NAMES}
+        self.plans = 0
+        self.plan_failures = 0
+        self.frames = 0
+        self.render_ms: list[float] = []
+        self.tracking_error_mm: list[float] = []
+        self.detection_error_mm: list[float] = []
+        self.dropped = 0
+        self.winner_seen: str | None = None
+
+    # ------------------------------------------------------------------ helpers
+    def race_time(self, t_abs: float | None = None) -> float:
+        t_abs = time.monotonic() if t_abs is None else t_abs
+        return t_abs - self.t_go if self.t_go is not None else 0.0
+
+    def _event(self, kind: str, text: str, t_race: float | None = None) -> None:
+        t_race = self.race_time() if t_race is None else t_race
+        with self._lock:
+            self.events.append((t_race, kind, text))
+        if self.rec is not None:
+            self.rec.event(t_race, kind, text, step=self.k)
+
+    def _neutral_now(self) -> None:
+        try:
+            self.link.neutral()
+        except Exception as exc:  # never let the safety action raise into the loop
+            self._event("error", f"sending neutral failed: {exc}")
+
+    def _set_hold(self, key: str, active: bool, message: str = "") -> None:
+        if active and key not in self.holds:
+            self.holds[key] = message
+            self._neutral_now()
+            self._event("fault", f"{message} - all cars neutral")
+        elif not active and key in self.holds:
+            del self.holds[key]
+            self._event("recovered", f"{key} cleared" + ("" if self.holds else " - racing again"))
+
+    def _solver_fault_active(self, t_plan: float) -> bool:
+        t = self.race_time(t_plan)
+        return any(f.kind == "solver_fail" and f.active(t) for f in self.faults)
+
+    def _on_link_fault(self, exc: BaseException) -> None:
+        self._link_fault = exc
+
+    def _on_deadline_miss(self, tick: int, stage: str) -> None:
+        self._neutral_now()
+        with self._lock:
+            self._misses_by_monitor.add(tick)
+        self._event("deadline_miss", f"tick {tick}: no command by the deadline (stage {stage} running) - neutral sent")
+
+    def _state6(self, st) -> np.ndarray:
+        return np.array([st.x, st.y, st.heading, st.speed, 0.0, st.yaw_rate])
+
+    # ------------------------------------------------------------------ phases
+    def run(self) -> LoopOutcome:
+        reason = "interrupted"
+        old_switch = sys.getswitchinterval()
+        sys.setswitchinterval(0.001)  # background threads (telemetry, planner glue) yield the GIL sooner
+        try:
+            self._acquire()
+            self._cold_start()
+            reason = self._race()
+        except KeyboardInterrupt:
+            reason = "interrupted"
+            self._event("stop", "interrupted by the operator")
+        finally:
+            sys.setswitchinterval(old_switch)
+            summary = self._shutdown()
+        return self._outcome(reason, summary)
+
+    def _detect(self, frame, predictions):
+        det = self.tracker.process(frame, predictions)
+        return [m for m in det.cars.values() if m.marker_id in self.by_marker], det
+
+    def _acquire(self) -> None:
+        """Before the start: full-frame searches until every car has enough accepted measurements."""
+        deadline = time.monotonic() + self.cfg.acquire_timeout_s
+        while True:
+            packet = self.feed.poll(0.1)
+            if packet.frame is not None:
+                meas, _ = self._detect(packet.frame, None)
+                self.estimator.update(packet.frame.t_capture_s, meas)
+            missing = [c for c in self.cars if c.marker_id not in self.estimator.filters
+                       or self.estimator.filters[c.marker_id].counts["accepted"] < self.cfg.acquire_measurements]
+            if not missing:
+                return
+            if time.monotonic() > deadline:
+                names = ", ".join(f"{c.name} (marker {c.marker_id})" for c in missing)
+                raise LoopError(f"camera did not find {names} within {self.cfg.acquire_timeout_s:.0f} s; "
+                                f"check the markers, the lighting and the calibration")
+
+    def _states_at(self, t_abs: float) -> dict[str, np.ndarray]:
+        return {c.name: self._state6(self.estimator.filters[c.marker_id].predict_to(t_abs)) for c in self.cars}
+
+    def _cold_start(self) -> None:
+        """First plan with the solver's full globalisation, before the clock starts."""
+        t = time.monotonic()
+        result = self.worker.run_sync(PlanJob(-1, t, self._states_at(t)))
+        if result.error:
+            raise LoopError(f"cold-start planning failed: {result.error}")
+        self.worker.start()
+        self.t_go = time.monotonic() + 2 * self.cfg.period_s
+        result.job.t_plan = self.t_go  # the cold-start plan is the plan for the start
+        self._take_plan(result, time.monotonic())
+        if self.world is not None:
+            self.world.go(self.t_go)
+        if self.mode == "hardware":
+            from sim.race import LapBookkeeper
+
+            s0 = [float(self.track.to_frenet(np.array([st[0]]), np.array([st[1]]))[0][0])
+                  for st in self._states_at(self.t_go).values()]
+            self._laps = LapBookkeeper(float(self.track.length), self.setup.laps, np.array(s0), start_time=0.0)
+        self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
+                    t_race=0.0)
+
+    def _take_plan(self, result: PlanResult, now: float) -> None:
+        self._last_seq = result.seq
+        if result.error:
+            self.plan_failures += 1
+            self._set_hold("planner", True, f"planner failed: {result.error}")
+            return
+        self._active = result
+        self.plans += 1
+        self._set_hold("planner", False)
+        t_race = self.race_time(result.job.t_plan) if self.t_go is not None else 0.0
+        for name, cp in result.cars.items():
+            self.solve_ms[name].append(cp.solve_ms)
+            if self.rec is None or cp.plan is None:
+                continue
+            plan, step = cp.plan, max(self.k, 0)
+            for row, entity in ((0, "plan"), (1, "predicted_other")):
+                x, y = self.track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
+                self.rec.strip(f"world/cars/{name}/{entity}", step, t_race, np.column_stack([x, y]))
+            self.rec.scalar(f"cars/{name}/planned/accel_mps2", step, t_race, plan.u[0, 0])
+            self.rec.scalar(f"cars/{name}/planned/delta_rad", step, t_race, plan.u[0, 1])
+            self.rec.scalar(f"planner/{name}/solve_ms", step, t_race, cp.solve_ms)
+            self.rec.scalar(f"planner/{name}/iterations", step, t_race, plan.iterations)
+            self.rec.scalar(f"planner/{name}/fallback", step, t_race, float(plan.used == "fallback"))
+
+    # ------------------------------------------------------------------ the race
+    def _race(self) -> str:
+        cfg = self.cfg
+        T = cfg.period_s
+        self.monitor = DeadlineMonitor(self._on_deadline_miss)
+        prev_start = None
+        self.k = 0
+        while True:
+            t_k = self.t_go + self.k * T
+            now = time.monotonic()
+            if now < t_k:
+                time.sleep(t_k - now)
+            start = time.monotonic()
+            if start > t_k + T:  # more than a period late: skip the ticks that are already past
+                skipped = int((start - t_k) / T)
+                self.deadline_misses += skipped
+                self._event("deadline_miss", f"{skipped} tick(s) skipped: loop {1e3 * (start - t_k):.1f} ms late")
+                self._neutral_now()  # the last command is stale by now
+                self.k += skipped
+                t_k = self.t_go + self.k * T
+            if prev_start is not None:
+                self.period_ms.append(1e3 * (start - prev_start))
+            prev_start = start
+            self.monitor.arm(self.k, t_k + T)
+            end_reason = self._tick(start, t_k + T)
+            if end_reason:
+                return end_reason
+            self.k += 1
+
+    def _stage(self, name: str, t0: float, times: dict) -> float:
+        t1 = time.perf_counter()
+        ms = 1e3 * (t1 - t0)
+        times[name] = ms
+        self.stage_ms[name].append(ms)
+        if ms > getattr(self.cfg.budgets, name):
+            self.overruns[name] += 1
+        if self.monitor is not None:
+            self.monitor.stage = next((s for s in STAGES[STAGES.index(name) + 1:]), "-")
+        return t1
+
+    def _tick(self, start: float, deadline: float) -> str | None:
+        cfg, rec, k = self.cfg, self.rec, self.k
+        t_race = start - self.t_go
+        times: dict[str, float] = {}
+        self.monitor.stage = "frame"
+        if self._link_fault is not None:
+            self._event("serial_fault", f"serial link failed ({self._link_fault}); the box failsafe holds the cars "
+                                        f"neutral - race stopped")
+            return "serial_fault"
+        # ---- frame
+        t0 = time.perf_counter()
+        try:
+            packet = self.feed.poll(0.0)
+        except RuntimeError as exc:
+            self._event("world_error", str(exc).splitlines()[0])
+            return "world_error"
+        frame = packet.frame
+        for t_ev, kind, text in packet.events:
+            self._event(kind, text, t_race=t_ev)
+        self.render_ms.extend(packet.render_ms)
+        self.dropped = max(self.dropped, packet.dropped)
+        t0 = self._stage("frame", t0, times)
+        # ---- detect
+        meas, det = [], None
+        if frame is not None and frame.index != self._last_frame_index:
+            self._last_frame_index = frame.index
+            self.frames += 1
+            tracked = {c.marker_id: self.estimator.filters[c.marker_id] for c in self.cars
+                       if c.marker_id in self.estimator.filters and not self.estimator.filters[c.marker_id].is_lost(frame.t_capture_s)
+                       and np.all(np.isfinite(self.estimator.filters[c.marker_id].x))}
+            self._frames_since_full += 1
+            if len(tracked) == len(self.cars):
+                predictions = {m: tuple(f.predict_to(frame.t_capture_s).vector[:2]) for m, f in tracked.items()}
+            elif self._frames_since_full >= cfg.lost_search_every:
+                predictions, self._frames_since_full = None, 0
+            else:
+                predictions = {m: tuple(f.predict_to(frame.t_capture_s).vector[:2]) for m, f in tracked.items()}
+            if predictions is None or predictions:
+                meas, det = self._detect(frame, predictions)
+        t0 = self._stage("detect", t0, times)
+        # ---- estimate (+ safety checks on tracking and state)
+        if frame is not None and det is not None:
+            results = self.estimator.update(frame.t_capture_s, meas)
+            if packet.truth is not None:
+                for m in meas:
+                    i = CAR_NAMES.index(self.by_marker[m.marker_id].name)
+                    truth = packet.truth[i]
+                    self.detection_error_mm.append(1e3 * math.hypot(m.x - truth[0], m.y - truth[1]))
+                    f = self.estimator.filters[m.marker_id]
+                    if results[m.marker_id].accepted:
+                        err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
+                        self.tracking_error_mm.append(err)
+                        if rec is not None:
+                            rec.scalar(f"tracking/{self.by_marker[m.marker_id].name}/error_mm", k,
+                                       self.race_time(frame.t_capture_s), err)
+        for n, f in enumerate(self.faults):  # injected: the estimator's state becomes NaN
+            if f.kind == "nan_state" and t_race >= f.start_s and n not in self._nan_done:
+                self._nan_done.add(n)
+                for c in self.cars:
+                    if f.applies_to(c.name) and c.marker_id in self.estimator.filters:
+                        self.estimator.filters[c.marker_id].x[:] = np.nan
+                self._event("fault_injected", f"estimator state of {f.car or 'all cars'} set to NaN")
+        now = time.monotonic()
+        t_plan = now + cfg.plan_latency_s
+        states: dict[str, np.ndarray] = {}
+        for c in self.cars:
+            f = self.estimator.filters.get(c.marker_id)
+            lost = f is None or f.t_last_accepted_s is None or now - f.t_last_accepted_s > cfg.lost_after_s
+            self._set_hold(f"lost:{c.name}", lost, f"car {c.name} lost (no marker {c.marker_id} for "
+                                                   f"{1e3 * cfg.lost_after_s:.0f} ms)")
+            if lost:
+                continue
+            vec = self._state6(f.predict_to(t_plan))
+            if not np.all(np.isfinite(vec)):
+                self._set_hold(f"nan:{c.name}", True, f"non-finite state of car {c.name}; estimator reset")
+                del self.estimator.filters[c.marker_id]
+                continue
+            self._set_hold(f"nan:{c.name}", False)
+            states[c.name] = vec
+        if packet.box_corrupt > self._last_corrupt:  # HIL: the box reports rejected frames
+            self._last_corrupt = packet.box_corrupt
+            self._last_corrupt_t = now
+        self._set_hold("serial", now - self._last_corrupt_t < cfg.serial_quiet_s,
+                       "serial stream corrupt (box rejects frames)")
+        t0 = self._stage("estimate", t0, times)
+        # ---- plan: take the newest result, check its age, submit the next job
+        result = self.worker.latest()
+        if result is not None and result.seq != self._last_seq:
+            self._take_plan(result, now)
+        if self._active is not None:
+            age = now - self._active.job.t_plan
+            self._set_hold("planner_stale", age > cfg.max_plan_age_s,
+                           f"no new plan for {1e3 * age:.0f} ms (limit {1e3 * cfg.max_plan_age_s:.0f} ms)")
+        if k % cfg.plan_every == 0 and len(states) == len(self.cars):
+            self.worker.submit(PlanJob(k, t_plan, states))
+        t0 = self._stage("plan", t0, times)
+        # ---- command
+        commands: dict[int, CarCommand] = {}
+        sent = {c.name: (0.0, 0.0) for c in self.commanded}
+        if not self.holds and self._active is not None:
+            for c in self.commanded:
+                cp = self._active.cars[c.name]
+                commands[c.radio_id] = CarCommand(steering=cp.steering_rad / self.max_steer, throttle=cp.throttle)
+                sent[c.name] = (cp.throttle, cp.steering_rad)
+        else:
+            commands = {c.radio_id: CarCommand(0.0, 0.0) for c in self.commanded}
+        try:
+            self.link.set_commands(commands)
+            self._set_hold("command", False)
+        except ProtocolError as exc:
+            self._set_hold("command", True, f"invalid command: {exc}")
+            sent = {c.name: (0.0, 0.0) for c in self.commanded}
+        t_cmd = time.monotonic()
+        fired = self.monitor.disarm()
+        with self._lock:
+            missed = fired or k in self._misses_by_monitor
+        if missed or t_cmd > deadline:
+            self.deadline_misses += 1
+            if not missed:
+                self._event("deadline_miss", f"tick {k}: command {1e3 * (t_cmd - deadline):.1f} ms after the deadline")
+        self.busy_ms.append(1e3 * (t_cmd - start))
+        t0 = self._stage("command", t0, times)
+        # ---- telemetry
+        if rec is not None:
+            self._record(k, t_race, times, packet, det, states, sent)
+        self._stage("telemetry", t0, times)
+        if rec is not None:
+            rec.scalar("loop/stage/telemetry_ms", k, t_race, times["telemetry"])
+        # ---- end of race
+        if packet.winner is not None and self.winner_seen is None:
+            self.winner_seen = packet.winner
+            return "finished"
+        if self._laps is not None and len(states) == len(self.cars):
+            s = [float(self.track.to_frenet(np.array([states[c.name][0]]), np.array([states[c.name][1]]))[0][0])
+                 for c in self.cars]
+            for ev in self._laps.update(t_race, np.array(s)):
+                self._event(ev.kind, f"{CAR_NAMES[ev.car]}" + (f" lap {ev.lap} in {ev.lap_time:.3f} s" if ev.lap_time else ""))
+            if self._laps.winner is not None:
+                self.winner_seen = CAR_NAMES[self._laps.winner]
+                return "finished"
+        if t_race > self.setup.max_time_s:
+            self._event("stop", f"time limit {self.setup.max_time_s:.0f} s reached")
+            return "time_limit"
+        return None
+
+    def _record(self, k, t_race, times, packet, det, states, sent) -> None:
+        from sim.collision import footprint_corners
+
+        rec = self.rec
+        if len(self.period_ms):
+            rec.scalar("loop/period_ms", k, t_race, self.period_ms[-1])
+        for name, ms in times.items():
+            rec.scalar(f"loop/stage/{name}_ms", k, t_race, ms)
+        rec.scalar("loop/busy_ms", k, t_race, self.busy_ms[-1])
+        for name, st in states.items():
+            rec.points(f"world/cars/{name}/estimate", k, t_race, st[:2])
+            rec.scalar(f"cars/{name}/estimated_speed_mps", k, t_race, st[3])
+        for name, (throttle, steer) in sent.items():
+            rec.scalar(f"cars/{name}/command/throttle", k, t_race, throttle)
+            rec.scalar(f"cars/{name}/command/steering_rad", k, t_race, steer)
+        rec.scalar("loop/holds", k, t_race, len(self.holds))
+        frame = packet.frame
+        if frame is not None and det is not None:
+            rec.scalar("camera/latency_ms", k, t_race, 1e3 * (time.monotonic() - frame.t_capture_s))
+            rec.scalar("camera/full_search", k, t_race, float(det.full_search))
+            for ms in packet.render_ms:
+                rec.scalar("camera/render_ms", k, t_race, ms)
+            for m in det.cars.values():
+                if m.marker_id in self.by_marker:
+                    rec.points(f"world/cars/{self.by_marker[m.marker_id].name}/detection", k,
+                               self.race_time(frame.t_capture_s), [m.x, m.y])
+            if self.frames % self.cfg.image_log_every == 1:
+                import cv2
+
+                d = self.cfg.image_downscale
+                small = cv2.resize(frame.image, None, fx=1.0 / d, fy=1.0 / d, interpolation=cv2.INTER_AREA)
+                rec.image("camera/image", k, t_race, small)
+                if det.markers:
+                    centres = np.array([c.reshape(-1, 2).mean(axis=0) for c in det.markers.values()]) / d
+                    rec.points("camera/detections", k, t_race, centres)
+        truth = packet.truth if packet.t_race is not None else None
+        if truth is None and self.world is None:
+            truth_states = {n: s for n, s in states.items()}  # hardware: the estimate is the best we have
+            t_truth = t_race
+        elif truth is not None:
+            truth_states = {name: truth[i] for i, name in enumerate(CAR_NAMES)}
+            t_truth = packet.t_race
+        else:
+            return
+        g = self.setup.car.geometry
+        for name, st in truth_states.items():
+            corners = footprint_corners(np.array([st[0]]), np.array([st[1]]), np.array([st[2]]),
+                                        g.footprint_length_m, g.footprint_width_m, g.footprint_offset_m)[0]
+            rec.points(f"world/cars/{name}/position", k, t_truth, st[:2])
+            rec.strip(f"world/cars/{name}/footprint", k, t_truth, np.vstack([corners, corners[:1]]))
+            rec.scalar(f"cars/{name}/speed_mps", k, t_truth, math.hypot(st[3], st[4]))
+
+    # ------------------------------------------------------------------ shutdown
+    def _shutdown(self) -> dict | None:
+        if self.monitor is not None:
+            self.monitor.stop()
+        self._neutral_now()
+        try:
+            self.link.stop()
+        except Exception:
+            pass
+        self.worker.stop()
+        summary = None
+        if self.world is not None:
+            summary = self.world.close()
+            if summary:
+                for t_ev, kind, text in summary.get("events", []):
+                    self._event(kind, text, t_race=t_ev)
+        elif hasattr(self.feed, "close"):
+            self.feed.close()
+        return summary
+
+    def _outcome(self, reason: str, summary: dict | None) -> LoopOutcome:
+        import os
+
+        out = LoopOutcome(reason=reason, mode=self.mode, ticks=self.k + (1 if self.t_go else 0),
+                          deadline_misses=self.deadline_misses, period_ms=np.array(self.period_ms),
+                          stage_ms={s: np.array(v) for s, v in self.stage_ms.items()},
+                          busy_ms=np.array(self.busy_ms), stage_overruns=dict(self.overruns),
+                          solve_ms={n: np.array(v) for n, v in self.solve_ms.items()}, plans=self.plans,
+                          plan_failures=self.plan_failures, frames=self.frames,
+                          render_ms=np.array(self.render_ms), tracking_error_mm=np.array(self.tracking_error_mm),
+                          detection_error_mm=np.array(self.detection_error_mm), events=list(self.events),
+                          control_period_ms=1e3 * self.cfg.period_s, load_average=os.getloadavg())
+        if summary:
+            out.winner = summary["winner"]
+            out.lap_times_s = summary["lap_times_s"]
+            out.min_gap_m = summary["min_gap_m"]
+            out.collisions = summary["collisions"]
+            out.race_time_s = summary["race_time_s"]
+            out.frames_dropped = summary["frames_dropped"]
+            out.render_ms = np.asarray(summary["render_ms"], dtype=float)
+        else:
+            out.winner = self.winner_seen
+            out.race_time_s = self.race_time() if self.t_go else 0.0
+            if self._laps is not None:
+                out.lap_times_s = {n: list(self._laps.lap_times[i]) for i, n in enumerate(CAR_NAMES)}
+        if self.rec is not None:
+            out.recording = str(self.rec.path)
+        return out
+
+
+def setup_document(setup, config: LoopConfig, mode: str, cars: list[CarBinding], opponent: str, faults) -> str:
+    """The race/setup TextDocument of a real-time race (JSON)."""
+    import dataclasses
+
+    doc = {"mode": mode, "track": setup.track.name, "car": setup.car.name, "seed": setup.seed, "laps": setup.laps,
+           "start": setup.start, "opponent": opponent, "rd3g_top_speed_mps": setup.rd3g_top_speed_mps,
+           "opponent_top_speed_mps": setup.opponent_top_speed_mps, "max_time_s": setup.max_time_s,
+           "planning_period_s": setup.control_period_s, "loop": dataclasses.asdict(config),
+           "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults]}
+    return json.dumps(doc, indent=2)

@@ -1,0 +1,176 @@
+"""Planning for the real-time loop: RD3G for our car and the opponent's planner (MPC, pure pursuit or
+none for a human-driven car), run asynchronously in a worker thread; the loop applies the latest
+plan. The C++ solver releases the GIL, so a solve does not stall the loop thread."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from planning import MPCOpponent, ProgressUnwrapper, RacingPlanner, frenet_state
+from planning.frenet import S, V
+from sim import PurePursuitController
+
+CAR_NAMES = ("rd3g", "opponent")
+OPPONENT_MODES = ("mpc", "pursuit", "human")
+
+
+class SolverFailure(RuntimeError):
+    """A planning call failed (raised, or produced non-finite output)."""
+
+
+@dataclass
+class PlanJob:
+    tick: int
+    t_plan: float                     # absolute time (monotonic) the states are predicted to
+    states: dict[str, np.ndarray]     # car name -> [x, y, heading, vx, vy, yaw_rate]
+
+
+@dataclass
+class CarPlan:
+    throttle: float
+    steering_rad: float
+    plan: object | None = None        # planning.Plan (None for pursuit)
+    solve_ms: float = 0.0
+
+
+@dataclass
+class PlanResult:
+    job: PlanJob
+    cars: dict[str, CarPlan] = field(default_factory=dict)
+    error: str | None = None
+    t_done: float = 0.0
+    seq: int = 0
+    progress: np.ndarray | None = None  # unwrapped s of both cars
+
+
+class RacePlanners:
+    """The two cars' planners with the simulated race's settings (app.race_runner)."""
+
+    def __init__(self, setup, opponent: str = "mpc") -> None:
+        from app.race_runner import _make_planner
+
+        if opponent not in OPPONENT_MODES:
+            raise ValueError(f"opponent: must be one of {OPPONENT_MODES}, got {opponent!r}")
+        self.setup = setup
+        self.track = setup.track
+        self.opponent_mode = opponent
+        self.ours = _make_planner(RacingPlanner, setup, setup.rd3g_top_speed_mps,
+                                  opponent_top_speed_mps=setup.opponent_top_speed_mps)
+        self.theirs = _make_planner(MPCOpponent, setup, setup.opponent_top_speed_mps) if opponent == "mpc" else None
+        self.pursuit = (PurePursuitController(setup.track, setup.car, target_speed_mps=setup.opponent_top_speed_mps)
+                        if opponent == "pursuit" else None)
+        self.unwrap: ProgressUnwrapper | None = None
+        self.commanded = ("rd3g",) if opponent == "human" else CAR_NAMES
+
+    def plan(self, job: PlanJob) -> PlanResult:
+        """One planning step for every commanded car. Raises SolverFailure on non-finite output."""
+        fs = np.array([frenet_state(self.track, job.states[name]) for name in CAR_NAMES])
+        if self.unwrap is None:
+            self.unwrap = ProgressUnwrapper(self.track, fs[:, S])
+        fs[:, S] = self.unwrap.update(fs[:, S])
+        result = PlanResult(job=job, progress=fs[:, S].copy())
+        t0 = time.perf_counter()
+        x_self = self.ours.mapper.predict(self.ours.tm, fs[0])
+        plan = self.ours.plan(x_self, fs[1])
+        throttle, steer = self.ours.mapper.commands(*plan.control, speed=float(x_self[V]))
+        result.cars["rd3g"] = CarPlan(throttle, steer, plan, 1e3 * (time.perf_counter() - t0))
+        if self.theirs is not None:
+            t0 = time.perf_counter()
+            x_opp = self.theirs.mapper.predict(self.theirs.tm, fs[1])
+            oplan = self.theirs.plan(x_opp, fs[0])
+            throttle, steer = self.theirs.mapper.commands(*oplan.control, speed=float(x_opp[V]))
+            result.cars["opponent"] = CarPlan(throttle, steer, oplan, 1e3 * (time.perf_counter() - t0))
+        elif self.pursuit is not None:
+            throttle, steer = self.pursuit.command(job.states["opponent"], self.setup.control_period_s)
+            result.cars["opponent"] = CarPlan(float(throttle), float(steer))
+        for name, cp in result.cars.items():
+            if not (math.isfinite(cp.throttle) and math.isfinite(cp.steering_rad)):
+                raise SolverFailure(f"{name}: planner produced a non-finite command "
+                                    f"(throttle {cp.throttle}, steering {cp.steering_rad})")
+        return result
+
+
+class PlannerWorker:
+    """Runs planning jobs in a background thread; the newest pending job replaces an older one.
+
+    ``inject_failure(t_plan) -> bool``: fault injection, the job raises SolverFailure when true."""
+
+    def __init__(self, planners: RacePlanners, inject_failure: Callable[[float], bool] | None = None) -> None:
+        self.planners = planners
+        self.inject_failure = inject_failure
+        self._cv = threading.Condition()
+        self._pending: PlanJob | None = None
+        self._latest: PlanResult | None = None
+        self._busy = False
+        self._stop = False
+        self._seq = 0
+        self.jobs_done = 0
+        self.jobs_replaced = 0
+        self._thread = threading.Thread(target=self._run, name="PlannerWorker", daemon=True)
+
+    def start(self, first: PlanResult | None = None) -> None:
+        if first is not None:
+            self._latest = first
+        self._thread.start()
+
+    def run_sync(self, job: PlanJob) -> PlanResult:
+        """Plan in the caller's thread (cold start before the race)."""
+        return self._execute(job)
+
+    def submit(self, job: PlanJob) -> None:
+        with self._cv:
+            if self._pending is not None:
+                self.jobs_replaced += 1
+            self._pending = job
+            self._cv.notify()
+
+    @property
+    def busy(self) -> bool:
+        with self._cv:
+            return self._busy or self._pending is not None
+
+    def latest(self) -> PlanResult | None:
+        with self._cv:
+            return self._latest
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+
+    def _execute(self, job: PlanJob) -> PlanResult:
+        try:
+            if self.inject_failure is not None and self.inject_failure(job.t_plan):
+                raise SolverFailure("injected solver failure")
+            result = self.planners.plan(job)
+        except Exception as exc:  # any planner exception is a planner fault for the loop
+            result = PlanResult(job=job, error=f"{type(exc).__name__}: {exc}")
+        result.t_done = time.monotonic()
+        self._seq += 1
+        result.seq = self._seq
+        return result
+
+    def _run(self) -> None:
+        from app.realtime.config import lower_realtime_priority
+
+        lower_realtime_priority(10)  # below the loop and the world (--rt-priority)
+        while True:
+            with self._cv:
+                while self._pending is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                job, self._pending = self._pending, None
+                self._busy = True
+            result = self._execute(job)
+            with self._cv:
+                self._latest = result
+                self._busy = False
+                self.jobs_done += 1

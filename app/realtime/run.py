@@ -1,0 +1,242 @@
+"""`python -m app race --hil` and `python -m app race --camera N --serial DEV --calibration FILE`:
+build the real-time loop's parts from the command line and run one race (docs/race-stack.md)."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.cli import UserError
+
+
+def add_realtime_arguments(p) -> None:
+    g = p.add_argument_group("real-time race loop (docs/race-stack.md)")
+    g.add_argument("--hil", action="store_true",
+                   help="hardware in the loop: synthetic camera frames of the simulator through the real detector, "
+                        "commands through the serial protocol over a pseudo-terminal to virtual cars")
+    g.add_argument("--camera", help="hardware: camera index or stream URL")
+    g.add_argument("--serial", help="hardware: serial device of the transmitter box, e.g. /dev/ttyUSB0")
+    g.add_argument("--calibration", help="hardware: camera calibration JSON (python -m app calibrate)")
+    g.add_argument("--loop-hz", type=float, default=60.0, help="loop rate (default 60 Hz); planning runs at --control-hz")
+    g.add_argument("--fps", type=float, default=60.0, help="HIL camera frame rate (default 60)")
+    g.add_argument("--fault", action="append", default=[], metavar="KIND@START[+DUR][:CAR]",
+                   help="HIL fault injection (repeatable): occlude, serial_corrupt, serial_vanish, solver_fail, nan_state")
+    g.add_argument("--marker-ids", default="0,1", help="ArUco ids of the RD3G car and the opponent (default 0,1)")
+    g.add_argument("--radio-ids", default=None, help="serial-protocol ids of the two cars (default: the marker ids)")
+    g.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    g.add_argument("--human-opponent", action="store_true",
+                   help="the opponent is driven by a person: tracked and raced against, never commanded")
+    g.add_argument("--rt-priority", type=int, default=0, metavar="PRIO",
+                   help="run the loop under SCHED_FIFO at this priority (1-99, needs CAP_SYS_NICE); the HIL world "
+                        "runs 5 and the planner and telemetry threads 10 below it. Default 0: normal scheduling")
+    g.add_argument("--camera-latency-ms", type=float, default=0.0,
+                   help="hardware: exposure-to-delivery delay of the camera, subtracted from frame times")
+
+
+def wants_realtime(args) -> bool:
+    return bool(getattr(args, "hil", False) or getattr(args, "camera", None) is not None
+                or getattr(args, "serial", None) is not None or getattr(args, "calibration", None) is not None)
+
+
+def _ids(text: str, flag: str) -> tuple[int, int]:
+    try:
+        ids = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise UserError(f"{flag}: expected two integers like 0,1, got {text!r}") from None
+    if len(ids) != 2 or ids[0] == ids[1] or not all(0 <= i <= 255 for i in ids):
+        raise UserError(f"{flag}: expected two different ids in 0..255, got {text!r}")
+    return ids
+
+
+def _check_mode(args) -> str:
+    hw = {"--camera": args.camera, "--serial": args.serial, "--calibration": args.calibration}
+    given = [k for k, v in hw.items() if v is not None]
+    if args.hil:
+        if given:
+            raise UserError(f"--hil simulates the camera and the serial link; drop {', '.join(given)}")
+        return "hil"
+    missing = [k for k, v in hw.items() if v is None]
+    if missing:
+        raise UserError(f"hardware mode needs --camera, --serial and --calibration; missing {', '.join(missing)}")
+    if args.fault:
+        raise UserError("--fault is only available with --hil")
+    return "hardware"
+
+
+def run_realtime(args) -> int:
+    from app.commands.race import DEFAULT_OUT, make_setup
+    from app.realtime.config import LoopConfig, LoopConfigError, parse_fault
+    from app.realtime.loop import CarBinding, LoopError, RaceLoop, setup_document
+    from app.realtime.planning import RacePlanners
+    from app.telemetry import RaceRecorder
+
+    mode = _check_mode(args)
+    if args.laps < 1:
+        raise UserError(f"--laps must be at least 1, got {args.laps}")
+    for name in ("rd3g_speed", "opponent_speed", "loop_hz", "fps"):
+        if not getattr(args, name) > 0:
+            raise UserError(f"--{name.replace('_', '-')} must be positive")
+    try:
+        config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz)
+        faults = tuple(parse_fault(f) for f in args.fault)
+    except LoopConfigError as exc:
+        raise UserError(str(exc)) from None
+    markers = _ids(args.marker_ids, "--marker-ids")
+    radios = _ids(args.radio_ids, "--radio-ids") if args.radio_ids else markers
+    cars = [CarBinding("rd3g", markers[0], radios[0]), CarBinding("opponent", markers[1], radios[1])]
+    out = Path(args.out)
+    if out.suffix != ".rrd":
+        raise UserError(f"--out must be a .rrd file, got {args.out!r}")
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    if args.out == DEFAULT_OUT:  # one file per race
+        out = out.parent / f"{mode}-seed{args.seed}-{stamp}.rrd"
+    setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
+    opponent = "human" if args.human_opponent else args.opponent
+
+    if args.rt_priority:
+        # Before any thread or the world process exists: they all inherit the policy (and lower
+        # their own priority where they are helpers).
+        import os
+        if not 1 <= args.rt_priority <= 99:
+            raise UserError(f"--rt-priority: must be in 1..99, got {args.rt_priority}")
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
+        except (PermissionError, OSError, AttributeError) as exc:
+            raise UserError(f"--rt-priority {args.rt_priority}: cannot switch to SCHED_FIFO ({exc}); "
+                            f"run without it or grant CAP_SYS_NICE") from None
+    if mode == "hardware":
+        parts = _open_hardware(args, setup, cars, config)
+    else:
+        parts = _open_hil(args, setup, cars, config, faults)
+    world, feed, tracker, estimator, link_port, note = parts
+    recorder = loop = None
+    try:
+        from vehicles.serial_link import SerialCarLink, SerialLinkError
+
+        planners = RacePlanners(setup, opponent)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}")
+        recorder.static_track(setup.track)
+        recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
+        for name, rgb in (("rd3g", (230, 60, 40)), ("opponent", (40, 110, 230))):
+            for entity, kind in (("position", "points"), ("footprint", "strips"), ("plan", "strips")):
+                recorder.static_color(f"world/cars/{name}/{entity}", kind, rgb)
+        loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
+                        planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
+        commanded = [c.radio_id for c in cars if c.name in planners.commanded]
+        link = SerialCarLink(link_port, baudrate=args.baud, rate_hz=config.link_hz, car_ids=commanded,
+                             on_fault=loop._on_link_fault)
+        try:
+            link.start()
+        except SerialLinkError as exc:
+            raise UserError(f"--serial: {exc}") from None
+        loop.link = link
+        if note:
+            loop._event("setup", note, t_race=0.0)
+        try:
+            outcome = loop.run()
+        except LoopError as exc:
+            raise UserError(str(exc)) from None
+    finally:
+        if loop is None or loop.t_go is None:  # failed before the race: release what was opened
+            if world is not None:
+                world.close()
+            elif feed is not None:
+                feed.close()
+        if recorder is not None:
+            recorder.close()
+    _print(outcome, setup, args, mode, opponent)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(outcome.summary(), indent=2) + "\n")
+    return 0 if outcome.reason in ("finished", "time_limit") else 1
+
+
+def _open_hil(args, setup, cars, config, faults):
+    from app.race_runner import start_states
+    from app.realtime.hil import HilWorld, WorldSpec
+    from tracking.calibration import CameraCalibration, Intrinsics, calibrate_image, load_fixed_markers
+    from tracking.estimator import MultiCarEstimator
+    from tracking.markers import ArucoTracker
+
+    spec = WorldSpec(track=setup.track, car=setup.car, start_states=start_states(setup),
+                     marker_ids=(cars[0].marker_id, cars[1].marker_id), radio_ids=(cars[0].radio_id, cars[1].radio_id),
+                     laps=setup.laps, seed=setup.seed, fps=args.fps, faults=faults)
+    world = HilWorld(spec)
+    try:
+        info = world.info
+        camera = world.camera
+        fixed_ids = ()
+        note = "calibration: true synthetic camera (no fixed markers for this track)"
+        calibration = CameraCalibration(camera)
+        if info["fixed_markers"]:
+            # Calibrate like on the real track: camera pose from the fixed markers in a grid frame,
+            # with known intrinsics.
+            marker_set = load_fixed_markers(info["fixed_markers"])
+            packet = world.poll(5.0)
+            while packet.frame is None:
+                packet = world.poll(5.0)
+            calibration = calibrate_image(packet.frame.image, marker_set,
+                                          Intrinsics(camera.camera_matrix, camera.dist_coeffs, camera.image_size))
+            fixed_ids = tuple(marker_set.markers)
+            err = 1e3 * float(np.linalg.norm(calibration.camera.position - camera.position))
+            note = (f"calibration from {len(calibration.markers_used)} fixed markers: reprojection rms "
+                    f"{calibration.reprojection_rms_px:.3f} px, camera position error {err:.1f} mm")
+        tracker = ArucoTracker(calibration, info["marker_size_m"], info["marker_height_m"],
+                               car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9)
+    except Exception:
+        world.close()
+        raise
+    return world, world, tracker, MultiCarEstimator(), world.serial_path, note
+
+
+def _open_hardware(args, setup, cars, config):
+    from tracking.calibration import CalibrationError, load_calibration
+    from tracking.camera import CameraError, OpenCVCamera
+    from tracking.estimator import MultiCarEstimator
+    from tracking.markers import ArucoTracker
+    from app.realtime.hardware import CameraFeed
+
+    try:
+        calibration = load_calibration(args.calibration)
+    except FileNotFoundError:
+        raise UserError(f"--calibration: {args.calibration}: file not found (create it with python -m app calibrate)") from None
+    except (CalibrationError, ValueError, OSError) as exc:
+        raise UserError(f"--calibration: {exc}") from None
+    if not Path(args.serial).exists() and "://" not in args.serial:
+        raise UserError(f"--serial: {args.serial}: no such device (is the transmitter box plugged in?)")
+    source = int(args.camera) if args.camera.isdigit() else args.camera
+    try:
+        camera = OpenCVCamera(source, latency_s=args.camera_latency_ms / 1e3)
+    except CameraError as exc:
+        raise UserError(f"--camera: {exc}") from None
+    tracker = ArucoTracker(calibration, 0.055, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
+                           full_search_every=10 ** 9)
+    return None, CameraFeed(camera), tracker, MultiCarEstimator(), args.serial, None
+
+
+def _print(o, setup, args, mode, opponent) -> None:
+    s = o.summary()
+    print(f"race ({mode}): {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
+          f"({args.rd3g_speed} m/s) vs {opponent} ({args.opponent_speed} m/s); ended: {o.reason}")
+    print(f"winner: {s['winner'] or 'none'}")
+    for name, laps in (s["lap_times_s"] or {}).items():
+        print(f"  {name:9s} lap times: {', '.join(f'{t:.3f} s' for t in laps) or '-'}")
+    if s["min_gap_m"] is not None:
+        print(f"minimum gap between footprints: {s['min_gap_m']:.3f} m; collisions: {s['collisions']}")
+    f = lambda v, spec=".1f": "-" if v is None else format(v, spec)  # noqa: E731
+    print(f"loop: {s['ticks']} ticks, median {f(s['loop_hz_median'])} Hz, period p99 {f(s['loop_period_p99_ms'], '.2f')} ms, "
+          f"deadline misses {s['deadline_misses']} ({f(100 * (s['deadline_miss_rate'] or 0), '.2f')} %)")
+    print("stages p50/p99 ms: " + ", ".join(f"{k} {f(s['stage_ms_p50'][k], '.2f')}/{f(s['stage_ms_p99'][k], '.2f')}"
+                                            for k in s["stage_ms_p50"]))
+    print(f"planning: {s['plans']} plans, RD3G solve p50 {f(s['solve_ms_p50'])} ms, p99 {f(s['solve_ms_p99'])} ms; "
+          f"failures {s['plan_failures']}")
+    print(f"camera: {s['frames']} frames processed, {s['frames_dropped']} dropped by the renderer, "
+          f"render p50 {f(s['render_ms_p50'])} ms (not in the loop budget)")
+    if s["tracking_error_mm_median"] is not None:
+        print(f"tracking error vs simulator truth: median {s['tracking_error_mm_median']:.2f} mm, "
+              f"p95 {s['tracking_error_mm_p95']:.2f} mm")
+    print(f"events: {s['events']}; load average {', '.join(f'{v:.2f}' for v in s['load_average'] or [])}")
+    print(f"telemetry: {o.recording}")
