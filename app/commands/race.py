@@ -27,6 +27,10 @@ def register(sub) -> None:
     p.add_argument("--json", help="also write the race summary as JSON here")
     p.add_argument("--max-time", type=float, default=None, help="give up after this many seconds of race time")
     add_race_arguments(p)
+    # --- real-time race stack (app/realtime, docs/race-stack.md): --hil / --camera --serial --calibration
+    from app.realtime.run import add_realtime_arguments
+    add_realtime_arguments(p)
+    # --- end real-time race stack
     p.set_defaults(func=run)
 
 
@@ -57,6 +61,11 @@ def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: f
 def run(args) -> int:
     from app.race_runner import run_race
 
+    # --- real-time race stack: --hil or hardware mode runs the loop in app/realtime instead
+    from app.realtime.run import run_realtime, wants_realtime
+    if wants_realtime(args):
+        return run_realtime(args)
+    # --- end real-time race stack
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
     for name in ("rd3g_speed", "opponent_speed"):
