@@ -90,6 +90,7 @@ class RaceRecorder:
         self._queue.put(None)
         self._thread.join(timeout=30.0)
         self.rec.flush()
+        self.rec.disconnect()  # finishes the file (footer/manifest)
 
     # ---- background thread
     def _run(self) -> None:

@@ -138,6 +138,9 @@ def world_main(spec: WorldSpec, conn, shm_name: str) -> None:
     from app.realtime.config import lower_realtime_priority
 
     lower_realtime_priority(5)  # --rt-priority: the world (camera, cars) just below the loop
+    import sys
+
+    sys.setswitchinterval(0.001)  # physics, renderer and box threads share the GIL at a fine grain
     try:
         _World(spec, conn, shared_memory.SharedMemory(name=shm_name)).run()
     except Exception as exc:  # report, so the parent can stop the race with a clear message
@@ -174,6 +177,11 @@ class _World:
         self._fault_state: dict[int, bool] = {}
         self._last_corrupt = 0
         self._last_failsafe = 0
+        # Under --rt-priority the box and relay threads (created above) emulate hardware and must
+        # preempt the physics and the renderer, which therefore run 2 levels lower.
+        from app.realtime.config import lower_realtime_priority
+
+        lower_realtime_priority(2)
         # Rendering runs in its own thread: OpenCV releases the GIL, so it overlaps the physics.
         self._render_cv = threading.Condition()
         self._pending: dict | None = None
@@ -221,7 +229,10 @@ class _World:
             snap["events"] = events
             snap["dropped"] = self.dropped
             self._pending = snap
-            self._render_cv.notify()
+            self._render_cv.notify_all()
+            # Let the renderer take it before the physics runs on: a physics thread that is behind
+            # would otherwise keep the GIL and every frame would be replaced before it is drawn.
+            self._render_cv.wait_for(lambda: self._pending is not snap, timeout=1.0 / self.spec.fps)
 
     def _render_loop(self) -> None:
         while True:
@@ -231,6 +242,7 @@ class _World:
                 if self._stop_render:
                     return
                 snap, self._pending = self._pending, None
+                self._render_cv.notify_all()
             t0 = time.perf_counter()
             frame = self.synth.render(self._poses(snap["truth"], snap["t_race"]), snap["t_capture"])
             self.frames[snap["slot"]] = frame.image

@@ -422,7 +422,11 @@ class RaceLoop:
                 for m in meas:
                     i = CAR_NAMES.index(self.by_marker[m.marker_id].name)
                     truth = packet.truth[i]
-                    self.detection_error_mm.append(1e3 * math.hypot(m.x - truth[0], m.y - truth[1]))
+                    det_err = 1e3 * math.hypot(m.x - truth[0], m.y - truth[1])
+                    self.detection_error_mm.append(det_err)
+                    if rec is not None:
+                        rec.scalar(f"tracking/{self.by_marker[m.marker_id].name}/detection_error_mm", k,
+                                   self.race_time(frame.t_capture_s), det_err)
                     f = self.estimator.filters[m.marker_id]
                     if results[m.marker_id].accepted:
                         err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
@@ -584,6 +588,16 @@ class RaceLoop:
         self.worker.stop()
         summary = None
         if self.world is not None:
+            # Keep reading the world briefly: the box's failsafe (100 ms) and the cars' reaction to the
+            # final neutral happen after the loop has stopped and belong in the recording.
+            t_end = time.monotonic() + self.cfg.linger_s
+            while time.monotonic() < t_end:
+                try:
+                    packet = self.world.poll(0.02)
+                except RuntimeError:
+                    break
+                for t_ev, kind, text in packet.events:
+                    self._event(kind, text, t_race=t_ev)
             summary = self.world.close()
             if summary:
                 for t_ev, kind, text in summary.get("events", []):

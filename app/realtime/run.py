@@ -66,13 +66,27 @@ def _check_mode(args) -> str:
 
 
 def run_realtime(args) -> int:
+    import os
+
+    mode = _check_mode(args)
+    policy = (os.sched_getscheduler(0), os.sched_getparam(0)) if hasattr(os, "sched_getscheduler") else None
+    try:
+        return _run_realtime(args, mode)
+    finally:
+        if policy is not None and args.rt_priority:
+            try:  # the calling thread goes back to its scheduling policy (matters when called in-process)
+                os.sched_setscheduler(0, policy[0], policy[1])
+            except OSError:
+                pass
+
+
+def _run_realtime(args, mode: str) -> int:
     from app.commands.race import DEFAULT_OUT, make_setup
     from app.realtime.config import LoopConfig, LoopConfigError, parse_fault
     from app.realtime.loop import CarBinding, LoopError, RaceLoop, setup_document
     from app.realtime.planning import RacePlanners
     from app.telemetry import RaceRecorder
 
-    mode = _check_mode(args)
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
     for name in ("rd3g_speed", "opponent_speed", "loop_hz", "fps"):

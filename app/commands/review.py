@@ -1,0 +1,63 @@
+"""`python -m app review RUN.rrd [--json FILE] [--plots DIR] [--viewer]`: summary and plots of a race
+recording (simulated `race` or the real-time loop); docs/race-stack.md."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from app.cli import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("review", help="summarise a race recording (.rrd): laps, gaps, timing, tracking; plots")
+    p.add_argument("recording", help="rerun recording written by `python -m app race`")
+    p.add_argument("--json", help="write the summary as JSON here")
+    p.add_argument("--plots", help="folder for the PNG plots (default: RUN_review/ next to the recording)")
+    p.add_argument("--no-plots", action="store_true", help="do not write plots")
+    p.add_argument("--viewer", action="store_true", help="also open the recording in the Rerun viewer")
+    p.set_defaults(func=run)
+
+
+def viewer_command(path: Path) -> list[str]:
+    """The command that opens the recording in the Rerun viewer; UserError if none can be shown."""
+    exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    if not Path(exe).exists():
+        raise UserError("--viewer: no Rerun viewer found (the `rerun` executable of rerun-sdk); "
+                        f"install rerun-sdk and run `rerun {path}`")
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise UserError(f"--viewer: no display (DISPLAY/WAYLAND_DISPLAY not set); copy {path} to a machine "
+                        f"with a display and run `rerun {path}`")
+    return [exe, str(path)]
+
+
+def run(args) -> int:
+    from app.realtime.review import format_summary, save_plots, summarize
+    from app.telemetry import RecordingError, load_recording
+
+    path = Path(args.recording)
+    try:
+        data = load_recording(path)
+    except RecordingError as exc:
+        raise UserError(str(exc)) from None
+    summary = summarize(data)
+    print(format_summary(summary, data))
+    if not args.no_plots:
+        folder = Path(args.plots) if args.plots else path.with_name(path.stem + "_review")
+        written = save_plots(data, folder)
+        print("plots: " + ", ".join(str(p) for p in written))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        print(f"summary: {args.json}")
+    if args.viewer:
+        cmd = viewer_command(path)
+        try:
+            subprocess.Popen(cmd, start_new_session=True)
+        except OSError as exc:
+            raise UserError(f"--viewer: cannot start {cmd[0]}: {exc}") from None
+        print(f"viewer: {' '.join(cmd)}")
+    return 0
