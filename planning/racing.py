@@ -15,6 +15,7 @@ opponent's progress is a constant for this planner.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,10 +24,10 @@ from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, Quad
 
 from .commands import CommandMapper
 from .config import PlannerConfig
-from .frenet import EY, S, V, FrenetTrackModel
+from .frenet import EPSI, EY, S, V, FrenetTrackModel
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
-_COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=30)
+_COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=30, rho_init=0.01)
 
 
 @dataclass
@@ -64,7 +65,8 @@ class _RecedingHorizon:
         self._settings = dict(max_iter=config.max_iterations, tol=config.solver_tol,
                               rho_progress=config.rho_progress, restarts=config.solver_restarts,
                               time_limit=config.solver_time_limit_s,
-                              ls_max_steps=config.line_search_steps, lm_tries=config.lm_tries)
+                              ls_max_steps=config.line_search_steps, lm_tries=config.lm_tries,
+                              rho_init=config.warm_rho_init)
 
     def reset(self) -> None:
         self._prev = None
@@ -82,19 +84,72 @@ class _RecedingHorizon:
                      x_min=[-np.inf, -ey_bound, -np.inf, -np.inf], x_max=[np.inf, ey_bound, top_speed, np.inf],
                      lead_weight=lead, lead_index=S)
 
+    def _shifted(self, a: np.ndarray) -> np.ndarray:
+        """Per-agent time series (N, n, ...) advanced by one control period (interpolated: the
+        planning step is longer), the last sample held."""
+        n = a.shape[1]
+        t = np.minimum(np.arange(n) + self.control_period_s / self.config.plan_dt_s, n - 1)
+        i0 = np.floor(t).astype(int)
+        i1 = np.minimum(i0 + 1, n - 1)
+        w = (t - i0).reshape((1, n) + (1,) * (a.ndim - 2))
+        return (1 - w) * a[:, i0] + w * a[:, i1]
+
     def _warm_start(self) -> WarmStart | None:
-        """Previous plan shifted by one control period (interpolated: the planning step is longer)."""
+        """Previous plan shifted by one control period."""
         if self._prev is None:
             return None
-        shift = self.control_period_s / self.config.plan_dt_s
-        T = self.config.horizon
-        t = np.minimum(np.arange(T) + shift, T - 1)
-        i0 = np.floor(t).astype(int)
-        i1 = np.minimum(i0 + 1, T - 1)
-        w = (t - i0)[None, :, None]
-        u = (1 - w) * self._prev.u[:, i0] + w * self._prev.u[:, i1]
-        lam = (1 - w) * self._prev.lam[:, i0] + w * self._prev.lam[:, i1]
-        return WarmStart(u=u, lam=lam)
+        return WarmStart(u=self._shifted(self._prev.u), lam=self._shifted(self._prev.lam))
+
+    def tracking_control(self, x0, x_ref, a_ref: float, ey_bound: float) -> np.ndarray:
+        """Closed-loop fallback control [a, delta] when no usable plan exists: the Stanley lateral
+        law on the Frenet errors to the reference state x_ref (the previous plan's state for now,
+        its ey clipped to the track-limit bound) plus curvature feed-forward, and a proportional
+        speed loop around the reference acceleration; clipped to the control bounds. Replaying the
+        previous plan open loop instead let small errors grow until the car left the track."""
+        c = self.config
+        x0 = np.asarray(x0, dtype=float)
+        g = self.tm.car.geometry
+        kappa = float(self.tm.track.curvature(np.mod(x0[S], self.tm.track.length)))
+        ey_target = float(np.clip(x_ref[EY], -ey_bound, ey_bound))
+        v = max(float(x0[V]), 0.3)
+        delta = (math.atan((g.lf_m + g.lr_m) * kappa) - (x0[EPSI] - float(x_ref[EPSI]))
+                 - math.atan(c.fallback_lateral_gain * (x0[EY] - ey_target) / v))
+        a_min, a_max = self.mapper.acceleration_bounds(float(x0[V]))
+        a = a_ref + c.fallback_speed_gain * (float(x_ref[V]) - x0[V])
+        a = min(a, (c.top_speed_mps - x0[V]) / c.plan_dt_s)  # never plan past the top speed
+        return np.array([np.clip(a, a_min, a_max), np.clip(delta, self.mapper.delta_min, self.mapper.delta_max)])
+
+    def _feasible_limits(self, x0s, ey_bound: float, d_min: float, obstacle_positions=()) -> tuple[float, float]:
+        """Track-limit bound and collision distance relaxed just enough that the problem is feasible
+        from the current states. A car beyond the bound (or heading out of it) cannot be back inside
+        at k = 1 (the first planned position hardly depends on the controls), nor can two cars closer
+        than d_min be d_min apart; the solver then fails at once (line search) and the car used to be
+        driven open loop until it left the track. Bound: the largest |ey| of a full-lock recovery
+        towards the centre line over the horizon, if that exceeds the nominal bound (the lateral cost
+        then pulls the car back); distance: at most the current separation and the one at k = 1 with
+        zero controls, minus 1 cm (the bound gets 3 cm of room: with 1-2 cm the solves from such states
+        stalled)."""
+        c = self.config
+        model = self.tm.rollout_model(c.plan_dt_s)
+        first = []
+        for x0 in x0s:
+            x0 = np.asarray(x0, dtype=float)
+            toward = self.mapper.delta_max if x0[EY] < 0 else self.mapper.delta_min
+            u = np.tile([0.0, toward], (c.horizon, 1))
+            x = np.asarray(model.rollout(x0, u))
+            # recovery: steer toward the centre until heading inward, then the bound is not needed further
+            inward = np.sign(-x0[EY]) * x[:, EPSI] > 0
+            stop = int(np.argmax(inward)) if inward.any() else c.horizon
+            reach = float(np.max(np.abs(x[1: stop + 2, EY])))  # x0 itself is not constrained
+            if reach > ey_bound:
+                ey_bound = reach + 0.03  # interior room for the barrier
+            first.append(np.asarray(model.rollout(x0, np.zeros((1, 2))))[:, :2])
+        positions = first + [np.asarray(o)[:2] for o in obstacle_positions]
+        for i in range(len(positions)):
+            for j in range(i + 1, len(positions)):
+                d = float(np.min(np.hypot(*(positions[i] - positions[j]).T)))
+                d_min = min(d_min, d - 0.01)
+        return ey_bound, max(d_min, 0.0)
 
     def _rollout(self, problem: GameProblem, u: np.ndarray) -> np.ndarray:
         model = self.tm.rollout_model(self.config.plan_dt_s)
@@ -115,7 +170,8 @@ class _RecedingHorizon:
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float) -> Plan:
         """Solve; a converged solve is used as is. A non-converged one is used only if its controls,
         re-simulated with the planning model (removing any dynamics defect), keep every constraint
-        within accept_violation_m; otherwise the previous plan's controls, shifted, are applied."""
+        within accept_violation_m; otherwise ("fallback") the car tracks the previous plan in closed
+        loop (tracking_control) for this step."""
         warm = self._warm_start()
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
         # its full globalisation (more iterations, restarts, Levenberg-Marquardt steps).
@@ -123,18 +179,21 @@ class _RecedingHorizon:
         result = Solver(problem, **settings).solve(warm)
         finite = bool(np.all(np.isfinite(result.u)))
         if result.converged and finite and np.all(np.isfinite(result.x)):
-            used, x, u_all = "converged", result.x, result.u
+            used, u_all = "converged", result.u
         else:
             used = "fallback"
             if finite:
                 x = self._rollout(problem, result.u)
                 if np.all(np.isfinite(x)) and self._violation(problem, x, d_min, ey_bound) <= self.config.accept_violation_m:
                     used, u_all = "accepted", result.u
-            if used == "fallback":
-                u_all = warm.u if warm is not None else np.zeros_like(result.u)
-                x = self._rollout(problem, u_all)
-        if used == "fallback" and warm is None and finite:  # nothing better to fall back to
-            u_all, x = result.u, self._rollout(problem, result.u)
+        if used == "fallback":
+            if warm is None:  # nothing to track yet: the best the solver found
+                u_all = result.u if finite else np.zeros_like(result.u)
+            else:
+                u_all = np.array(warm.u)
+                x_ref = self._shifted(self._prev.x)[0, 0]
+                u_all[0, 0] = self.tracking_control(problem.agents[0].x0, x_ref, float(warm.u[0, 0, 0]), ey_bound)
+        x = self._rollout(problem, u_all)
         lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
         self._prev = dataclasses.replace(result, u=np.asarray(u_all), x=np.asarray(x), lam=np.asarray(lam))
         return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
@@ -162,7 +221,7 @@ class RacingPlanner(_RecedingHorizon):
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
         x_other = np.array(x_other, dtype=float)
-        x_other[EY] = np.clip(x_other[EY], -ey_bound, ey_bound)
+        ey_bound, d_min = self._feasible_limits([x_self, x_other], ey_bound, d_min)
         agents = [self._agent(x_self, c.top_speed_mps, ey_bound, self._cost(c.top_speed_mps), c.lead_weight),
                   self._agent(x_other, self.opponent_top_speed, ey_bound, self._cost(self.opponent_top_speed), c.lead_weight)]
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
@@ -189,6 +248,7 @@ class MPCOpponent(_RecedingHorizon):
             cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]
             cost.Q_ref = [c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M), *cost.Q_ref[1:]]
         other = self.predict_other(x_other)
+        ey_bound, d_min = self._feasible_limits([x_self], ey_bound, d_min, [other])
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon,
                               agents=[self._agent(x_self, c.top_speed_mps, ey_bound, cost, 0.0)],
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
