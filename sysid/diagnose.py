@@ -22,7 +22,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sysid.data import Trajectory
-from sysid.model import LIBRARY_TERMS, WARMUP_S, ExtraTerms, ModelSetup, PredictionErrors, predict, prediction_errors
+from sysid.model import (LIBRARY_TERMS, WARMUP_S, ExtraTerms, ModelSetup, PredictionErrors, inputs_at, predict,
+                         prediction_errors)
 from sysid.sparse import coefficient_std, stlsq
 from vehicles.params import CarParams
 
@@ -186,6 +187,7 @@ class SysidResult:
     other_terms: ExtraTerms | None = None
     effect_steps: list[tuple[Fit, Fit]] = field(default_factory=list)  # (before, after) per selected effect
     switched_after: list[str] | None = None  # effects chosen before the switch to the dynamic model
+    families_compared: bool = False  # forward selection ran on both the kinematic and the dynamic model
 
     @property
     def significant(self) -> bool:
@@ -239,6 +241,10 @@ def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetu
     lower = np.array([v for c in cands for v in c.lower])
     upper = np.array([v for c in cands for v in c.upper])
     scale = np.array([v for c in cands for v in c.scale])
+    # The total drag (nominal + correction) must stay >= 0.
+    for i, n in enumerate(names):
+        if n == "extra_drag_n_per_mps2":
+            lower[i] = max(lower[i], -base.car.longitudinal.drag_n_per_mps2)
     dynamic = base.dynamic or any(c.dynamic for c in cands)
     corr = base.car.corrections
     x0 = np.clip(np.array([getattr(corr, n) for n in names], dtype=float), lower, upper)
@@ -309,8 +315,6 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     r_v = (traj.speed[end] - pred[:, -1, 3]) / (lag * traj.dt)
     r_th = (traj.headings[end] - pred[:, -1, 2]) / (lag * traj.dt)
     car = base.setup.car
-    from sysid.model import inputs_at
-
     throttle, steering = inputs_at(traj, starts, car)
     delta = car.corrections.steering_gain * steering + car.corrections.steering_offset_rad
     v = traj.speed[starts]
@@ -345,22 +349,20 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
 
 
 # ----------------------------------------------------------------------------- driver
-def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSettings()) -> SysidResult:
-    s = settings
-    horizon = max(1, int(round(s.horizon_s / traj.dt)))
-    split = split_starts(traj, horizon, s)
+@dataclass
+class _Selection:
+    reference: Fit
+    candidates: list[CandidateResult]
+    selected: list[CandidateResult]
+    chosen: list[Candidate]
+    effect_steps: list[tuple[Fit, Fit]]
+    current: Fit
+    reference_is_dynamic: bool
+    switched_after: list[str] | None
 
-    planner = evaluate(traj, split, horizon, ModelSetup(car))
-    dynamic_nominal = evaluate(traj, split, horizon, ModelSetup(car, dynamic=True))
-    # The reference is chosen on training data so held-out data stays untouched by the choice.
-    train_split = Split(train=split.train, heldout=split.fit, fit=split.fit)
-    kin_train = evaluate(traj, train_split, horizon, ModelSetup(car))
-    dyn_train = evaluate(traj, train_split, horizon, ModelSetup(car, dynamic=True))
-    structure_train = _judge(traj, train_split, kin_train, dyn_train, "tire_slip", s, {}, {})
-    reference_is_dynamic = structure_train.significant
-    structure = _judge(traj, split, planner, dynamic_nominal, "tire_slip", s, {}, {})
-    reference = dynamic_nominal if reference_is_dynamic else planner
 
+def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit, s: SysidSettings) -> _Selection:
+    """Candidates alone on top of ``reference``, then forward selection (docs/sysid.md)."""
     candidates: list[CandidateResult] = []
     alone: dict[str, Fit] = {}
     for cand in CANDIDATES:
@@ -369,6 +371,7 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         candidates.append(_judge(traj, split, reference, fit, cand.effect, s))
     candidates.sort(key=lambda c: c.heldout_error_reduction, reverse=True)
 
+    reference_is_dynamic = reference.setup.dynamic
     current = reference
     switched_after: list[str] | None = [] if reference_is_dynamic else None
     effect_steps: list[tuple[Fit, Fit]] = []
@@ -414,6 +417,70 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         selected.append(verdict)
         effect_steps.append((before, fit))
         current = fit
+    # Backward elimination: an effect chosen early can become superfluous once a later one is in
+    # (e.g. grip and steering gain both change the yaw response). Each effect is judged against the
+    # final model refitted without it; the weakest insignificant one goes, until all are significant.
+    while len(chosen) >= 2:
+        loo = []
+        for i, cand in enumerate(chosen):
+            rest = chosen[:i] + chosen[i + 1:]
+            neutral = {p: getattr(reference.setup.car.corrections, p) for p in cand.params}
+            base = dataclasses.replace(current.setup, car=with_corrections(current.setup.car, neutral))
+            effects = tuple(c.effect for c in rest)
+            without = fit_candidates(traj, split, horizon, base, rest, s, effects)
+            loo.append((_judge(traj, split, without, current, cand.effect, s), i, without))
+        weakest = min(loo, key=lambda t: t[0].heldout_error_reduction)
+        if weakest[0].significant:
+            selected = [v for v, _, _ in loo]
+            effect_steps = [(without, current) for _, _, without in loo]
+            break
+        _, i, without = weakest
+        del chosen[i]
+        current = without
+        selected = [dataclasses.replace(v, significant=True) for v in selected[:i] + selected[i + 1:]]
+        effect_steps = effect_steps[:i] + effect_steps[i + 1:]
+        if len(chosen) == 1:
+            single = evaluate(traj, split, horizon, dataclasses.replace(
+                current.setup, car=with_corrections(current.setup.car, {
+                    p: getattr(reference.setup.car.corrections, p) for p in chosen[0].params})))
+            selected = [_judge(traj, split, single, current, chosen[0].effect, s)]
+            effect_steps = [(single, current)]
+    return _Selection(reference, candidates, selected, chosen, effect_steps, current, reference_is_dynamic,
+                      switched_after)
+
+
+def _training_mse(traj: Trajectory, split: Split, horizon: int, setup: ModelSetup) -> float:
+    pred = predict(traj, split.fit, horizon, setup)
+    return float(np.mean(prediction_errors(traj, split.fit, pred).position[:, -1] ** 2))
+
+
+def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSettings()) -> SysidResult:
+    s = settings
+    horizon = max(1, int(round(s.horizon_s / traj.dt)))
+    split = split_starts(traj, horizon, s)
+
+    planner = evaluate(traj, split, horizon, ModelSetup(car))
+    dynamic_nominal = evaluate(traj, split, horizon, ModelSetup(car, dynamic=True))
+    structure = _judge(traj, split, planner, dynamic_nominal, "tire_slip", s, {}, {})
+    # Forward selection from both model families; the one whose final model predicts the training
+    # windows better wins (held-out data stays out of the choice). An effect can hide the
+    # structural difference (e.g. a larger steering gain cancels the tyres' understeer), so the
+    # choice is made after the effects, not only before.
+    # When the dynamic model is already significantly better on the training windows at the current
+    # parameters, the kinematic family cannot win and is skipped (saves half the fits).
+    train_split = Split(train=split.train, heldout=split.fit, fit=split.fit)
+    structure_train = _judge(traj, train_split, evaluate(traj, train_split, horizon, planner.setup),
+                             evaluate(traj, train_split, horizon, dynamic_nominal.setup), "tire_slip", s, {}, {})
+    references = (dynamic_nominal,) if structure_train.significant else (dynamic_nominal, planner)
+    families = [_forward_select(traj, split, horizon, ref, s) for ref in references]
+    sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
+    reference, candidates, selected = sel.reference, sel.candidates, sel.selected
+    effect_steps, current = sel.effect_steps, sel.current
+    reference_is_dynamic, switched_after = sel.reference_is_dynamic, sel.switched_after
+    # Best first: order the claimed effects by their held-out reduction.
+    order = sorted(range(len(selected)), key=lambda i: selected[i].heldout_error_reduction, reverse=True)
+    selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
+    by_name = {c.effect: c for c in CANDIDATES}
 
     other_terms = None
     other_fit, other_params, other_std = fit_other(traj, split, horizon, current, s)
@@ -440,5 +507,5 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         planner=planner, dynamic_nominal=dynamic_nominal, reference=reference,
         reference_is_dynamic=reference_is_dynamic, structure=structure, candidates=candidates,
         selected=selected, final=current, planner_after=planner_after, other_terms=other_terms,
-        effect_steps=effect_steps, switched_after=switched_after,
+        effect_steps=effect_steps, switched_after=switched_after, families_compared=len(references) == 2,
     )

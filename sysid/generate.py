@@ -18,6 +18,7 @@ import numpy as np
 
 from sim import PurePursuitController, SimEffects, Simulator
 from sysid.log import DriveLog
+from tracks import load_track
 from vehicles.params import CarParams
 
 # Generator effect names (docs/sysid.md) -> SimEffects fields they set.
@@ -66,73 +67,6 @@ def sim_effects(effects: dict[str, float], position_noise_m: float, heading_nois
     return SimEffects(**values)
 
 
-class StadiumTrack:
-    """Two straights joined by semicircles, counter-clockwise, s = 0 at the middle of the bottom
-    straight. Analytic stand-in used while tracks.load_track is not available."""
-
-    def __init__(self, straight_m: float = 2.0, radius_m: float = 0.6, half_width_m: float = 0.3) -> None:
-        self.straight, self.radius, self.half_width = straight_m, radius_m, half_width_m
-        self.arc = math.pi * radius_m
-        self.length = 2 * straight_m + 2 * self.arc
-        # Piece boundaries in s: half straight, right arc, top straight, left arc, half straight.
-        self._b = np.cumsum([0, straight_m / 2, self.arc, straight_m, self.arc, straight_m / 2])
-
-    def position(self, s):
-        s = np.mod(np.asarray(s, dtype=float), self.length)
-        b, half, r = self._b, self.straight / 2, self.radius
-        x = np.empty_like(s)
-        y = np.empty_like(s)
-        p0 = s < b[1]
-        x[p0], y[p0] = s[p0], -r
-        p1 = (s >= b[1]) & (s < b[2])
-        a = (s[p1] - b[1]) / r - math.pi / 2
-        x[p1], y[p1] = half + r * np.cos(a), r * np.sin(a)
-        p2 = (s >= b[2]) & (s < b[3])
-        x[p2], y[p2] = half - (s[p2] - b[2]), r
-        p3 = (s >= b[3]) & (s < b[4])
-        a = (s[p3] - b[3]) / r + math.pi / 2
-        x[p3], y[p3] = -half + r * np.cos(a), r * np.sin(a)
-        p4 = s >= b[4]
-        x[p4], y[p4] = -half + (s[p4] - b[4]), -r
-        return np.stack([x, y], axis=-1)
-
-    def heading(self, s):
-        s = np.mod(np.asarray(s, dtype=float), self.length)
-        b, r = self._b, self.radius
-        return np.select(
-            [s < b[1], s < b[2], s < b[3], s < b[4]],
-            [np.zeros_like(s), (s - b[1]) / r, np.full_like(s, math.pi), math.pi + (s - b[3]) / r],
-            np.zeros_like(s),
-        )
-
-    def curvature(self, s):
-        s = np.mod(np.asarray(s, dtype=float), self.length)
-        b = self._b
-        on_arc = ((s >= b[1]) & (s < b[2])) | ((s >= b[3]) & (s < b[4]))
-        return np.where(on_arc, 1.0 / self.radius, 0.0)
-
-    def to_frenet(self, x, y, heading):
-        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-        half, r, b = self.straight / 2, self.radius, self._b
-        right, left = x > half, x < -half
-        ang_r = np.arctan2(y, x - half)
-        ang_l = np.arctan2(y, x + half)
-        dist_r, dist_l = np.hypot(x - half, y), np.hypot(x + half, y)
-        s = np.where(y < 0, np.mod(x, self.length), b[2] + (half - x))
-        ey = np.where(y < 0, y + r, r - y)
-        s = np.where(right, b[1] + (ang_r + math.pi / 2) * r, s)
-        ey = np.where(right, r - dist_r, ey)
-        s = np.where(left, b[3] + np.mod(ang_l - math.pi / 2, 2 * math.pi) * r, s)
-        ey = np.where(left, r - dist_l, ey)
-        s = np.mod(s, self.length)
-        epsi = np.angle(np.exp(1j * (np.asarray(heading) - self.heading(s))))
-        return s, ey, epsi
-
-    def is_inside(self, x, y, margin=0.0):
-        _, ey, _ = self.to_frenet(x, y, np.zeros_like(np.asarray(x, dtype=float)))
-        return np.abs(ey) <= self.half_width - margin
-
-
 class ReversedTrack:
     """The same track driven the other way round (clockwise for a counter-clockwise track)."""
 
@@ -155,15 +89,6 @@ class ReversedTrack:
 
     def is_inside(self, x, y, margin=0.0):
         return self.base.is_inside(x, y, margin)
-
-
-def default_track() -> tuple[Any, str]:
-    """tracks.load_track('oval') when the tracks package provides it, else the analytic stadium."""
-    try:
-        from tracks import load_track  # type: ignore[attr-defined]
-    except ImportError:
-        return StadiumTrack(), "stadium (built-in, 2.0 m straights, 0.6 m radius)"
-    return load_track("oval"), "oval (tracks.load_track)"
 
 
 @dataclass(frozen=True)
@@ -209,13 +134,14 @@ def generate_log(
     position_noise_m: float = CAMERA_POSITION_NOISE_M,
     heading_noise_rad: float = CAMERA_HEADING_NOISE_RAD,
     excitation: ExcitationSettings = ExcitationSettings(),
-    track: Any | None = None,
+    track: str | Any = "oval",
     physics_dt: float = 0.001,
 ) -> DriveLog:
+    """A log of ``minutes`` of driving on ``track`` (a tracks/ name or a Track object)."""
     if not (math.isfinite(minutes) and minutes > 0):
         raise ValueError(f"minutes: must be > 0, got {minutes!r}")
-    if track is None:
-        track, _ = default_track()
+    if isinstance(track, str):
+        track = load_track(track)
     eff = sim_effects(effects, position_noise_m, heading_noise_rad)
     rng = np.random.default_rng(seed)
     dt = 1.0 / excitation.control_rate_hz

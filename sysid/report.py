@@ -160,12 +160,18 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
     st = result.structure
     if result.reference_is_dynamic:
         lines += [
-            "**Model structure.** The car's own dynamic model (same parameters, Pacejka tyres) predicts "
-            f"significantly better than the planner's kinematic model ({100 * st.heldout_error_reduction:.0f} % "
-            "lower held-out horizon position RMSE): the car slides as its nominal tyre parameters say. That is "
-            "a limit of the kinematic model, not a parameter deviation, so effects are measured against the "
-            "dynamic model. A planner that keeps the kinematic model keeps this part of the error (row "
-            "\"planner, new corrections\" below).",
+            "**Model structure.** "
+            + ("Forward selection was run on top of the planner's kinematic model and on top of the car's own "
+               "dynamic model (same parameters, Pacejka tyres); the dynamic family predicts the training windows "
+               "better after the effects are fitted, so effects are reported against it. "
+               if result.families_compared else
+               "The car's own dynamic model (same parameters, Pacejka tyres) predicts the training windows "
+               "significantly better than the planner's kinematic model already at the current parameters, so "
+               "effects are fitted and reported against it. ")
+            + f"At the current parameters the dynamic model changes the held-out horizon position RMSE by "
+            f"{-100 * st.heldout_error_reduction:+.0f} %. That part is a limit of the kinematic model (the car "
+            "slides as its nominal tyre parameters say), not a parameter deviation: a planner that keeps the "
+            "kinematic model keeps it (row \"planner, new corrections\" below).",
             "",
         ]
         if result.switched_after:
@@ -173,8 +179,9 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                       f"{', '.join(result.switched_after)}; that effect's reduction is against the kinematic model.)",
                       ""]
     else:
-        lines += [f"The planner's kinematic model is the reference (the dynamic model at the current parameters "
-                  f"changes the held-out error by {100 * st.heldout_error_reduction:+.0f} %).", ""]
+        lines += ["The planner's kinematic model is the reference: with the effects fitted it predicts the training "
+                  "windows at least as well as the dynamic model (at the current parameters alone the dynamic "
+                  f"model changes the held-out error by {-100 * st.heldout_error_reduction:+.0f} %).", ""]
 
     lines += [
         "## Prediction error on held-out data",
@@ -203,8 +210,9 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                      f"| {c.confidence:.2f} | {'yes' if c.significant else 'no'} |")
     lines += ["", "## Identified effects", ""]
     if result.selected:
-        lines += ["In the order chosen by forward selection; reductions are marginal (each against the model with "
-                  "the effects before it); parameters from the final joint fit.", "",
+        lines += ["Best first. Held-out reduction of a single effect: against the reference model; of several: "
+                  "against the final model refitted without that effect (leave-one-out). Parameters from the final "
+                  "joint fit.", "",
                   "| effect | parameters | held-out reduction |", "|---|---|---|"]
         for e in result.selected:
             lines.append(f"| {e.effect} | {_fmt_params(e.params, e.params_std)} | "

@@ -11,7 +11,8 @@ import pytest
 
 from sim import SimEffects, Simulator
 from sysid.data import build_trajectory
-from sysid.generate import StadiumTrack, generate_log, parse_effects
+from sysid.generate import generate_log, parse_effects
+from tracks import load_track
 from sysid.log import DriveLog, LogFormatError, read_log, write_log_csv
 from sysid.model import ModelSetup, delayed_command, predict
 from sysid.sparse import stlsq
@@ -146,8 +147,8 @@ def test_delayed_command_is_the_mean_of_the_shifted_held_command_and_matches_the
     # The simulator's FIFO: with no rate limit the servo angle at the end of interval i is the
     # command sent 0.08 s = 2.4 intervals earlier, i.e. at i - 2.
     fast = CarParams(actuators=dataclasses.replace(CarParams().actuators, steering_rate_limit_radps=1e6))
-    sim = Simulator(StadiumTrack(), [fast], effects=SimEffects(steering_delay_s=delay))
-    sim.reset([[0, -0.6, 0, 0.5, 0, 0]])
+    sim = Simulator(load_track("oval"), [fast], effects=SimEffects(steering_delay_s=delay))
+    sim.reset([[2.5, 0.5, 0, 0.5, 0, 0]])
     servo = []
     for c in cmds:
         sim.step([[0.1, c]], dt)

@@ -23,6 +23,8 @@ def register(sub) -> None:
     p.add_argument("--car", type=int, help="car id in the log (needed when the log has several cars)")
     p.add_argument("--horizon", type=float, default=1.0, help="prediction horizon in seconds (default 1.0)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
+    p.add_argument("--fit-windows", type=int, default=300,
+                   help="training windows per fit (default 300; fewer is faster and less precise)")
     p.set_defaults(func=run)
 
     g = sub.add_parser("sysid-generate", help="simulate a car with hidden effects and write an identification log")
@@ -32,6 +34,7 @@ def register(sub) -> None:
     g.add_argument("--out", required=True, help="CSV log to write")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--car-params", default="buzzracer", help="nominal car the effects are added to")
+    g.add_argument("--track", default="oval", help="track name or file for tracks.load_track (default oval)")
     g.add_argument("--position-noise", type=float, default=None, help="camera position noise std [m] (default 0.002)")
     g.add_argument("--heading-noise", type=float, default=None, help="camera heading noise std [rad] (default 0.01)")
     g.set_defaults(func=run_generate)
@@ -46,6 +49,8 @@ def run(args) -> int:
 
     if not args.horizon > 0:
         raise UserError(f"--horizon must be > 0, got {args.horizon}")
+    if args.fit_windows < 20:
+        raise UserError(f"--fit-windows must be >= 20, got {args.fit_windows}")
     started = time.perf_counter()
     car = load_car_params(args.car_params)
     log = read_log(args.log)
@@ -56,7 +61,7 @@ def run(args) -> int:
     else:
         car_id = args.car
     traj = build_trajectory(log.select_car(car_id))
-    result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed))
+    result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed, fit_max_starts=args.fit_windows))
 
     report = Path(args.report)
     report.parent.mkdir(parents=True, exist_ok=True)
@@ -98,7 +103,8 @@ def run_generate(args) -> int:
     pos = CAMERA_POSITION_NOISE_M if args.position_noise is None else args.position_noise
     head = CAMERA_HEADING_NOISE_RAD if args.heading_noise is None else args.heading_noise
     started = time.perf_counter()
-    log = generate_log(car, effects, args.minutes, args.seed, position_noise_m=pos, heading_noise_rad=head)
+    log = generate_log(car, effects, args.minutes, args.seed, position_noise_m=pos, heading_noise_rad=head,
+                       track=args.track)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_log_csv(out, log)
