@@ -36,7 +36,8 @@ def test_short_race_finishes_without_collision(race, track):
     shortest = track.length - 2 * math.pi * 0.23 - 0.5
     assert shortest / 2.0 < lap < 2 * track.length / 1.6
     assert o.trace_progress[-1].max() - o.trace_progress[0].max() > track.length - 0.5
-    assert set(o.summary()) == {"winner", "lap_times_s", "min_gap_m", "collisions", "solve_ms_p50", "solve_ms_p99",
+    assert set(o.summary()) == {"winner", "clean_winner", "lap_times_s", "min_gap_m", "collisions", "rd3g_at_fault",
+                                "off_track", "fallbacks", "solve_ms_p50", "solve_ms_p99", "prestart_ms",
                                 "control_period_ms"}
 
 
@@ -85,3 +86,31 @@ def test_setup_validation_names_field(track, car):
         RaceSetup(track=track, car=car, opponent="human")
     with pytest.raises(ValueError, match="start"):
         RaceSetup(track=track, car=car, start="middle")
+
+
+def test_off_track_win_is_not_clean_and_not_counted(track, car):
+    """A win by a car that left the track is recorded but not counted: RaceOutcome.clean_winner is
+    None and the batch win rate only counts RD3G wins without an excursion."""
+    from app.commands.batch import summarise
+    from app.race_runner import RaceOutcome
+
+    base = dict(lap_times_s={}, min_gap_m=0.1, collisions=[], solve_ms=np.ones(3), opponent_solve_ms=np.ones(3),
+                control_period_ms=33.3, race_time_s=5.0, fallbacks=0, start_states=np.zeros((2, 6)))
+    assert RaceOutcome(winner="rd3g", off_track={"rd3g": 1, "opponent": 0}, **base).clean_winner is None
+    assert RaceOutcome(winner="rd3g", off_track={"rd3g": 0, "opponent": 2}, **base).clean_winner == "rd3g"
+    rec = dict(cell=("rear", "fast"), collisions=0, rd3g_at_fault=0, solve_ms=np.ones(3), min_gap_m=0.1,
+               fallbacks=0, opponent_off_track=0)
+    records = [{**rec, "seed": 0, "winner": "rd3g", "rd3g_off_track": 1},   # shortcut: not counted
+               {**rec, "seed": 1, "winner": "rd3g", "rd3g_off_track": 0},
+               {**rec, "seed": 2, "winner": "opponent", "rd3g_off_track": 0},
+               {**rec, "seed": 3, "winner": "rd3g", "rd3g_off_track": 0}]
+    cell = {(c["start"], c["speed"]): c for c in summarise(records, 4)}[("rear", "fast")]
+    assert cell["rd3g_wins"] == 2 and cell["win_rate"] == 0.5
+    assert cell["rd3g_off_track_races"] == 1 and cell["rd3g_wins_off_track"] == 1
+
+
+def test_race_stays_on_track(race):
+    """The seeded test race: neither car leaves the drivable area, and the winner's win is clean."""
+    setup, o = race
+    assert o.off_track == {"rd3g": 0, "opponent": 0}
+    assert o.clean_winner == o.winner

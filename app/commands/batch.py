@@ -54,15 +54,18 @@ def summarise(records, races: int) -> list[dict]:
     for start, speed in CELLS:
         rs = [r for r in records if tuple(r["cell"]) == (start, speed)]
         ms = np.concatenate([r["solve_ms"] for r in rs]) if rs else np.zeros(0)
-        wins = sum(r["winner"] == "rd3g" for r in rs)
+        # Only clean wins count: a car that left the drivable area may have cut the infield.
+        wins = sum(r["winner"] == "rd3g" and r["rd3g_off_track"] == 0 for r in rs)
         cells.append({"start": start, "speed": speed, "races": len(rs), "rd3g_wins": int(wins),
                       "win_rate": wins / len(rs) if rs else None,
                       "collisions": int(sum(r["collisions"] for r in rs)),
                       "rd3g_at_fault": int(sum(r["rd3g_at_fault"] for r in rs)),
                       "unfinished": int(sum(r["winner"] is None for r in rs)),
-                      # a car that leaves the drivable area may shortcut the infield: such wins are suspect
-                      "rd3g_off_track_races": int(sum(r.get("rd3g_off_track", 0) > 0 for r in rs)),
-                      "rd3g_wins_off_track": int(sum(r["winner"] == "rd3g" and r.get("rd3g_off_track", 0) > 0 for r in rs)),
+                      "rd3g_off_track_races": int(sum(r["rd3g_off_track"] > 0 for r in rs)),
+                      "rd3g_wins_off_track": int(sum(r["winner"] == "rd3g" and r["rd3g_off_track"] > 0 for r in rs)),
+                      "opponent_off_track_races": int(sum(r["opponent_off_track"] > 0 for r in rs)),
+                      "fallbacks": int(sum(r["fallbacks"] for r in rs)),
+                      "control_steps": int(sum(len(r["solve_ms"]) for r in rs)),
                       "solve_ms_p50": float(np.percentile(ms, 50)) if len(ms) else None,
                       "solve_ms_p99": float(np.percentile(ms, 99)) if len(ms) else None})
     return cells
@@ -77,11 +80,14 @@ def table(cells) -> str:
             c = by[(start, speed)]
             row.append(f"{c['win_rate']:.2f} / {PAPER_WIN_RATES[(start, speed)]:.2f} ({c['rd3g_wins']}/{c['races']})")
         lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "| cell | races | collisions | RD3G at fault | unfinished | RD3G off track (races / of its wins) | planner p50 / p99 (ms) |",
-              "|---|---|---|---|---|---|---|"]
+    lines += ["", "Win rate = clean RD3G wins (RD3G never left the track) / races.", "",
+              "| cell | races | collisions | RD3G at fault | unfinished | RD3G off track (races / wins not counted) "
+              "| MPC off track (races) | fallbacks / control steps | planner p50 / p99 (ms) |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for c in cells:
         lines.append(f"| {c['start']}/{c['speed']} | {c['races']} | {c['collisions']} | {c['rd3g_at_fault']} | {c['unfinished']} | "
-                     f"{c['rd3g_off_track_races']} / {c['rd3g_wins_off_track']} | {c['solve_ms_p50']:.1f} / {c['solve_ms_p99']:.1f} |")
+                     f"{c['rd3g_off_track_races']} / {c['rd3g_wins_off_track']} | {c['opponent_off_track_races']} | "
+                     f"{c['fallbacks']} / {c['control_steps']} | {c['solve_ms_p50']:.1f} / {c['solve_ms_p99']:.1f} |")
     return "\n".join(lines)
 
 

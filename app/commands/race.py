@@ -80,13 +80,16 @@ def run(args) -> int:
     s = o.summary()
     print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
           f"({args.rd3g_speed} m/s) vs {args.opponent} ({args.opponent_speed} m/s), control {s['control_period_ms']:.1f} ms")
-    print(f"winner: {s['winner'] or 'none (time limit)'}")
+    print(f"winner: {s['winner'] or 'none (time limit)'}"
+          + (" (NOT a clean win: it left the track)" if s["winner"] and not s["clean_winner"] else ""))
+    print(f"off-track excursions: rd3g {s['off_track']['rd3g']}, opponent {s['off_track']['opponent']}")
     for name, laps in s["lap_times_s"].items():
         print(f"  {name:9s} lap times: {', '.join(f'{t:.3f} s' for t in laps) or '-'}")
     faults = ", ".join(f"{c.at_fault} at fault at {c.time_s:.2f} s" for c in o.collisions)
     print(f"minimum gap between footprints: {s['min_gap_m']:.3f} m; collisions: {s['collisions']}" + (f" ({faults})" if faults else ""))
     print(f"RD3G planner (wall time per control step): p50 {s['solve_ms_p50']:.1f} ms, p99 {s['solve_ms_p99']:.1f} ms, "
-          f"max {o.solve_ms.max():.1f} ms; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}")
+          f"max {o.solve_ms.max():.1f} ms; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
+          f"first (cold) plan before the start {s['prestart_ms']:.0f} ms")
     print(f"telemetry: {out}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
