@@ -7,10 +7,15 @@ from pathlib import Path
 import numpy as np
 
 
+def _clean(r, cell) -> bool:
+    """An example race must be a clean RD3G win: both cars always on track, no contact."""
+    return (tuple(r["cell"]) == cell and r["winner"] == "rd3g" and "trace" in r and r["rd3g_off_track"] == 0
+            and r["opponent_off_track"] == 0 and r["collisions"] == 0)
+
+
 def _pick(records, cell, want):
     for r in records:
-        if (tuple(r["cell"]) == cell and r["winner"] == "rd3g" and "trace" in r
-                and r.get("rd3g_off_track", 0) == 0 and want(r["trace"][2])):
+        if _clean(r, cell) and want(r["trace"][2]):
             return r
     return None
 
@@ -51,8 +56,8 @@ def plot_examples(records, args, folder: Path) -> list[Path]:
     if overtake:
         out.append(_plot(overtake, track, "Overtake: RD3G (faster) starts behind", folder / "race_overtake.png"))
     # The block with the closest attack: the smallest lead RD3G kept while the faster MPC car was behind.
-    blocks = [r for r in records if tuple(r["cell"]) == ("front", "slow") and r["winner"] == "rd3g" and "trace" in r
-              and r.get("rd3g_off_track", 0) == 0]
+    # A block: RD3G stays ahead the whole race.
+    blocks = [r for r in records if _clean(r, ("front", "slow")) and np.all(r["trace"][2][:, 0] > r["trace"][2][:, 1])]
     if blocks:
         best = min(blocks, key=lambda r: float(np.min(r["trace"][2][:, 0] - r["trace"][2][:, 1])))
         out.append(_plot(best, track, "Block: RD3G (slower) starts in front", folder / "race_block.png"))
