@@ -19,6 +19,8 @@ COMMAND_MODULES = [
     "app.commands.scenario",
     "app.commands.bench",
     "app.commands.calibrate",
+    "app.commands.review",
+    "app.commands.sysid",
 ]
 
 

@@ -103,5 +103,5 @@ def run_merge(args) -> int:
         Path(args.json).write_text(json.dumps(merge_bench.records_json(summary), indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
-        print(f"recorded in {write_section('merge-bench', md)}")
+        print(f"recorded in {write_section('merge-bench-' + '-'.join(solvers), md)}")
     return 0

@@ -67,6 +67,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   require(s.rho_kappa > 0 && s.rho_kappa < 1, "solver.rho_kappa must be in (0, 1)");
   require(s.rho_beta > 1, "solver.rho_beta must be > 1");
   require(s.rho_progress >= 0, "solver.rho_progress must be >= 0");
+  require(s.rho_floor_factor > 0 && s.rho_floor_factor <= 1, "solver.rho_floor_factor must be in (0, 1]");
   require(s.ls_alpha > 0 && s.ls_alpha < 1, "solver.ls_alpha must be in (0, 1)");
   require(s.ls_beta > 0 && s.ls_beta < 1, "solver.ls_beta must be in (0, 1)");
   require(s.ls_max_steps >= 1, "solver.ls_max_steps must be >= 1");
@@ -651,7 +652,7 @@ Result Solver::solve(const WarmStart* warm) {
   }
   const bool have_mu = warm && warm->mu.size() == C;
   if (have_mu) require(warm->mu.allFinite(), "warm start mu has non-finite values");
-  const double rho_floor = settings_.tol / 10.0;
+  const double rho_floor = settings_.tol * settings_.rho_floor_factor;
   std::mt19937 rng(12345);
   std::normal_distribution<double> noise(0.0, 1.0);
   int total_iter = 0;
