@@ -50,7 +50,7 @@ class PlannerConfig:
     # barrier duals start at zero).
     warm_rho_init: float = 0.001
     # A non-converged solve is still used if its constraint violation is at most this (m), otherwise
-    # the previous plan, shifted, is used.
+    # the car tracks the previous plan in closed loop (fallback_* gains below).
     accept_violation_m: float = 0.01
     # Fallback tracking law (RacingPlanner/MPCOpponent.tracking_control): Stanley gain on the lateral
     # error (1/s) and speed-loop gain (1/s).
