@@ -34,8 +34,8 @@ _COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=3
 class Plan:
     """One planning step. x: (N, T+1, 4) planned (or predicted) trajectories, agent 0 = the planning
     car; u: (T, 2) the planning car's controls; `used` says whether the solve was used ("converged",
-    "accepted": not converged but feasible within accept_violation_m) or no usable solve: the car tracks the previous plan in closed loop
-    was applied instead ("fallback")."""
+    "accepted": not converged but feasible within accept_violation_m) or not ("fallback": the car
+    tracks the previous plan in closed loop for this step, see tracking_control)."""
 
     x: np.ndarray
     u: np.ndarray
