@@ -81,7 +81,7 @@ enum class LinearSolver {
 
 struct Settings {
   double tol = 5e-4;             ///< stop when ||r||_2 < tol (and the other conditions hold)
-  int max_iter = 200;            ///< Newton iterations, all restart attempts together
+  int max_iter = 500;            ///< Newton iterations, all restart attempts together (hard instances need several attempts)
   double time_limit = 0.0;       ///< (s), 0 = none
   double rho_init = 0.01;        ///< initial barrier weight rho
   /// rho never goes below tol * rho_floor_factor (paper: 0.1; 0.01 was measured to pass the benchmark's
