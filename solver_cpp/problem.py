@@ -25,6 +25,15 @@ def _vector(where: str, value, n: int, allow_inf: bool = False) -> np.ndarray:
     return arr
 
 
+def _bounds(where: str, name: str, lower, upper, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Optional box bounds (None = unbounded; +-inf entries allowed), lower strictly below upper."""
+    lo = _vector(f"{where}.{name}_min", lower, n, True) if lower is not None else np.full(n, -np.inf)
+    hi = _vector(f"{where}.{name}_max", upper, n, True) if upper is not None else np.full(n, np.inf)
+    if not (lo < hi).all():
+        raise ValueError(f"{where}.{name}_min must be below {where}.{name}_max in every component")
+    return lo, hi
+
+
 @dataclass
 class QuadraticCost:
     """J = sum_k u'Ru + sum_{k>=1} (x-x_ref)'Q_ref(x-x_ref) + x'Qx (diagonal weights); terminal
@@ -133,16 +142,10 @@ class GameProblem:
                 raise ValueError(f"{w}.lead_index must be a state index in [0, {nx})")
             lc.index = int(a.lead_index)
             lead.append(lc)
-            lo = _vector(f"{w}.u_min", a.u_min, nu, True) if a.u_min is not None else np.full(nu, -np.inf)
-            hi = _vector(f"{w}.u_max", a.u_max, nu, True) if a.u_max is not None else np.full(nu, np.inf)
-            if not (lo < hi).all():
-                raise ValueError(f"{w}.u_min must be below {w}.u_max in every component")
+            lo, hi = _bounds(w, "u", a.u_min, a.u_max, nu)
             umin.append(lo)
             umax.append(hi)
-            lo = _vector(f"{w}.x_min", a.x_min, nx, True) if a.x_min is not None else np.full(nx, -np.inf)
-            hi = _vector(f"{w}.x_max", a.x_max, nx, True) if a.x_max is not None else np.full(nx, np.inf)
-            if not (lo < hi).all():
-                raise ValueError(f"{w}.x_min must be below {w}.x_max in every component")
+            lo, hi = _bounds(w, "x", a.x_min, a.x_max, nx)
             xmin.append(lo)
             xmax.append(hi)
         p.dynamics, p.x0, p.costs, p.lead = dyn, x0, costs, lead

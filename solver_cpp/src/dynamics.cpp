@@ -139,7 +139,7 @@ void frenet_step(const Jet2<K> (&z)[6], double kappa0, double dkappa, double s0,
 }
 }  // namespace
 
-void KinematicBicycleFrenet::eval(const CVecRef& x, const CVecRef& u, VecRef xn, MatRef A, MatRef B) const {
+void KinematicBicycleFrenet::step_jets(const CVecRef& x, const CVecRef& u, Jet2<6> (&out)[4]) const {
   using J = Jet2<6>;
   J z[6];
   for (int i = 0; i < 4; ++i) z[i] = J::variable(x[i], i);
@@ -147,8 +147,12 @@ void KinematicBicycleFrenet::eval(const CVecRef& x, const CVecRef& u, VecRef xn,
   z[5] = J::variable(u[1], 5);
   double k0, dk;
   curvature(x[0], k0, dk);
-  J out[4];
   frenet_step(z, k0, dk, x[0], lf_, lr_, dt_, out);
+}
+
+void KinematicBicycleFrenet::eval(const CVecRef& x, const CVecRef& u, VecRef xn, MatRef A, MatRef B) const {
+  Jet2<6> out[4];
+  step_jets(x, u, out);
   for (int r = 0; r < 4; ++r) {
     xn[r] = out[r].v;
     A.row(r) = out[r].g.head<4>().transpose();
@@ -157,15 +161,8 @@ void KinematicBicycleFrenet::eval(const CVecRef& x, const CVecRef& u, VecRef xn,
 }
 
 void KinematicBicycleFrenet::lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& l, MatRef H) const {
-  using J = Jet2<6>;
-  J z[6];
-  for (int i = 0; i < 4; ++i) z[i] = J::variable(x[i], i);
-  z[4] = J::variable(u[0], 4);
-  z[5] = J::variable(u[1], 5);
-  double k0, dk;
-  curvature(x[0], k0, dk);
-  J out[4];
-  frenet_step(z, k0, dk, x[0], lf_, lr_, dt_, out);
+  Jet2<6> out[4];
+  step_jets(x, u, out);
   H.setZero();
   for (int r = 0; r < 4; ++r) H += l[r] * out[r].h;
 }

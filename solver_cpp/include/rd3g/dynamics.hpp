@@ -5,6 +5,8 @@
 #include <string>
 #include <vector>
 
+#include "rd3g/jet.hpp"
+
 namespace rd3g {
 
 using Vec = Eigen::VectorXd;
@@ -80,6 +82,8 @@ class KinematicBicycleFrenet final : public Dynamics {
   void curvature(double s, double& kappa, double& dkappa) const;
 
  private:
+  /// The Euler step with exact first and second derivatives wrt (x, u): one place for eval and lambda_hessian.
+  void step_jets(const CVecRef& x, const CVecRef& u, Jet2<6> (&out)[4]) const;
   double lf_, lr_, dt_;
   Vec kappa_;
   double ds_;
