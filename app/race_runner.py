@@ -208,6 +208,15 @@ def _make_planner(cls, setup: RaceSetup, top: float, **kw):
     return cls(tm, mapper, cfg, setup.control_period_s, **kw)
 
 
+def _plan_and_command(planner, own_state, other_state):
+    """Plan from the own state predicted over the actuation delay; returns (plan, [throttle, steering], wall ms)."""
+    t0 = time.perf_counter()
+    x = planner.mapper.predict(planner.tm, own_state)
+    plan = planner.plan(x, other_state)
+    command = planner.mapper.commands(*plan.control, speed=float(x[V]))
+    return plan, command, 1e3 * (time.perf_counter() - t0)
+
+
 def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcome:
     """Simulate one race until a car completes `laps` laps (or max_time_s)."""
     track, car = setup.track, setup.car
@@ -250,22 +259,13 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcom
         plans, ms = {}, {}
         commands = np.zeros((2, 2))
         # Our car: plan from the state predicted over the actuation delay.
-        t0 = time.perf_counter()
-        x_self = ours.mapper.predict(ours.tm, fs[0])
-        plan = ours.plan(x_self, fs[1])
-        commands[0] = ours.mapper.commands(*plan.control, speed=float(x_self[V]))
-        ms["rd3g"] = 1e3 * (time.perf_counter() - t0)
+        plan, commands[0], ms["rd3g"] = _plan_and_command(ours, fs[0], fs[1])
         solve_ms.append(ms["rd3g"])
         fallbacks += plan.used == "fallback"
         plans["rd3g"] = plan
         if theirs is not None:
-            t0 = time.perf_counter()
-            x_opp = theirs.mapper.predict(theirs.tm, fs[1])
-            oplan = theirs.plan(x_opp, fs[0])
-            commands[1] = theirs.mapper.commands(*oplan.control, speed=float(x_opp[V]))
-            ms["opponent"] = 1e3 * (time.perf_counter() - t0)
+            plans["opponent"], commands[1], ms["opponent"] = _plan_and_command(theirs, fs[1], fs[0])
             opp_ms.append(ms["opponent"])
-            plans["opponent"] = oplan
         else:
             commands[1] = pursuit.command(states[1], period)
         if tel:
