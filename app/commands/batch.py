@@ -1,10 +1,14 @@
 """`python -m app batch`: the paper's racing experiment, RD3G vs MPC in a 2x2 grid (RD3G starts in
-front/behind x has the higher/lower top speed); win rates beside the paper's (docs/racing.md)."""
+front/behind x has the higher/lower top speed); win rates beside the paper's (docs/racing.md).
+
+Races run one per task on the local process (`--workers 1`), a local process pool (`--workers N`) or
+an existing Dask distributed cluster (`--cluster ADDRESS`, optional extra `cluster`). Every executor
+runs the same job tuples through `_one`, so the records are the same for the same seeds."""
 from __future__ import annotations
 
+import concurrent.futures
 import json
-import os
-from concurrent.futures import ProcessPoolExecutor
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +18,14 @@ from app.cli import UserError
 # Paper (Zhang & Tsiotras, RD3G), physical races RD3G vs MPC: win rate of RD3G per cell.
 PAPER_WIN_RATES = {("front", "fast"): 1.0, ("front", "slow"): 0.72, ("rear", "fast"): 0.96, ("rear", "slow"): 0.16}
 CELLS = (("front", "fast"), ("front", "slow"), ("rear", "fast"), ("rear", "slow"))
+# Seconds to wait for the Dask scheduler to answer (and for it to have a worker) before giving up.
+CLUSTER_TIMEOUT_S = 10.0
+_WORKERS_WITH_CLUSTER = ("--workers sizes the local process pool and cannot be combined with --cluster; the cluster's "
+                         "workers run the races (size them with `dask worker ADDRESS --nworkers N`)")
+
+
+class RaceFailed(RuntimeError):
+    """A race raised an exception (locally or on a cluster worker); the message names its cell and seed."""
 
 
 def register(sub) -> None:
@@ -21,9 +33,16 @@ def register(sub) -> None:
 
     p = sub.add_parser("batch", help="RD3G vs MPC win rates in the paper's 2x2 grid (start x top speed)")
     p.add_argument("--races", type=int, default=200, help="races per cell (default 200)")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1); not with --cluster")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="run the races on this Dask scheduler (e.g. tcp://host:8786) instead of locally; "
+                        "needs the 'cluster' extra here and the project installed on every worker")
+    p.add_argument("--cluster-timeout", type=float, default=CLUSTER_TIMEOUT_S,
+                   help=f"seconds to wait for the scheduler and a worker (default {CLUSTER_TIMEOUT_S:g})")
+    p.add_argument("--max-time", type=float, default=None,
+                   help="give up each race after this many seconds of race time (default 60); such races are unfinished")
     p.add_argument("--seed", type=int, default=0, help="first seed; race r of every cell uses seed + r")
-    p.add_argument("--json", help="write the per-cell results here")
+    p.add_argument("--json", help="write the per-cell results and one record per race here")
     p.add_argument("--figures", help="write an overtake and a block plot (race_overtake.png, race_block.png) here")
     p.add_argument("--slow-speed", type=float, default=None, help="slow car's top speed (m/s); default rd3g-speed * 0.8")
     add_race_arguments(p)
@@ -38,7 +57,7 @@ def _one(job):
 
     start, speed = cell
     rd3g, opp = (fast, slow) if speed == "fast" else (slow, fast)
-    setup = make_setup(args, args.seed + r, start, rd3g, opp)
+    setup = make_setup(args, args.seed + r, start, rd3g, opp, max_time=args.max_time)
     o = run_race(setup)
     rec = {"cell": cell, "seed": args.seed + r, "winner": o.winner, "collisions": len(o.collisions),
            "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in o.collisions), "solve_ms": o.solve_ms.astype(np.float32),
@@ -47,6 +66,93 @@ def _one(job):
     if keep_trace:
         rec["trace"] = (o.trace_t, o.trace_states, o.trace_progress)
     return rec
+
+
+def describe_job(job) -> str:
+    """'race rear/fast seed 3': which race a job is, for progress and error messages."""
+    args, (start, speed), r = job[0], job[1], job[2]
+    return f"race {start}/{speed} seed {args.seed + r}"
+
+
+def _failed(job, exc: BaseException) -> Exception:
+    hint = ""
+    if isinstance(exc, ImportError):
+        hint = " (is the project installed where the race ran? Cluster workers need `pip install .[cluster]` too)"
+    return RaceFailed(f"{describe_job(job)} failed: {type(exc).__name__}: {exc}{hint}")
+
+
+def run_races(jobs, workers: int = 1, cluster: str | None = None,
+              cluster_timeout_s: float = CLUSTER_TIMEOUT_S) -> list[dict]:
+    """Run `_one` on every job: in this process (workers=1), on a local process pool (workers>1) or on
+    the Dask scheduler at `cluster`. Records come back in job order whatever order the races finish in.
+    The first race that raises stops the batch with a RaceFailed naming its cell and seed."""
+    if cluster is not None:
+        if workers != 1:
+            raise UserError(_WORKERS_WITH_CLUSTER)
+        return _run_on_cluster(jobs, cluster, cluster_timeout_s)
+    from tqdm import tqdm
+
+    if workers == 1:
+        records = []
+        for job in tqdm(jobs, desc="races", unit="race"):
+            try:
+                records.append(_one(job))
+            except Exception as exc:
+                raise _failed(job, exc) from exc
+        return records
+    records = [None] * len(jobs)
+    pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers)
+    try:
+        index = {pool.submit(_one, job): i for i, job in enumerate(jobs)}
+        for fut in tqdm(concurrent.futures.as_completed(index), total=len(jobs), desc="races", unit="race"):
+            i = index[fut]
+            try:
+                records[i] = fut.result()
+            except Exception as exc:
+                raise _failed(jobs[i], exc) from exc
+    finally:
+        # On a failure, drop the queued races instead of waiting for all of them.
+        pool.shutdown(wait=True, cancel_futures=True)
+    return records
+
+
+def _run_on_cluster(jobs, address: str, timeout_s: float) -> list[dict]:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise UserError("--cluster needs Dask distributed, which is not installed: "
+                        "pip install .[cluster]  (or pip install 'dask[distributed]')") from None
+    from tqdm import tqdm
+
+    try:
+        client = Client(address, timeout=timeout_s, set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:  # nothing listening, timeout, malformed address
+        raise UserError(f"--cluster: no Dask scheduler answered at {address!r} within {timeout_s:g} s ({exc})") from None
+    except Exception as exc:  # something else answered, e.g. the dashboard's HTTP port (8787) instead of 8786
+        raise UserError(f"--cluster: {address!r} did not answer like a Dask scheduler ({type(exc).__name__}: {exc}); "
+                        "give the scheduler's address (tcp://HOST:8786 by default)") from None
+    with client:
+        try:
+            client.wait_for_workers(1, timeout=timeout_s)
+        except TimeoutError:
+            raise UserError(f"--cluster: the scheduler at {address!r} has no workers after {timeout_s:g} s; "
+                            f"start some with `dask worker {address}`") from None
+        batch = uuid.uuid4().hex[:8]  # unique keys: the scheduler must not reuse another batch's results
+        index = {}
+        for i, job in enumerate(jobs):
+            (start, speed), seed = job[1], job[0].seed + job[2]
+            fut = client.submit(_one, job, key=f"race-{start}-{speed}-seed{seed}-{batch}", pure=False)
+            index[fut] = i
+        records = [None] * len(jobs)
+        # set_as_default=False: as_completed must be given the client's loop explicitly.
+        for fut in tqdm(as_completed(list(index), loop=client.loop), total=len(jobs), desc="races", unit="race"):
+            i = index[fut]
+            try:
+                records[i] = fut.result()
+            except Exception as exc:
+                client.cancel(list(index))
+                raise _failed(jobs[i], exc) from exc
+    return records
 
 
 def summarise(records, races: int) -> list[dict]:
@@ -91,13 +197,27 @@ def table(cells) -> str:
     return "\n".join(lines)
 
 
-def run(args) -> int:
-    from tqdm import tqdm
+def race_json(rec) -> dict:
+    """One race for --json: everything but the per-step planner times (count only) and the trace."""
+    start, speed = rec["cell"]
+    return {"start": start, "speed": speed, "seed": int(rec["seed"]), "winner": rec["winner"],
+            "collisions": int(rec["collisions"]), "rd3g_at_fault": int(rec["rd3g_at_fault"]),
+            "min_gap_m": float(rec["min_gap_m"]), "fallbacks": int(rec["fallbacks"]),
+            "rd3g_off_track": int(rec["rd3g_off_track"]), "opponent_off_track": int(rec["opponent_off_track"]),
+            "control_steps": len(rec["solve_ms"])}
 
+
+def run(args) -> int:
     if args.races < 1:
         raise UserError(f"--races must be at least 1, got {args.races}")
     if args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
+    if args.cluster is not None and args.workers != 1:
+        raise UserError(_WORKERS_WITH_CLUSTER)
+    if not args.cluster_timeout > 0:
+        raise UserError(f"--cluster-timeout must be positive, got {args.cluster_timeout}")
+    if args.max_time is not None and not args.max_time > 0:
+        raise UserError(f"--max-time must be positive, got {args.max_time}")
     fast = args.rd3g_speed
     slow = args.slow_speed if args.slow_speed is not None else 0.8 * fast
     if not 0 < slow < fast:
@@ -106,21 +226,14 @@ def run(args) -> int:
     make_setup(args, 0, "front", fast, slow)  # validate track/car files before starting workers
     keep = bool(args.figures)
     jobs = [(args, cell, r, fast, slow, keep) for r in range(args.races) for cell in CELLS]
-    records = []
-    if args.workers == 1:
-        for job in tqdm(jobs, desc="races", unit="race"):
-            records.append(_one(job))
-    else:
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            for rec in tqdm(pool.map(_one, jobs, chunksize=1), total=len(jobs), desc="races", unit="race"):
-                records.append(rec)
+    records = run_races(jobs, args.workers, args.cluster, args.cluster_timeout)
     cells = summarise(records, args.races)
     print(f"\nRD3G vs {args.opponent} on {args.track}: {args.races} races per cell, top speeds fast {fast} m/s, "
           f"slow {slow} m/s (ratio {slow / fast:.2f}); win rate ours / paper")
     print(table(cells))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"cells": cells}, indent=2) + "\n")
+        Path(args.json).write_text(json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n")
     if keep:
         from app.race_plots import plot_examples
         for path in plot_examples(records, args, Path(args.figures)):

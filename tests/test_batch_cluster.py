@@ -1,0 +1,93 @@
+"""`batch --cluster ADDRESS`: the races dispatched to a Dask distributed cluster (a LocalCluster started
+here) give the same records as the local runner for the same seeds; connection and worker errors are
+reported clearly. Races are cut to 1 s of race time (--max-time) to keep the file cheap."""
+import json
+import math
+import socket
+import sys
+
+import pytest
+
+distributed = pytest.importorskip("distributed")
+
+from app.cli import UserError, build_parser  # noqa: E402
+from app.commands.batch import CELLS, RaceFailed, run_races  # noqa: E402
+
+MAX_TIME_S = 1.0
+SEED = 7
+# Wall-clock planner times differ from run to run; everything else in a record is deterministic.
+TIMING_KEYS = {"solve_ms_p50", "solve_ms_p99"}
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    # Two single-threaded worker processes: the races really cross a process boundary (workers import
+    # the project themselves) and can finish out of submission order.
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None, scheduler_port=0) as c:
+        yield c
+
+
+def batch_args(tmp_path, name, *extra):
+    out = tmp_path / f"{name}.json"
+    argv = ["batch", "--races", "1", "--seed", str(SEED), "--max-time", str(MAX_TIME_S), "--json", str(out), *extra]
+    return build_parser().parse_args(argv), out
+
+
+def run_batch(tmp_path, name, *extra):
+    args, out = batch_args(tmp_path, name, *extra)
+    assert args.func(args) == 0
+    return json.loads(out.read_text())
+
+
+def test_cluster_records_equal_local_records(cluster, tmp_path):
+    local = run_batch(tmp_path, "local", "--workers", "1")
+    remote = run_batch(tmp_path, "cluster", "--cluster", cluster.scheduler_address)
+    # One race per cell, in the grid's order (not completion order), with the seed asked for.
+    assert [(r["start"], r["speed"], r["seed"]) for r in remote["races"]] == [(s, v, SEED) for s, v in CELLS]
+    # Each cell's race is different (its own start and speeds), so a record swapped between cells would show.
+    assert len({r["min_gap_m"] for r in local["races"]}) == len(CELLS)
+    assert remote["races"] == local["races"]
+    strip = [{k: v for k, v in c.items() if k not in TIMING_KEYS} for c in local["cells"]]
+    assert [{k: v for k, v in c.items() if k not in TIMING_KEYS} for c in remote["cells"]] == strip
+    # Nobody completes a lap in 1 s from a standing start: every race ran to the time cap.
+    period = 1.0 / 30.0
+    for r in remote["races"]:
+        assert r["winner"] is None
+        assert r["control_steps"] == math.ceil(MAX_TIME_S / period)
+
+
+def test_failing_race_on_worker_names_cell_and_seed(cluster, tmp_path):
+    args, _ = batch_args(tmp_path, "bad")
+    # A start the race setup rejects: passes the client but raises on the worker.
+    jobs = [(args, ("middle", "fast"), 2, 2.0, 1.6, False)]
+    with pytest.raises(RaceFailed, match=r"race middle/fast seed 9 failed: ValueError: .*start"):
+        run_races(jobs, cluster=cluster.scheduler_address)
+    with pytest.raises(RaceFailed, match=r"race middle/fast seed 9 failed"):
+        run_races(jobs)  # the local runner reports it the same way
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_scheduler_is_a_user_error(tmp_path):
+    address = f"tcp://127.0.0.1:{_closed_port()}"
+    args, _ = batch_args(tmp_path, "x", "--cluster", address, "--cluster-timeout", "1")
+    with pytest.raises(UserError, match=r"--cluster: no Dask scheduler answered at 'tcp://127\.0\.0\.1:\d+' within 1 s"):
+        args.func(args)
+
+
+def test_cluster_with_workers_is_rejected(tmp_path):
+    args, _ = batch_args(tmp_path, "x", "--cluster", "tcp://127.0.0.1:8786", "--workers", "2")
+    with pytest.raises(UserError, match="--workers .* cannot be combined with --cluster"):
+        args.func(args)
+
+
+def test_missing_dask_says_how_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # makes `import distributed` raise ImportError
+    args, _ = batch_args(tmp_path, "x", "--cluster", "tcp://127.0.0.1:8786")
+    with pytest.raises(UserError, match=r"pip install \.\[cluster\]"):
+        args.func(args)
