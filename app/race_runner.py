@@ -12,7 +12,7 @@ import numpy as np
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner, frenet_state
 from planning.frenet import EY, S, V
-from sim import PurePursuitController, Simulator
+from sim import PurePursuitController, SimEffects, Simulator
 from sim.collision import footprint_corners, rectangles_overlap
 from vehicles.params import CarParams
 
@@ -26,7 +26,7 @@ class RaceSetup:
     """Everything that defines one race. Speeds are the planners' top speeds (m/s)."""
 
     track: object
-    car: CarParams                      # both cars use this parameter file
+    car: CarParams                      # both cars' planners (and, by default, the simulated cars) use this file
     seed: int = 0
     laps: int = 1
     opponent: str = "mpc"               # "mpc" or "pursuit"
@@ -40,12 +40,18 @@ class RaceSetup:
     start_s_m: tuple[float, float] = (0.25, 0.45)   # front car's start s range (just after the line)
     start_gap_car_lengths: tuple[float, float] = (1.75, 2.25)  # centre-to-centre along the track: about one car length of free space
     start_ey_m: float = 0.12            # |ey| of each car at the start, uniform in [-start_ey_m, start_ey_m]
+    # The physical cars in the simulator, when they differ from what the planners believe (closing the
+    # model-identification loop, docs/sysid.md): sim_car (default: car) plus hidden sim_effects, both cars.
+    sim_car: CarParams | None = None
+    sim_effects: SimEffects = field(default_factory=SimEffects)
 
     def __post_init__(self) -> None:
         if self.opponent not in OPPONENTS:
             raise ValueError(f"opponent: must be one of {OPPONENTS}, got {self.opponent!r}")
         if self.start not in STARTS:
             raise ValueError(f"start: must be one of {STARTS}, got {self.start!r}")
+        if not isinstance(self.sim_effects, SimEffects):
+            raise ValueError(f"sim_effects: must be a SimEffects, got {type(self.sim_effects).__name__}")
         if not isinstance(self.laps, int) or self.laps < 1:
             raise ValueError(f"laps: must be an integer >= 1, got {self.laps!r}")
         for name in ("rd3g_top_speed_mps", "opponent_top_speed_mps", "control_period_s", "max_time_s"):
@@ -164,8 +170,9 @@ class _Telemetry:
         self.rec.log("world/track/left", rr.LineStrips2D([np.vstack([left, left[:1]])]), static=True)
         self.rec.log("world/track/right", rr.LineStrips2D([np.vstack([right, right[:1]])]), static=True)
         self.rec.log("world/track/centre", rr.LineStrips2D([centre], colors=[[120, 120, 120]]), static=True)
-        self.rec.log("race/setup", rr.TextDocument(str(dataclasses.asdict(dataclasses.replace(setup, track=track.name, car=car.name)))),
-                     static=True)
+        sim_car = None if setup.sim_car is None else setup.sim_car.name
+        self.rec.log("race/setup", rr.TextDocument(str(dataclasses.asdict(dataclasses.replace(
+            setup, track=track.name, car=car.name, sim_car=sim_car)))), static=True)
         self.colors = {"rd3g": [230, 60, 40], "opponent": [40, 110, 230]}
 
     def step(self, k: int, t: float, states: np.ndarray, plans: dict, commands: np.ndarray, solve_ms: dict) -> None:
@@ -220,7 +227,9 @@ def _plan_and_command(planner, own_state, other_state):
 def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcome:
     """Simulate one race until a car completes `laps` laps (or max_time_s)."""
     track, car = setup.track, setup.car
-    sim = Simulator(track, [car, car], seed=setup.seed, physics_dt=setup.physics_dt_s, laps_to_win=setup.laps)
+    sim_car = car if setup.sim_car is None else setup.sim_car
+    sim = Simulator(track, [sim_car, sim_car], effects=setup.sim_effects, seed=setup.seed, physics_dt=setup.physics_dt_s,
+                    laps_to_win=setup.laps)
     x0 = start_states(setup)
     sim.reset(x0)
     ours = _make_planner(RacingPlanner, setup, setup.rd3g_top_speed_mps,

@@ -35,8 +35,9 @@ CAMERA_POSITION_NOISE_M = 0.002
 CAMERA_HEADING_NOISE_RAD = 0.01
 
 
-def parse_effects(text: str) -> dict[str, float]:
-    """'steering_offset=0.03,actuation_delay=0.08' -> {name: value}; names from GENERATOR_EFFECTS."""
+def parse_effects(text: str, flag: str = "--effects") -> dict[str, float]:
+    """'steering_offset=0.03,actuation_delay=0.08' -> {name: value}; names from GENERATOR_EFFECTS.
+    ``flag`` names the option in error messages."""
     out: dict[str, float] = {}
     for part in (p.strip() for p in text.split(",")):
         if not part:
@@ -44,17 +45,17 @@ def parse_effects(text: str) -> dict[str, float]:
         name, sep, value = part.partition("=")
         name = name.strip()
         if not sep:
-            raise ValueError(f"--effects: {part!r} must look like name=value")
+            raise ValueError(f"{flag}: {part!r} must look like name=value")
         if name not in GENERATOR_EFFECTS:
-            raise ValueError(f"--effects: unknown effect {name!r}; known: {sorted(GENERATOR_EFFECTS)}")
+            raise ValueError(f"{flag}: unknown effect {name!r}; known: {sorted(GENERATOR_EFFECTS)}")
         try:
             v = float(value)
         except ValueError:
-            raise ValueError(f"--effects: {name}: not a number: {value.strip()!r}") from None
+            raise ValueError(f"{flag}: {name}: not a number: {value.strip()!r}") from None
         if not math.isfinite(v):
-            raise ValueError(f"--effects: {name}: must be finite, got {value.strip()!r}")
+            raise ValueError(f"{flag}: {name}: must be finite, got {value.strip()!r}")
         if name in out:
-            raise ValueError(f"--effects: {name} given twice")
+            raise ValueError(f"{flag}: {name} given twice")
         out[name] = v
     return out
 

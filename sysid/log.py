@@ -1,16 +1,16 @@
-"""Drive logs for model identification: reading (CSV now, Rerun .rrd later) and writing CSV.
+"""Drive logs for model identification: reading (CSV, race-stack Rerun .rrd) and writing CSV.
 
 Format (docs/sysid.md): one row per pose measurement with columns
 ``t, car, x, y, heading, throttle, steering`` and optionally ``speed``. Commands are the values
-sent at time ``t``. Readers are chosen by file suffix through ``LOG_READERS``, so a second
-telemetry format is one more entry there.
+sent at time ``t``. Readers are chosen by file suffix through ``LOG_READERS``; the .rrd reader
+(``sysid.rrd``) extracts the same rows from a race recording.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -30,7 +30,9 @@ class LogFormatError(ValueError):
 
 @dataclass(frozen=True)
 class DriveLog:
-    """All rows of a log, in file order. ``row`` holds each sample's line number in the file."""
+    """All rows of a log, in file order. ``row`` holds each sample's line number in the file (for a
+    recording: the number of the extracted row, ordered by car, then time). ``car_labels`` names the
+    cars of a recording (id -> race name); ``pose_sources`` says where each car's poses came from."""
 
     source: str
     t: np.ndarray
@@ -42,20 +44,28 @@ class DriveLog:
     steering: np.ndarray
     speed: np.ndarray | None
     row: np.ndarray  # int, line number in the file (header = 1)
+    car_labels: dict[int, str] = field(default_factory=dict)
+    pose_sources: dict[int, str] = field(default_factory=dict)
 
     @property
     def cars(self) -> list[int]:
         return sorted(set(self.car.tolist()))
 
+    def describe_cars(self) -> str:
+        """'[0, 1]' or, for a recording, '[0 (rd3g), 1 (opponent)]'."""
+        return "[" + ", ".join(f"{c} ({self.car_labels[c]})" if c in self.car_labels else str(c) for c in self.cars) + "]"
+
     def select_car(self, car: int) -> "DriveLog":
         keep = self.car == car
         if not keep.any():
-            raise LogFormatError(f"{self.source}: no rows for car {car}; the log has cars {self.cars}")
+            raise LogFormatError(f"{self.source}: no rows for car {car}; the log has cars {self.describe_cars()}")
         return DriveLog(
             source=self.source,
             t=self.t[keep], car=self.car[keep], x=self.x[keep], y=self.y[keep], heading=self.heading[keep],
             throttle=self.throttle[keep], steering=self.steering[keep],
             speed=None if self.speed is None else self.speed[keep], row=self.row[keep],
+            car_labels={c: n for c, n in self.car_labels.items() if c == car},
+            pose_sources={c: n for c, n in self.pose_sources.items() if c == car},
         )
 
 
@@ -110,7 +120,7 @@ def _read_csv(path: Path) -> DriveLog:
         t=values["t"], car=values["car"].astype(int), x=values["x"], y=values["y"], heading=values["heading"],
         throttle=values["throttle"], steering=values["steering"], speed=values.get("speed"), row=line_numbers,
     )
-    _check_values(log, values["car"])
+    check_values(log, values["car"])
     return log
 
 
@@ -119,7 +129,7 @@ def _first_bad(mask: np.ndarray) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
-def _check_values(log: DriveLog, car_raw: np.ndarray) -> None:
+def check_values(log: DriveLog, car_raw: np.ndarray) -> None:
     """Range checks (vectorised); the first offending row and column are reported."""
     checks: list[tuple[str, np.ndarray, str]] = [
         ("car", (car_raw != np.round(car_raw)) | (car_raw < 0), "must be a non-negative integer id"),
@@ -150,13 +160,12 @@ def _check_values(log: DriveLog, car_raw: np.ndarray) -> None:
 
 
 def _read_rrd(path: Path) -> DriveLog:
-    raise LogFormatError(
-        f"{path}: Rerun .rrd recordings are not supported yet (the race stack's telemetry layout is not "
-        f"defined); export the log to CSV (format in docs/sysid.md)"
-    )
+    from sysid.rrd import read_rrd  # imports rerun; only when a recording is read
+
+    return read_rrd(path)
 
 
-# Suffix -> reader. Add the Rerun reader here once the telemetry layout is defined.
+# Suffix -> reader.
 LOG_READERS: dict[str, Callable[[Path], DriveLog]] = {".csv": _read_csv, ".rrd": _read_rrd}
 
 

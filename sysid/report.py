@@ -128,7 +128,8 @@ def _fmt_params(params: dict[str, float], std: dict[str, float]) -> str:
 
 
 def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: str, json_path: str | None,
-                    plots: list[tuple[str, Path]], report_dir: Path, command: str | None = None) -> str:
+                    plots: list[tuple[str, Path]], report_dir: Path, command: str | None = None,
+                    log_note: str | None = None) -> str:
     s, traj = result.settings, result.traj
     lines = ["# Model identification report", ""]
     if command:
@@ -136,7 +137,7 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
     lines += [
         f"* Log: `{log_path}` — {traj.n_raw_rows} rows, {traj.n_duplicates_merged} duplicate timestamps merged, "
         f"{traj.n_gaps} gap(s); {traj.n} samples on a {traj.dt * 1000:.2f} ms grid "
-        f"({traj.t[-1] - traj.t[0]:.1f} s).",
+        f"({traj.t[-1] - traj.t[0]:.1f} s)" + (f"; {log_note}." if log_note else "."),
         f"* Car parameters in: `{car_in}`; out: `{car_out}`" + (f"; JSON: `{json_path}`." if json_path else "."),
         f"* Horizon {result.horizon_steps} steps ({result.horizon_steps * traj.dt:.2f} s); "
         f"{result.split.train.size} training and {result.split.heldout.size} held-out windows "

@@ -63,9 +63,11 @@ def test_row_numbers_count_comment_and_blank_lines(tmp_path):
         read_log(path)
 
 
-def test_rrd_and_unknown_formats_are_rejected_clearly(tmp_path):
-    with pytest.raises(LogFormatError, match="Rerun .rrd recordings are not supported yet"):
-        read_log(write(tmp_path, "", "run.rrd"))
+def test_damaged_rrd_and_unknown_formats_are_rejected_clearly(tmp_path):
+    with pytest.raises(LogFormatError, match="not a readable rerun recording"):
+        read_log(write(tmp_path, "not a recording", "run.rrd"))
+    with pytest.raises(LogFormatError, match="recording not found"):
+        read_log(tmp_path / "missing.rrd")
     with pytest.raises(LogFormatError, match="unknown log format '.txt'"):
         read_log(write(tmp_path, "", "run.txt"))
 

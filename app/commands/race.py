@@ -1,6 +1,7 @@
 """`python -m app race`: one simulated race, RD3G vs the MPC opponent (or pure pursuit); docs/racing.md."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -27,6 +28,14 @@ def register(sub) -> None:
     p.add_argument("--json", help="also write the race summary as JSON here")
     p.add_argument("--max-time", type=float, default=None, help="give up after this many seconds of race time")
     add_race_arguments(p)
+    # --- closing the model-identification loop (docs/sysid.md): the planners use --car-params (e.g. a
+    # file written by `sysid`), the simulator runs the physical car below
+    p.add_argument("--sim-car-params", default=None,
+                   help="car file the simulator runs (default: --car-params); pure simulation only")
+    p.add_argument("--sim-effects", default="",
+                   help='hidden effects the simulator adds to both cars, e.g. "steering_offset=0.03,actuation_delay=0.08" '
+                        "(names as in sysid-generate, docs/sysid.md); pure simulation only")
+    # --- end closing the loop
     # --- real-time race stack (app/realtime, docs/race-stack.md): --hil / --camera --serial --calibration
     from app.realtime.run import add_realtime_arguments
     add_realtime_arguments(p)
@@ -50,12 +59,34 @@ def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: f
         raise UserError(f"--car-params: {exc}") from None
     if not args.control_hz > 0:
         raise UserError(f"--control-hz must be positive, got {args.control_hz}")
+    sim_car, sim_effects = _simulated_car(args)
     period = 1.0 / args.control_hz
     # The simulator needs a whole number of 1 ms physics steps per control period on average; it keeps
     # the control clock exactly, so any rate works.
     return RaceSetup(track=track, car=car, seed=seed, laps=laps, opponent=args.opponent, start=start,
                      rd3g_top_speed_mps=rd3g_speed, opponent_top_speed_mps=opponent_speed,
-                     control_period_s=period, max_time_s=max_time or 30.0 * laps + 30.0)
+                     control_period_s=period, max_time_s=max_time or 30.0 * laps + 30.0,
+                     sim_car=sim_car, sim_effects=sim_effects)
+
+
+def _simulated_car(args):
+    """(sim_car or None, SimEffects) from --sim-car-params / --sim-effects (absent in batch's arguments)."""
+    from sim import SimEffects, SimEffectsError
+    from sysid.generate import parse_effects, sim_effects
+    from vehicles.params import CarParamsError, load_car_params
+
+    sim_car = None
+    if getattr(args, "sim_car_params", None):
+        try:
+            sim_car = load_car_params(args.sim_car_params)
+        except CarParamsError as exc:
+            raise UserError(f"--sim-car-params: {exc}") from None
+    text = getattr(args, "sim_effects", "") or ""
+    try:
+        effects = sim_effects(parse_effects(text, flag="--sim-effects"), 0.0, 0.0) if text.strip() else SimEffects()
+    except SimEffectsError as exc:
+        raise UserError(f"--sim-effects: {exc}") from None
+    return sim_car, effects
 
 
 def run(args) -> int:
@@ -64,6 +95,8 @@ def run(args) -> int:
     # --- real-time race stack: --hil or hardware mode runs the loop in app/realtime instead
     from app.realtime.run import run_realtime, wants_realtime
     if wants_realtime(args):
+        if args.sim_car_params or args.sim_effects.strip():
+            raise UserError("--sim-car-params and --sim-effects apply to the pure simulation only (not --hil or hardware)")
         return run_realtime(args)
     # --- end real-time race stack
     if args.laps < 1:
@@ -80,6 +113,10 @@ def run(args) -> int:
     s = o.summary()
     print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
           f"({args.rd3g_speed} m/s) vs {args.opponent} ({args.opponent_speed} m/s), control {s['control_period_ms']:.1f} ms")
+    if setup.sim_car is not None or setup.sim_effects != type(setup.sim_effects)():
+        hidden = {k: v for k, v in dataclasses.asdict(setup.sim_effects).items()
+                  if v != getattr(type(setup.sim_effects)(), k)}
+        print(f"planners: car {setup.car.name}; simulator: car {(setup.sim_car or setup.car).name}, hidden effects {hidden or 'none'}")
     print(f"winner: {s['winner'] or 'none (time limit)'}"
           + (" (NOT a clean win: it left the track)" if s["winner"] and not s["clean_winner"] else ""))
     print(f"off-track excursions: rd3g {s['off_track']['rd3g']}, opponent {s['off_track']['opponent']}")

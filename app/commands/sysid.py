@@ -13,14 +13,15 @@ from app.cli import UserError
 
 def register(sub) -> None:
     p = sub.add_parser("sysid", help="check the car model against a drive log; fit and write corrections")
-    p.add_argument("log", help="drive log (.csv; format in docs/sysid.md)")
+    p.add_argument("log", help="drive log: .csv, or a race recording .rrd (python -m app race --out ...); docs/sysid.md")
     p.add_argument("--car-params", default="buzzracer", help="car file (or bare name in vehicles/); default buzzracer")
     p.add_argument("--report", required=True, help="Markdown report to write")
     p.add_argument("--json", help="JSON summary to write")
     p.add_argument("--params-out", help="car file with the identified corrections (default: <report stem>.toml "
                                         "next to the report)")
     p.add_argument("--figures", help="folder for the PNG plots (default: the report's folder)")
-    p.add_argument("--car", type=int, help="car id in the log (needed when the log has several cars)")
+    p.add_argument("--car", type=int, help="car id in the log (needed when the log has several cars; in a race "
+                                           "recording the marker id, in a simulated race 0 = rd3g, 1 = opponent)")
     p.add_argument("--horizon", type=float, default=1.0, help="prediction horizon in seconds (default 1.0)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
     p.add_argument("--fit-windows", type=int, default=300,
@@ -56,11 +57,17 @@ def run(args) -> int:
     log = read_log(args.log)
     if args.car is None:
         if len(log.cars) > 1:
-            raise UserError(f"{args.log}: the log has cars {log.cars}; choose one with --car")
+            raise UserError(f"{args.log}: the log has cars {log.describe_cars()}; choose one with --car")
         car_id = log.cars[0]
     else:
         car_id = args.car
-    traj = build_trajectory(log.select_car(car_id))
+    car_log = log.select_car(car_id)
+    log_note = None
+    if car_id in car_log.pose_sources:
+        log_note = (f"car {car_id} ({car_log.car_labels.get(car_id, '?')}) of the recording; poses from "
+                    f"{car_log.pose_sources[car_id]}")
+        print(log_note)
+    traj = build_trajectory(car_log)
     result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed, fit_max_starts=args.fit_windows))
 
     report = Path(args.report)
@@ -78,7 +85,8 @@ def run(args) -> int:
         write_json(result, json_path, str(params_out))
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["sysid"] else None
     report.write_text(markdown_report(result, args.log, str(resolve_car_path(args.car_params)), str(params_out),
-                                      str(json_path) if json_path else None, plots, report.parent, command),
+                                      str(json_path) if json_path else None, plots, report.parent, command,
+                                      log_note),
                       encoding="utf-8")
     elapsed = time.perf_counter() - started
     if result.selected:

@@ -550,6 +550,9 @@ class RaceLoop:
                 if m.marker_id in self.by_marker:
                     rec.points(f"world/cars/{self.by_marker[m.marker_id].name}/detection", k,
                                self.race_time(frame.t_capture_s), [m.x, m.y])
+                    # the measured heading too: model identification (docs/sysid.md) needs whole poses
+                    rec.scalar(f"cars/{self.by_marker[m.marker_id].name}/detection_heading_rad", k,
+                               self.race_time(frame.t_capture_s), m.heading)
             if self.frames % self.cfg.image_log_every == 1:
                 import cv2
 
