@@ -100,9 +100,8 @@ def _poses(data, name: str, mode: str):
     from app.realtime.review import _rectangles  # footprint corners -> centre, heading, half extents
 
     det, det_heading = f"world/cars/{name}/detection", f"cars/{name}/detection_heading_rad"
-    if data.has(det) or data.has(det_heading):
+    if data.has(det_heading):
         _require(data, det, "camera detections of the car")
-        _require(data, det_heading, "headings of the camera detections")
         t, pts = data.points(det)
         th, heading = data.scalars(det_heading)
         _same_times(data, det, t, det_heading, th)

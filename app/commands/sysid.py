@@ -40,6 +40,23 @@ def register(sub) -> None:
     g.add_argument("--heading-noise", type=float, default=None, help="camera heading noise std [rad] (default 0.01)")
     g.set_defaults(func=run_generate)
 
+    c = sub.add_parser("sysid-closed-loop",
+                       help="race with nominal vs corrected car parameters while the simulator carries the effects")
+    c.add_argument("--effects", required=True, help='hidden effects of the simulated cars, e.g. "steering_offset=0.03" '
+                                                    "(names as in sysid-generate)")
+    c.add_argument("--corrected", required=True, help="car file with the identified corrections (written by sysid)")
+    c.add_argument("--car-params", default="buzzracer", help="nominal car file: the simulated car, and the planners' "
+                                                             "car in the nominal runs (default buzzracer)")
+    c.add_argument("--seeds", default="0,1,2", help="race seeds, comma-separated (default 0,1,2)")
+    c.add_argument("--laps", type=int, default=1)
+    c.add_argument("--track", default="oval")
+    c.add_argument("--opponent", choices=("mpc", "pursuit"), default="mpc")
+    c.add_argument("--max-time", type=float, default=None, help="stop each race after this many seconds of race time")
+    c.add_argument("--json", help="JSON summary and per-race results to write")
+    c.add_argument("--plot", help="PNG figure to write")
+    c.add_argument("--recordings", help="keep the race recordings (.rrd) in this folder")
+    c.set_defaults(func=run_closed_loop_command)
+
 
 def run(args) -> int:
     from sysid.data import build_trajectory
@@ -117,4 +134,76 @@ def run_generate(args) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     write_log_csv(out, log)
     print(f"wrote {out}: {log.t.size} rows, {log.t[-1] - log.t[0]:.1f} s, in {time.perf_counter() - started:.1f} s")
+    return 0
+
+
+def run_closed_loop_command(args) -> int:
+    import json
+
+    import numpy as np
+
+    from sim import SimEffectsError
+    from sysid.closed_loop import PLANNER_CAR, RaceSettings, format_table, plot, run_closed_loop, summarize
+    from sysid.generate import parse_effects, sim_effects
+    from vehicles.params import CarParamsError, load_car_params
+
+    try:
+        seeds = [int(v) for v in args.seeds.split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"--seeds: expected integers like 0,1,2, got {args.seeds!r}") from None
+    if not seeds:
+        raise UserError("--seeds: give at least one seed")
+    if args.laps < 1:
+        raise UserError(f"--laps must be at least 1, got {args.laps}")
+    try:
+        effects = sim_effects(parse_effects(args.effects, flag="--effects"), 0.0, 0.0)
+    except SimEffectsError as exc:
+        raise UserError(f"--effects: {exc}") from None
+    cars = {}
+    for flag, value in (("--car-params", args.car_params), ("--corrected", args.corrected)):
+        try:
+            cars[flag] = load_car_params(value)
+        except CarParamsError as exc:
+            raise UserError(f"{flag}: {exc}") from None
+    if args.max_time is not None and not args.max_time > 0:
+        raise UserError(f"--max-time must be positive, got {args.max_time}")
+    race = RaceSettings(track=args.track, laps=args.laps, opponent=args.opponent, max_time_s=args.max_time)
+    started = time.perf_counter()
+
+    def progress(m) -> None:
+        if m.error:
+            print(f"  seed {m.seed:3d} {m.variant:9s} stopped: {m.error}", flush=True)
+            return
+        lap = "-" if m.rd3g_lap_time_s is None else f"{m.rd3g_lap_time_s:.3f} s"
+        print(f"  seed {m.seed:3d} {m.variant:9s} winner {m.winner or '-':8s} RD3G lap {lap:8s} "
+              f"collisions {m.collisions} off-track {m.rd3g_off_track}", flush=True)
+
+    races = run_closed_loop(cars["--car-params"], cars["--corrected"], effects, seeds, race,
+                            Path(args.recordings) if args.recordings else None, progress)
+    summary = summarize(races)
+    from planning import PlannerConfig
+
+    cfg = PlannerConfig()
+    print(format_table(summary, cfg.horizon * cfg.plan_dt_s, cfg.plan_dt_s))
+    print(f"{len(races)} races in {time.perf_counter() - started:.0f} s")
+    if args.json:
+        def rms(a):
+            return float(np.sqrt(np.mean(a ** 2))) if a.size else None
+
+        out = Path(args.json)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        record = {
+            "effects": args.effects, "corrected": args.corrected, "car_params": args.car_params, "seeds": seeds,
+            "race": dataclasses.asdict(race), "planner_car": PLANNER_CAR,
+            "summary": {k: v.json_dict() for k, v in summary.items()},
+            "races": [{"variant": m.variant, "seed": m.seed, "winner": m.winner, "rd3g_lap_time_s": m.rd3g_lap_time_s,
+                       "race_time_s": None if m.error else m.race_time_s, "collisions": m.collisions, "rd3g_at_fault": m.rd3g_at_fault,
+                       "rd3g_off_track": m.rd3g_off_track, "fallbacks": m.fallbacks, "error": m.error,
+                       "one_step_rmse_m": rms(m.one_step_errors_m), "horizon_rmse_m": rms(m.horizon_errors_m)}
+                      for m in races],
+        }
+        out.write_text(json.dumps(record, indent=2) + "\n")
+        print(f"wrote {out}")
+    if args.plot:
+        print(f"wrote {plot(races, summary, f'{args.effects}: nominal vs corrected ({Path(args.corrected).name})', Path(args.plot))}")
     return 0

@@ -1,0 +1,242 @@
+"""Closing the loop: the race-level effect of racing with identified corrections (docs/sysid.md).
+
+The simulator carries hidden effects (``sim.SimEffects``) on the nominal car; the same seeded races are
+run with the planners using (a) the nominal car file and (b) the corrected one (written by ``sysid``),
+plus (c) the clean reference: nominal planners on a car without the effects. Each race is recorded
+(``app.race_runner.run_race``) and measured from its recording with the race stack's reader:
+
+* lap time of the RD3G car, winner, collisions (and how many RD3G caused), off-track excursions,
+  planner fallbacks;
+* planner tracking error: every RD3G plan (``world/cars/rd3g/plan``, T+1 points plan_dt apart, starting
+  at the state the planner predicted over its car file's actuation delay d) against where the car
+  actually was (``world/cars/rd3g/position``, linear in time between control steps): plan point j
+  predicts the position at t_plan + d + j * plan_dt. Reported for j = 1 (one planning step) and
+  j = T (the end of the horizon) as RMS over all plans whose time is inside the race.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sim import SimEffects
+from vehicles.params import CarParams
+
+PLANNER_CAR = "rd3g"
+VARIANTS = ("clean", "nominal", "corrected")
+VARIANT_TEXT = {
+    "clean": "no effect, nominal parameters (reference)",
+    "nominal": "effect, nominal parameters",
+    "corrected": "effect, corrected parameters",
+}
+
+
+@dataclass(frozen=True)
+class RaceSettings:
+    """The race every variant runs (defaults of `python -m app race`, one lap)."""
+
+    track: str = "oval"
+    laps: int = 1
+    opponent: str = "mpc"
+    start: str = "rear"
+    rd3g_top_speed_mps: float = 2.0
+    opponent_top_speed_mps: float = 1.8
+    control_hz: float = 30.0
+    max_time_s: float | None = None     # None: the race command's default, 30 s per lap + 30 s
+
+
+@dataclass(frozen=True)
+class RaceMeasurement:
+    variant: str
+    seed: int
+    winner: str | None
+    rd3g_lap_time_s: float | None        # first completed lap, None if it did not complete one
+    race_time_s: float
+    collisions: int
+    rd3g_at_fault: int
+    rd3g_off_track: int
+    fallbacks: int
+    one_step_errors_m: np.ndarray         # per plan, plan point 1
+    horizon_errors_m: np.ndarray          # per plan, plan point T
+    error: str | None = None              # the race stopped with this planner error (counted, not measured)
+
+
+@dataclass(frozen=True)
+class VariantSummary:
+    variant: str
+    races: int
+    lap_time_mean_s: float | None         # over the races in which RD3G completed a lap
+    laps_completed: int
+    wins: int
+    collisions: int
+    rd3g_at_fault: int
+    off_track: int
+    fallbacks: int
+    failed: int                           # races stopped by a planner error
+    one_step_rmse_m: float
+    horizon_rmse_m: float
+    horizon_p95_m: float
+    plans: int
+
+    def json_dict(self) -> dict:
+        """JSON-safe: NaN (nothing measured) becomes null."""
+        return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in dataclasses.asdict(self).items()}
+
+
+def plan_tracking_errors(data, car: str, start_delay_s: float, plan_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(errors at plan point 1, errors at plan point T) in m for every logged plan of ``car`` whose
+    predicted times lie within the logged positions (see the module doc)."""
+    t_pos, pts = data.points(f"world/cars/{car}/position")
+    t_plan, strips = data.strips(f"world/cars/{car}/plan")
+    if t_pos.size < 2 or not strips:
+        raise ValueError(f"{data.path}: no positions or plans of car {car!r} to compare")
+    xy = np.array([p[0] for p in pts])
+    plans = np.array([s[0] for s in strips])          # (n_plans, T+1, 2)
+    horizon = plans.shape[1] - 1
+    out = []
+    for j in (1, horizon):
+        t_pred = t_plan + start_delay_s + j * plan_dt_s
+        inside = t_pred <= t_pos[-1]
+        actual = np.column_stack([np.interp(t_pred[inside], t_pos, xy[:, 0]), np.interp(t_pred[inside], t_pos, xy[:, 1])])
+        out.append(np.hypot(*(plans[inside, j] - actual).T))
+    return out[0], out[1]
+
+
+def measure_race(variant: str, seed: int, outcome, recording: Path, planner_car: CarParams, plan_dt_s: float) -> RaceMeasurement:
+    from app.telemetry import load_recording
+
+    delay = max(planner_car.corrections.steering_delay_s, planner_car.corrections.throttle_delay_s)
+    one, horizon = plan_tracking_errors(load_recording(recording), PLANNER_CAR, delay, plan_dt_s)
+    laps = outcome.lap_times_s[PLANNER_CAR]
+    return RaceMeasurement(
+        variant=variant, seed=seed, winner=outcome.winner, rd3g_lap_time_s=float(laps[0]) if laps else None,
+        race_time_s=float(outcome.race_time_s), collisions=len(outcome.collisions),
+        rd3g_at_fault=sum(c.at_fault == PLANNER_CAR for c in outcome.collisions),
+        rd3g_off_track=int(outcome.off_track[PLANNER_CAR]), fallbacks=int(outcome.fallbacks),
+        one_step_errors_m=one, horizon_errors_m=horizon)
+
+
+def race_setups(nominal: CarParams, corrected: CarParams, effects: SimEffects, seed: int, race: RaceSettings):
+    """{variant: RaceSetup} for one seed: the planners' car file and what the simulator runs."""
+    from app.race_runner import RaceSetup
+    from tracks import load_track
+
+    track = load_track(race.track)
+    common = dict(track=track, seed=seed, laps=race.laps, opponent=race.opponent, start=race.start,
+                  rd3g_top_speed_mps=race.rd3g_top_speed_mps, opponent_top_speed_mps=race.opponent_top_speed_mps,
+                  control_period_s=1.0 / race.control_hz, max_time_s=race.max_time_s or 30.0 * race.laps + 30.0,
+                  sim_car=nominal)
+    return {
+        "clean": RaceSetup(car=nominal, sim_effects=SimEffects(), **common),
+        "nominal": RaceSetup(car=nominal, sim_effects=effects, **common),
+        "corrected": RaceSetup(car=corrected, sim_effects=effects, **common),
+    }
+
+
+def run_closed_loop(nominal: CarParams, corrected: CarParams, effects: SimEffects, seeds: list[int],
+                    race: RaceSettings = RaceSettings(), recordings_dir: Path | None = None,
+                    progress=None) -> list[RaceMeasurement]:
+    """Every variant for every seed; recordings go to ``recordings_dir`` (kept) or a temporary folder."""
+    from app.race_runner import run_race
+
+    out = []
+    with tempfile.TemporaryDirectory(prefix="sysid_closed_loop_") as tmp:
+        folder = Path(recordings_dir) if recordings_dir is not None else Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        for seed in seeds:
+            for variant, setup in race_setups(nominal, corrected, effects, seed, race).items():
+                path = folder / f"{variant}-seed{seed}.rrd"
+                try:
+                    outcome = run_race(setup, telemetry_path=path)
+                except ValueError as exc:  # a planner rejected its problem: one failed race, not a failed study
+                    out.append(RaceMeasurement(variant, seed, None, None, math.nan, 0, 0, 0, 0, np.zeros(0), np.zeros(0),
+                                               error=f"{type(exc).__name__}: {exc}"))
+                else:
+                    out.append(measure_race(variant, seed, outcome, path, setup.car, setup.planner.plan_dt_s))
+                if progress:
+                    progress(out[-1])
+    return out
+
+
+def _rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(a ** 2))) if a.size else math.nan
+
+
+def summarize(races: list[RaceMeasurement]) -> dict[str, VariantSummary]:
+    out = {}
+    for variant in VARIANTS:
+        everything = [r for r in races if r.variant == variant]
+        rs = [r for r in everything if r.error is None]
+        if not everything:
+            continue
+        laps = [r.rd3g_lap_time_s for r in rs if r.rd3g_lap_time_s is not None]
+        one = np.concatenate([r.one_step_errors_m for r in rs])
+        hor = np.concatenate([r.horizon_errors_m for r in rs])
+        out[variant] = VariantSummary(
+            variant=variant, races=len(everything), lap_time_mean_s=float(np.mean(laps)) if laps else None,
+            laps_completed=len(laps), wins=sum(r.winner == PLANNER_CAR for r in rs),
+            collisions=sum(r.collisions for r in rs), rd3g_at_fault=sum(r.rd3g_at_fault for r in rs),
+            off_track=sum(r.rd3g_off_track for r in rs), fallbacks=sum(r.fallbacks for r in rs),
+            failed=len(everything) - len(rs),
+            one_step_rmse_m=_rms(one), horizon_rmse_m=_rms(hor),
+            horizon_p95_m=float(np.percentile(hor, 95)) if hor.size else math.nan, plans=int(hor.size))
+    return out
+
+
+def format_table(summary: dict[str, VariantSummary], horizon_s: float, plan_dt_s: float) -> str:
+    """Markdown table, one row per variant."""
+    head = (f"| variant | races | RD3G lap time (mean) | RD3G wins | collisions (RD3G at fault) | off-track | fallbacks "
+            f"| tracking RMSE {plan_dt_s:g} s | tracking RMSE {horizon_s:g} s | p95 {horizon_s:g} s |\n"
+            "|---|---|---|---|---|---|---|---|---|---|")
+    rows = []
+    for v in summary.values():
+        lap = "—" if v.lap_time_mean_s is None else f"{v.lap_time_mean_s:.3f} s"
+        if v.laps_completed < v.races:
+            lap += f" ({v.laps_completed}/{v.races} completed)"
+        if v.failed:
+            lap += f"; {v.failed} stopped by a planner error"
+        rows.append(f"| {VARIANT_TEXT[v.variant]} | {v.races} | {lap} | {v.wins} | {v.collisions} ({v.rd3g_at_fault}) "
+                    f"| {v.off_track} | {v.fallbacks} | {100 * v.one_step_rmse_m:.2f} cm | {100 * v.horizon_rmse_m:.1f} cm "
+                    f"| {100 * v.horizon_p95_m:.1f} cm |")
+    return "\n".join([head] + rows)
+
+
+def plot(races: list[RaceMeasurement], summary: dict[str, VariantSummary], title: str, path: Path) -> Path:
+    """Two panels: tracking error over the horizon (per race, box per variant) and RD3G lap times."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colors = {"clean": "tab:gray", "nominal": "tab:red", "corrected": "tab:green"}
+    variants = [v for v in VARIANTS if v in summary]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    data = [100 * np.concatenate([r.horizon_errors_m for r in races if r.variant == v]) for v in variants]
+    box = ax1.boxplot(data, showfliers=False, patch_artist=True)
+    ax1.set_xticks(range(1, len(variants) + 1), [VARIANT_TEXT[v].replace(", ", ",\n") for v in variants], fontsize=8)
+    for patch, v in zip(box["boxes"], variants):
+        patch.set_facecolor(colors[v])
+        patch.set_alpha(0.5)
+    ax1.set_ylabel("RD3G plan vs actual position at horizon end (cm)")
+    ax1.set_title("planner tracking error (all plans; whiskers 1.5 IQR)", fontsize=9)
+    for i, v in enumerate(variants):
+        laps = [(r.seed, r.rd3g_lap_time_s) for r in races if r.variant == v and r.rd3g_lap_time_s is not None]
+        if laps:
+            ax2.plot([i + 1] * len(laps), [lt for _, lt in laps], "o", color=colors[v], alpha=0.7)
+        if summary[v].lap_time_mean_s is not None:
+            ax2.plot([i + 0.75, i + 1.25], [summary[v].lap_time_mean_s] * 2, color="k", lw=2)
+    ax2.set_xticks(range(1, len(variants) + 1), [VARIANT_TEXT[v].replace(", ", ",\n") for v in variants], fontsize=8)
+    ax2.set_xlim(0.5, len(variants) + 0.5)
+    ax2.set_ylabel("RD3G lap time (s)")
+    ax2.set_title("lap time per race (bar = mean)", fontsize=9)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
