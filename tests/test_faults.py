@@ -3,12 +3,14 @@ protocol over a pty to the virtual box that drives the simulator).
 
 One race with every fault in turn (a separate race per fault would cost ~5 s of start-up each):
 NaN in the estimator state, solver failure, corrupt serial stream, markers occluded for a second,
-serial device vanishing. For each: the event is logged, the cars are neutral at the box soon after
-(within one loop period for faults the loop detects; within the box failsafe for the one-way serial
-faults the loop cannot reach through), and the recording stays readable by `review`.
+serial device vanishing. For each: the event is logged, the cars are neutral at the box within one
+loop period (plus MARGIN, below), and the recording stays readable by `review`. The loop makes the cars
+neutral for the faults it detects; for the two serial faults, which no command can cross, the box's
+own failsafes do (docs/serial-protocol.md): neutral on the first damaged bytes, and on the host hanging up.
 
-Times are race times from the recording; the bounds are the specification's with a margin for
-this shared machine (no assertion on loop performance itself).
+Times are race times from the recording; serial injections and box failsafes are stamped by the box
+process on one clock. The bounds are the specification's plus MARGIN for this shared machine (no
+assertion on loop performance itself).
 """
 from __future__ import annotations
 
@@ -17,8 +19,11 @@ import pytest
 from test_loop_support import load_json, neutral_at, neutral_within, run_cli
 
 PERIOD = 1 / 60
-MARGIN = 2 * PERIOD  # scheduling slack on a loaded 2-core machine
-FAILSAFE = 0.1        # transmitter box: no valid frame for 100 ms -> neutral (docs/serial-protocol.md)
+# Scheduling slack on a loaded 2-core machine: the box process may read the pty late (docs/race-stack.md,
+# "Measured"). The mechanism (which failsafe, on what) is asserted exactly; only the latency gets this slack.
+MARGIN = 2 * PERIOD
+PHYSICS_DT = 0.001    # the simulator applies the box's output on a 1 ms grid
+PLAN_LATENCY = 0.025  # LoopConfig.plan_latency_s
 
 
 def _rt_args() -> list[str]:
@@ -78,24 +83,38 @@ def test_nan_state(fault_race):
 
 def test_solver_failure(fault_race):
     events = fault_race[1]["events"]
-    fault = _first(events, "fault", "planner failed: SolverFailure: injected", 1.2)
+    # A job fails when the time it plans for (now + plan_latency_s, 25 ms) is in the window: its failure
+    # may be logged up to 25 ms before 1.2 s.
+    fault = _first(events, "fault", "planner failed: SolverFailure: injected", 1.2 - PLAN_LATENCY)
     assert fault["time_s"] < 1.5 + 0.1
     assert neutral_within(events, fault["time_s"], fault["time_s"] + PERIOD + MARGIN)
     recovered = _first(events, "recovered", "planner", fault["time_s"])
     assert recovered["time_s"] >= 1.5 - 0.05  # not before the failure window ends
 
 
+def _box_neutral_on(events, reason, injected):
+    """The box's first failsafe after the injection: for `reason`, in time, and applied by the simulator."""
+    failsafe = _first(events, "box_failsafe", "", injected["time_s"])
+    # Mechanism: the box reacted to the fault itself, not to 100 ms of silence after it.
+    assert failsafe["text"].startswith(f"{reason}:"), failsafe
+    assert failsafe["time_s"] - injected["time_s"] <= PERIOD + MARGIN
+    # The simulated cars follow the box's output from that instant (1 ms physics grid).
+    assert neutral_within(events, injected["time_s"], failsafe["time_s"] + 2 * PHYSICS_DT)
+    return failsafe
+
+
 def test_corrupt_serial_stream(fault_race):
     events = fault_race[1]["events"]
     on = _first(events, "fault_injected", "serial_corrupt on", 2.2)
+    off = _first(events, "fault_injected", "serial_corrupt off", 2.6)
+    # Neutral on the first damaged bytes (the link's next frame after the injection, <= 8.3 ms at 120 Hz).
+    failsafe = _box_neutral_on(events, "corrupt", on)
+    # ... and no command reached the cars while the stream was corrupt.
+    assert not [e for e in events if e["kind"] == "cars_driving" and failsafe["time_s"] < e["time_s"] < off["time_s"]]
     rejected = _first(events, "serial_corrupt", "box rejected", on["time_s"])
-    failsafe = _first(events, "box_failsafe", "neutral", on["time_s"])
-    # The link is one-way: the box's own failsafe puts the cars to neutral 100 ms after the last valid frame.
-    assert failsafe["time_s"] - on["time_s"] <= FAILSAFE + MARGIN
-    assert neutral_within(events, on["time_s"], on["time_s"] + FAILSAFE + MARGIN)
     fault = _first(events, "fault", "serial stream corrupt", rejected["time_s"])
-    assert fault["time_s"] - rejected["time_s"] <= PERIOD + MARGIN  # the loop reacts once the box reports it
-    _first(events, "recovered", "serial", 2.6)
+    assert fault["time_s"] - rejected["time_s"] <= PERIOD + MARGIN  # the loop's hold, once the box reports it
+    _first(events, "recovered", "serial", off["time_s"])
 
 
 def test_markers_occluded_for_a_second(fault_race):
@@ -113,7 +132,8 @@ def test_markers_occluded_for_a_second(fault_race):
 def test_serial_device_vanishing(fault_race):
     events = fault_race[1]["events"]
     gone = _first(events, "fault_injected", "vanished", 5.2)
+    # The box sees the host hang up and goes neutral at once.
+    _box_neutral_on(events, "hangup", gone)
+    # The loop: the link's next write fails with EIO; the race stops with the event in the recording.
     fault = _first(events, "serial_fault", "serial link failed", gone["time_s"])
-    assert fault["time_s"] - gone["time_s"] <= PERIOD + MARGIN  # next write fails with EIO
-    # Nothing reaches the box any more: its failsafe makes the cars neutral.
-    assert neutral_within(events, gone["time_s"], gone["time_s"] + FAILSAFE + MARGIN)
+    assert fault["time_s"] - gone["time_s"] <= PERIOD + MARGIN

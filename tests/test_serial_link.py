@@ -196,7 +196,7 @@ def test_failsafe_neutral_after_sender_goes_silent(box, recorder, raw_writer):
     assert wait_until(lambda: box.stats.frames_received == 3)
     t_last = box.latest()[4].t_received
     assert wait_until(lambda: box.failsafe_active, timeout=2.0)
-    assert box.stats.failsafe_events == 1
+    assert box.stats.failsafe_events == 1 and box.failsafe_log()[0].reason == "timeout"
     t_failsafe, commands = recorder.snapshot()[-1]
     assert commands == {4: NEUTRAL}
     silence = t_failsafe - t_last
@@ -209,6 +209,106 @@ def test_failsafe_neutral_after_sender_goes_silent(box, recorder, raw_writer):
     os.write(raw_writer, encode_frame(0, {4: CarCommand(0.0, 0.1)}))
     assert wait_until(lambda: not box.failsafe_active)
     assert box.latest()[4].command.throttle == pytest.approx(0.1, abs=1e-4)
+
+
+def _frame_with_bad_crc(seq: int, commands) -> bytes:
+    frame = bytearray(encode_frame(seq, commands))
+    frame[-1] ^= 0x01  # CRC-16 detects every single-bit error
+    return bytes(frame)
+
+
+def test_corrupt_frame_makes_every_car_neutral_at_once_until_the_next_valid_frame(box, recorder, raw_writer):
+    driving = {4: CarCommand(0.3, 0.8), 5: CarCommand(-0.2, 0.6)}
+    os.write(raw_writer, encode_frame(100, driving))
+    assert wait_until(lambda: box.stats.frames_received == 1)
+    t_valid = box.latest()[4].t_received
+    os.write(raw_writer, _frame_with_bad_crc(101, driving))
+    assert wait_until(lambda: box.failsafe_active, timeout=1.0)
+    [event] = box.failsafe_log()
+    # Neutral on the read that carried the corrupt frame: the 100 ms silence timer cannot have run out
+    # (the box stamps the read; it is after the valid frame and before the timeout would have fired).
+    assert event.reason == "corrupt" and event.last_valid_t == t_valid
+    assert t_valid < event.t < t_valid + 0.1
+    t_neutral, commands = recorder.snapshot()[-1]
+    assert t_neutral == event.t and commands == {4: NEUTRAL, 5: NEUTRAL}
+    assert box.commands_at(event.t) == {4: NEUTRAL, 5: NEUTRAL}
+    assert box.commands_at(event.t - 1e-6)[4].throttle == pytest.approx(0.8, abs=1e-4)  # frame in effect before
+    stats = box.stats
+    assert stats.decoder.bad_crc == 1 and stats.failsafe_by_reason == {
+        "timeout": 0, "corrupt": 1, "hangup": 0, "read_error": 0}
+    # More damage while neutral is not a new failsafe event.
+    os.write(raw_writer, bytes(range(0x10, 0x30)))
+    assert wait_until(lambda: box.stats.line_errors == 2)
+    assert box.stats.failsafe_events == 1
+    # The next valid frame (the sequence continues: a corrupt stream does not reset it) resumes commands.
+    os.write(raw_writer, encode_frame(102, {4: CarCommand(0.0, 0.1)}))
+    assert wait_until(lambda: not box.failsafe_active)
+    t_resumed = box.latest()[4].t_received
+    assert box.commands_at(t_resumed) == {4: CarCommand(0.0, pytest.approx(0.1, abs=1e-4)), 5: NEUTRAL}
+
+
+def test_damage_after_the_last_valid_frame_of_a_read_wins(box, recorder, raw_writer):
+    """Within one read the order of the bytes decides: valid-then-damaged is neutral,
+    damaged-then-valid is the valid frame's commands."""
+    go = {1: CarCommand(0.0, 0.5)}
+    os.write(raw_writer, _frame_with_bad_crc(10, go) + encode_frame(11, go))
+    assert wait_until(lambda: box.stats.frames_received == 1)
+    assert not box.failsafe_active and box.stats.failsafe_events == 0
+    os.write(raw_writer, encode_frame(12, go) + b"\x00\x13\x37")  # stray bytes after the frame
+    assert wait_until(lambda: box.stats.frames_received == 2)
+    assert wait_until(lambda: box.failsafe_active, timeout=1.0)
+    [event] = box.failsafe_log()
+    assert event.reason == "corrupt" and event.t == event.last_valid_t  # same read
+    assert box.commands_at(event.t) == {1: NEUTRAL}
+
+
+def test_stale_frames_are_not_a_corrupt_stream(box, raw_writer):
+    go = {1: CarCommand(0.0, 0.5)}
+    os.write(raw_writer, encode_frame(20, go))
+    assert wait_until(lambda: box.stats.frames_received == 1)
+    os.write(raw_writer, encode_frame(20, go) + encode_frame(19, go))  # duplicate, out of order
+    assert wait_until(lambda: box.stats.decoder.stale == 2)
+    assert box.stats.failsafe_events == 0 and box.stats.line_errors == 0
+
+
+def test_host_hanging_up_makes_every_car_neutral_at_once(box, recorder):
+    fd = os.open(box.path, os.O_WRONLY | os.O_NOCTTY)
+    os.write(fd, encode_frame(7, {2: CarCommand(0.1, 0.9)}))
+    assert wait_until(lambda: box.stats.frames_received == 1)
+    t_valid = box.latest()[2].t_received
+    t_closed = time.monotonic()
+    os.close(fd)  # the only writer: the host closed the port (USB unplugged, process gone)
+    assert wait_until(lambda: box.failsafe_active, timeout=1.0)
+    [event] = box.failsafe_log()
+    assert event.reason == "hangup" and event.last_valid_t == t_valid
+    assert t_closed <= event.t < t_valid + 0.1  # before the silence timer could have fired
+    assert box.commands_at(event.t) == {2: NEUTRAL} and recorder.snapshot()[-1] == (event.t, {2: NEUTRAL})
+    assert box.stats.hangups == 1
+    # A new host (sequence back at 0) is accepted at once, and its hang-up is seen again.
+    fd = os.open(box.path, os.O_WRONLY | os.O_NOCTTY)
+    os.write(fd, encode_frame(0, {2: CarCommand(0.0, 0.2)}))
+    assert wait_until(lambda: not box.failsafe_active)
+    os.close(fd)
+    assert wait_until(lambda: box.stats.hangups == 2 and box.failsafe_active, timeout=1.0)
+    assert box.stats.failsafe_by_reason["hangup"] == 2 and box.stats.failsafe_by_reason["timeout"] == 0
+
+
+def test_link_process_dying_is_a_hang_up_not_a_timeout(box, tmp_path):
+    script = tmp_path / "child.py"
+    script.write_text(CHILD_SCRIPT)
+    child = subprocess.Popen([sys.executable, str(script), str(REPO_ROOT), box.path, "wait"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_until(lambda: box.latest().get(1) and box.latest()[1].command.throttle > 0.5, timeout=10)
+        child.kill()  # SIGKILL: no neutral frame, no stop(); the kernel closes the device
+        child.wait(timeout=10)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert wait_until(lambda: box.failsafe_active, timeout=1.0)
+    event = box.failsafe_log()[-1]
+    assert event.reason == "hangup" and event.t - event.last_valid_t < 0.1
 
 
 def test_link_stopping_without_neutral_is_caught_by_failsafe(box):

@@ -1,9 +1,15 @@
-"""Hardware-in-the-loop world: the simulator, the virtual transmitter box and the synthetic camera in
-their own process, running in real time.
+"""Hardware-in-the-loop world: the simulator and the synthetic camera in their own process, the virtual
+transmitter box in another, running in real time.
 
 * The box (``vehicles.virtual_box.VirtualCarBox``) sits behind a :class:`SerialRelay` pty that the
   race loop's ``SerialCarLink`` opens like a USB serial port; the relay forwards the bytes and can
-  corrupt them or vanish (fault injection).
+  corrupt them or vanish (fault injection). Box and relay run in their own process (:func:`box_main`),
+  like the real box is its own hardware: in the world process their threads waited for the GIL behind
+  the physics and the renderer, read late, and frames queued up in the pty were stamped with one
+  receive time - a neutral frame followed by a driving one then had no duration at all.
+* The box process sends every change of its output (accepted frame or failsafe, with the box's
+  receive time) to the world process, which keeps a :class:`~vehicles.virtual_box.CommandHistory`
+  of it (:class:`BoxMirror`).
 * The simulator advances in 1 ms steps to each camera capture time with the commands the box had
   in effect at that moment (``commands_at``), so the loop's real latencies act on the cars.
 * Frames are rendered by ``tracking.SyntheticCamera`` at the camera rate and written to a shared
@@ -27,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from app.realtime.config import FaultSpec
+from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN
 
 CAR_NAMES = ("rd3g", "opponent")
 FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[2] / "tracking" / "data" / "oval_fixed_markers.json"}
@@ -55,8 +62,8 @@ class WorldSpec:
 
 class SerialRelay:
     """A pty pair between the link and the box: bytes written to ``path`` are forwarded to the box's
-    pty, with bit errors while ``corrupt`` is set. ``close()`` makes the device vanish (the link's
-    next write fails with EIO)."""
+    pty, with bit errors while ``corrupt`` is set. ``close()`` makes the device vanish: the link's
+    next write fails with EIO, and the box, whose only writer the relay is, sees the host hang up."""
 
     def __init__(self, downstream_path: str, seed: int = 0, byte_error_rate: float = 0.5) -> None:
         self._master, self._slave = os.openpty()
@@ -65,9 +72,13 @@ class SerialRelay:
         self._out = os.open(downstream_path, os.O_WRONLY | os.O_NOCTTY)
         self._rng = np.random.default_rng(seed)
         self.byte_error_rate = float(byte_error_rate)
+        # A two-car frame; a longer read means frames queued up while this thread was not running.
+        self.frame_len = HEADER_LEN + 2 * CAR_RECORD_LEN + CRC_LEN
         self.corrupt = False
         self.bytes_forwarded = 0
         self.bytes_corrupted = 0
+        self.reads = 0
+        self.coalesced_reads = 0  # reads that carried more than one frame's worth: this thread fell behind
         self._wake_r, self._wake_w = os.pipe()
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="SerialRelay", daemon=True)
@@ -84,6 +95,9 @@ class SerialRelay:
                 return
             if not data:
                 return
+            self.reads += 1
+            if len(data) > self.frame_len:
+                self.coalesced_reads += 1
             if self.corrupt:
                 hit = np.nonzero(self._rng.random(len(data)) < self.byte_error_rate)[0]
                 bits = self._rng.integers(0, 8, len(hit))
@@ -109,6 +123,131 @@ class SerialRelay:
                 pass
 
 
+FAILSAFE_CAUSES = {"corrupt": "corrupt serial stream", "hangup": "serial device closed by the host",
+                   "read_error": "serial read failed"}
+
+
+def failsafe_text(event) -> str:
+    """The `box_failsafe` event text, `REASON: cause (last valid frame X ms before) - box commands all
+    cars neutral`, REASON a vehicles.virtual_box.FailsafeReason (timeout, corrupt, hangup, read_error)."""
+    cause = event.detail if event.reason == "timeout" else FAILSAFE_CAUSES[event.reason]
+    since = ("no valid frame before" if event.last_valid_t is None
+             else f"last valid frame {1e3 * (event.t - event.last_valid_t):.1f} ms before")
+    return f"{event.reason}: {cause} ({since}) - box commands all cars neutral"
+
+
+def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float) -> None:
+    """Box-process entry point: VirtualCarBox behind a SerialRelay. Messages to the world:
+    ("ready", relay path), ("commands", t, {radio id: (steering, throttle)}), ("failsafe", FailsafeEvent),
+    ("line_errors", n), ("injected", kind, t), ("summary", info); from the world: ("corrupt", on),
+    ("vanish",), ("stop",). Times are time.monotonic() (shared by the processes of one machine)."""
+    import signal
+
+    from app.realtime.config import lower_realtime_priority
+    from vehicles.virtual_box import VirtualCarBox
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us
+    lower_realtime_priority(3)  # --rt-priority: hardware, above the world (5 below the loop)
+    send_lock = threading.Lock()  # the box's reader thread and this thread both send
+
+    def send(msg) -> None:
+        with send_lock:
+            try:
+                conn.send(msg)
+            except (BrokenPipeError, EOFError, OSError):
+                pass
+
+    box = VirtualCarBox(
+        failsafe_timeout=failsafe_timeout_s,
+        on_commands=lambda commands, t: send(("commands", t, {c: (v.steering, v.throttle) for c, v in commands.items()})),
+        on_failsafe=lambda event: send(("failsafe", event)))
+    relay = SerialRelay(box.path, seed=seed, byte_error_rate=byte_error_rate)
+    send(("ready", relay.path))
+    line_errors = 0
+    try:
+        while True:
+            if conn.poll(0.02):  # injections and the line-error count (for the loop's serial hold) are not urgent
+                msg = conn.recv()
+                if msg[0] == "corrupt":
+                    relay.corrupt = msg[1]
+                    send(("injected", "corrupt_on" if msg[1] else "corrupt_off", time.monotonic()))
+                elif msg[0] == "vanish":
+                    t = time.monotonic()
+                    relay.close()
+                    send(("injected", "vanish", t))
+                elif msg[0] == "stop":
+                    break
+            stats = box.stats
+            if stats.line_errors != line_errors:
+                line_errors = stats.line_errors
+                send(("line_errors", line_errors))
+    except (EOFError, OSError):
+        pass
+    finally:
+        relay.close()
+        box.close()
+    stats = box.stats
+    send(("summary", {"frames_received": stats.frames_received, "failsafe_events": stats.failsafe_by_reason,
+                      "corrupt": stats.decoder.corrupt, "truncated": stats.decoder.truncated,
+                      "line_errors": stats.line_errors, "coalesced_reads": stats.coalesced_reads,
+                      "relay_reads": relay.reads, "relay_coalesced_reads": relay.coalesced_reads}))
+
+
+class BoxMirror:
+    """World-process view of the box process: its output history (``commands_at``), failsafe events
+    and counters, from the messages of :func:`box_main`. ``pump()`` reads what has arrived."""
+
+    def __init__(self, conn, failsafe_timeout_s: float) -> None:
+        from vehicles.virtual_box import CommandHistory
+
+        self.conn = conn
+        self.history = CommandHistory(failsafe_timeout_s)
+        self.line_errors = 0
+        self.failsafe_log: list = []          # vehicles.virtual_box.FailsafeEvent
+        self.injected: list[tuple[str, float]] = []  # (kind, box time) not yet taken
+        self.path: str | None = None
+        self.summary: dict | None = None
+
+    def pump(self, timeout: float = 0.0) -> None:
+        from vehicles.protocol import CarCommand
+
+        while self.conn.poll(timeout):
+            timeout = 0.0
+            msg = self.conn.recv()
+            kind = msg[0]
+            if kind == "commands":
+                self.history.append(msg[1], {c: CarCommand(s, th) for c, (s, th) in msg[2].items()})
+            elif kind == "failsafe":
+                self.failsafe_log.append(msg[1])
+            elif kind == "line_errors":
+                self.line_errors = msg[1]
+            elif kind == "injected":
+                self.injected.append((msg[1], msg[2]))
+            elif kind == "ready":
+                self.path = msg[1]
+            elif kind == "summary":
+                self.summary = msg[1]
+
+    def commands_at(self, t: float):
+        return self.history.commands_at(t)
+
+    def send(self, *msg) -> None:
+        try:
+            self.conn.send(msg)
+        except (BrokenPipeError, EOFError, OSError):
+            pass
+
+    def stop(self, timeout: float = 5.0) -> dict | None:
+        self.send("stop")
+        deadline = time.monotonic() + timeout
+        while self.summary is None and time.monotonic() < deadline:
+            try:
+                self.pump(min(0.1, max(0.0, deadline - time.monotonic())))
+            except (EOFError, OSError):
+                break
+        return self.summary
+
+
 def make_camera(spec: WorldSpec):
     """The synthetic overhead camera of the track's arena (and its fixed markers, if the track has a
     fixed-marker file)."""
@@ -128,7 +267,7 @@ def make_camera(spec: WorldSpec):
     return synth, camera, fixed_path, appearance
 
 
-def world_main(spec: WorldSpec, conn, shm_name: str) -> None:
+def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
     """Child-process entry point. Messages to the parent: ("ready", info), ("frame", info),
     ("summary", info); from the parent: ("go", t_go), ("stop",)."""
     import signal
@@ -142,7 +281,7 @@ def world_main(spec: WorldSpec, conn, shm_name: str) -> None:
 
     sys.setswitchinterval(0.001)  # physics, renderer and box threads share the GIL at a fine grain
     try:
-        _World(spec, conn, shared_memory.SharedMemory(name=shm_name)).run()
+        _World(spec, conn, shared_memory.SharedMemory(name=shm_name), box_conn).run()
     except Exception as exc:  # report, so the parent can stop the race with a clear message
         import traceback
 
@@ -150,12 +289,10 @@ def world_main(spec: WorldSpec, conn, shm_name: str) -> None:
 
 
 class _World:
-    def __init__(self, spec: WorldSpec, conn, shm) -> None:
+    def __init__(self, spec: WorldSpec, conn, shm, box_conn) -> None:
         from app.race_runner import fault_of, footprint_gap
         from sim import Simulator
         from tracking.camera import CarPose
-        from vehicles.virtual_box import VirtualCarBox
-
         self.spec, self.conn, self.shm = spec, conn, shm
         self.CarPose, self.fault_of, self.footprint_gap = CarPose, fault_of, footprint_gap
         w, h = spec.image_size
@@ -163,8 +300,11 @@ class _World:
         self.sim = Simulator(spec.track, [spec.car, spec.car], seed=spec.seed, physics_dt=spec.physics_dt_s,
                              laps_to_win=spec.laps, check_dt=spec.check_dt_s)
         self.sim.reset(np.asarray(spec.start_states, dtype=float))
-        self.box = VirtualCarBox(failsafe_timeout=spec.failsafe_timeout_s)
-        self.relay = SerialRelay(self.box.path, seed=spec.seed, byte_error_rate=spec.corrupt_byte_rate)
+        self.box = BoxMirror(box_conn, spec.failsafe_timeout_s)
+        while self.box.path is None:
+            if not box_conn.poll(30.0):
+                raise RuntimeError("the virtual box process did not start")
+            self.box.pump()
         self.synth, self.camera, self.fixed_path, self.appearance = make_camera(spec)
         self.max_steer = spec.car.actuators.max_steering_rad
         self.events: list[tuple] = []      # (race time, kind, text) not yet sent
@@ -176,12 +316,8 @@ class _World:
         self.rendered = 0
         self._fault_state: dict[int, bool] = {}
         self._last_corrupt = 0
-        self._last_failsafe = 0
-        # Under --rt-priority the box and relay threads (created above) emulate hardware and must
-        # preempt the physics and the renderer, which therefore run 2 levels lower.
-        from app.realtime.config import lower_realtime_priority
-
-        lower_realtime_priority(2)
+        self._failsafe_seen = 0
+        self.t_go: float | None = None
         # Rendering runs in its own thread: OpenCV releases the GIL, so it overlaps the physics.
         self._render_cv = threading.Condition()
         self._pending: dict | None = None
@@ -214,11 +350,11 @@ class _World:
     def _snapshot(self, index: int, t_cap: float, t_race: float | None) -> None:
         """Hand the current world state to the render thread; an unrendered older one is dropped
         (its events move to this one)."""
-        box = self.box.stats
+        box = self.box
         status = self.sim.race_status()
         snap = {"index": index, "slot": index % self.spec.slots, "t_capture": t_cap, "t_race": t_race,
-                "truth": self.sim.states, "dropped": 0, "box_frames": box.frames_received,
-                "box_corrupt": box.decoder.corrupt, "box_failsafe_events": box.failsafe_events,
+                "truth": self.sim.states, "dropped": 0,
+                "box_corrupt": box.line_errors, "box_failsafe_events": len(box.failsafe_log),
                 "winner": None if status.winner is None else CAR_NAMES[status.winner]}
         with self._render_cv:
             events, self.events = self.events, []
@@ -252,17 +388,17 @@ class _World:
             self.conn.send(("frame", snap))
 
     def _apply_faults(self, t_race: float) -> None:
+        """Faults due by race time ``t_race``. Serial faults are injected by the box process, which
+        reports the moment (box clock, the time base of its failsafe events); see _box_events."""
         for n, f in enumerate(self.spec.faults):
             if f.kind == "serial_corrupt":
                 on = f.active(t_race)
                 if on != self._fault_state.get(n, False):
-                    self.relay.corrupt = on
-                    self.events.append((t_race, "fault_injected", f"serial_corrupt {'on' if on else 'off'}"))
+                    self.box.send("corrupt", on)
                 self._fault_state[n] = on
             elif f.kind == "serial_vanish" and t_race >= f.start_s and not self._fault_state.get(n):
                 self._fault_state[n] = True
-                self.relay.close()
-                self.events.append((t_race, "fault_injected", "serial device vanished"))
+                self.box.send("vanish")
             elif f.kind == "occlude":
                 on = f.active(t_race)
                 if on != self._fault_state.get(n, False):
@@ -271,14 +407,21 @@ class _World:
                 self._fault_state[n] = on
 
     def _box_events(self, t_race: float) -> None:
-        box = self.box.stats
-        if box.decoder.corrupt > self._last_corrupt:
+        box = self.box
+        box.pump()
+        for kind, t in box.injected:
+            text = {"corrupt_on": "serial_corrupt on", "corrupt_off": "serial_corrupt off",
+                    "vanish": "serial device vanished"}[kind]
+            self.events.append((t - self.t_go, "fault_injected", text))
+        box.injected.clear()
+        if box.line_errors > self._last_corrupt:
             self.events.append((t_race, "serial_corrupt",
-                                f"box rejected {box.decoder.corrupt - self._last_corrupt} corrupt frame(s)"))
-            self._last_corrupt = box.decoder.corrupt
-        if box.failsafe_events > self._last_failsafe:
-            self.events.append((t_race, "box_failsafe", "no valid frame for 100 ms: box commands all cars neutral"))
-            self._last_failsafe = box.failsafe_events
+                                f"box rejected damaged bytes in {box.line_errors - self._last_corrupt} read(s)"))
+            self._last_corrupt = box.line_errors
+        for ev in box.failsafe_log[self._failsafe_seen:]:
+            # At the box's own time: the failsafe acts between the simulator's frames.
+            self.events.append((ev.t - self.t_go, "box_failsafe", failsafe_text(ev)))
+        self._failsafe_seen = len(box.failsafe_log)
 
     def _advance(self, t_go: float, target: float) -> None:
         dt = self.spec.physics_dt_s
@@ -304,7 +447,7 @@ class _World:
     def run(self) -> None:
         spec = self.spec
         period = 1.0 / spec.fps
-        self.conn.send(("ready", {"serial_path": self.relay.path, "camera": self.camera,
+        self.conn.send(("ready", {"serial_path": self.box.path, "camera": self.camera,
                                   "fixed_markers": str(self.fixed_path) if self.fixed_path else None,
                                   "marker_size_m": self.appearance.marker_size_m,
                                   "marker_height_m": self.appearance.roof_height_m}))
@@ -316,7 +459,7 @@ class _World:
             while self.conn.poll():
                 msg = self.conn.recv()
                 if msg[0] == "go":
-                    t_go = msg[1]
+                    t_go = self.t_go = msg[1]
                 elif msg[0] == "stop":
                     return self._finish()
             now = time.monotonic()
@@ -338,6 +481,7 @@ class _World:
                 time.sleep(t_target - now)
             sim_target = round(k * period / spec.physics_dt_s) * spec.physics_dt_s
             self._apply_faults(sim_target)
+            self.box.pump()  # everything the box did until now, before the physics catches up to now
             self._advance(t_go, sim_target)
             self._box_events(self.sim.time)
             self.min_gap = min(self.min_gap, self.footprint_gap(self.sim.states, spec.car))
@@ -351,7 +495,9 @@ class _World:
             self._render_cv.notify()
         self._render_thread.join(timeout=2.0)
         status = self.sim.race_status()
-        box = self.box.stats
+        box_summary = self.box.stop()
+        if self.t_go is not None:
+            self._box_events(self.sim.time)  # failsafe events of the last moments (e.g. the final hang-up)
         summary = {
             "winner": None if status.winner is None else CAR_NAMES[status.winner],
             "lap_times_s": {name: list(status.lap_times[i]) for i, name in enumerate(CAR_NAMES)},
@@ -359,12 +505,9 @@ class _World:
             "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)},
             "frames_rendered": self.rendered, "frames_dropped": self.dropped,
             "render_ms": np.array(self.render_ms, dtype=np.float32),
-            "box": {"frames_received": box.frames_received, "failsafe_events": box.failsafe_events,
-                    "corrupt": box.decoder.corrupt, "truncated": box.decoder.truncated},
+            "box": box_summary,
             "events": (self._pending["events"] if self._pending else []) + self.events,
         }
-        self.relay.close()
-        self.box.close()
         self.conn.send(("summary", summary))
         self.shm.close()
 
@@ -399,9 +542,15 @@ class HilWorld:
         self.frames = np.ndarray((spec.slots, h, w), dtype=np.uint8, buffer=self.shm.buf)
         ctx = mp.get_context("spawn")  # no fork of a process with threads (rerun, serial link)
         self.conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=world_main, args=(spec, child, self.shm.name), name="hil-world", daemon=True)
+        box_world_end, box_end = ctx.Pipe()  # the world talks to the box directly
+        self.box_process = ctx.Process(target=box_main, name="hil-box", daemon=True,
+                                       args=(box_end, spec.failsafe_timeout_s, spec.seed, spec.corrupt_byte_rate))
+        self.box_process.start()
+        self.process = ctx.Process(target=world_main, args=(spec, child, self.shm.name, box_world_end),
+                                   name="hil-world", daemon=True)
         self.process.start()
-        child.close()
+        for end in (child, box_world_end, box_end):
+            end.close()
         self.summary: dict | None = None
         self._closed = False
         try:
@@ -464,10 +613,11 @@ class HilWorld:
                     break
         except (BrokenPipeError, EOFError, OSError):
             pass
-        self.process.join(timeout=5.0)
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join(timeout=2.0)
+        for process in (self.process, self.box_process):
+            process.join(timeout=5.0)
+            if process.is_alive():
+                process.terminate()
+                process.join(timeout=2.0)
         self.conn.close()
         self.shm.close()
         self.shm.unlink()

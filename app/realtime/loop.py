@@ -125,6 +125,7 @@ class LoopOutcome:
     control_period_ms: float = 0.0
     recording: str | None = None
     load_average: tuple | None = None
+    box: dict | None = None                      # HIL: virtual box and relay counters (diagnostics)
 
     def summary(self) -> dict:
         """The `race --hil/--camera --json` record: the simulated race's keys plus loop statistics."""
@@ -156,6 +157,7 @@ class LoopOutcome:
             "detection_error_mm_median": pct(self.detection_error_mm, 50),
             "events": kinds, "recording": self.recording,
             "load_average": list(self.load_average) if self.load_average else None,
+            "box": self.box,
         }
 
 
@@ -629,6 +631,7 @@ class RaceLoop:
             out.race_time_s = summary["race_time_s"]
             out.frames_dropped = summary["frames_dropped"]
             out.render_ms = np.asarray(summary["render_ms"], dtype=float)
+            out.box = summary.get("box")
         else:
             out.winner = self.winner_seen
             out.race_time_s = self.race_time() if self.t_go else 0.0
