@@ -176,6 +176,7 @@ def run_closed_loop_command(args) -> int:
             return
         lap = "-" if m.rd3g_lap_time_s is None else f"{m.rd3g_lap_time_s:.3f} s"
         print(f"  seed {m.seed:3d} {m.variant:9s} winner {m.winner or '-':8s} RD3G lap {lap:8s} "
+              f"progress {m.rd3g_progress_speed_mps:.3f} m/s "
               f"collisions {m.collisions} off-track {m.rd3g_off_track}", flush=True)
 
     races = run_closed_loop(cars["--car-params"], cars["--corrected"], effects, seeds, race,
@@ -197,6 +198,7 @@ def run_closed_loop_command(args) -> int:
             "race": dataclasses.asdict(race), "planner_car": PLANNER_CAR,
             "summary": {k: v.json_dict() for k, v in summary.items()},
             "races": [{"variant": m.variant, "seed": m.seed, "winner": m.winner, "rd3g_lap_time_s": m.rd3g_lap_time_s,
+                       "rd3g_progress_speed_mps": None if m.error else m.rd3g_progress_speed_mps,
                        "race_time_s": None if m.error else m.race_time_s, "collisions": m.collisions, "rd3g_at_fault": m.rd3g_at_fault,
                        "rd3g_off_track": m.rd3g_off_track, "fallbacks": m.fallbacks, "error": m.error,
                        "one_step_rmse_m": rms(m.one_step_errors_m), "horizon_rmse_m": rms(m.horizon_errors_m)}
@@ -205,5 +207,5 @@ def run_closed_loop_command(args) -> int:
         out.write_text(json.dumps(record, indent=2) + "\n")
         print(f"wrote {out}")
     if args.plot:
-        print(f"wrote {plot(races, summary, f'{args.effects}: nominal vs corrected ({Path(args.corrected).name})', Path(args.plot))}")
+        print(f"wrote {plot(races, summary, f'{args.effects}: nominal vs corrected ({Path(args.corrected).name})', Path(args.plot), cfg.plan_dt_s)}")
     return 0
