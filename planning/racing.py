@@ -28,6 +28,11 @@ from .frenet import EPSI, EY, S, V, FrenetTrackModel
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
 _COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=30, rho_init=0.01)
+# Smallest collision distance a relaxed problem gets (m). The solver rejects d_min <= 0, which the
+# relaxation below produced when the cars were within 1 cm (they pass through each other in the
+# simulator after a contact); below the floor the k = 1 constraint may be infeasible, and then the
+# usual fallback applies.
+_MIN_COLLISION_DISTANCE_M = 0.01
 
 
 @dataclass
@@ -128,7 +133,7 @@ class _RecedingHorizon:
         towards the centre line over the horizon, if that exceeds the nominal bound (the lateral cost
         then pulls the car back); distance: at most the current separation and the one at k = 1 with
         zero controls, minus 1 cm (the bound gets 3 cm of room: with 1-2 cm the solves from such states
-        stalled)."""
+        stalled), but never below _MIN_COLLISION_DISTANCE_M."""
         c = self.config
         model = self.tm.rollout_model(c.plan_dt_s)
         first = []
@@ -149,7 +154,7 @@ class _RecedingHorizon:
             for j in range(i + 1, len(positions)):
                 d = float(np.min(np.hypot(*(positions[i] - positions[j]).T)))
                 d_min = min(d_min, d - 0.01)
-        return ey_bound, max(d_min, 0.0)
+        return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M)
 
     def _rollout(self, problem: GameProblem, u: np.ndarray) -> np.ndarray:
         model = self.tm.rollout_model(self.config.plan_dt_s)

@@ -180,3 +180,43 @@ def test_fallback_tracking_law_returns_car_to_reference(track, car):
         worst = max(worst, abs(x[1]))
     assert abs(x[1]) < 0.02 and abs(x[2] - 1.5) < 0.05
     assert worst < 0.3 - 0.5 * car.geometry.footprint_width_m  # never beyond the track edge
+
+
+# Opponent and RD3G states when the MPC planner raised "obstacles[0].min_distance must be positive"
+# (race --sim-effects steering_offset=0.03 --laps 3 --seed 7, RD3G starting behind): RD3G drives
+# through the MPC car in the first turn. [s, ey, v, epsi]
+NEAR_CONTACT_OPPONENT = np.array([3.0027485668315466, 0.15839205376558818, 1.769247594076911, 0.09523797309035631])
+NEAR_CONTACT_RD3G = np.array([3.018380351417357, 0.18394907570690244, 1.9468386212604551, 0.05058543670888227])
+# Two cars overlapping on the top straight, 5 mm apart at the same speed and heading.
+OVERLAP_A, OVERLAP_B = np.array([4.5, 0.02, 1.8, 0.0]), np.array([4.505, 0.02, 1.8, 0.0])
+
+
+@pytest.mark.parametrize("warm", [False, True])
+@pytest.mark.parametrize("which, x_self, x_other", [
+    ("mpc", NEAR_CONTACT_OPPONENT, NEAR_CONTACT_RD3G), ("mpc", OVERLAP_A, OVERLAP_B), ("rd3g", OVERLAP_A, OVERLAP_B)])
+def test_near_contact_state_gives_a_valid_problem(track, car, which, x_self, x_other, warm):
+    """Cars within 1 cm at the first planned step: the relaxed collision distance stays positive (the
+    solver rejects 0) and the planner returns a usable control instead of raising."""
+    if which == "mpc":
+        p = _planner(MPCOpponent, track, car, config={"top_speed_mps": 1.8})
+    else:
+        p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.8)
+    dt = p.config.plan_dt_s
+    # Premise: the first planned positions (s, ey) with zero controls are less than 1 cm apart. The
+    # other car moves as the planner predicts it: the MPC at constant speed along the track at its
+    # offset, RD3G with the planning model.
+    own_k1 = np.asarray(p.tm.rollout_model(dt).rollout(x_self, np.zeros((1, 2))))[1, :2]
+    if which == "mpc":
+        other_k1 = np.array([x_other[0] + x_other[2] * dt, x_other[1]])
+    else:
+        other_k1 = np.asarray(p.tm.rollout_model(dt).rollout(x_other, np.zeros((1, 2))))[1, :2]
+    assert np.hypot(*(own_k1 - other_k1)) < 0.01
+    if warm:  # a previous plan from 0.2 s earlier, as in the race
+        p.plan(x_self - [0.36, 0.0, 0.0, 0.0], x_other - [0.38, 0.0, 0.0, 0.0])
+    plan = p.plan(x_self, x_other)
+    assert plan.d_min > 0
+    assert plan.used in ("converged", "accepted", "fallback")
+    assert np.all(np.isfinite(plan.u)) and np.all(np.isfinite(plan.x))
+    a_lo, a_hi = p.mapper.acceleration_bounds(x_self[2])
+    assert a_lo - 1e-6 <= plan.control[0] <= a_hi + 1e-6
+    assert p.mapper.delta_min - 1e-6 <= plan.control[1] <= p.mapper.delta_max + 1e-6
