@@ -21,10 +21,10 @@ TIMING_KEYS = {"solve_ms_p50", "solve_ms_p99"}
 
 @pytest.fixture(scope="module")
 def cluster():
-    # Two single-threaded worker processes: the races really cross a process boundary (workers import
-    # the project themselves) and can finish out of submission order.
+    # Random ports (shared machine). Two single-threaded worker processes: the races really cross a
+    # process boundary (workers import the project themselves) and can finish out of submission order.
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None, scheduler_port=0) as c:
+                                  dashboard_address="127.0.0.1:0", scheduler_port=0) as c:
         yield c
 
 
@@ -67,6 +67,39 @@ def test_failing_race_on_worker_names_cell_and_seed(cluster, tmp_path):
         run_races(jobs)  # the local runner reports it the same way
 
 
+# Preload for a worker that does not have the project installed: `app` cannot be imported there.
+NO_PROJECT_PRELOAD = """
+import sys
+
+
+class _NoProject:
+    def find_spec(self, name, path=None, target=None):
+        if name == "app" or name.startswith("app."):
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+
+
+def dask_setup(worker):
+    for name in [m for m in sys.modules if m == "app" or m.startswith("app.")]:
+        del sys.modules[name]
+    sys.meta_path.insert(0, _NoProject())
+"""
+
+
+def test_worker_without_the_project_is_a_user_error(tmp_path):
+    """Dask would drop such a worker on the first task and wait for another forever; the batch checks
+    the import on every worker first and says what to install."""
+    preload = tmp_path / "no_project_preload.py"
+    preload.write_text(NO_PROJECT_PRELOAD)
+    args, _ = batch_args(tmp_path, "x")
+    jobs = [(args, ("front", "fast"), 0, 2.0, 1.6, False)]
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
+                                  scheduler_port=0, preload=[str(preload)]) as c:
+        with pytest.raises(UserError, match=r"1 of 1 workers cannot import the project .*ModuleNotFoundError.*"
+                                            r"pip install \.\[cluster\]"):
+            run_races(jobs, cluster=c.scheduler_address)
+
+
 def _closed_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -77,6 +110,24 @@ def test_unreachable_scheduler_is_a_user_error(tmp_path):
     address = f"tcp://127.0.0.1:{_closed_port()}"
     args, _ = batch_args(tmp_path, "x", "--cluster", address, "--cluster-timeout", "1")
     with pytest.raises(UserError, match=r"--cluster: no Dask scheduler answered at 'tcp://127\.0\.0\.1:\d+' within 1 s"):
+        args.func(args)
+
+
+def test_server_that_never_answers_times_out(tmp_path):
+    """A port that accepts connections but never speaks Dask (Dask's own timeout does not cover the
+    handshake, so without the batch's deadline this would block forever)."""
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()  # the kernel completes the TCP handshake; nobody ever reads or answers
+        address = f"tcp://127.0.0.1:{silent.getsockname()[1]}"
+        args, _ = batch_args(tmp_path, "x", "--cluster", address, "--cluster-timeout", "1")
+        with pytest.raises(UserError, match="no Dask scheduler answered .* within 1 s"):
+            args.func(args)
+
+
+def test_malformed_address_is_a_user_error(tmp_path):
+    args, _ = batch_args(tmp_path, "x", "--cluster", "scheduler-host")
+    with pytest.raises(UserError, match="'scheduler-host' is not a Dask address"):
         args.func(args)
 
 

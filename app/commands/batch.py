@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
+import pkgutil
 import uuid
 from pathlib import Path
 
@@ -124,19 +125,24 @@ def _run_on_cluster(jobs, address: str, timeout_s: float) -> list[dict]:
                         "pip install .[cluster]  (or pip install 'dask[distributed]')") from None
     from tqdm import tqdm
 
-    try:
-        client = Client(address, timeout=timeout_s, set_as_default=False)
-    except (OSError, TimeoutError, ValueError) as exc:  # nothing listening, timeout, malformed address
-        raise UserError(f"--cluster: no Dask scheduler answered at {address!r} within {timeout_s:g} s ({exc})") from None
-    except Exception as exc:  # something else answered, e.g. the dashboard's HTTP port (8787) instead of 8786
-        raise UserError(f"--cluster: {address!r} did not answer like a Dask scheduler ({type(exc).__name__}: {exc}); "
-                        "give the scheduler's address (tcp://HOST:8786 by default)") from None
+    _check_scheduler(address, timeout_s)
+    client = Client(address, timeout=timeout_s, set_as_default=False)
     with client:
         try:
             client.wait_for_workers(1, timeout=timeout_s)
         except TimeoutError:
             raise UserError(f"--cluster: the scheduler at {address!r} has no workers after {timeout_s:g} s; "
                             f"start some with `dask worker {address}`") from None
+        # A worker that cannot unpickle a task (project not installed) drops its connection and Dask then
+        # waits forever for another worker, so check the import on every worker first. resolve_name is
+        # stdlib, so this probe itself unpickles anywhere.
+        probe = client.run(pkgutil.resolve_name, f"{__name__}:_one.__name__", on_error="return")
+        broken = {w: r for w, r in probe.items() if isinstance(r, BaseException)}
+        if broken:
+            worker, exc = sorted(broken.items())[0]
+            raise UserError(f"--cluster: {len(broken)} of {len(probe)} workers cannot import the project "
+                            f"(e.g. {worker}: {type(exc).__name__}: {exc}); install it on every worker: "
+                            "pip install .[cluster]")
         batch = uuid.uuid4().hex[:8]  # unique keys: the scheduler must not reuse another batch's results
         index = {}
         for i, job in enumerate(jobs):
@@ -153,6 +159,42 @@ def _run_on_cluster(jobs, address: str, timeout_s: float) -> list[dict]:
                 client.cancel(list(index))
                 raise _failed(jobs[i], exc) from exc
     return records
+
+
+def _check_scheduler(address: str, timeout_s: float) -> None:
+    """UserError unless a Dask scheduler answers at `address` within `timeout_s`. Dask's own connect
+    timeout does not cover its handshake, so a server that accepts the connection but never answers
+    (e.g. the dashboard's HTTP port) would block the Client forever: ask for the scheduler's identity
+    under one hard deadline first."""
+    import asyncio
+
+    from distributed.comm import connect
+    from distributed.security import Security
+
+    async def identity():
+        # Security() reads Dask's configuration, as the Client does (TLS settings for tls:// addresses).
+        comm = await connect(address, timeout=timeout_s, **Security().get_connection_args("client"))
+        try:
+            await comm.write({"op": "identity", "n_workers": 0, "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    wrong_server = (f"--cluster: {address!r} did not answer like a Dask scheduler ({{}}); give the scheduler's "
+                    "address (tcp://HOST:8786 by default, not the dashboard's 8787)")
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), timeout_s))
+    except (TimeoutError, asyncio.TimeoutError):  # the same class from Python 3.11 on
+        raise UserError(f"--cluster: no Dask scheduler answered at {address!r} within {timeout_s:g} s") from None
+    except OSError as exc:  # nothing listening, connection dropped
+        raise UserError(f"--cluster: no Dask scheduler answered at {address!r} within {timeout_s:g} s ({exc})") from None
+    except ValueError as exc:
+        raise UserError(f"--cluster: {address!r} is not a Dask address such as tcp://HOST:8786 ({exc})") from None
+    except Exception as exc:  # something else answered with bytes Dask cannot decode
+        raise UserError(wrong_server.format(f"{type(exc).__name__}: {exc}")) from None
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        kind = reply.get("type") if isinstance(reply, dict) else type(reply).__name__
+        raise UserError(wrong_server.format(f"it is a {kind}"))
 
 
 def summarise(records, races: int) -> list[dict]:
