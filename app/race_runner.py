@@ -67,6 +67,13 @@ class CollisionRecord:
 
 
 @dataclass
+class PlannerErrorRecord:
+    time_s: float
+    car: str        # car name
+    message: str    # "ExceptionType: message"
+
+
+@dataclass
 class RaceOutcome:
     winner: str | None
     lap_times_s: dict[str, list[float]]
@@ -83,6 +90,7 @@ class RaceOutcome:
     trace_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 6)))  # (n, 2, 6) true states
     trace_progress: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))   # (n, 2) unwrapped s (m)
     prestart_ms: float = 0.0        # RD3G's first (cold) plan, computed on the grid before the start
+    planner_errors: list[PlannerErrorRecord] = field(default_factory=list)  # steps whose planning raised (either car)
 
     @property
     def clean_winner(self) -> str | None:
@@ -99,7 +107,8 @@ class RaceOutcome:
                 "min_gap_m": self.min_gap_m, "collisions": len(self.collisions),
                 "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in self.collisions), "off_track": self.off_track,
                 "fallbacks": self.fallbacks, "solve_ms_p50": p[0], "solve_ms_p99": p[1],
-                "prestart_ms": self.prestart_ms, "control_period_ms": self.control_period_ms}
+                "prestart_ms": self.prestart_ms, "control_period_ms": self.control_period_ms,
+                "planner_errors": len(self.planner_errors)}
 
 
 def _percentiles(ms: np.ndarray) -> tuple[float | None, float | None]:
@@ -216,12 +225,27 @@ def _make_planner(cls, setup: RaceSetup, top: float, **kw):
 
 
 def _plan_and_command(planner, own_state, other_state):
-    """Plan from the own state predicted over the actuation delay; returns (plan, [throttle, steering], wall ms)."""
+    """Plan from the own state predicted over the actuation delay; returns (plan, [throttle, steering], wall ms).
+    A race never stops on a planner exception (an invalid problem, a solver error): that step gets the
+    planner's fallback plan (closed-loop tracking of the previous plan, or neutral before the first
+    one) with the exception in plan.error."""
     t0 = time.perf_counter()
-    x = planner.mapper.predict(planner.tm, own_state)
-    plan = planner.plan(x, other_state)
-    command = planner.mapper.commands(*plan.control, speed=float(x[V]))
+    x = np.asarray(own_state, dtype=float)
+    try:
+        x = planner.mapper.predict(planner.tm, own_state)
+        plan = planner.plan(x, other_state)
+    except Exception as exc:  # noqa: BLE001 - any planner failure is one fallback step, logged by the caller
+        plan = planner.fallback_plan(x, other_state, f"{type(exc).__name__}: {exc}")
+    command = planner.mapper.commands(*plan.control, speed=float(x[V]) if math.isfinite(x[V]) else 0.0)
     return plan, command, 1e3 * (time.perf_counter() - t0)
+
+
+def _plan_or_fallback(planner, own_state, other_state):
+    """The cold plan before the start, with the same never-raise rule as _plan_and_command."""
+    try:
+        return planner.plan(own_state, other_state)
+    except Exception as exc:  # noqa: BLE001
+        return planner.fallback_plan(own_state, other_state, f"{type(exc).__name__}: {exc}")
 
 
 def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcome:
@@ -252,11 +276,19 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcom
     # real-time budget and reported separately. Each step's plan is then warm-started.
     fs0 = np.array([frenet_state(track, x0[i]) for i in range(2)])
     fs0[:, S] = unwrap.s
+    planner_errors = []
+
+    def note_error(name: str, plan, t: float) -> None:
+        if plan.error is not None:
+            planner_errors.append(PlannerErrorRecord(t, name, plan.error))
+            if tel:
+                tel.event(t, f"planner_error: {name}: {plan.error}")
+
     t0 = time.perf_counter()
-    ours.plan(fs0[0], fs0[1])
+    note_error("rd3g", _plan_or_fallback(ours, fs0[0], fs0[1]), 0.0)
     prestart_ms = 1e3 * (time.perf_counter() - t0)
     if theirs is not None:
-        theirs.plan(fs0[1], fs0[0])
+        note_error("opponent", _plan_or_fallback(theirs, fs0[1], fs0[0]), 0.0)
     n_steps = int(math.ceil(setup.max_time_s / period))
     k = 0
     for k in range(n_steps):
@@ -272,9 +304,11 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcom
         solve_ms.append(ms["rd3g"])
         fallbacks += plan.used == "fallback"
         plans["rd3g"] = plan
+        note_error("rd3g", plan, sim.time)
         if theirs is not None:
             plans["opponent"], commands[1], ms["opponent"] = _plan_and_command(theirs, fs[1], fs[0])
             opp_ms.append(ms["opponent"])
+            note_error("opponent", plans["opponent"], sim.time)
         else:
             commands[1] = pursuit.command(states[1], period)
         if tel:
@@ -300,4 +334,4 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcom
         control_period_ms=1e3 * period, race_time_s=sim.time, fallbacks=int(fallbacks),
         off_track={name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)}, start_states=x0,
         trace_t=np.array(trace_t), trace_states=np.array(trace_x), trace_progress=np.array(trace_s),
-        prestart_ms=prestart_ms)
+        prestart_ms=prestart_ms, planner_errors=planner_errors)

@@ -40,7 +40,8 @@ class Plan:
     """One planning step. x: (N, T+1, 4) planned (or predicted) trajectories, agent 0 = the planning
     car; u: (T, 2) the planning car's controls; `used` says whether the solve was used ("converged",
     "accepted": not converged but feasible within accept_violation_m) or not ("fallback": the car
-    tracks the previous plan in closed loop for this step, see tracking_control)."""
+    tracks the previous plan in closed loop for this step, see tracking_control). `error`: the
+    exception that stopped planning this step (see fallback_plan), else None."""
 
     x: np.ndarray
     u: np.ndarray
@@ -51,6 +52,7 @@ class Plan:
     used: str
     d_min: float
     ey_bound: float
+    error: str | None = None
 
     @property
     def control(self) -> np.ndarray:
@@ -156,6 +158,56 @@ class _RecedingHorizon:
                 d_min = min(d_min, d - 0.01)
         return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M)
 
+    def _track_previous(self, x0, ey_bound: float) -> np.ndarray:
+        """Controls (N, T, 2) of the previous plan shifted by one control period, the planning car's
+        first control replaced by the closed-loop tracking control towards that plan."""
+        u_all = self._shifted(self._prev.u)
+        x_ref = self._shifted(self._prev.x)[0, 0]
+        u_all[0, 0] = self.tracking_control(x0, x_ref, float(u_all[0, 0, 0]), ey_bound)
+        return u_all
+
+    def predict_other(self, x_other) -> np.ndarray:
+        """(T+1, 2) positions (s, ey) of the other car at constant speed and lateral offset."""
+        c = self.config
+        t = np.arange(c.horizon + 1) * c.plan_dt_s
+        return np.column_stack([x_other[S] + max(float(x_other[V]), 0.0) * t, np.full(t.shape, float(x_other[EY]))])
+
+    def _predicted_other_states(self, x_other) -> np.ndarray:
+        """(T+1, 4) states of the constant-speed prediction (heading error 0)."""
+        other = self.predict_other(x_other)
+        x = np.zeros((self.config.horizon + 1, 4))
+        x[:, S], x[:, EY], x[:, V] = other[:, 0], other[:, 1], max(float(x_other[V]), 0.0)
+        return x
+
+    def fallback_plan(self, x_self, x_other, error: str) -> Plan:
+        """The plan for a step whose planning raised (an invalid problem, a solver error): as for a
+        failed solve, the car tracks the previous plan in closed loop (tracking_control); before the
+        first plan, or from a non-finite state, it coasts straight (neutral: zero throttle and zero
+        steering command). The other car is shown at constant speed. Never raises for finite input;
+        the next step plans again, warm-started from this step's controls."""
+        c = self.config
+        x_self = np.asarray(x_self, dtype=float)
+        x_other = np.asarray(x_other, dtype=float)
+        finite = bool(np.all(np.isfinite(x_self)))
+        ey_bound = self.tm.ey_bound([x_self[S]]) if finite else math.nan
+        if self._prev is not None and finite:
+            u_all = self._track_previous(x_self, ey_bound)
+            u = u_all[0]
+            x_prev = self._shifted(self._prev.x)
+            x_prev[0] = np.asarray(self.tm.rollout_model(c.plan_dt_s).rollout(x_self, u))
+            self._prev = dataclasses.replace(self._prev, u=u_all, x=x_prev,
+                                             lam=None if self._prev.lam is None else self._shifted(self._prev.lam))
+        else:
+            v = float(x_self[V]) if math.isfinite(x_self[V]) else 0.0
+            neutral = [float(self.mapper.acceleration(0.0, v)), self.mapper.car.corrections.steering_offset_rad]
+            u = np.tile(neutral, (c.horizon, 1))
+        own = (np.asarray(self.tm.rollout_model(c.plan_dt_s).rollout(x_self, u)) if finite
+               else np.tile(x_self, (c.horizon + 1, 1)))
+        other = (self._predicted_other_states(x_other) if np.all(np.isfinite(x_other))
+                 else np.tile(x_other, (c.horizon + 1, 1)))
+        return Plan(x=np.stack([own, other]), u=np.asarray(u), status="error", iterations=0, solve_time_s=0.0,
+                    max_violation=math.nan, used="fallback", d_min=math.nan, ey_bound=ey_bound, error=error)
+
     def _rollout(self, problem: GameProblem, u: np.ndarray) -> np.ndarray:
         model = self.tm.rollout_model(self.config.plan_dt_s)
         return np.stack([np.asarray(model.rollout(np.asarray(a.x0, dtype=float), u[i]))
@@ -195,9 +247,7 @@ class _RecedingHorizon:
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
-                u_all = np.array(warm.u)
-                x_ref = self._shifted(self._prev.x)[0, 0]
-                u_all[0, 0] = self.tracking_control(problem.agents[0].x0, x_ref, float(warm.u[0, 0, 0]), ey_bound)
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound)
         x = self._rollout(problem, u_all)
         lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
         self._prev = dataclasses.replace(result, u=np.asarray(u_all), x=np.asarray(x), lam=np.asarray(lam))
@@ -235,13 +285,8 @@ class RacingPlanner(_RecedingHorizon):
 
 
 class MPCOpponent(_RecedingHorizon):
-    """Single-car MPC with the racing cost, avoiding a constant-speed prediction of the other car."""
-
-    def predict_other(self, x_other) -> np.ndarray:
-        """(T+1, 2) positions (s, ey) of the other car at constant speed and lateral offset."""
-        c = self.config
-        t = np.arange(c.horizon + 1) * c.plan_dt_s
-        return np.column_stack([x_other[S] + max(float(x_other[V]), 0.0) * t, np.full(t.shape, float(x_other[EY]))])
+    """Single-car MPC with the racing cost, avoiding a constant-speed prediction of the other car
+    (predict_other)."""
 
     def plan(self, x_self, x_other) -> Plan:
         c = self.config
@@ -259,8 +304,5 @@ class MPCOpponent(_RecedingHorizon):
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
                               obstacles=[Obstacle(positions=other, min_distance=d_min)])
         plan = self._finish(problem, d_min, ey_bound)
-        predicted = np.zeros((1, c.horizon + 1, 4))
-        predicted[0, :, S], predicted[0, :, EY] = other[:, 0], other[:, 1]
-        predicted[0, :, V] = max(float(x_other[V]), 0.0)
-        plan.x = np.concatenate([plan.x, predicted], axis=0)
+        plan.x = np.concatenate([plan.x, self._predicted_other_states(x_other)[None]], axis=0)
         return plan

@@ -38,7 +38,8 @@ def test_short_race_finishes_without_collision(race, track):
     assert o.trace_progress[-1].max() - o.trace_progress[0].max() > track.length - 0.5
     assert set(o.summary()) == {"winner", "clean_winner", "lap_times_s", "min_gap_m", "collisions", "rd3g_at_fault",
                                 "off_track", "fallbacks", "solve_ms_p50", "solve_ms_p99", "prestart_ms",
-                                "control_period_ms"}
+                                "control_period_ms", "planner_errors"}
+    assert o.planner_errors == [] and o.summary()["planner_errors"] == 0
 
 
 def test_race_is_deterministic(race):
@@ -114,3 +115,51 @@ def test_race_stays_on_track(race):
     setup, o = race
     assert o.off_track == {"rd3g": 0, "opponent": 0}
     assert o.clean_winner == o.winner
+
+
+def _raising_plan(monkeypatch, cls, calls_that_raise):
+    """Make cls.plan raise on the given call numbers (0 = the cold plan before the start)."""
+    original = cls.plan
+    n = {"calls": 0}
+
+    def plan(self, x_self, x_other):
+        k = n["calls"]
+        n["calls"] += 1
+        if k in calls_that_raise:
+            raise ValueError(f"injected planner failure {k}")
+        return original(self, x_self, x_other)
+
+    monkeypatch.setattr(cls, "plan", plan)
+
+
+def test_planner_exception_is_a_logged_fallback_not_a_crash(track, car, monkeypatch):
+    """Both planners raise: RD3G for its cold plan and the first 15 steps (0.5 s), the MPC for steps
+    30-39. The race goes on: before any plan the RD3G car gets neutral commands (zero throttle and
+    steering) and so stays where it started (at rest, the simulator's drive model gives no force at
+    zero throttle); later errors fall back to tracking the previous plan, so the MPC car keeps
+    driving on the track. Every failed step is recorded with car, time and message, and counted as
+    a fallback for RD3G."""
+    from planning import MPCOpponent, RacingPlanner
+
+    _raising_plan(monkeypatch, RacingPlanner, set(range(16)))
+    _raising_plan(monkeypatch, MPCOpponent, set(range(31, 41)))
+    setup = RaceSetup(track=track, car=car, seed=3, start="front", rd3g_top_speed_mps=2.0, opponent_top_speed_mps=1.6,
+                      max_time_s=2.0)
+    o = run_race(setup)
+    period = setup.control_period_s
+    rd3g = [e for e in o.planner_errors if e.car == "rd3g"]
+    mpc = [e for e in o.planner_errors if e.car == "opponent"]
+    assert [e.message for e in rd3g] == [f"ValueError: injected planner failure {k}" for k in range(16)]
+    assert [e.time_s for e in rd3g] == pytest.approx([0.0] + [k * period for k in range(15)], abs=1e-3)  # 1 ms physics steps
+    assert [e.time_s for e in mpc] == pytest.approx([k * period for k in range(30, 40)], abs=1e-3)
+    assert o.summary()["planner_errors"] == 26
+    assert o.fallbacks >= 15
+    # Neutral from rest: the RD3G car has not moved after 0.5 s of failed planning ...
+    k_end = 15
+    assert np.hypot(*(o.trace_states[k_end, 0, :2] - o.start_states[0, :2])) < 1e-3
+    # ... and drives off once planning works again (2 s race: well over 0.5 m of progress).
+    assert o.trace_progress[-1, 0] - o.trace_progress[0, 0] > 0.5
+    # The MPC car drives through its 10 failed steps at speed and stays on the track.
+    speeds = np.hypot(o.trace_states[30:41, 1, 3], o.trace_states[30:41, 1, 4])
+    assert np.all(speeds > 0.8)
+    assert o.off_track == {"rd3g": 0, "opponent": 0}

@@ -127,6 +127,10 @@ def run(args) -> int:
     print(f"RD3G planner (wall time per control step): p50 {s['solve_ms_p50']:.1f} ms, p99 {s['solve_ms_p99']:.1f} ms, "
           f"max {o.solve_ms.max():.1f} ms; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
           f"first (cold) plan before the start {s['prestart_ms']:.0f} ms")
+    if o.planner_errors:
+        first = o.planner_errors[0]
+        print(f"planner errors (those steps fell back, the race went on): {len(o.planner_errors)}; "
+              f"first: {first.car} at {first.time_s:.2f} s: {first.message}")
     print(f"telemetry: {out}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
