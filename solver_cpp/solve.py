@@ -76,6 +76,7 @@ class GameResult:
     line_search_time_s: float
     active_constraints: int
     symbolic_factorizations: int
+    attempts: int = 1  # 1 + restarts used
     constraints: list = field(repr=False, default_factory=list)
 
     @property
@@ -137,7 +138,7 @@ class Solver:
             residual_history=np.asarray(i.residual_history), solve_time_s=i.timings.total,
             assembly_time_s=i.timings.assembly, linear_solve_time_s=i.timings.linear_solve,
             line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
-            symbolic_factorizations=i.symbolic_factorizations, constraints=self._constraints)
+            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, constraints=self._constraints)
 
 
 def _to_core_warm(w: WarmStart, problem: GameProblem, n_constraints: int) -> _core.WarmStart:

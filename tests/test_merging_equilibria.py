@@ -134,3 +134,19 @@ def test_lscg_solution_is_an_equilibrium():
     assert result.status == "converged"
     for i in range(problem.num_agents):
         assert best_response_gap(problem, result.x, result.u, i, starts=2, perturbation=1e-3, seed=i) <= 1e-3
+
+
+
+def test_polish_rescues_a_stalled_merge():
+    # merging_problem(7, 12): the first attempt stalls with rho at its floor and 13 collision constraints
+    # within 1e-3 of contact inside the barrier. Without the polish all four restart variants stall too;
+    # holding those constraints as equalities converges in the first attempt.
+    problem = merging_problem(7, 12)
+    without = solve(problem, polish_gap=0.0, restarts=3)
+    assert without.status == "stalled"
+    result = solve(problem)
+    assert result.converged
+    assert result.attempts == 1
+    # The answer is checked independently of the solver: dynamics, collisions, per-player stationarity.
+    report = verify_equilibrium(problem, result.x, result.u, best_response_starts=0)
+    assert report.passed, report.failures

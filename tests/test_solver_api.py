@@ -107,6 +107,7 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"fraction_to_boundary": 0.0}, "solver.fraction_to_boundary"),  # accepted: line search fails
     ({"violation_tol": -1.0}, "solver.violation_tol"),  # accepted: can never converge
     ({"time_limit": -1.0}, "solver.time_limit"),  # accepted as "no limit"
+    ({"polish_gap": -1.0}, "solver.polish_gap"),
 ]
 
 

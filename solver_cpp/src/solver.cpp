@@ -80,6 +80,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   require(s.restarts >= 0, "solver.restarts must be >= 0");
   require(s.stall_window >= 0, "solver.stall_window must be >= 0 (0 = never)");
   require(s.restart_u_std >= 0, "solver.restart_u_std must be >= 0");
+  require(s.polish_gap >= 0, "solver.polish_gap must be >= 0 (0 = off)");
   require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
   prob_ = p;
   if (prob_.lead.empty()) prob_.lead.assign(N_, LeadCost{});
@@ -625,6 +626,20 @@ std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::ve
   return mu_col_;
 }
 
+bool Solver::polish(const Vec& h) {
+  bool any = false;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    if (state_[c] != ConstraintState::Barrier || h[c] < -settings_.polish_gap) continue;
+    state_[c] = ConstraintState::Active;
+    // The barrier dual (or -rho/h in the primal form) is the multiplier estimate.
+    const double mu = barrier_ == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h[c];
+    y_.mu[c] = y_.mu2[c] = mu;
+    y_.z[c] = 0;
+    any = true;
+  }
+  return any;
+}
+
 // -------------------------------------------------------------------------------------------------
 Result Solver::solve(const WarmStart* warm) {
   if (N_ == 0) throw std::logic_error("setup() must be called before solve()");
@@ -688,7 +703,7 @@ Result Solver::solve(const WarmStart* warm) {
       barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
     lu_analyzed_ = false;
     std::vector<double> merits;
-    bool first = true, stalled = false;
+    bool first = true, stalled = false, polished = false;
     info.status = Status::MaxIterations;
     for (;; ++total_iter) {
       auto t0 = Clock::now();
@@ -723,7 +738,17 @@ Result Solver::solve(const WarmStart* warm) {
       if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
       if (settings_.time_limit > 0 && seconds_since(t_start) > settings_.time_limit) { info.status = Status::TimeLimit; break; }
       const int w = settings_.stall_window;
-      if (w > 0 && static_cast<int>(merits.size()) > w && rnorm > 0.99 * merits[merits.size() - 1 - w]) { stalled = true; break; }
+      if (w > 0 && static_cast<int>(merits.size()) > w && rnorm > 0.99 * merits[merits.size() - 1 - w]) {
+        // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per
+        // attempt). A stall with rho at its floor is often the barrier's ill-conditioning around a contact
+        // that the equilibrium needs; the equality form has no such curvature.
+        if (polished || settings_.polish_gap <= 0 || !polish(h_)) { stalled = true; break; }
+        polished = true;
+        number_multipliers();
+        evaluate(y_, h_, true, r_, rc_);
+        merits.assign(1, merit(r_, rc_));
+        if (settings_.verbose) std::printf("stall: %d nearly active constraints held as equalities\n", n_vars_ - n_primal_);
+      }
 
       t0 = Clock::now();
       const bool solved = solve_linear(dy_);
@@ -764,6 +789,7 @@ Result Solver::solve(const WarmStart* warm) {
     if (info.status == Status::Converged || info.status == Status::TimeLimit || info.status == Status::NumericalError ||
         total_iter >= settings_.max_iter)
       break;
+    if (polished && info.status == Status::LineSearchFailed) stalled = true;  // the polish was the stall's last resort
     if (stalled) info.status = Status::Stalled;  // reported if no attempt is left
     if (settings_.verbose) std::printf("attempt %d ended (%s), restarting\n", attempt, stalled ? "stalled" : status_name(info.status).c_str());
     ++total_iter;

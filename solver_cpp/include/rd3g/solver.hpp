@@ -85,6 +85,9 @@ class Solver {
   double line_search(double merit0);
   void apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const;
   double violation_sum(const Vec& h) const;
+  /// On a stall: barrier constraints with h >= -polish_gap become equalities, their multiplier the barrier's
+  /// estimate. Returns false if there is none.
+  bool polish(const Vec& h);
 
   Problem prob_;
   Settings settings_;
