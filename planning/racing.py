@@ -234,6 +234,11 @@ class _RecedingHorizon:
         # its full globalisation (more iterations, restarts, Levenberg-Marquardt steps).
         settings = self._settings if warm is not None else {**self._settings, **_COLD_START_SETTINGS}
         result = Solver(problem, **settings).solve(warm)
+        if warm is not None and not result.converged and result.iterations == 0:
+            # The warm start itself was unusable (line search failed at once, e.g. a stale fallback
+            # plan that now violates a constraint): without a retry every later step starts from the
+            # same stale plan and falls back too. One retry from the solver's own initial guess.
+            result = Solver(problem, **{**self._settings, "rho_init": _COLD_START_SETTINGS["rho_init"]}).solve(None)
         finite = bool(np.all(np.isfinite(result.u)))
         if result.converged and finite and np.all(np.isfinite(result.x)):
             used, u_all = "converged", result.u
