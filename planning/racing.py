@@ -33,6 +33,8 @@ _COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=3
 # simulator after a contact); below the floor the k = 1 constraint may be infeasible, and then the
 # usual fallback applies.
 _MIN_COLLISION_DISTANCE_M = 0.01
+# RacingPlanner.follow_speed_cap: largest speed drop (m/s) one plan's speed bound asks for.
+_FOLLOW_BRAKE_DV_MPS = 0.2
 
 
 @dataclass
@@ -107,12 +109,13 @@ class _RecedingHorizon:
             return None
         return WarmStart(u=self._shifted(self._prev.u), lam=self._shifted(self._prev.lam))
 
-    def tracking_control(self, x0, x_ref, a_ref: float, ey_bound: float) -> np.ndarray:
+    def tracking_control(self, x0, x_ref, a_ref: float, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
         """Closed-loop fallback control [a, delta] when no usable plan exists: the Stanley lateral
         law on the Frenet errors to the reference state x_ref (the previous plan's state for now,
         its ey clipped to the track-limit bound) plus curvature feed-forward, and a proportional
-        speed loop around the reference acceleration; clipped to the control bounds. Replaying the
-        previous plan open loop instead let small errors grow until the car left the track."""
+        speed loop around the reference acceleration, never past top_speed (default: the car's top
+        speed); clipped to the control bounds. Replaying the previous plan open loop instead let
+        small errors grow until the car left the track."""
         c = self.config
         x0 = np.asarray(x0, dtype=float)
         g = self.tm.car.geometry
@@ -123,7 +126,8 @@ class _RecedingHorizon:
                  - math.atan(c.fallback_lateral_gain * (x0[EY] - ey_target) / v))
         a_min, a_max = self.mapper.acceleration_bounds(float(x0[V]))
         a = a_ref + c.fallback_speed_gain * (float(x_ref[V]) - x0[V])
-        a = min(a, (c.top_speed_mps - x0[V]) / c.plan_dt_s)  # never plan past the top speed
+        top = c.top_speed_mps if top_speed is None else float(top_speed)
+        a = min(a, (top - x0[V]) / c.plan_dt_s)  # never plan past the top speed
         return np.array([np.clip(a, a_min, a_max), np.clip(delta, self.mapper.delta_min, self.mapper.delta_max)])
 
     def _feasible_limits(self, x0s, ey_bound: float, d_min: float, obstacle_positions=()) -> tuple[float, float]:
@@ -158,12 +162,12 @@ class _RecedingHorizon:
                 d_min = min(d_min, d - 0.01)
         return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M)
 
-    def _track_previous(self, x0, ey_bound: float) -> np.ndarray:
+    def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
         """Controls (N, T, 2) of the previous plan shifted by one control period, the planning car's
         first control replaced by the closed-loop tracking control towards that plan."""
         u_all = self._shifted(self._prev.u)
         x_ref = self._shifted(self._prev.x)[0, 0]
-        u_all[0, 0] = self.tracking_control(x0, x_ref, float(u_all[0, 0, 0]), ey_bound)
+        u_all[0, 0] = self.tracking_control(x0, x_ref, float(u_all[0, 0, 0]), ey_bound, top_speed)
         return u_all
 
     def predict_other(self, x_other) -> np.ndarray:
@@ -252,7 +256,7 @@ class _RecedingHorizon:
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
-                u_all = self._track_previous(problem.agents[0].x0, ey_bound)
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V])
         x = self._rollout(problem, u_all)
         lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
         self._prev = dataclasses.replace(result, u=np.asarray(u_all), x=np.asarray(x), lam=np.asarray(lam))
@@ -274,6 +278,34 @@ class RacingPlanner(_RecedingHorizon):
         super().__init__(track_model, mapper, config, control_period_s)
         self.opponent_top_speed = float(opponent_top_speed_mps)
 
+    def follow_speed_cap(self, x_self, x_other, inside_collision_distance: bool) -> float:
+        """Our car's speed bound for this plan: normally its top speed. In line behind the other car
+        (it is ahead in s and the lateral gap |ey gap| is below the clearance W_c = 2 * the
+        footprint's lateral half-extent at the allowed yaw + collision_margin_m, so our front can
+        hit its back) and already closer than the collision distance (inside_collision_distance:
+        d_min had to be relaxed), our car may not gain on it along the track: its progress rate
+        v cos(epsi) / (1 - kappa ey) may not exceed the other car's at the current offsets and
+        headings (on the inside of a turn equal speeds still close the gap).
+
+        Why: the relaxed d_min follows the separation down step by step, and the game's assumption
+        that the other car shares the avoidance (accelerates, moves aside) does not hold for an MPC
+        that does not, so the rear car closed in slowly until it hit the other car's back. The bound
+        asks for at most 0.2 m/s less than our current speed per plan (2 m/s^2 over the first
+        planning step) so it stays reachable; the fallback's speed loop uses it too. Lateral moves
+        stay free: once the lateral gap reaches W_c (pulling out to pass) or the separation is back
+        above the collision distance, the bound is lifted."""
+        top = self.config.top_speed_mps
+        ahead = float(x_other[S] - x_self[S])
+        clearance = 2.0 * self.tm.lateral_half_extent + self.config.collision_margin_m
+        in_line = abs(float(x_other[EY] - x_self[EY])) < clearance
+        if not (inside_collision_distance and ahead > 0 and in_line):
+            return top
+        kappa = self.tm.track.curvature(np.mod([x_self[S], x_other[S]], self.tm.track.length))
+        stretch = [1.0 - float(kappa[i]) * float(x[EY]) for i, x in enumerate((x_self, x_other))]
+        other_rate = max(float(x_other[V]), 0.0) * math.cos(float(x_other[EPSI])) / max(stretch[1], 0.2)
+        v_match = other_rate * max(stretch[0], 0.2) / max(math.cos(float(x_self[EPSI])), 0.5)
+        return min(top, max(v_match, float(x_self[V]) - _FOLLOW_BRAKE_DV_MPS))
+
     def plan(self, x_self, x_other) -> Plan:
         """x_self, x_other: [s (unwrapped, same origin), ey, v, epsi]; x_self already delay-predicted."""
         c = self.config
@@ -281,8 +313,10 @@ class RacingPlanner(_RecedingHorizon):
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
         x_other = np.array(x_other, dtype=float)
+        nominal_d_min = d_min
         ey_bound, d_min = self._feasible_limits([x_self, x_other], ey_bound, d_min)
-        agents = [self._agent(x_self, c.top_speed_mps, ey_bound, self._cost(c.top_speed_mps), c.lead_weight),
+        top = self.follow_speed_cap(x_self, x_other, d_min < nominal_d_min)
+        agents = [self._agent(x_self, top, ey_bound, self._cost(c.top_speed_mps), c.lead_weight),
                   self._agent(x_other, self.opponent_top_speed, ey_bound, self._cost(self.opponent_top_speed), c.lead_weight)]
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY))
