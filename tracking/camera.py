@@ -415,8 +415,14 @@ class SyntheticCamera:
     def render(self, car_poses: Sequence, t_s: float) -> Frame:
         """Frame showing the cars at time ``t_s`` (the middle of the exposure)."""
         canvas = self._background.copy()
-        for raw in car_poses:
-            pose = raw if isinstance(raw, CarPose) else CarPose(int(raw[0]), *map(float, raw[1:]))
+        poses = [raw if isinstance(raw, CarPose) else CarPose(int(raw[0]), *map(float, raw[1:])) for raw in car_poses]
+        # Painter's order: farthest from the camera's ground point first. The projected box of a car
+        # includes its side walls, which reach towards the image centre; drawn after a nearer car
+        # beside it, they covered that car's roof marker although the roof hides those walls (HIL
+        # seed 16: the RD3G marker vanished 1-2 cm from the other car and the car was lost).
+        cam_x, cam_y = self.camera.position[:2]
+        poses.sort(key=lambda p: -math.hypot(p.x - cam_x, p.y - cam_y))
+        for pose in poses:
             samples = [self._car_objects(pose.marker_id, *xyh) for xyh in self._motion_samples(pose)]
             self._draw_objects(canvas, samples)
         image = self._canvas.to_sensor(canvas)
