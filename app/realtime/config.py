@@ -46,6 +46,7 @@ class LoopConfig:
     serial_quiet_s: float = 0.3      # HIL: corrupt-frame counter unchanged this long = stream healthy again
     acquire_timeout_s: float = 10.0  # pre-race: time to find every car
     linger_s: float = 0.3            # HIL: keep reading the world's events this long after the race
+    stop_after_hold_s: float = 3.0   # cars held neutral (any safety hold) this long without a break: stop the race
     acquire_measurements: int = 5    # pre-race: accepted measurements per car before the start
     image_log_every: int = 6         # log every n-th camera frame (downsampled) to the recording
     image_downscale: int = 4

@@ -11,7 +11,8 @@ only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.har
 * Safety holds: a lost car (no accepted measurement for ``lost_after_s``), a non-finite state, a
   failed or stale plan, an invalid command, and (HIL, where the box is observable) a corrupt serial
   stream each put every car to neutral: a neutral frame is written at once (not at the sender's
-  next tick) and an event is logged; the race resumes when every hold has cleared. A serial link
+  next tick) and an event is logged; the race resumes when every hold has cleared, and stops
+  (``held_neutral``) when holds have lasted ``stop_after_hold_s`` without a break. A serial link
   fault (device gone) ends the race: the link cannot be reopened (docs/serial-protocol.md); the
   transmitter box's failsafe keeps the cars neutral.
 * Planning is asynchronous (``app.realtime.planning.PlannerWorker``): a job every
@@ -100,7 +101,7 @@ class DeadlineMonitor:
 
 @dataclass
 class LoopOutcome:
-    reason: str                                  # finished, time_limit, serial_fault, interrupted, world_error
+    reason: str                                  # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
     mode: str
     winner: str | None = None
     lap_times_s: dict = field(default_factory=dict)
@@ -178,6 +179,7 @@ class RaceLoop:
         self.worker = PlannerWorker(planners, inject_failure=self._solver_fault_active)
         self.t_go: float | None = None
         self.holds: dict[str, str] = {}
+        self._held_since: float | None = None  # start of the current unbroken stretch of holds
         self.events: list[tuple] = []
         self.k = 0
         self._link_fault: BaseException | None = None
@@ -521,6 +523,16 @@ class RaceLoop:
             if self._laps.winner is not None:
                 self.winner_seen = CAR_NAMES[self._laps.winner]
                 return "finished"
+        if not self.holds:
+            self._held_since = None
+        elif self._held_since is None:
+            self._held_since = now
+        elif now - self._held_since > cfg.stop_after_hold_s:
+            # Nothing will end the race by itself any more (cars lost and coasting, planner dead): stop
+            # cleanly instead of waiting for the time limit with the cars neutral.
+            self._event("stop", f"cars held neutral for {now - self._held_since:.1f} s (limit "
+                                f"{cfg.stop_after_hold_s:g} s): {'; '.join(self.holds.values())} - race stopped")
+            return "held_neutral"
         if t_race > self.setup.max_time_s:
             self._event("stop", f"time limit {self.setup.max_time_s:.0f} s reached")
             return "time_limit"

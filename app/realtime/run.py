@@ -31,6 +31,9 @@ def add_realtime_arguments(p) -> None:
     g.add_argument("--rt-priority", type=int, default=0, metavar="PRIO",
                    help="run the loop under SCHED_FIFO at this priority (1-99, needs CAP_SYS_NICE); the HIL world "
                         "runs 5 and the planner and telemetry threads 10 below it. Default 0: normal scheduling")
+    g.add_argument("--stop-after-hold", type=float, default=3.0, metavar="S",
+                   help="stop the race (exit code 1) when the cars have been held neutral by a safety hold "
+                        "(lost car, planner fault, ...) for S seconds without a break (default 3)")
     g.add_argument("--camera-latency-ms", type=float, default=0.0,
                    help="hardware: exposure-to-delivery delay of the camera, subtracted from frame times")
 
@@ -89,11 +92,11 @@ def _run_realtime(args, mode: str) -> int:
 
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
-    for name in ("rd3g_speed", "opponent_speed", "loop_hz", "fps"):
+    for name in ("rd3g_speed", "opponent_speed", "loop_hz", "fps", "stop_after_hold"):
         if not getattr(args, name) > 0:
             raise UserError(f"--{name.replace('_', '-')} must be positive")
     try:
-        config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz)
+        config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz, stop_after_hold_s=args.stop_after_hold)
         faults = tuple(parse_fault(f) for f in args.fault)
     except LoopConfigError as exc:
         raise UserError(str(exc)) from None
