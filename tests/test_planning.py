@@ -7,20 +7,9 @@ import pytest
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner
 from planning.config import PlannerConfigError
-from tracks import load_track
-from vehicles.params import CarParams, Corrections, load_car_params
+from vehicles.params import CarParams, Corrections
 
 PERIOD = 1.0 / 30.0
-
-
-@pytest.fixture(scope="module")
-def track():
-    return load_track("oval")
-
-
-@pytest.fixture(scope="module")
-def car():
-    return load_car_params("buzzracer")
 
 
 def _drive_accel(car, u, v):

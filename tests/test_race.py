@@ -5,18 +5,6 @@ import numpy as np
 import pytest
 
 from app.race_runner import RaceSetup, fault_of, footprint_gap, run_race, start_states
-from tracks import load_track
-from vehicles.params import load_car_params
-
-
-@pytest.fixture(scope="module")
-def track():
-    return load_track("oval")
-
-
-@pytest.fixture(scope="module")
-def car():
-    return load_car_params("buzzracer")
 
 
 @pytest.fixture(scope="module")
