@@ -154,7 +154,7 @@ class DecoderStats:
 
     frames_ok: int = 0  # frames yielded
     bad_crc: int = 0  # checksum mismatch
-    bad_length: int = 0  # car count above MAX_CARS, or a length byte that disagrees with the frame
+    bad_length: int = 0  # car count above the decoder's max_cars, or a length byte that disagrees with the frame
     bad_version: int = 0  # version byte is not PROTOCOL_VERSION
     bad_payload: int = 0  # CRC correct but contents invalid (same car id twice)
     truncated: int = 0  # cut short by the next frame's header or by the inter-byte timeout
@@ -189,8 +189,12 @@ _BAD_LENGTH = "bad_length"
 _BAD_CRC = "bad_crc"
 
 
-def _frame_status(buf: bytearray, start: int) -> tuple[str, int]:
-    """Classify the candidate at ``buf[start:]`` (which begins with SYNC). Returns (status, length)."""
+def _frame_status(buf: bytearray, start: int, max_cars: int = MAX_CARS) -> tuple[str, int]:
+    """Classify the candidate at ``buf[start:]`` (which begins with SYNC). Returns (status, length).
+
+    Each check is made as soon as its byte is in, so a candidate is known bad as early as its
+    bytes allow: the version at 3 bytes, the car count at 6, the CRC at the announced length.
+    """
     available = len(buf) - start
     if available < 3:
         return _INCOMPLETE, MIN_FRAME_LEN
@@ -199,7 +203,7 @@ def _frame_status(buf: bytearray, start: int) -> tuple[str, int]:
     if available < HEADER_LEN:
         return _INCOMPLETE, MIN_FRAME_LEN
     n_cars = buf[start + 5]
-    if n_cars > MAX_CARS:
+    if n_cars > max_cars:
         return _BAD_LENGTH, 0
     length = HEADER_LEN + CAR_RECORD_LEN * n_cars + CRC_LEN
     if available < length:
@@ -211,7 +215,7 @@ def _frame_status(buf: bytearray, start: int) -> tuple[str, int]:
     return _VALID, length
 
 
-def _length_byte_was_corrupted(buf: bytearray, cut_at: int) -> bool:
+def _length_byte_was_corrupted(buf: bytearray, cut_at: int, max_cars: int = MAX_CARS) -> bool:
     """True if buf[0:cut_at] is a complete frame whose only fault is its car-count byte.
 
     Distinguishes "length byte hit by noise" (the bytes before the next header are a
@@ -221,7 +225,7 @@ def _length_byte_was_corrupted(buf: bytearray, cut_at: int) -> bool:
     if payload_len < 0 or payload_len % CAR_RECORD_LEN or buf[2] != PROTOCOL_VERSION:
         return False
     true_count = payload_len // CAR_RECORD_LEN
-    if true_count > MAX_CARS or true_count == buf[5]:
+    if true_count > max_cars or true_count == buf[5]:
         return False
     body = bytearray(buf[2:cut_at - CRC_LEN])
     body[3] = true_count
@@ -233,22 +237,34 @@ class FrameDecoder:
 
     Rules (docs/serial-protocol.md, "Decoder"):
     - bytes before a sync header are discarded (counted in ``bytes_discarded``);
-    - a candidate with a wrong version, a car count above MAX_CARS or a wrong CRC is
-      rejected; decoding resumes one byte after its sync header, so a valid frame hidden
-      inside a rejected candidate's span is still found;
-    - a candidate whose span contains the header of a later valid frame was cut short
-      (``truncated``), unless the bytes before that header are a whole frame with a
-      corrupted car-count byte (``bad_length``);
+    - a candidate is rejected as soon as its bytes prove it wrong: a wrong version (byte 2),
+      a car count above ``max_cars`` (byte 5), a wrong CRC (once its announced length is in).
+      It is never held back waiting for later bytes. Decoding resumes one byte after its sync
+      header, so a valid frame hidden inside a rejected candidate's span is still found;
+    - a rejected candidate whose span holds the header of a later frame that is valid or not
+      yet complete was cut short (``truncated``), unless the bytes before that header are a
+      whole frame with a corrupted car-count byte (``bad_length``);
+    - a candidate still waiting for its announced length that holds a complete valid frame
+      was cut short too (or had its car count raised by noise): it is rejected, and the
+      later frame decoded, at once;
     - if a partial frame is buffered and no byte arrives for ``gap_timeout`` seconds,
       the partial frame is dropped as ``truncated``;
     - a frame whose sequence number is not newer than the last accepted one (u16 serial
       number arithmetic) is rejected as ``duplicate`` / ``out_of_order``.
+
+    ``max_cars`` is the most cars a frame may carry for this receiver (default: the protocol's
+    MAX_CARS). A transmitter box that drives N cars sets it to N: a car count above N is then
+    known to be wrong at byte 5, instead of after the longer announced frame has arrived.
     """
 
-    def __init__(self, gap_timeout: float = 0.05, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, gap_timeout: float = 0.05, clock: Callable[[], float] = time.monotonic,
+                 max_cars: int = MAX_CARS):
         if not gap_timeout > 0:
             raise ValueError(f"gap_timeout must be > 0, got {gap_timeout!r}")
+        if isinstance(max_cars, bool) or not isinstance(max_cars, int) or not 1 <= max_cars <= MAX_CARS:
+            raise ValueError(f"max_cars must be an int in 1..{MAX_CARS}, got {max_cars!r}")
         self.gap_timeout = gap_timeout
+        self.max_cars = max_cars
         self._clock = clock
         self._buf = bytearray()
         self._last_byte_time: float | None = None
@@ -297,6 +313,9 @@ class FrameDecoder:
             self.stats.bytes_discarded += count
         del self._buf[:count]
 
+    def _count(self, reason: str) -> None:
+        setattr(self.stats, reason, getattr(self.stats, reason) + 1)
+
     def _process(self, final: bool) -> list[DecodedFrame]:
         frames: list[DecodedFrame] = []
         buf = self._buf
@@ -309,54 +328,62 @@ class FrameDecoder:
                 break
             if start:
                 self._discard(start)
-            status, length = _frame_status(buf, 0)
+            status, length = _frame_status(buf, 0, self.max_cars)
             if status == _VALID:
                 frame = self._accept(bytes(buf[:length]))
                 self._discard(length, counted=False)
                 if frame is not None:
                     frames.append(frame)
                 continue
-            cut_at, waiting = self._find_next_valid_frame(status, length, final)
-            if cut_at is not None:
-                if _length_byte_was_corrupted(buf, cut_at):
-                    self.stats.bad_length += 1
-                else:
-                    self.stats.truncated += 1
-                self._discard(cut_at, counted=False)
-                continue
-            if waiting:
-                break
-            reason = "truncated" if status == _INCOMPLETE else status
-            setattr(self.stats, reason, getattr(self.stats, reason) + 1)
+            if status == _INCOMPLETE:
+                # Not wrong yet, unless a complete valid frame starts inside it: then it was cut
+                # short (or its count raised by noise), and that frame must not wait for it.
+                cut_at = self._valid_frame_inside(len(buf))
+                if cut_at is not None:
+                    self._count("bad_length" if _length_byte_was_corrupted(buf, cut_at, self.max_cars)
+                                else "truncated")
+                    self._discard(cut_at, counted=False)
+                    continue
+                if not final:
+                    break
+                self._count("truncated")
+            else:
+                reason, cut_at = self._rejection_reason(status, length)
+                self._count(reason)
+                if cut_at is not None:  # the later header is where decoding goes on
+                    self._discard(cut_at, counted=False)
+                    continue
             # Resume right after this sync header's first byte: the span may hide a real frame.
             self._discard(1, counted=False)
         return frames
 
-    def _find_next_valid_frame(self, status: str, length: int, final: bool) -> tuple[int | None, bool]:
-        """Look for a later sync header inside the rejected/incomplete candidate's span.
-
-        Returns (offset of a complete valid frame or None, whether we must wait for bytes
-        before deciding).
-        """
+    def _valid_frame_inside(self, limit: int) -> int | None:
+        """Offset (1 <= offset < limit) of the first complete valid frame inside the head candidate."""
         buf = self._buf
-        if status == _BAD_CRC:
-            limit = length  # a header past the declared end does not cut this frame
-        elif status == _INCOMPLETE:
-            limit = len(buf)
-        else:
-            # Bad version / car count: the span is unknown; only a header arriving inside
-            # this header (before the car-count byte) explains the fault as a cut.
-            limit = min(len(buf), HEADER_LEN)
-        waiting = status == _INCOMPLETE and not final
         pos = buf.find(SYNC, 1, limit + 1)
         while 0 < pos < limit:
-            inner_status, _ = _frame_status(buf, pos)
-            if inner_status == _VALID:
-                return pos, False
-            if inner_status == _INCOMPLETE and not final:
-                waiting = True
+            if _frame_status(buf, pos, self.max_cars)[0] == _VALID:
+                return pos
             pos = buf.find(SYNC, pos + 1, limit + 1)
-        return None, waiting
+        return None
+
+    def _rejection_reason(self, status: str, length: int) -> tuple[str, int | None]:
+        """Counter for a head candidate known to be bad (bad version, count or CRC), and where decoding
+        goes on (None: one byte past its header). Decided from the bytes already here, never by waiting
+        for more, since the box reacts to the count: a later header inside its span (the announced
+        length for a bad CRC; for a bad version or count the span is unknown, so only a header inside
+        this one's header) whose frame is valid or still incomplete means it was cut short there,
+        unless the bytes before that header are a whole frame with a corrupted car count."""
+        buf = self._buf
+        limit = length if status == _BAD_CRC else min(len(buf), HEADER_LEN)
+        pos = buf.find(SYNC, 1, limit + 1)
+        while 0 < pos < limit:
+            if _length_byte_was_corrupted(buf, pos, self.max_cars):
+                return "bad_length", pos
+            if _frame_status(buf, pos, self.max_cars)[0] in (_VALID, _INCOMPLETE):
+                return "truncated", pos
+            pos = buf.find(SYNC, pos + 1, limit + 1)
+        return status, None
 
     def _accept(self, frame_bytes: bytes) -> DecodedFrame | None:
         (seq,) = _SEQ.unpack_from(frame_bytes, 3)

@@ -24,7 +24,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Callable, Literal
 
-from vehicles.protocol import NEUTRAL, CarCommand, DecodedFrame, DecoderStats, FrameDecoder
+from vehicles.protocol import MAX_CARS, NEUTRAL, CarCommand, DecodedFrame, DecoderStats, FrameDecoder
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +127,10 @@ class VirtualCarBox:
     command set (every car seen so far) after each accepted frame and once when a
     failsafe engages; ``on_failsafe(event)`` then too, after it. ``clock`` must be monotonic; it timestamps received frames and is
     the time base of ``commands_at``. ``history_s`` seconds of frames are kept for it.
+    ``max_cars`` is how many cars this box drives (its radio channels; default the protocol's maximum,
+    16): a frame announcing more is damaged, and is known to be so from its header alone (a bit error
+    in the car-count byte then trips the corrupt failsafe at once, not after the longer announced
+    frame's worth of bytes).
     """
 
     def __init__(
@@ -138,6 +142,7 @@ class VirtualCarBox:
         gap_timeout: float = 0.02,
         history_s: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
+        max_cars: int = MAX_CARS,
     ):
         if not failsafe_timeout > 0:
             raise ValueError(f"failsafe_timeout must be > 0 seconds, got {failsafe_timeout!r}")
@@ -150,7 +155,9 @@ class VirtualCarBox:
         self.on_commands = on_commands
         self.on_failsafe = on_failsafe
         self._clock = clock
-        self._decoder = _OrderedDecoder(gap_timeout=gap_timeout, clock=clock)
+        if isinstance(max_cars, bool) or not isinstance(max_cars, int) or not 1 <= max_cars <= MAX_CARS:
+            raise ValueError(f"max_cars must be an int in 1..{MAX_CARS} (cars the box drives), got {max_cars!r}")
+        self._decoder = _OrderedDecoder(gap_timeout=gap_timeout, clock=clock, max_cars=max_cars)
         self._lock = threading.Lock()
         self._latest: dict[int, ReceivedCommand] = {}
         self._history = CommandHistory(failsafe_timeout, history_s)

@@ -136,8 +136,8 @@ def failsafe_text(event) -> str:
     return f"{event.reason}: {cause} ({since}) - box commands all cars neutral"
 
 
-def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float) -> None:
-    """Box-process entry point: VirtualCarBox behind a SerialRelay. Messages to the world:
+def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float, max_cars: int) -> None:
+    """Box-process entry point: VirtualCarBox (driving ``max_cars`` cars) behind a SerialRelay. Messages to the world:
     ("ready", relay path), ("commands", t, {radio id: (steering, throttle)}), ("failsafe", FailsafeEvent),
     ("line_errors", n), ("injected", kind, t), ("summary", info); from the world: ("corrupt", on),
     ("vanish",), ("stop",). Times are time.monotonic() (shared by the processes of one machine)."""
@@ -158,7 +158,7 @@ def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float)
                 pass
 
     box = VirtualCarBox(
-        failsafe_timeout=failsafe_timeout_s,
+        failsafe_timeout=failsafe_timeout_s, max_cars=max_cars,
         on_commands=lambda commands, t: send(("commands", t, {c: (v.steering, v.throttle) for c, v in commands.items()})),
         on_failsafe=lambda event: send(("failsafe", event)))
     relay = SerialRelay(box.path, seed=seed, byte_error_rate=byte_error_rate)
@@ -544,7 +544,8 @@ class HilWorld:
         self.conn, child = ctx.Pipe()
         box_world_end, box_end = ctx.Pipe()  # the world talks to the box directly
         self.box_process = ctx.Process(target=box_main, name="hil-box", daemon=True,
-                                       args=(box_end, spec.failsafe_timeout_s, spec.seed, spec.corrupt_byte_rate))
+                                       args=(box_end, spec.failsafe_timeout_s, spec.seed, spec.corrupt_byte_rate,
+                                             len(spec.radio_ids)))
         self.box_process.start()
         self.process = ctx.Process(target=world_main, args=(spec, child, self.shm.name, box_world_end),
                                    name="hil-world", daemon=True)
