@@ -64,6 +64,25 @@ def main(argv=None) -> int:
     return 0
 
 
+def winner_distribution(rows) -> dict:
+    """RD3G wins in simulation and HIL over the same seeds, and the exact McNemar test on the seeds
+    where exactly one mode has RD3G winning (paired design: a seed fixes the start). An unfinished
+    HIL race counts as not won by RD3G."""
+    from scipy.stats import binomtest
+
+    sim = [r["sim"]["winner"] == "rd3g" for r in rows]
+    hil = [r["hil"]["winner"] == "rd3g" for r in rows]
+    sim_only = sum(a and not b for a, b in zip(sim, hil))
+    hil_only = sum(b and not a for a, b in zip(sim, hil))
+    n = sim_only + hil_only
+    p = 1.0 if n == 0 else float(binomtest(sim_only, n, 0.5).pvalue)
+    reasons: dict[str, int] = {}
+    for r in rows:
+        reasons[r["hil"].get("end_reason")] = reasons.get(r["hil"].get("end_reason"), 0) + 1
+    return {"sim_rd3g_wins": sum(sim), "hil_rd3g_wins": sum(hil), "sim_only": sim_only, "hil_only": hil_only,
+            "mcnemar_p": p, "hil_unfinished": sum(r["hil"]["winner"] is None for r in rows), "hil_end_reasons": reasons}
+
+
 def report(rows, args, machine: str) -> str:
     hil = [r["hil"] for r in rows]
     same = sum(r["sim"]["winner"] == r["hil"]["winner"] for r in rows)
@@ -94,10 +113,16 @@ def report(rows, args, machine: str) -> str:
             f"| {h['deadline_misses']} / {h['ticks']} | {h['frames']} ({h['frames_dropped']}) "
             f"| {f(h['tracking_error_mm_median'], '.2f')} / {f(h['tracking_error_mm_p95'], '.2f')} "
             f"| {f(h['detection_error_mm_median'], '.3f')} | {f(h['solve_ms_p50'])} / {f(h['solve_ms_p99'])} |")
+    d = winner_distribution(rows)
     lines += [
         "",
         f"Same winner in {same} of {len(rows)} seeds. Deadline misses {misses} of {ticks} ticks "
         f"({100 * misses / max(ticks, 1):.2f} %).",
+        "",
+        f"Winner distribution: RD3G won {d['sim_rd3g_wins']} of {len(rows)} in simulation and {d['hil_rd3g_wins']} in HIL; "
+        f"HIL races not finished: {d['hil_unfinished']} (end reasons {d['hil_end_reasons']}). Paired by seed, RD3G won in "
+        f"simulation only in {d['sim_only']} seeds and in HIL only in {d['hil_only']}; exact McNemar test of equal "
+        f"win rates p = {d['mcnemar_p']:.2f} (a small p, e.g. < 0.05, would mean HIL changes who wins).",
         "",
         "Stage breakdown over all HIL ticks (median of the per-race p50 / worst per-race p99, ms); rendering runs in the "
         "world process and is not in the loop budget:",

@@ -1,0 +1,26 @@
+"""The loop bench's winner-distribution comparison (app.realtime.bench.winner_distribution) against
+hand-computed counts and the exact McNemar p-value from the binomial distribution."""
+from math import comb
+
+from app.realtime.bench import winner_distribution
+
+
+def _row(sim, hil, end="finished"):
+    return {"sim": {"winner": sim}, "hil": {"winner": hil, "end_reason": end}}
+
+
+def test_counts_and_exact_mcnemar_p():
+    # 2 seeds RD3G wins only in simulation, 4 only in HIL, 3 both, 1 neither, 1 HIL unfinished.
+    rows = ([_row("rd3g", "opponent")] * 2 + [_row("opponent", "rd3g")] * 4 + [_row("rd3g", "rd3g")] * 3
+            + [_row("opponent", "opponent")] + [_row("opponent", None, "held_neutral")])
+    d = winner_distribution(rows)
+    assert (d["sim_rd3g_wins"], d["hil_rd3g_wins"], d["sim_only"], d["hil_only"]) == (5, 7, 2, 4)
+    assert d["hil_unfinished"] == 1 and d["hil_end_reasons"] == {"finished": 10, "held_neutral": 1}
+    # two-sided exact test on 6 discordant pairs, 2 vs 4: 2 * P(X <= 2), X ~ Bin(6, 1/2)
+    expected = 2 * sum(comb(6, k) for k in range(3)) / 2 ** 6
+    assert abs(d["mcnemar_p"] - expected) < 1e-12
+
+
+def test_no_discordant_pairs_means_no_evidence_of_a_difference():
+    d = winner_distribution([_row("rd3g", "rd3g"), _row("opponent", "opponent")])
+    assert d["mcnemar_p"] == 1.0 and d["sim_only"] == d["hil_only"] == 0
