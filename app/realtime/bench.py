@@ -98,7 +98,7 @@ def report(rows, args, machine: str) -> str:
         + (f" --rt-priority {args.rt_priority}`" if args.rt_priority else "`")
         + f" ({time.strftime('%Y-%m-%d %H:%M')}; {machine}).",
         "",
-        f"Scheduling: {'SCHED_FIFO priority ' + str(args.rt_priority) + ' (loop), world 5 and helpers 10 below' if args.rt_priority else 'normal time-sharing'}; "
+        f"Scheduling: {'SCHED_FIFO priority ' + str(args.rt_priority) + ' (loop); box 3, planner 4, world 5 and recorder 10 below' if args.rt_priority else 'normal time-sharing'}; "
         f"load average before the HIL races {np.mean([h['load_before'] for h in hil]):.1f} "
         f"(other engineers' jobs on the 2 cores).",
         "",

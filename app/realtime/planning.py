@@ -17,6 +17,10 @@ from sim import PurePursuitController
 
 CAR_NAMES = ("rd3g", "opponent")
 OPPONENT_MODES = ("mpc", "pursuit", "human")
+# Under --rt-priority the planner thread runs this far below the loop thread: above the HIL world
+# process (5 below, the emulated camera and cars) so that on a small machine the emulation, not the
+# product, gives way (it drops camera frames, which the loop reports), and below the HIL box (3 below).
+PLANNER_PRIORITY_BELOW_LOOP = 4
 
 
 class SolverFailure(RuntimeError):
@@ -160,7 +164,7 @@ class PlannerWorker:
     def _run(self) -> None:
         from app.realtime.config import lower_realtime_priority
 
-        lower_realtime_priority(10)  # below the loop and the world (--rt-priority)
+        lower_realtime_priority(PLANNER_PRIORITY_BELOW_LOOP)
         while True:
             with self._cv:
                 while self._pending is None and not self._stop:

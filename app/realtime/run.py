@@ -30,7 +30,8 @@ def add_realtime_arguments(p) -> None:
                    help="the opponent is driven by a person: tracked and raced against, never commanded")
     g.add_argument("--rt-priority", type=int, default=0, metavar="PRIO",
                    help="run the loop under SCHED_FIFO at this priority (1-99, needs CAP_SYS_NICE); the HIL world "
-                        "runs 5 and the planner and telemetry threads 10 below it. Default 0: normal scheduling")
+                        "runs 5, the virtual box 3, the planner 4 and the telemetry thread 10 below it. Default 0: "
+                        "normal scheduling")
     g.add_argument("--stop-after-hold", type=float, default=3.0, metavar="S",
                    help="stop the race (exit code 1) when the cars have been held neutral by a safety hold "
                         "(lost car, planner fault, ...) for S seconds without a break (default 3)")
