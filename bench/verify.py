@@ -67,13 +67,19 @@ def _check_shapes(problem: GameProblem, x: np.ndarray, u: np.ndarray | None = No
     return N, T, nx, nu
 
 
-def _collision_settings(problem: GameProblem) -> tuple[bool, float, int, int]:
-    """(pairs enabled, d_min, pos_x, pos_y); positions default to state components 0, 1."""
+def _distance_steps(value, T: int) -> np.ndarray:
+    """d_min (m) for k = 1..T as an array (T,): one number for every step, or T per-step numbers."""
+    return np.broadcast_to(np.asarray(value, dtype=float), (T,)).copy()
+
+
+def _collision_settings(problem: GameProblem) -> tuple[bool, np.ndarray, int, int]:
+    """(pairs enabled, d_min for k = 1..T (T,), pos_x, pos_y); positions default to state components 0, 1."""
+    T = int(problem.horizon)
     col = problem.collision
     if col is None:
-        return False, 0.0, 0, 1
+        return False, np.zeros(T), 0, 1
     enabled = bool(col.enabled) and problem.num_agents >= 2
-    return enabled, float(col.min_distance), int(col.pos_x), int(col.pos_y)
+    return enabled, _distance_steps(col.min_distance, T) if enabled else np.zeros(T), int(col.pos_x), int(col.pos_y)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -104,7 +110,7 @@ def collision_gaps_m(problem: GameProblem, x) -> np.ndarray:
         gaps.append((d_min - np.linalg.norm(p[iu] - p[ju], axis=-1)).ravel())
     for o in problem.obstacles:
         pos = np.asarray(o.positions, dtype=float)[1:]  # (T, 2)
-        gaps.append((float(o.min_distance) - np.linalg.norm(p - pos[None], axis=-1)).ravel())
+        gaps.append((_distance_steps(o.min_distance, T) - np.linalg.norm(p - pos[None], axis=-1)).ravel())
     return np.concatenate(gaps) if gaps else np.zeros(0)
 
 
@@ -167,14 +173,14 @@ def _player_inequalities(problem: GameProblem, x: np.ndarray, u: np.ndarray, i: 
     N, T, nx, nu = _check_shapes(problem, x, u)
     enabled, d_min, px, py = _collision_settings(problem)
     others = [(x[j, :, [px, py]].T, d_min) for j in range(N) if enabled and j != i]
-    others += [(np.asarray(o.positions, dtype=float), float(o.min_distance)) for o in problem.obstacles]
+    others += [(np.asarray(o.positions, dtype=float), _distance_steps(o.min_distance, T)) for o in problem.obstacles]
     for other, dmin in others:
         for k in range(1, T + 1):
             d = x[i, k, [px, py]] - other[k]
             dist = max(float(np.linalg.norm(d)), 1e-12)
             g = np.zeros(nx)
             g[px], g[py] = -d / dist
-            yield dmin - dist, k, "x", g
+            yield float(dmin[k - 1]) - dist, k, "x", g
     a = problem.agents[i]
     for name, lo, hi, vals, n, first in (("x", _bounds(a.x_min, nx, -np.inf), _bounds(a.x_max, nx, np.inf), x[i], nx, 1),
                                          ("u", _bounds(a.u_min, nu, -np.inf), _bounds(a.u_max, nu, np.inf), u[i], nu, 0)):
@@ -264,9 +270,10 @@ class _ShootingProblem:
         self.u_lo, self.u_hi = _bounds(a.u_min, self.nu, -np.inf), _bounds(a.u_max, self.nu, np.inf)
         self.x_lo, self.x_hi = _bounds(a.x_min, self.nx, -np.inf), _bounds(a.x_max, self.nx, np.inf)
         enabled, d_min, self.px, self.py = _collision_settings(problem)
-        # Points to keep away from at k = 1..T: (positions (T, 2), d_min).
+        # Points to keep away from at k = 1..T: (positions (T, 2), d_min (T,)).
         self.avoid = [(x[j, 1:][:, [self.px, self.py]], d_min) for j in range(self.N) if enabled and j != i]
-        self.avoid += [(np.asarray(o.positions, dtype=float)[1:], float(o.min_distance)) for o in problem.obstacles]
+        self.avoid += [(np.asarray(o.positions, dtype=float)[1:], _distance_steps(o.min_distance, self.T))
+                       for o in problem.obstacles]
         self._key = None
 
     def _eval(self, z: np.ndarray) -> None:

@@ -31,6 +31,10 @@ class PlannerConfig:
     track_margin_m: float = 0.03      # extra clearance to the track edge beyond the car's half-extent
     heading_allowance_rad: float = 0.15  # yaw assumed when computing the lateral half-extent of the footprint
     collision_margin_m: float = 0.02  # added to the footprints' circumscribed-circle distance
+    # When the cars are already closer than the collision distance, the plan's d_min starts at what is
+    # feasible at k = 1 and must grow back towards the nominal value at this rate (m/s) over the
+    # horizon (per-step d_min); 0 = the relaxed d_min at every step (the plan only may not close in).
+    separation_recovery_mps: float = 0.3
     lateral_reach_m: float = 0.1      # lateral motion over a plan assumed when correcting d_min for curvature
     max_brake_mps2: float = 4.0       # planner's braking bound (tyre-limited; the motor could brake harder)
     steering_margin: float = 0.95     # fraction of the steering range the planner may use

@@ -217,7 +217,19 @@ class _RecedingHorizon:
         return np.stack([np.asarray(model.rollout(np.asarray(a.x0, dtype=float), u[i]))
                          for i, a in enumerate(problem.agents)])
 
-    def _violation(self, problem: GameProblem, x: np.ndarray, d_min: float, ey_bound: float) -> float:
+    def _distance_steps(self, d_min: float, nominal: float):
+        """The collision distance for k = 1..T: d_min (relaxed so that k = 1 is feasible) if it equals
+        the nominal one or separation_recovery_mps is 0; otherwise d_min at k = 1 and 2, then growing
+        at separation_recovery_mps per second back to the nominal distance (per-step array). The
+        positions at k = 1 and 2 hardly depend on the controls (the first control acts on the speed and
+        heading used from k = 1 on), so a ramp from k = 2 made a car closing at 0.4 m/s infeasible."""
+        rate = self.config.separation_recovery_mps
+        if rate <= 0 or d_min >= nominal:
+            return d_min
+        k = np.arange(1, self.config.horizon + 1)
+        return np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
+
+    def _violation(self, problem: GameProblem, x: np.ndarray, d_min, ey_bound: float) -> float:
         """Largest violation (m or m/s) of track limits, top speed and separation along trajectories x."""
         worst = float(np.max(np.abs(x[:, 1:, EY])) - ey_bound)
         for i, a in enumerate(problem.agents):
@@ -225,7 +237,7 @@ class _RecedingHorizon:
         positions = [x[i, 1:, :2] for i in range(len(problem.agents))] + [o.positions[1:] for o in problem.obstacles]
         for i in range(len(positions)):
             for j in range(i + 1, len(positions)):
-                worst = max(worst, d_min - float(np.min(np.hypot(*(positions[i] - positions[j]).T))))
+                worst = max(worst, float(np.max(d_min - np.hypot(*(positions[i] - positions[j]).T))))
         return max(worst, 0.0)
 
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float) -> Plan:
@@ -262,7 +274,7 @@ class _RecedingHorizon:
         self._prev = dataclasses.replace(result, u=np.asarray(u_all), x=np.asarray(x), lam=np.asarray(lam))
         return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
                     solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
-                    d_min=d_min, ey_bound=ey_bound)
+                    d_min=float(np.min(d_min)), ey_bound=ey_bound)
 
 
 class RacingPlanner(_RecedingHorizon):
@@ -318,9 +330,10 @@ class RacingPlanner(_RecedingHorizon):
         top = self.follow_speed_cap(x_self, x_other, d_min < nominal_d_min)
         agents = [self._agent(x_self, top, ey_bound, self._cost(c.top_speed_mps), c.lead_weight),
                   self._agent(x_other, self.opponent_top_speed, ey_bound, self._cost(self.opponent_top_speed), c.lead_weight)]
+        d_steps = self._distance_steps(d_min, nominal_d_min)
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
-                              collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY))
-        return self._finish(problem, d_min, ey_bound)
+                              collision=Collision(min_distance=d_steps, form="distance", pos_x=S, pos_y=EY))
+        return self._finish(problem, d_steps, ey_bound)
 
 
 class MPCOpponent(_RecedingHorizon):
@@ -337,11 +350,13 @@ class MPCOpponent(_RecedingHorizon):
             cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]
             cost.Q_ref = [c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M), *cost.Q_ref[1:]]
         other = self.predict_other(x_other)
+        nominal_d_min = d_min
         ey_bound, d_min = self._feasible_limits([x_self], ey_bound, d_min, [other])
+        d_steps = self._distance_steps(d_min, nominal_d_min)
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon,
                               agents=[self._agent(x_self, c.top_speed_mps, ey_bound, cost, 0.0)],
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
-                              obstacles=[Obstacle(positions=other, min_distance=d_min)])
-        plan = self._finish(problem, d_min, ey_bound)
+                              obstacles=[Obstacle(positions=other, min_distance=d_steps)])
+        plan = self._finish(problem, d_steps, ey_bound)
         plan.x = np.concatenate([plan.x, self._predicted_other_states(x_other)[None]], axis=0)
         return plan

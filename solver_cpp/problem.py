@@ -74,11 +74,27 @@ class Agent:
     lead_index: int = 0
 
 
+def _min_distance(where: str, value, T: int) -> tuple[float, np.ndarray]:
+    """d_min (m) as (scalar, per-step array for k = 1..T or empty): a positive number, or T positive
+    numbers (one per step k = 1..T, e.g. a separation to recover over the horizon)."""
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        d = float(arr)
+        if not np.isfinite(d) or d <= 0:
+            raise ValueError(f"{where} must be positive, got {value!r}")
+        return d, np.zeros(0)
+    if arr.shape != (T,) or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise ValueError(f"{where} must be a positive number or {T} positive numbers (one per step k = 1..T), "
+                         f"got shape {arr.shape} with min {np.min(arr) if arr.size else None!r}")
+    return float(np.max(arr)), arr
+
+
 @dataclass
 class Collision:
-    """Pairwise h = d_min - |p_i - p_j| ("distance") or d_min^2 - |p_i - p_j|^2 ("squared") <= 0."""
+    """Pairwise h = d_min - |p_i - p_j| ("distance") or d_min^2 - |p_i - p_j|^2 ("squared") <= 0.
+    min_distance: d_min in m, one number for every step or a sequence of T numbers (k = 1..T)."""
 
-    min_distance: float
+    min_distance: float | Sequence[float]
     form: str = "distance"
     enabled: bool = True
     pos_x: int = 0
@@ -87,10 +103,11 @@ class Collision:
 
 @dataclass
 class Obstacle:
-    """A moving disc every agent avoids: positions (T+1, 2) in agent position coordinates."""
+    """A moving disc every agent avoids: positions (T+1, 2) in agent position coordinates; min_distance
+    in m, one number or T numbers (k = 1..T) as in Collision."""
 
     positions: np.ndarray
-    min_distance: float
+    min_distance: float | Sequence[float]
 
 
 @dataclass
@@ -163,10 +180,7 @@ class GameProblem:
                     raise ValueError(f"collision.{name} must be a state index in [0, {nx})")
             cs.pos_x, cs.pos_y = int(col.pos_x), int(col.pos_y)
             if col.enabled and len(self.agents) >= 2:
-                d = float(col.min_distance)
-                if not np.isfinite(d) or d <= 0:
-                    raise ValueError(f"collision.min_distance must be positive, got {col.min_distance!r}")
-                cs.min_distance = d
+                cs.min_distance, cs.min_distance_steps = _min_distance("collision.min_distance", col.min_distance, T)
                 cs.enabled = True
         p.collision = cs
         obs = []
@@ -176,9 +190,7 @@ class GameProblem:
                 raise ValueError(f"obstacles[{n}].positions must be finite with shape ({T + 1}, 2), got {pos.shape}")
             co = _core.Obstacle()
             co.positions = pos
-            co.min_distance = float(o.min_distance)
-            if not co.min_distance > 0:
-                raise ValueError(f"obstacles[{n}].min_distance must be positive")
+            co.min_distance, co.min_distance_steps = _min_distance(f"obstacles[{n}].min_distance", o.min_distance, T)
             obs.append(co)
         p.obstacles = obs
         return p

@@ -140,10 +140,10 @@ def problem_to_dict(problem: GameProblem, solver: dict | None = None) -> dict:
         agents.append(entry)
     out: dict = {"dt": problem.dt, "horizon": problem.horizon}
     if problem.collision is not None:
-        out["collision"] = {"min_distance": problem.collision.min_distance, "form": problem.collision.form}
+        out["collision"] = {"min_distance": _number_or_list(problem.collision.min_distance), "form": problem.collision.form}
     out["agents"] = agents
     if problem.obstacles:
-        out["obstacles"] = [{"positions": np.asarray(o.positions).tolist(), "min_distance": o.min_distance}
+        out["obstacles"] = [{"positions": np.asarray(o.positions).tolist(), "min_distance": _number_or_list(o.min_distance)}
                             for o in problem.obstacles]
     if solver:
         out["solver"] = solver
@@ -164,3 +164,9 @@ def result_to_dict(result: GameResult) -> dict:
         "timings_s": {"assembly": result.assembly_time_s, "linear_solve": result.linear_solve_time_s,
                       "line_search": result.line_search_time_s},
     }
+
+
+def _number_or_list(value):
+    """d_min as written to a problem file: a number, or a list of per-step numbers."""
+    arr = np.asarray(value, dtype=float)
+    return float(arr) if arr.ndim == 0 else arr.tolist()

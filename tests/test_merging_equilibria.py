@@ -150,3 +150,43 @@ def test_polish_rescues_a_stalled_merge():
     # The answer is checked independently of the solver: dynamics, collisions, per-player stationarity.
     report = verify_equilibrium(problem, result.x, result.u, best_response_starts=0)
     assert report.passed, report.failures
+
+
+def test_per_step_collision_distance():
+    """d_min given per step (k = 1..T), as the racing planner does to demand that a separation below
+    the nominal one is recovered over the horizon: the solver keeps every step's own distance, the
+    constraint is active where the ramp binds, and the result passes the independent checks."""
+    problem = _two_car_merge(False, False)
+    T = problem.horizon
+    ramp = np.linspace(1.6, 2.6, T)  # with d_min = 2.0 at every step the closest approach is 2.0 (test above)
+    problem.collision = Collision(ramp, form="squared")
+    result = solve(problem, tol=SOLVE_TOL)
+    assert result.status == "converged"
+    dist = np.linalg.norm(result.x[0, 1:, :2] - result.x[1, 1:, :2], axis=-1)
+    assert np.all(dist >= ramp - 1e-6)
+    assert np.any(np.abs(dist - ramp) < 1e-6)  # some step's own distance is active
+    assert dist.min() < 2.0 - 0.1               # ... an early step with its smaller distance
+    report = verify_equilibrium(problem, result.x, result.u, best_response_starts=2)
+    assert report.passed, report.failures
+
+
+def test_per_step_obstacle_distance():
+    problem = _two_car_merge(False, True)
+    T = problem.horizon
+    ramp = np.linspace(0.5, 1.2, T)
+    problem.obstacles[0].min_distance = ramp
+    result = solve(problem, tol=SOLVE_TOL)
+    assert result.status == "converged"
+    parked = problem.obstacles[0].positions[None, 1:]
+    dist = np.linalg.norm(result.x[:, 1:, :2] - parked, axis=-1)
+    assert np.all(dist >= ramp[None] - 1e-6)
+    report = verify_equilibrium(problem, result.x, result.u, best_response_starts=2)
+    assert report.passed, report.failures
+
+
+@pytest.mark.parametrize("value", [np.ones(3), np.array([1.0] * 19 + [0.0]), np.array([1.0] * 19 + [np.nan])])
+def test_per_step_distance_is_validated(value):
+    problem = _two_car_merge(False, False)
+    problem.collision = Collision(value, form="squared")
+    with pytest.raises(ValueError, match="collision.min_distance"):
+        solve(problem)

@@ -258,3 +258,24 @@ def test_follow_speed_cap_matches_progress_rate_only_in_line_behind(track, car):
     assert p.follow_speed_cap(beside, x_other, True) == p.config.top_speed_mps
     fast = np.array([s_turn - 0.2, 0.1, 2.0, 0.0])  # far faster: at most 0.2 m/s drop per plan
     assert p.follow_speed_cap(fast, x_other, True) == pytest.approx(1.8)
+
+
+def test_separation_below_the_collision_distance_is_recovered_over_the_plan(track, car):
+    """Cars already closer than the collision distance (nearly in line on the straight, the rear one faster):
+    the relaxed distance holds at k = 1 and 2 only; the plan must open the gap again at
+    separation_recovery_mps, up to the nominal distance. Checked on the planned positions."""
+    for cls in (MPCOpponent, RacingPlanner):
+        kw = {"opponent_top_speed_mps": 1.5} if cls is RacingPlanner else {}
+        p = _planner(cls, track, car, config={"top_speed_mps": 2.0}, **kw)
+        x_self = np.array([4.5, 0.0, 1.9, 0.0])   # the top straight is s in [1 + pi, 3 + pi]
+        x_other = np.array([4.65, 0.03, 1.5, 0.0])  # 0.15 m ahead, 3 cm aside: nominal d_min is 0.195 m
+        nominal = p.tm.collision_distance([x_self[0], x_other[0]], [x_self[1], x_other[1]])
+        assert nominal > 0.17
+        plan = p.plan(x_self, x_other)
+        assert plan.used in ("converged", "accepted")
+        k = np.arange(1, p.config.horizon + 1)
+        required = np.minimum(nominal, plan.d_min + p.config.separation_recovery_mps * p.config.plan_dt_s * np.maximum(k - 2, 0))
+        gap = np.hypot(*(plan.x[0, 1:, :2] - plan.x[1, 1:, :2]).T)
+        assert np.all(gap >= required - p.config.accept_violation_m), (cls.__name__, gap - required)
+        assert gap[-1] >= nominal - p.config.accept_violation_m  # back to the nominal distance by the end
+        assert plan.d_min < nominal - 0.02                     # the scenario needs the relaxation

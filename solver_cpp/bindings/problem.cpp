@@ -26,13 +26,15 @@ void bind_problem(py::module_& m) {
       .def(py::init<>())
       .def_readwrite("enabled", &CollisionSpec::enabled)
       .def_readwrite("min_distance", &CollisionSpec::min_distance)
+      .def_readwrite("min_distance_steps", &CollisionSpec::min_distance_steps)
       .def_readwrite("form", &CollisionSpec::form)
       .def_readwrite("pos_x", &CollisionSpec::pos_x)
       .def_readwrite("pos_y", &CollisionSpec::pos_y);
   py::class_<Obstacle>(m, "Obstacle")
       .def(py::init<>())
       .def_readwrite("positions", &Obstacle::positions)
-      .def_readwrite("min_distance", &Obstacle::min_distance);
+      .def_readwrite("min_distance", &Obstacle::min_distance)
+      .def_readwrite("min_distance_steps", &Obstacle::min_distance_steps);
   py::class_<Problem>(m, "Problem")
       .def(py::init<>())
       .def_readwrite("horizon", &Problem::horizon)

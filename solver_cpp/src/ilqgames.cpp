@@ -57,7 +57,7 @@ void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Ma
   switch (c.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(x[c.i](px, c.k) - x[c.j](px, c.k), x[c.i](py, c.k) - x[c.j](py, c.k));
-      distance_like(d, p.collision.min_distance, gd, Hd);
+      distance_like(d, p.collision.at(c.k), gd, Hd);
       out.n = 4;
       const int ag[4] = {c.i, c.i, c.j, c.j}, cp[4] = {px, py, px, py};
       const double gg[4] = {gd[0], gd[1], -gd[0], -gd[1]};
@@ -71,7 +71,7 @@ void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Ma
     case K::Obstacle: {
       const Obstacle& o = p.obstacles[c.j];
       const Eigen::Vector2d d(x[c.i](px, c.k) - o.positions(c.k, 0), x[c.i](py, c.k) - o.positions(c.k, 1));
-      distance_like(d, o.min_distance, gd, Hd);
+      distance_like(d, o.at(c.k), gd, Hd);
       out.n = 2;
       out.agent[0] = out.agent[1] = c.i;
       out.comp[0] = px;

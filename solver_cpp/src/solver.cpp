@@ -98,13 +98,22 @@ void Solver::setup(const Problem& p, const Settings& s) {
   fill_bounds(prob_.x_max, nx_, kInf, "x_max");
   for (int i = 0; i < N_; ++i)
     for (int q = 0; q < nu_; ++q) require(prob_.u_min[i][q] < prob_.u_max[i][q], "u_min must be below u_max");
-  for (const auto& o : prob_.obstacles)
+  for (const auto& o : prob_.obstacles) {
     require(o.positions.rows() == T_ + 1 && o.positions.cols() == 2 && o.positions.allFinite() && o.min_distance > 0,
             "obstacle positions must be (T+1) x 2 finite with min_distance > 0");
+    require(o.min_distance_steps.size() == 0 ||
+                (o.min_distance_steps.size() == T_ && o.min_distance_steps.allFinite() && o.min_distance_steps.minCoeff() > 0),
+            "obstacle min_distance_steps must be empty or T positive values");
+  }
   if (prob_.collision.enabled && N_ > 1)
     require(prob_.collision.min_distance > 0 && prob_.collision.pos_x >= 0 && prob_.collision.pos_x < nx_ &&
                 prob_.collision.pos_y >= 0 && prob_.collision.pos_y < nx_,
             "collision.min_distance must be positive and position indices valid");
+  if (prob_.collision.enabled && N_ > 1)
+    require(prob_.collision.min_distance_steps.size() == 0 ||
+                (prob_.collision.min_distance_steps.size() == T_ && prob_.collision.min_distance_steps.allFinite() &&
+                 prob_.collision.min_distance_steps.minCoeff() > 0),
+            "collision.min_distance_steps must be empty or T positive values");
   settings_ = s;
   per_agent_multipliers_ = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
 
@@ -192,13 +201,13 @@ void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d
   switch (cn.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
-      distance_like(d, prob_.collision.min_distance);
+      distance_like(d, prob_.collision.at(cn.k));
       break;
     }
     case K::Obstacle: {
       const Obstacle& o = prob_.obstacles[cn.j];
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y.x[cn.i](py, cn.k) - o.positions(cn.k, 1));
-      distance_like(d, o.min_distance);
+      distance_like(d, o.at(cn.k));
       break;
     }
     case K::StateMax: h = y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx]; g[0] = 1; break;

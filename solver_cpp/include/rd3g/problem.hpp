@@ -39,8 +39,13 @@ enum class CollisionForm { Distance, Squared };
 struct CollisionSpec {
   bool enabled = true;
   double min_distance = 0.0;  ///< d_min (m)
+  /// Optional d_min per step k = 1..T (m), length T; empty = min_distance at every step. Lets a
+  /// receding-horizon planner start from a separation below d_min and demand its recovery.
+  Vec min_distance_steps;
   CollisionForm form = CollisionForm::Distance;
   int pos_x = 0, pos_y = 1;   ///< state indices of the position used by the constraint
+  /// d_min at step k (1..T), m.
+  double at(int k) const { return min_distance_steps.size() ? min_distance_steps[k - 1] : min_distance; }
 };
 
 /// A moving obstacle every agent avoids (used by a single-agent MPC that predicts its opponent):
@@ -48,6 +53,9 @@ struct CollisionSpec {
 struct Obstacle {
   Eigen::MatrixXd positions;  ///< (T+1) x 2, o_k in the same coordinates as the agents' positions
   double min_distance = 0.0;  ///< (m)
+  Vec min_distance_steps;     ///< optional d_min per step k = 1..T (m), as in CollisionSpec
+  /// d_min at step k (1..T), m.
+  double at(int k) const { return min_distance_steps.size() ? min_distance_steps[k - 1] : min_distance; }
 };
 
 struct Problem {
