@@ -151,3 +151,20 @@ def test_planner_exception_is_a_logged_fallback_not_a_crash(track, car, monkeypa
     speeds = np.hypot(o.trace_states[30:41, 1, 3], o.trace_states[30:41, 1, 4])
     assert np.all(speeds > 0.8)
     assert o.off_track == {"rd3g": 0, "opponent": 0}
+
+
+def test_raceline_option_reaches_both_planners_and_is_validated():
+    import argparse
+
+    from app.cli import UserError
+    from app.commands import race as race_cmd
+
+    parser = argparse.ArgumentParser()
+    race_cmd.register(parser.add_subparsers())
+    args = parser.parse_args(["race", "--raceline-ey", "0.05"])
+    setup = race_cmd.make_setup(args, 0, "front", 2.0, 1.8)
+    assert setup.planner.raceline_ey_m == 0.05
+    assert race_cmd.make_setup(parser.parse_args(["race"]), 0, "front", 2.0, 1.8).planner.raceline_ey_m == 0.0
+    for bad in ("0.3", "nan"):  # the oval is 0.6 m wide: 0.3 m is on its edge
+        with pytest.raises(UserError, match="--raceline-ey"):
+            race_cmd.make_setup(parser.parse_args(["race", "--raceline-ey", bad]), 0, "front", 2.0, 1.8)
