@@ -100,7 +100,7 @@ def report(rows, args, machine: str) -> str:
         "",
         f"Scheduling: {'SCHED_FIFO priority ' + str(args.rt_priority) + ' (loop); box 3, planner 4, world 5 and recorder 10 below' if args.rt_priority else 'normal time-sharing'}; "
         f"load average before the HIL races {np.mean([h['load_before'] for h in hil]):.1f} "
-        f"(other engineers' jobs on the 2 cores).",
+        f"(1-minute average: it includes the previous race of this bench; a quiet host reads about 0.5 before the first).",
         "",
         "| seed | sim winner | HIL winner | HIL loop Hz (median) | period p99 ms | deadline misses | frames (dropped) | tracking error median / p95 mm | detection error median mm | RD3G solve p50 / p99 ms |",
         "|---|---|---|---|---|---|---|---|---|---|",
