@@ -40,7 +40,7 @@ class Simulator:
     """Simulate several cars on one track.
 
     track: object with ``length``, ``to_frenet(x, y, heading) -> (s, ey, epsi)`` and
-    ``is_inside(x, y, margin) -> bool`` (numpy-vectorised), as in tracks/.
+    ``is_inside_frenet(s, ey, margin) -> bool`` (numpy-vectorised), as in tracks/.
     cars: one CarParams per car (corrections included). effects: one SimEffects for all cars
     or one per car. physics_dt: integration step; every control interval passed to step()
     must be a whole number of physics steps. check_dt: period of the lap, track-limit and
@@ -244,17 +244,22 @@ class Simulator:
     def _check_contacts(self) -> None:
         t = self.time
         x = np.array(self._x)
-        if self._steps > 0:
-            self._events.extend(self._laps.update(t, self._arc_lengths()))
-
+        n = self.n_cars
         cos_h, sin_h = np.cos(x[:, 2]), np.sin(x[:, 2])
         cx = x[:, 0] + self._offsets * cos_h
         cy = x[:, 1] + self._offsets * sin_h
-        # Track limits: a car is off track while any footprint corner is outside the drivable area.
         hl, hw = self._half_extents[:, :1], self._half_extents[:, 1:]
         corner_x = cx[:, None] + hl * self._corner_signs[0] * cos_h[:, None] - hw * self._corner_signs[1] * sin_h[:, None]
         corner_y = cy[:, None] + hl * self._corner_signs[0] * sin_h[:, None] + hw * self._corner_signs[1] * cos_h[:, None]
-        inside = np.asarray(self.track.is_inside(corner_x.ravel(), corner_y.ravel(), 0.0), dtype=bool)
+        # One projection onto the centre line for the cars (laps) and their corners (track limits):
+        # the projection is most of the cost of a check.
+        s, ey, _ = self.track.to_frenet(np.concatenate([x[:, 0], corner_x.ravel()]),
+                                        np.concatenate([x[:, 1], corner_y.ravel()]))
+        s, ey = np.asarray(s, dtype=float), np.asarray(ey, dtype=float)
+        if self._steps > 0:
+            self._events.extend(self._laps.update(t, s[:n]))
+        # Track limits: a car is off track while any footprint corner is outside the drivable area.
+        inside = np.asarray(self.track.is_inside_frenet(s[n:], ey[n:], 0.0), dtype=bool)
         outside = (~inside.reshape(self.n_cars, 4).all(axis=1)).tolist()
         for i in range(self.n_cars):
             if outside[i] != self._off_track[i]:

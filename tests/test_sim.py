@@ -23,10 +23,10 @@ class RingTrack:
         self.radius, self.half_width = radius, half_width
         self.length = 2 * math.pi * radius
 
-    def to_frenet(self, x, y, heading):
+    def to_frenet(self, x, y, heading=None):
         angle = np.mod(np.arctan2(y, x), 2 * np.pi)
         ey = self.radius - np.hypot(x, y)  # left of the direction of travel is positive
-        epsi = np.mod(np.asarray(heading) - angle - np.pi / 2 + np.pi, 2 * np.pi) - np.pi
+        epsi = None if heading is None else np.mod(np.asarray(heading) - angle - np.pi / 2 + np.pi, 2 * np.pi) - np.pi
         return self.radius * angle, ey, epsi
 
     def position(self, s):
@@ -42,6 +42,9 @@ class RingTrack:
     def is_inside(self, x, y, margin=0.0):
         return np.abs(np.hypot(x, y) - self.radius) <= self.half_width - margin
 
+    def is_inside_frenet(self, s, ey, margin=0.0):
+        return np.abs(ey) <= self.half_width - margin
+
 
 class StraightTrack:
     """A long straight along +x, |y| <= half_width; s = x (a 'lap' is the whole length)."""
@@ -49,11 +52,14 @@ class StraightTrack:
     def __init__(self, length=100.0, half_width=0.3):
         self.length, self.half_width = length, half_width
 
-    def to_frenet(self, x, y, heading):
-        return np.mod(x, self.length), np.asarray(y), np.asarray(heading)
+    def to_frenet(self, x, y, heading=None):
+        return np.mod(x, self.length), np.asarray(y), None if heading is None else np.asarray(heading)
 
     def is_inside(self, x, y, margin=0.0):
         return np.abs(y) <= self.half_width - margin
+
+    def is_inside_frenet(self, s, ey, margin=0.0):
+        return np.abs(ey) <= self.half_width - margin
 
 
 P = CarParams()

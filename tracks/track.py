@@ -280,6 +280,12 @@ class Track:
         A negative margin enlarges the surface. Open tracks end at s = 0 and s = length.
         """
         s, ey, _ = self.to_frenet(x, y)
+        return self.is_inside_frenet(s, ey, margin)
+
+    def is_inside_frenet(self, s, ey, margin: float = 0.0):
+        """``is_inside`` for points already in Frenet coordinates (s, ey from ``to_frenet``), for
+        callers that project the points anyway (the simulator's checks: one projection per check)."""
+        s, ey = np.asarray(s, dtype=float), np.asarray(ey, dtype=float)
         inside = np.abs(ey) <= 0.5 * self.width(s) - margin
         if not self.closed:
             inside &= (s >= -1e-12) & (s <= self._length + 1e-12)
