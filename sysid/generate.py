@@ -84,12 +84,16 @@ class ReversedTrack:
     def curvature(self, s):
         return -np.asarray(self.base.curvature(np.mod(self.length - np.asarray(s, dtype=float), self.length)))
 
-    def to_frenet(self, x, y, heading):
-        s, ey, epsi = self.base.to_frenet(x, y, np.asarray(heading) + math.pi)
+    def to_frenet(self, x, y, heading=None):
+        s, ey, epsi = self.base.to_frenet(x, y, None if heading is None else np.asarray(heading) + math.pi)
         return np.mod(self.length - np.asarray(s), self.length), -np.asarray(ey), epsi
 
     def is_inside(self, x, y, margin=0.0):
         return self.base.is_inside(x, y, margin)
+
+    def is_inside_frenet(self, s, ey, margin=0.0):
+        """Same surface as the base track: s and ey are mirrored back to the base's coordinates."""
+        return self.base.is_inside_frenet(np.mod(self.length - np.asarray(s), self.length), -np.asarray(ey), margin)
 
 
 @dataclass(frozen=True)
