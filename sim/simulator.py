@@ -39,8 +39,8 @@ def wrap_angle(a: float) -> float:
 class Simulator:
     """Simulate several cars on one track.
 
-    track: object with ``length``, ``to_frenet(x, y, heading) -> (s, ey, epsi)`` and
-    ``is_inside_frenet(s, ey, margin) -> bool`` (numpy-vectorised), as in tracks/.
+    track: object with ``length``, ``to_frenet(x, y, heading=None) -> (s, ey, epsi)`` (epsi None
+    without a heading) and ``is_inside_frenet(s, ey, margin) -> bool`` (numpy-vectorised), as in tracks/.
     cars: one CarParams per car (corrections included). effects: one SimEffects for all cars
     or one per car. physics_dt: integration step; every control interval passed to step()
     must be a whole number of physics steps. check_dt: period of the lap, track-limit and
