@@ -148,3 +148,73 @@ def test_lost_after_configurable_timeout():
 def test_config_validation_names_field():
     with pytest.raises(ValueError, match="lost_after_s"):
         EstimatorConfig(lost_after_s=-1)
+
+
+def swerve_measurements(speed=2.0, wheelbase=0.09, rate_hz=RATE_HZ):
+    """Exact poses of a kinematic bicycle at constant speed that swerves: steering +20 deg, then
+    -20 deg reached at 8 rad/s, i.e. the yaw rate reverses from +8 to -8 rad/s in 0.09 s.
+    Integrated with 0.1 ms Euler steps (the reference; independent of the CTRV model)."""
+    dt_fine, t_end = 1e-4, 1.0
+    x = y = heading = 0.0
+    delta = math.radians(20)
+    poses, t_samples, yaw_rates = [], [], []
+    every = int(round(1 / (rate_hz * dt_fine)))
+    for n in range(int(t_end / dt_fine)):
+        t = n * dt_fine
+        target = math.radians(20) if t < 0.4 else -math.radians(20)
+        delta += float(np.clip(target - delta, -8.0 * dt_fine, 8.0 * dt_fine))
+        if n % every == 0:
+            t_samples.append(t)
+            poses.append((x, y, float(wrap_angle(heading))))
+            yaw_rates.append(speed * math.tan(delta) / wheelbase)
+        x += speed * math.cos(heading) * dt_fine
+        y += speed * math.sin(heading) * dt_fine
+        heading += speed * math.tan(delta) / wheelbase * dt_fine
+    return np.array(t_samples), np.array(poses), np.array(yaw_rates)
+
+
+def test_swerve_is_reacquired_instead_of_lost():
+    t, poses, yaw_rates = swerve_measurements()
+    stiff = EstimatorConfig(yaw_accel_noise=2.0)  # a model that cannot follow the swerve
+    never = CarEKF(EstimatorConfig(yaw_accel_noise=2.0, reacquire_after=10 ** 6))
+    ekf = CarEKF(stiff)
+    reasons = [ekf.update(ti, *z).reason for ti, z in zip(t, poses)]
+    for ti, z in zip(t, poses):
+        never.update(ti, *z)
+    assert never.counts["gated"] >= 10  # without re-acquisition the swerve is gated until lost...
+    assert ekf.counts["gated"] >= 2 and ekf.counts["reacquired"] >= 1
+    # ...with it, no more than reacquire_after - 1 measurements in a row are rejected,
+    run = longest = 0
+    for r in reasons:
+        run = run + 1 if r == "gated" else 0
+        longest = max(longest, run)
+    assert longest <= stiff.reacquire_after - 1
+    assert not ekf.is_lost(t[-1])
+    # and the filter ends on the true speed and yaw rate.
+    assert abs(ekf.x[3] - 2.0) < 0.05
+    assert abs(ekf.x[4] - yaw_rates[-1]) < 0.3
+
+
+def test_outliers_that_disagree_are_never_reacquired():
+    rng = np.random.default_rng(3)
+    t, truth, meas = straight_measurements(rng, duration_s=1.0)
+    ekf = CarEKF()
+    for ti, z in zip(t[:30], meas[:30]):
+        ekf.update(ti, *z)
+    # Misreads scattered 0.3-1 m away, each far from the previous one: not one car's motion.
+    for k in range(30, 40):
+        jump = rng.uniform(0.3, 1.0) * np.array([math.cos(k), math.sin(k)])
+        result = ekf.update(t[k], *(meas[k, :2] + jump), meas[k, 2])
+        assert result.reason == "gated"
+    assert ekf.counts["reacquired"] == 0
+    assert ekf.update(t[40], *meas[40]).accepted  # the real car is still tracked
+
+
+def test_car_moved_elsewhere_is_reacquired_before_lost():
+    ekf = CarEKF()
+    for k in range(30):
+        ekf.update(k / RATE_HZ, 1.0 + 1.5 * k / RATE_HZ, 1.0, 0.0)
+    # Picked up and put down 0.5 m aside, driving on at 1.5 m/s: three frames later it is tracked again.
+    reasons = [ekf.update(k / RATE_HZ, 1.0 + 1.5 * k / RATE_HZ, 1.5, 0.0).reason for k in range(30, 34)]
+    assert reasons[:2] == ["gated", "gated"] and reasons[2] == "reacquired" and reasons[3] == "accepted"
+    assert abs(ekf.x[3] - 1.5) < 0.05 and abs(ekf.x[1] - 1.5) < 0.01
