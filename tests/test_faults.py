@@ -26,20 +26,6 @@ PHYSICS_DT = 0.001    # the simulator applies the box's output on a 1 ms grid
 PLAN_LATENCY = 0.025  # LoopConfig.plan_latency_s
 
 
-def _rt_args() -> list[str]:
-    """Real-time scheduling for the race when this process may use it: the bounds below are a real-time
-    loop's guarantees, which time-sharing on a loaded 2-core machine cannot give (docs/race-stack.md)."""
-    import os
-
-    try:
-        param = os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-        os.sched_setscheduler(0, os.SCHED_OTHER, param)
-    except (AttributeError, OSError):
-        return []
-    return ["--rt-priority", "20"]
-
-
 @pytest.fixture(scope="module")
 def fault_race(tmp_path_factory):
     d = tmp_path_factory.mktemp("faults")
@@ -48,7 +34,7 @@ def fault_race(tmp_path_factory):
     with pytest.raises(SystemExit) as exit_info:
         raise SystemExit(run_cli([
             "race", "--hil", "--seed", "4", "--out", str(out), "--json", str(js), "--max-time", "8",
-            "--rd3g-speed", "1.0", "--opponent-speed", "0.9", *_rt_args(),
+            "--rd3g-speed", "1.0", "--opponent-speed", "0.9",
             "--fault", "nan_state@0.5:rd3g", "--fault", "solver_fail@1.2+0.3", "--fault", "serial_corrupt@2.2+0.4",
             "--fault", "occlude@3.2+1.0:opponent", "--fault", "serial_vanish@5.2"]))
     assert exit_info.value.code == 1  # the race ended on the serial fault, not normally

@@ -150,3 +150,28 @@ def test_hil_cars_move_with_the_commands(hil_race):
         assert v[0] < 0.05 and v.max() > 0.8
         _, thr = rec.scalars(f"cars/{car}/command/throttle")
         assert thr.max() > 0.3
+
+
+def test_scheduling_defaults_to_real_time_when_permitted(monkeypatch, capsys):
+    import os
+
+    from app.cli import UserError
+    from app.realtime import run
+
+    calls = []
+    monkeypatch.setattr(os, "sched_setscheduler", lambda pid, policy, param: calls.append(param.sched_priority))
+    assert run._set_scheduling(None) == f"SCHED_FIFO priority {run.AUTO_RT_PRIORITY} (default)"
+    assert run._set_scheduling(35) == "SCHED_FIFO priority 35" and calls == [run.AUTO_RT_PRIORITY, 35]
+    assert run._set_scheduling(0).startswith("normal") and len(calls) == 2  # 0: not even tried
+
+    def refuse(pid, policy, param):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    # Not permitted: the default falls back to time-sharing and says so; an explicit priority is an error.
+    assert run._set_scheduling(None).startswith("normal time-sharing (SCHED_FIFO not permitted")
+    assert "CAP_SYS_NICE" in capsys.readouterr().err
+    with pytest.raises(UserError, match="--rt-priority 20: cannot switch to SCHED_FIFO"):
+        run._set_scheduling(20)
+    with pytest.raises(UserError, match="--rt-priority: must be in 1..99"):
+        run._set_scheduling(120)

@@ -24,7 +24,7 @@ def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool):
     race.register(sub)
     argv = ["race", "--seed", str(seed), "--out", out, "--json", json_path]
     if hil:
-        argv += ["--hil"] + (["--rt-priority", str(rt)] if rt else [])
+        argv += ["--hil", "--rt-priority", str(rt)]  # 0 = normal scheduling
     return p.parse_args(argv)
 
 
@@ -34,7 +34,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m app.realtime.bench")
     parser.add_argument("--seeds", type=int, default=6)
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--rt-priority", type=int, default=0)
+    parser.add_argument("--rt-priority", type=int, default=20,
+                        help="the HIL races' --rt-priority (default 20, as `race --hil` when permitted; 0 = normal)")
     parser.add_argument("--json", default="runs/loop_bench.json")
     parser.add_argument("--no-docs", action="store_true", help="do not write docs/benchmarks.md")
     args = parser.parse_args(argv)
@@ -95,7 +96,7 @@ def report(rows, args, machine: str) -> str:
     misses = sum(h["deadline_misses"] for h in hil)
     lines = [
         f"Command: `.venv/bin/python -m app.realtime.bench --seeds {args.seeds} --first-seed {args.first_seed}"
-        + (f" --rt-priority {args.rt_priority}`" if args.rt_priority else "`")
+        + f" --rt-priority {args.rt_priority}`"
         + f" ({time.strftime('%Y-%m-%d %H:%M')}; {machine}).",
         "",
         f"Scheduling: {'SCHED_FIFO priority ' + str(args.rt_priority) + ' (loop); box 3, planner 4, world 5 and recorder 10 below' if args.rt_priority else 'normal time-sharing'}; "

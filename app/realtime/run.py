@@ -3,6 +3,7 @@ build the real-time loop's parts from the command line and run one race (docs/ra
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -28,10 +29,11 @@ def add_realtime_arguments(p) -> None:
     g.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
     g.add_argument("--human-opponent", action="store_true",
                    help="the opponent is driven by a person: tracked and raced against, never commanded")
-    g.add_argument("--rt-priority", type=int, default=0, metavar="PRIO",
+    g.add_argument("--rt-priority", type=int, default=None, metavar="PRIO",
                    help="run the loop under SCHED_FIFO at this priority (1-99, needs CAP_SYS_NICE); the HIL world "
-                        "runs 5, the virtual box 3, the planner 4 and the telemetry thread 10 below it. Default 0: "
-                        "normal scheduling")
+                        "runs 5, the virtual box 3, the planner 4 and the telemetry thread 10 below it. 0: normal "
+                        f"scheduling. Default: {AUTO_RT_PRIORITY} when the process may use SCHED_FIFO, else normal "
+                        "scheduling (with a warning)")
     g.add_argument("--stop-after-hold", type=float, default=3.0, metavar="S",
                    help="stop the race (exit code 1) when the cars have been held neutral by a safety hold "
                         "(lost car, planner fault, ...) for S seconds without a break (default 3)")
@@ -69,6 +71,35 @@ def _check_mode(args) -> str:
     return "hardware"
 
 
+AUTO_RT_PRIORITY = 20
+
+
+def _set_scheduling(rt_priority: int | None) -> str:
+    """Switch the calling thread to SCHED_FIFO (before any thread or the world process exists:
+    they inherit the policy and lower their own priority where they are helpers). ``None`` = auto:
+    SCHED_FIFO at AUTO_RT_PRIORITY when permitted, else normal scheduling with a warning: a real-time
+    loop is the default because time-sharing on this 2-core machine misses 25-45 % of the HIL
+    loop's deadlines (docs/race-stack.md, "Scheduling"). Returns a description for the recording."""
+    import os
+
+    if rt_priority == 0:
+        return "normal time-sharing (--rt-priority 0)"
+    if rt_priority is not None and not 1 <= rt_priority <= 99:
+        raise UserError(f"--rt-priority: must be in 1..99 (0 = normal scheduling), got {rt_priority}")
+    prio = AUTO_RT_PRIORITY if rt_priority is None else rt_priority
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except (PermissionError, OSError, AttributeError) as exc:
+        if rt_priority is not None:
+            raise UserError(f"--rt-priority {rt_priority}: cannot switch to SCHED_FIFO ({exc}); "
+                            f"run with --rt-priority 0 or grant CAP_SYS_NICE") from None
+        print(f"warning: SCHED_FIFO not permitted ({exc}); the loop runs under normal scheduling and may "
+              f"miss deadlines. Grant CAP_SYS_NICE (docs/race-stack.md, \"Scheduling\") or pass --rt-priority 0 "
+              f"to silence this.", file=sys.stderr)
+        return f"normal time-sharing (SCHED_FIFO not permitted: {exc})"
+    return f"SCHED_FIFO priority {prio}" + (" (default)" if rt_priority is None else "")
+
+
 def run_realtime(args) -> int:
     import os
 
@@ -77,7 +108,7 @@ def run_realtime(args) -> int:
     try:
         return _run_realtime(args, mode)
     finally:
-        if policy is not None and args.rt_priority:
+        if policy is not None and args.rt_priority != 0:
             try:  # the calling thread goes back to its scheduling policy (matters when called in-process)
                 os.sched_setscheduler(0, policy[0], policy[1])
             except OSError:
@@ -113,17 +144,7 @@ def _run_realtime(args, mode: str) -> int:
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     opponent = "human" if args.human_opponent else args.opponent
 
-    if args.rt_priority:
-        # Before any thread or the world process exists: they all inherit the policy (and lower
-        # their own priority where they are helpers).
-        import os
-        if not 1 <= args.rt_priority <= 99:
-            raise UserError(f"--rt-priority: must be in 1..99, got {args.rt_priority}")
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
-        except (PermissionError, OSError, AttributeError) as exc:
-            raise UserError(f"--rt-priority {args.rt_priority}: cannot switch to SCHED_FIFO ({exc}); "
-                            f"run without it or grant CAP_SYS_NICE") from None
+    scheduling = _set_scheduling(args.rt_priority)
     if mode == "hardware":
         parts = _open_hardware(args, setup, cars, config)
     else:
@@ -151,6 +172,7 @@ def _run_realtime(args, mode: str) -> int:
         except SerialLinkError as exc:
             raise UserError(f"--serial: {exc}") from None
         loop.link = link
+        loop._event("setup", f"scheduling: {scheduling}", t_race=0.0)
         if note:
             loop._event("setup", note, t_race=0.0)
         try:
