@@ -327,6 +327,8 @@ class _World:
         self._render_cv = threading.Condition()
         self._pending: dict | None = None
         self._stop_render = False
+        self._send_lock = threading.Lock()  # the render thread and the main thread both send to the parent
+        self._reported_corrupt = 0
         self._render_thread = threading.Thread(target=self._render_loop, name="render", daemon=True)
         self._render_thread.start()
 
@@ -390,7 +392,8 @@ class _World:
             snap["render_ms"] = 1e3 * (time.perf_counter() - t0)
             self.render_ms.append(snap["render_ms"])
             self.rendered += 1
-            self.conn.send(("frame", snap))
+            with self._send_lock:
+                self.conn.send(("frame", snap))
 
     def _apply_faults(self, t_race: float) -> None:
         """Faults due by race time ``t_race``. Serial faults are injected by the box process, which
@@ -487,6 +490,12 @@ class _World:
             sim_target = round(k * period / spec.physics_dt_s) * spec.physics_dt_s
             self._apply_faults(sim_target)
             self.box.pump()  # everything the box did until now, before the physics catches up to now
+            if self.box.line_errors > self._reported_corrupt:
+                # Rejected bytes at the box reach the loop now, not with the next rendered frame (which
+                # is up to a frame period plus a render later): the loop holds the cars on this report.
+                self._reported_corrupt = self.box.line_errors
+                with self._send_lock:
+                    self.conn.send(("box", {"box_corrupt": self.box.line_errors}))
             self._advance(t_go, sim_target)
             self._box_events(self.sim.time)
             self.min_gap = min(self.min_gap, self.footprint_gap(self.sim.states, spec.car))
@@ -586,12 +595,15 @@ class HilWorld:
             kind, info = self.conn.recv()
             if kind == "error":
                 raise RuntimeError(f"HIL world process failed: {info}")
+            if kind == "box":  # the box's report, ahead of the frame that will carry it too
+                packet.box_corrupt = max(packet.box_corrupt, info["box_corrupt"])
+                continue
             if kind != "frame":
                 continue
             packet.events.extend(info["events"])
             packet.render_ms.append(info["render_ms"])
             packet.winner = info["winner"] or packet.winner
-            packet.box_corrupt = info["box_corrupt"]
+            packet.box_corrupt = max(packet.box_corrupt, info["box_corrupt"])
             packet.box_failsafe_events = info["box_failsafe_events"]
             packet.dropped = info["dropped"]
             newest = info
