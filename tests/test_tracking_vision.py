@@ -257,3 +257,23 @@ def test_missing_sources_raise_clear_errors(tmp_path):
         VideoFileCamera(tmp_path / "nope.mp4")
     with pytest.raises(CameraError, match="cannot open"):
         OpenCVCamera(str(tmp_path / "no_such_stream.mjpg"))
+
+
+@pytest.mark.parametrize("sigma", [0.5, 1.7])
+def test_regions_redone_per_frame_equal_the_whole_image_pipeline(camera, track_drawing, sigma):
+    # render() redoes lighting and blur only around the cars; the reference is the same effects applied
+    # to the whole canvas. Cars overlapping, at the image border and half outside it.
+    synth = SyntheticCamera(camera, track_drawing, effects=RenderEffects(seed=5, defocus_sigma_px=sigma))
+    corner = camera.pixels_to_plane(np.array([[2.0, 3.0]]), CAR.roof_height_m)[0]
+    cases = [[CarPose(1, 2.0, 1.0, 0.3, 2.0, 1.0), CarPose(2, 2.08, 1.04, 0.5, 1.0)],
+             [CarPose(1, *corner, 0.0), CarPose(2, 4.9, 2.9, 1.0)],
+             [CarPose(1, -0.1, 1.5, 0.0), CarPose(2, 0.6, 0.4, 2.0)]]
+    at_border = []
+    for poses in cases:
+        canvas = synth._background.copy()
+        boxes = [b for b in (synth._draw_objects(canvas, [synth._car_objects(p.marker_id, p.x, p.y, p.heading)])
+                             for p in poses) if b is not None]
+        assert boxes
+        at_border.append(any(b[0] == 0 or b[1] == 0 for b in boxes))
+        np.testing.assert_array_equal(synth._sensor_image(canvas, boxes), synth._sensor_effects(canvas))
+    assert at_border[1]  # the corner case did reach the image border

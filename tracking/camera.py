@@ -255,6 +255,9 @@ class SyntheticCamera:
         self._background = self._render_background(fixed_markers)
         self._gain = self._lighting_gain()
         self._noise = self._noise_bank()
+        # The static scene as the sensor sees it (lighting, defocus), computed once: per frame only
+        # the regions the cars changed go through the lighting and the blur again (render()).
+        self._background_sensor = self._sensor_effects(self._canvas.to_sensor(self._background))
 
     # ---- static parts
     def _render_background(self, fixed_markers) -> np.ndarray:
@@ -320,13 +323,26 @@ class SyntheticCamera:
         light = 1.0 + self.effects.light_variation * (hotspot - 0.5 + 0.5 * ramp)
         return np.clip(np.round(128 * vignette * light), 0, 255).astype(np.uint8)
 
-    def _noise_bank(self) -> np.ndarray | None:
-        """Pre-drawn Gaussian noise; each frame uses a randomly offset window of it."""
+    def _noise_bank(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Pre-drawn Gaussian noise; each frame uses a randomly offset window of it. Kept as its
+        positive and negative parts in uint8 (at most one is non-zero per pixel), so adding it is two
+        saturating uint8 operations: the same result as a signed addition, at a fraction of the cost."""
         if self.effects.noise_sigma <= 0:
             return None
         w, h = self.camera.image_size
         rng = np.random.default_rng(self.effects.seed + 3)
-        return np.round(rng.normal(0.0, self.effects.noise_sigma, (h + 64, w + 64))).astype(np.int16)
+        noise = np.clip(np.round(rng.normal(0.0, self.effects.noise_sigma, (h + 64, w + 64))), -255, 255)
+        return np.clip(noise, 0, 255).astype(np.uint8), np.clip(-noise, 0, 255).astype(np.uint8)
+
+    def _sensor_effects(self, image: np.ndarray) -> np.ndarray:
+        """Lighting (vignetting, illumination) and defocus of a whole sensor image."""
+        return self._effects_on(image, self._gain)
+
+    def _effects_on(self, image: np.ndarray, gain: np.ndarray) -> np.ndarray:
+        image = cv2.multiply(image, gain, scale=1.0 / 128.0)
+        if self.effects.defocus_sigma_px > 0:
+            image = cv2.GaussianBlur(image, (0, 0), self.effects.defocus_sigma_px)
+        return image
 
     def _marker_texture(self, marker_id: int, px: int) -> np.ndarray:
         key = (marker_id, px)
@@ -337,42 +353,41 @@ class SyntheticCamera:
         return self._marker_textures[key]
 
     # ---- drawing
-    def _draw_objects(self, canvas: np.ndarray, samples: list[list[tuple]]) -> None:
+    def _draw_objects(self, canvas: np.ndarray, samples: list[list[tuple]]) -> tuple[int, int, int, int] | None:
         """Draw the objects of each motion sample (supersampled, area-averaged) and average the
         samples. Objects: ("poly", points (N,3), gray) filled convex polygons in order, and
-        ("marker", id, x, y, heading, size, z) flat markers."""
+        ("marker", id, x, y, heading, size, z) flat markers. Returns the canvas box it may have
+        changed (u0, v0, u1, v1), None if it is outside the canvas."""
         cam = self._canvas.camera
         ss = _SUPERSAMPLE
-        pts_all = []
-        for objs in samples:
-            for obj in objs:
-                if obj[0] == "poly":
-                    pts_all.append(cam.project(obj[1], distort=False))
-                else:
-                    pts_all.append(cam.project(marker_corners_track(*obj[2:5], obj[5], obj[6]), distort=False))
-        pts = np.vstack(pts_all)
+        # Every object's points, projected once (one call for all of them).
+        points = [obj[1] if obj[0] == "poly" else marker_corners_track(*obj[2:5], obj[5], obj[6])
+                  for objs in samples for obj in objs]
+        pts = cam.project(np.vstack(points), distort=False)
+        projected = np.split(pts, np.cumsum([len(p) for p in points])[:-1])
         cw, ch = self._canvas.size
         u0, v0 = np.floor(pts.min(axis=0)).astype(int) - 2
         u1, v1 = np.ceil(pts.max(axis=0)).astype(int) + 3
         u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, cw), min(v1, ch)
         if u1 <= u0 or v1 <= v0:
-            return
+            return None
         base = canvas[v0:v1, u0:u1]
         hi_base = cv2.resize(base, None, fx=ss, fy=ss, interpolation=cv2.INTER_NEAREST)
         # canvas pixel coords -> supersampled patch pixel coords (pixel centres at integers)
         to_hi = np.array([[ss, 0, ss * (0.5 - u0) - 0.5], [0, ss, ss * (0.5 - v0) - 0.5], [0, 0, 1]])
         acc = np.zeros(base.shape, np.float32)
+        next_projected = iter(projected)
         for objs in samples:
             hi = hi_base.copy()
             for obj in objs:
                 if obj[0] == "poly":
-                    p = cam.project(obj[1], distort=False)
+                    p = next(next_projected)
                     p = p @ to_hi[:2, :2].T + to_hi[:2, 2]
                     hull = cv2.convexHull(np.round(p * 16).astype(np.int32))
                     cv2.fillConvexPoly(hi, hull, int(obj[2]), cv2.LINE_AA, 4)
                 else:
-                    _, marker_id, x, y, heading, size, z = obj
-                    corners_px = cam.project(marker_corners_track(x, y, heading, size, z), distort=False)
+                    marker_id = obj[1]
+                    corners_px = next(next_projected)
                     side_px = ss * np.max(np.linalg.norm(np.diff(corners_px, axis=0, append=corners_px[:1]), axis=1))
                     tex = self._marker_texture(marker_id, int(side_px))
                     s = tex.shape[0]
@@ -383,6 +398,7 @@ class SyntheticCamera:
                                         borderMode=cv2.BORDER_TRANSPARENT)
             acc += cv2.resize(hi, (base.shape[1], base.shape[0]), interpolation=cv2.INTER_AREA)
         canvas[v0:v1, u0:u1] = np.clip(np.round(acc / len(samples)), 0, 255).astype(np.uint8)
+        return int(u0), int(v0), int(u1), int(v1)
 
     def _car_objects(self, marker_id: int, x: float, y: float, heading: float) -> list[tuple]:
         car = self.car
@@ -422,20 +438,45 @@ class SyntheticCamera:
         # seed 16: the RD3G marker vanished 1-2 cm from the other car and the car was lost).
         cam_x, cam_y = self.camera.position[:2]
         poses.sort(key=lambda p: -math.hypot(p.x - cam_x, p.y - cam_y))
+        boxes = []
         for pose in poses:
             samples = [self._car_objects(pose.marker_id, *xyh) for xyh in self._motion_samples(pose)]
-            self._draw_objects(canvas, samples)
-        image = self._canvas.to_sensor(canvas)
-        image = cv2.multiply(image, self._gain, scale=1.0 / 128.0)
-        if self.effects.defocus_sigma_px > 0:
-            image = cv2.GaussianBlur(image, (0, 0), self.effects.defocus_sigma_px)
+            box = self._draw_objects(canvas, samples)
+            if box is not None:
+                boxes.append(box)
+        image = self._sensor_image(canvas, boxes)
         if self._noise is not None:
             h, w = image.shape
             oy, ox = self._rng.integers(0, 64, 2)
-            image = cv2.add(image, self._noise[oy:oy + h, ox:ox + w], dtype=cv2.CV_8U)
+            positive, negative = self._noise
+            image = cv2.subtract(cv2.add(image, positive[oy:oy + h, ox:ox + w]), negative[oy:oy + h, ox:ox + w])
         frame = Frame(image, float(t_s), self._index)
         self._index += 1
         return frame
+
+    def _sensor_image(self, canvas: np.ndarray, boxes: list[tuple[int, int, int, int]]) -> np.ndarray:
+        """The sensor image of ``canvas``, which differs from the static background only inside
+        ``boxes``: the static sensor image with those boxes (grown by the blur's radius) redone from
+        regions another radius larger. Pixel for pixel the same as _sensor_effects on the whole
+        canvas (at the image border a region ends there too, so the blur's border rule is the same). With lens distortion the whole image is
+        resampled (the remap mixes pixels from anywhere), so it is done in full."""
+        if self._canvas.remap is not None:
+            return self._sensor_effects(self._canvas.to_sensor(canvas))
+        image = self._background_sensor.copy()
+        h, w = image.shape
+        r = self._blur_radius()
+        for u0, v0, u1, v1 in boxes:
+            # The blur spreads the box's changes r pixels out, and needs r more pixels to compute those.
+            u0, v0, u1, v1 = max(u0 - r, 0), max(v0 - r, 0), min(u1 + r, w), min(v1 + r, h)
+            a0, b0, a1, b1 = max(u0 - r, 0), max(v0 - r, 0), min(u1 + r, w), min(v1 + r, h)
+            region = self._effects_on(canvas[b0:b1, a0:a1], self._gain[b0:b1, a0:a1])
+            image[v0:v1, u0:u1] = region[v0 - b0:v1 - b0, u0 - a0:u1 - a0]
+        return image
+
+    def _blur_radius(self) -> int:
+        """Pixels the defocus blur reaches: OpenCV's kernel for 8-bit images has radius 3 sigma; one
+        more for rounding."""
+        return int(math.ceil(3 * self.effects.defocus_sigma_px)) + 1 if self.effects.defocus_sigma_px > 0 else 0
 
     def read(self) -> Frame:
         if self.world is None:
