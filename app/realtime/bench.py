@@ -49,11 +49,13 @@ def main(argv=None) -> int:
             out, js = runs / f"{mode}-seed{seed}.rrd", runs / f"{mode}-seed{seed}.json"
             a = _race_args(seed, str(out), str(js), args.rt_priority, mode == "hil")
             load0 = os.getloadavg()[0]
+            steal0 = steal_seconds()
             t0 = time.monotonic()
             a.func(a)
             rec[mode] = json.loads(js.read_text())
             rec[mode]["wall_s"] = time.monotonic() - t0
             rec[mode]["load_before"] = load0
+            rec[mode]["steal_s"] = None if steal0 is None else steal_seconds() - steal0
             print(f"seed {seed} {mode}: winner {rec[mode]['winner']}", flush=True)
         rows.append(rec)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -63,6 +65,18 @@ def main(argv=None) -> int:
     if not args.no_docs:
         write_section("loop-bench", body)
     return 0
+
+
+def steal_seconds() -> float | None:
+    """CPU time the hypervisor gave to other guests while ours wanted it (all cores, s; Linux
+    /proc/stat 'steal'), None where it is not available. On a shared VM it is what our own scheduling
+    cannot control, so the report states it next to the deadline misses."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def winner_distribution(rows) -> dict:
@@ -101,7 +115,10 @@ def report(rows, args, machine: str) -> str:
         "",
         f"Scheduling: {'SCHED_FIFO priority ' + str(args.rt_priority) + ' (loop); box 3, planner 4, world 5 and recorder 10 below' if args.rt_priority else 'normal time-sharing'}; "
         f"load average before the HIL races {np.mean([h['load_before'] for h in hil]):.1f} "
-        f"(1-minute average: it includes the previous race of this bench; a quiet host reads about 0.5 before the first).",
+        f"(1-minute average: it includes the previous race of this bench; a quiet host reads about 0.5 before the first)"
+        + (f"; CPU time stolen by the hypervisor during the HIL races {sum(h['steal_s'] for h in hil):.1f} s "
+           f"over {sum(h['wall_s'] for h in hil):.0f} s of wall time (2 cores; per race up to "
+           f"{max(h['steal_s'] for h in hil):.2f} s)." if all(h.get('steal_s') is not None for h in hil) else "."),
         "",
         "| seed | sim winner | HIL winner | HIL loop Hz (median) | period p99 ms | deadline misses | frames (dropped) | tracking error median / p95 mm | detection error median mm | RD3G solve p50 / p99 ms |",
         "|---|---|---|---|---|---|---|---|---|---|",
