@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 
-def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool):
+def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = ""):
     from app.commands import race
 
     p = argparse.ArgumentParser()
@@ -25,6 +25,8 @@ def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool):
     argv = ["race", "--seed", str(seed), "--out", out, "--json", json_path]
     if hil:
         argv += ["--hil", "--rt-priority", str(rt)]  # 0 = normal scheduling
+    elif sim_effects:
+        argv += ["--sim-effects", sim_effects]
     return p.parse_args(argv)
 
 
@@ -36,6 +38,9 @@ def main(argv=None) -> int:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--rt-priority", type=int, default=20,
                         help="the HIL races' --rt-priority (default 20, as `race --hil` when permitted; 0 = normal)")
+    parser.add_argument("--sim-effects", default="", metavar="TEXT",
+                        help='hidden effects of the pure-simulation reference races (race --sim-effects), e.g. '
+                             '"actuation_delay=0.03" to compare HIL with a simulation that has a loop-like delay')
     parser.add_argument("--json", default="runs/loop_bench.json")
     parser.add_argument("--no-docs", action="store_true", help="do not write docs/benchmarks.md")
     args = parser.parse_args(argv)
@@ -47,7 +52,7 @@ def main(argv=None) -> int:
         rec = {"seed": seed}
         for mode in ("sim", "hil"):
             out, js = runs / f"{mode}-seed{seed}.rrd", runs / f"{mode}-seed{seed}.json"
-            a = _race_args(seed, str(out), str(js), args.rt_priority, mode == "hil")
+            a = _race_args(seed, str(out), str(js), args.rt_priority, mode == "hil", args.sim_effects)
             load0 = os.getloadavg()[0]
             steal0 = steal_seconds()
             t0 = time.monotonic()
@@ -110,7 +115,8 @@ def report(rows, args, machine: str) -> str:
     misses = sum(h["deadline_misses"] for h in hil)
     lines = [
         f"Command: `.venv/bin/python -m app.realtime.bench --seeds {args.seeds} --first-seed {args.first_seed}"
-        + f" --rt-priority {args.rt_priority}`"
+        + f" --rt-priority {args.rt_priority}"
+        + (f" --sim-effects {args.sim_effects}`" if args.sim_effects else "`")
         + f" ({time.strftime('%Y-%m-%d %H:%M')}; {machine}).",
         "",
         f"Scheduling: {'SCHED_FIFO priority ' + str(args.rt_priority) + ' (loop); box 3, planner 4, world 5 and recorder 10 below' if args.rt_priority else 'normal time-sharing'}; "
