@@ -115,6 +115,9 @@ class LoopOutcome:
     busy_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stage_overruns: dict = field(default_factory=dict)
     solve_ms: dict = field(default_factory=dict)
+    # Per plan: when the loop first applied it minus the instant its states were predicted to
+    # (t_plan = job time + plan_latency_s); > 0 means the plan acts later than it assumed.
+    plan_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plans: int = 0
     plan_failures: int = 0
     frames: int = 0
@@ -151,6 +154,7 @@ class LoopOutcome:
             "stage_overruns": self.stage_overruns,
             "opponent_solve_ms_p50": pct(self.solve_ms.get("opponent", np.zeros(0)), 50),
             "plans": self.plans, "plan_failures": self.plan_failures,
+            "plan_lag_ms_p50": pct(self.plan_lag_ms, 50), "plan_lag_ms_p99": pct(self.plan_lag_ms, 99),
             "frames": self.frames, "frames_dropped": self.frames_dropped,
             "render_ms_p50": pct(self.render_ms, 50), "render_ms_p99": pct(self.render_ms, 99),
             "tracking_error_mm_median": pct(self.tracking_error_mm, 50),
@@ -201,6 +205,7 @@ class RaceLoop:
         self.overruns = {s: 0 for s in STAGES}
         self.deadline_misses = 0
         self.solve_ms = {name: [] for name in CAR_NAMES}
+        self.plan_lag_ms: list[float] = []
         self.plans = 0
         self.plan_failures = 0
         self.frames = 0
@@ -325,6 +330,11 @@ class RaceLoop:
         self.plans += 1
         self._set_hold("planner", False)
         t_race = self.race_time(result.job.t_plan) if self.t_go is not None else 0.0
+        if self.t_go is not None and result.job.tick >= 0:  # not the cold plan for the start
+            lag = 1e3 * (now - result.job.t_plan)
+            self.plan_lag_ms.append(lag)
+            if self.rec is not None:
+                self.rec.scalar("planner/plan_lag_ms", max(self.k, 0), t_race, lag)
         for name, cp in result.cars.items():
             self.solve_ms[name].append(cp.solve_ms)
             if self.rec is None or cp.plan is None:
@@ -631,6 +641,7 @@ class RaceLoop:
                           stage_ms={s: np.array(v) for s, v in self.stage_ms.items()},
                           busy_ms=np.array(self.busy_ms), stage_overruns=dict(self.overruns),
                           solve_ms={n: np.array(v) for n, v in self.solve_ms.items()}, plans=self.plans,
+                          plan_lag_ms=np.array(self.plan_lag_ms),
                           plan_failures=self.plan_failures, frames=self.frames,
                           render_ms=np.array(self.render_ms), tracking_error_mm=np.array(self.tracking_error_mm),
                           detection_error_mm=np.array(self.detection_error_mm), events=list(self.events),

@@ -272,7 +272,8 @@ def _print(o, setup, args, mode, opponent) -> None:
     print("stages p50/p99 ms: " + ", ".join(f"{k} {f(s['stage_ms_p50'][k], '.2f')}/{f(s['stage_ms_p99'][k], '.2f')}"
                                             for k in s["stage_ms_p50"]))
     print(f"planning: {s['plans']} plans, RD3G solve p50 {f(s['solve_ms_p50'])} ms, p99 {f(s['solve_ms_p99'])} ms; "
-          f"failures {s['plan_failures']}")
+          f"failures {s['plan_failures']}; applied {f(s['plan_lag_ms_p50'])} ms (p50), {f(s['plan_lag_ms_p99'])} ms (p99) "
+          f"after the instant they were planned for")
     print(f"camera: {s['frames']} frames processed, {s['frames_dropped']} dropped by the renderer, "
           f"render p50 {f(s['render_ms_p50'])} ms (not in the loop budget)")
     if s["tracking_error_mm_median"] is not None:
