@@ -1,6 +1,9 @@
-"""Constant-turn-rate-and-velocity (CTRV) car motion model and its analytic Jacobian.
+"""Constant-turn-rate-and-velocity (CTRV) car motion model and its analytic Jacobian, and the
+same motion with a sideslip angle (the estimator's model).
 
-State vector: ``[x, y, heading, speed, yaw_rate]`` (m, m, rad, m/s, rad/s) in the track frame.
+State vector: ``[x, y, heading, speed, yaw_rate]`` (m, m, rad, m/s, rad/s) in the track frame;
+with sideslip ``[x, y, heading, speed, yaw_rate, sideslip]``, where the car moves along
+``heading + sideslip`` (rad; a cornering car's velocity is not along its heading).
 The position update is written with ``sin(a)/a`` and ``(1 - cos(a))/a`` (``a = yaw_rate * dt``),
 which are smooth at ``a = 0``; near zero their Taylor series are used, so straight-line motion
 needs no special case and the Jacobian stays continuous.
@@ -56,6 +59,29 @@ def ctrv_jacobian(state: np.ndarray, dt: float) -> np.ndarray:
     jac[1, 3] = dt * (st * s1 + ct * c1)
     jac[0, 4] = v * dt * dt * (ct * ds1 - st * dc1)
     jac[1, 4] = v * dt * dt * (st * ds1 + ct * dc1)
+    jac[2, 4] = dt
+    return jac
+
+
+SLIP_STATE_NAMES = STATE_NAMES + ("sideslip",)
+
+
+def slip_transition(state: np.ndarray, dt: float) -> np.ndarray:
+    """State after ``dt`` seconds of constant speed, yaw rate and sideslip: the position moves as
+    CTRV along the course angle ``heading + sideslip``, which turns at the yaw rate like the heading."""
+    x, y, th, v, w, beta = state
+    moved = ctrv_transition(np.array([x, y, th + beta, v, w]), dt)
+    return np.array([moved[0], moved[1], th + w * dt, v, w, beta])
+
+
+def slip_jacobian(state: np.ndarray, dt: float) -> np.ndarray:
+    """Analytic Jacobian d slip_transition / d state (6x6): the CTRV Jacobian at the course angle,
+    whose column for the angle applies to heading and sideslip alike."""
+    x, y, th, v, w, beta = state
+    ctrv = ctrv_jacobian(np.array([x, y, th + beta, v, w]), dt)
+    jac = np.eye(6)
+    jac[:2, :5] = ctrv[:2]
+    jac[:2, 5] = ctrv[:2, 2]
     jac[2, 4] = dt
     return jac
 

@@ -256,7 +256,9 @@ class RaceLoop:
         self._event("deadline_miss", f"tick {tick}: no command by the deadline (stage {stage} running) - neutral sent")
 
     def _state6(self, st) -> np.ndarray:
-        return np.array([st.x, st.y, st.heading, st.speed, 0.0, st.yaw_rate])
+        """Estimator state -> simulator-style [x, y, heading, vx, vy, yaw_rate] (body-frame velocity)."""
+        return np.array([st.x, st.y, st.heading, st.speed * math.cos(st.sideslip),
+                         st.speed * math.sin(st.sideslip), st.yaw_rate])
 
     # ------------------------------------------------------------------ phases
     def run(self) -> LoopOutcome:
