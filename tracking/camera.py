@@ -334,12 +334,10 @@ class SyntheticCamera:
         noise = np.clip(np.round(rng.normal(0.0, self.effects.noise_sigma, (h + 64, w + 64))), -255, 255)
         return np.clip(noise, 0, 255).astype(np.uint8), np.clip(-noise, 0, 255).astype(np.uint8)
 
-    def _sensor_effects(self, image: np.ndarray) -> np.ndarray:
-        """Lighting (vignetting, illumination) and defocus of a whole sensor image."""
-        return self._effects_on(image, self._gain)
-
-    def _effects_on(self, image: np.ndarray, gain: np.ndarray) -> np.ndarray:
-        image = cv2.multiply(image, gain, scale=1.0 / 128.0)
+    def _sensor_effects(self, image: np.ndarray, gain: np.ndarray | None = None) -> np.ndarray:
+        """Lighting (vignetting, illumination) and defocus of a sensor image, or of a region of it
+        with the matching region of the gain."""
+        image = cv2.multiply(image, self._gain if gain is None else gain, scale=1.0 / 128.0)
         if self.effects.defocus_sigma_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), self.effects.defocus_sigma_px)
         return image
@@ -469,7 +467,7 @@ class SyntheticCamera:
             # The blur spreads the box's changes r pixels out, and needs r more pixels to compute those.
             u0, v0, u1, v1 = max(u0 - r, 0), max(v0 - r, 0), min(u1 + r, w), min(v1 + r, h)
             a0, b0, a1, b1 = max(u0 - r, 0), max(v0 - r, 0), min(u1 + r, w), min(v1 + r, h)
-            region = self._effects_on(canvas[b0:b1, a0:a1], self._gain[b0:b1, a0:a1])
+            region = self._sensor_effects(canvas[b0:b1, a0:a1], self._gain[b0:b1, a0:a1])
             image[v0:v1, u0:u1] = region[v0 - b0:v1 - b0, u0 - a0:u1 - a0]
         return image
 
