@@ -43,7 +43,13 @@ def main(argv=None) -> int:
                              '"actuation_delay=0.03" to compare HIL with a simulation that has a loop-like delay')
     parser.add_argument("--json", default="runs/loop_bench.json")
     parser.add_argument("--no-docs", action="store_true", help="do not write docs/benchmarks.md")
+    parser.add_argument("--figure", default="docs/figures/loop_bench.png",
+                        help="per-seed figure (PNG) written beside the table (default docs/figures/loop_bench.png)")
+    parser.add_argument("--replot", metavar="JSON", help="only redraw --figure from a saved --json file")
     args = parser.parse_args(argv)
+    if args.replot:
+        print(plot(json.loads(Path(args.replot).read_text()), args.figure))
+        return 0
 
     runs = Path("runs/loop_bench")
     runs.mkdir(parents=True, exist_ok=True)
@@ -67,6 +73,7 @@ def main(argv=None) -> int:
     Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
     body = report(rows, args, machine_description())
     print(body)
+    print(plot(rows, args.figure))
     if not args.no_docs:
         write_section("loop-bench", body)
     return 0
@@ -160,7 +167,49 @@ def report(rows, args, machine: str) -> str:
         lines.append(f"| {stage} | {p50:.2f} | {p99:.2f} |")
     lines.append(f"| loop busy (frame..command) | {np.median(agg('busy_ms_p50')):.2f} | {np.max(agg('busy_ms_p99')):.2f} |")
     lines.append(f"| render (world process) | {np.median(agg('render_ms_p50')):.2f} | {np.max(agg('render_ms_p99')):.2f} |")
+    lines += ["", f"![loop bench per seed]({Path(args.figure).relative_to('docs') if args.figure.startswith('docs/') else args.figure})"]
     return "\n".join(lines)
+
+
+def plot(rows, path: str) -> str:
+    """Per seed: the winner in simulation and HIL, the HIL race's deadline-miss rate against the 1 % goal,
+    and its tracking error (median and p95) against the 10 mm goal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    seeds = [r["seed"] for r in rows]
+    hil = [r["hil"] for r in rows]
+    fig, axes = plt.subplots(3, 1, figsize=(8, 6.5), sharex=True)
+    ax = axes[0]
+    for k, (mode, marker) in enumerate((("sim", "o"), ("hil", "s"))):
+        won = [r[mode]["winner"] == "rd3g" for r in rows]
+        ax.scatter(seeds, [k + 0.0] * len(seeds), c=["tab:red" if w else "tab:blue" for w in won], marker=marker, s=60)
+    ax.set_yticks([0, 1], ["simulation", "HIL"])
+    ax.set_ylim(-0.6, 1.6)
+    ax.set_title("winner per seed (red: RD3G, blue: opponent)", fontsize=9)
+    ax = axes[1]
+    ax.bar(seeds, [100 * h["deadline_misses"] / max(h["ticks"], 1) for h in hil], color="0.4")
+    ax.axhline(1.0, color="tab:red", ls="--", lw=1, label="goal 1 %")
+    ax.set_ylabel("deadline misses (%)")
+    ax.legend(fontsize=7)
+    ax = axes[2]
+    med = [h.get("tracking_error_mm_median") or np.nan for h in hil]
+    p95 = [h.get("tracking_error_mm_p95") or np.nan for h in hil]
+    ax.plot(seeds, med, "o-", label="median")
+    ax.plot(seeds, p95, "^--", label="p95")
+    ax.set_yscale("log")
+    ax.axhline(10.0, color="tab:red", ls="--", lw=1, label="goal: median < 10 mm")
+    ax.set_ylabel("HIL tracking error (mm)")
+    ax.set_xlabel("seed")
+    ax.set_xticks(seeds)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 if __name__ == "__main__":
