@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import pytest
 
+from app.realtime.config import LoopConfig
 from test_loop_support import load_json, neutral_at, neutral_within, run_cli
 
 PERIOD = 1 / 60
@@ -23,7 +24,7 @@ PERIOD = 1 / 60
 # "Measured"). The mechanism (which failsafe, on what) is asserted exactly; only the latency gets this slack.
 MARGIN = 2 * PERIOD
 PHYSICS_DT = 0.001    # the simulator applies the box's output on a 1 ms grid
-PLAN_LATENCY = 0.025  # LoopConfig.plan_latency_s
+PLAN_LATENCY = LoopConfig().plan_latency_s
 
 
 @pytest.fixture(scope="module")
@@ -84,8 +85,8 @@ def test_nan_state(fault_race):
 
 def test_solver_failure(fault_race):
     events = fault_race[1]["events"]
-    # A job fails when the time it plans for (now + plan_latency_s, 25 ms) is in the window: its failure
-    # may be logged up to 25 ms before 1.2 s.
+    # A job fails when the time it plans for (now + plan_latency_s) is in the window: its failure
+    # may be logged up to plan_latency_s before 1.2 s.
     fault = _first(events, "fault", "planner failed: SolverFailure: injected", 1.2 - PLAN_LATENCY)
     assert fault["time_s"] < 1.5 + 0.1
     recovered = _first(events, "recovered", "planner", fault["time_s"])

@@ -317,6 +317,10 @@ class _World:
         self.min_gap = math.inf
         self.neutral_at_box = True
         self.render_ms: list[float] = []
+        # When the box's output for a car changed, as the simulated car got it: (t_abs, car, throttle,
+        # steering rad); the loop matches these to its commands (command latency, RaceLoop.command_lag_ms).
+        self.applied_changes: list[tuple[float, int, float, float]] = []
+        self._last_applied = np.zeros((2, 2))
         self.dropped = 0
         self.rendered = 0
         self._fault_state: dict[int, bool] = {}
@@ -437,6 +441,9 @@ class _World:
         while sim.time < target - 1e-9:
             t_abs = t_go + sim.time
             cmds = self._commands(t_abs)
+            for i in np.nonzero(np.any(cmds != self._last_applied, axis=1))[0]:
+                self.applied_changes.append((t_abs, int(i), float(cmds[i, 0]), float(cmds[i, 1])))
+            self._last_applied = cmds
             neutral = not np.any(cmds)
             if neutral != self.neutral_at_box:
                 self.events.append((sim.time, "cars_neutral" if neutral else "cars_driving",
@@ -519,6 +526,7 @@ class _World:
             "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)},
             "frames_rendered": self.rendered, "frames_dropped": self.dropped,
             "render_ms": np.array(self.render_ms, dtype=np.float32),
+            "applied_changes": self.applied_changes,
             "box": box_summary,
             "events": (self._pending["events"] if self._pending else []) + self.events,
         }

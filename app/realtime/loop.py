@@ -118,6 +118,9 @@ class LoopOutcome:
     # Per plan: when the loop first applied it minus the instant its states were predicted to
     # (t_plan = job time + plan_latency_s); > 0 means the plan acts later than it assumed.
     plan_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # HIL: per plan, when the simulated car got its first command minus the plan's t_plan (the whole path
+    # loop -> serial link -> box -> car); what plan_latency_s should cover. Empty on hardware.
+    command_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plans: int = 0
     plan_failures: int = 0
     frames: int = 0
@@ -155,6 +158,7 @@ class LoopOutcome:
             "opponent_solve_ms_p50": pct(self.solve_ms.get("opponent", np.zeros(0)), 50),
             "plans": self.plans, "plan_failures": self.plan_failures,
             "plan_lag_ms_p50": pct(self.plan_lag_ms, 50), "plan_lag_ms_p99": pct(self.plan_lag_ms, 99),
+            "command_lag_ms_p50": pct(self.command_lag_ms, 50), "command_lag_ms_p99": pct(self.command_lag_ms, 99),
             "frames": self.frames, "frames_dropped": self.frames_dropped,
             "render_ms_p50": pct(self.render_ms, 50), "render_ms_p99": pct(self.render_ms, 99),
             "tracking_error_mm_median": pct(self.tracking_error_mm, 50),
@@ -206,6 +210,8 @@ class RaceLoop:
         self.deadline_misses = 0
         self.solve_ms = {name: [] for name in CAR_NAMES}
         self.plan_lag_ms: list[float] = []
+        self._plan_commands: list[tuple[float, int, float, float]] = []  # (t_plan, car index, throttle, steering)
+        self._last_sent: dict[str, tuple[float, float]] = {}
         self.plans = 0
         self.plan_failures = 0
         self.frames = 0
@@ -321,6 +327,22 @@ class RaceLoop:
             self._laps = LapBookkeeper(float(self.track.length), self.setup.laps, np.array(s0), start_time=0.0)
         self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
                     t_race=0.0)
+
+    def _command_lags(self, applied) -> np.ndarray:
+        """For each plan's new command: the first time the simulated car got those values (HIL world's
+        applied_changes, same clock) minus the plan's t_plan, in ms. Values match within 1e-3 (the serial
+        protocol's int16 steps are 3e-5 of full scale); searched from the job's creation on."""
+        lags = []
+        by_car: dict[int, list] = {}
+        for t, i, throttle, steer in applied:
+            by_car.setdefault(i, []).append((t, throttle, steer))
+        for t_plan, i, throttle, steer in self._plan_commands:
+            t_job = t_plan - self.cfg.plan_latency_s
+            for t, th, st in by_car.get(i, []):
+                if t >= t_job and abs(th - throttle) < 1e-3 and abs(st - steer) < 1e-3:
+                    lags.append(1e3 * (t - t_plan))
+                    break
+        return np.array(lags)
 
     def _take_plan(self, result: PlanResult, now: float) -> None:
         self._last_seq = result.seq
@@ -499,6 +521,9 @@ class RaceLoop:
                 cp = self._active.cars[c.name]
                 commands[c.radio_id] = CarCommand(steering=cp.steering_rad / self.max_steer, throttle=cp.throttle)
                 sent[c.name] = (cp.throttle, cp.steering_rad)
+                if self._last_sent.get(c.name) != sent[c.name] and self._active.job.tick >= 0:
+                    self._plan_commands.append((self._active.job.t_plan, CAR_NAMES.index(c.name), *sent[c.name]))
+            self._last_sent = dict(sent)
         else:
             commands = {c.radio_id: CarCommand(0.0, 0.0) for c in self.commanded}
         try:
@@ -644,6 +669,7 @@ class RaceLoop:
                           busy_ms=np.array(self.busy_ms), stage_overruns=dict(self.overruns),
                           solve_ms={n: np.array(v) for n, v in self.solve_ms.items()}, plans=self.plans,
                           plan_lag_ms=np.array(self.plan_lag_ms),
+                          command_lag_ms=self._command_lags((summary or {}).get("applied_changes") or []),
                           plan_failures=self.plan_failures, frames=self.frames,
                           render_ms=np.array(self.render_ms), tracking_error_mm=np.array(self.tracking_error_mm),
                           detection_error_mm=np.array(self.detection_error_mm), events=list(self.events),

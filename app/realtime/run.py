@@ -3,6 +3,7 @@ build the real-time loop's parts from the command line and run one race (docs/ra
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -21,6 +22,9 @@ def add_realtime_arguments(p) -> None:
     g.add_argument("--serial", help="hardware: serial device of the transmitter box, e.g. /dev/ttyUSB0")
     g.add_argument("--calibration", help="hardware: camera calibration JSON (python -m app calibrate)")
     g.add_argument("--loop-hz", type=float, default=60.0, help="loop rate (default 60 Hz); planning runs at --control-hz")
+    g.add_argument("--plan-latency-ms", type=float, default=None, metavar="MS",
+                   help="how far ahead the states are predicted for planning: to when a plan's command reaches the "
+                        "cars (default: LoopConfig.plan_latency_s, 40 ms, measured in HIL; see command_lag_ms)")
     g.add_argument("--fps", type=float, default=60.0, help="HIL camera frame rate (default 60)")
     g.add_argument("--fault", action="append", default=[], metavar="KIND@START[+DUR][:CAR]",
                    help="HIL fault injection (repeatable): occlude, serial_corrupt, serial_vanish, solver_fail, nan_state")
@@ -127,8 +131,14 @@ def _run_realtime(args, mode: str) -> int:
     for name in ("rd3g_speed", "opponent_speed", "loop_hz", "fps", "stop_after_hold"):
         if not getattr(args, name) > 0:
             raise UserError(f"--{name.replace('_', '-')} must be positive")
+    latency = {}
+    if args.plan_latency_ms is not None:
+        if not (math.isfinite(args.plan_latency_ms) and 0 <= args.plan_latency_ms <= 500):
+            raise UserError(f"--plan-latency-ms must be in [0, 500] ms, got {args.plan_latency_ms}")
+        latency["plan_latency_s"] = args.plan_latency_ms / 1e3
     try:
-        config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz, stop_after_hold_s=args.stop_after_hold)
+        config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz, stop_after_hold_s=args.stop_after_hold,
+                            **latency)
         faults = tuple(parse_fault(f) for f in args.fault)
     except LoopConfigError as exc:
         raise UserError(str(exc)) from None
@@ -273,7 +283,8 @@ def _print(o, setup, args, mode, opponent) -> None:
                                             for k in s["stage_ms_p50"]))
     print(f"planning: {s['plans']} plans, RD3G solve p50 {f(s['solve_ms_p50'])} ms, p99 {f(s['solve_ms_p99'])} ms; "
           f"failures {s['plan_failures']}; applied {f(s['plan_lag_ms_p50'])} ms (p50), {f(s['plan_lag_ms_p99'])} ms (p99) "
-          f"after the instant they were planned for")
+          f"after the instant they were planned for; the cars got them {f(s['command_lag_ms_p50'])} ms (p50), "
+          f"{f(s['command_lag_ms_p99'])} ms (p99) after it")
     print(f"camera: {s['frames']} frames processed, {s['frames_dropped']} dropped by the renderer, "
           f"render p50 {f(s['render_ms_p50'])} ms (not in the loop budget)")
     if s["tracking_error_mm_median"] is not None:
