@@ -63,9 +63,6 @@ def ctrv_jacobian(state: np.ndarray, dt: float) -> np.ndarray:
     return jac
 
 
-SLIP_STATE_NAMES = STATE_NAMES + ("sideslip",)
-
-
 def slip_transition(state: np.ndarray, dt: float) -> np.ndarray:
     """State after ``dt`` seconds of constant speed, yaw rate and sideslip: the position moves as
     CTRV along the course angle ``heading + sideslip``, which turns at the yaw rate like the heading."""
