@@ -102,12 +102,20 @@ class CommandMapper:
             return x
         issued = list(self._issued)[-self.n_in_flight:]
         first = self.delay_s - (self.n_in_flight - 1) * self.period  # oldest command's remaining time
-        for j, (a, delta) in enumerate(issued):
-            dt = first if (j == 0 and len(issued) == self.n_in_flight) else self.period
-            if dt <= 1e-9:
-                continue
-            x = np.asarray(frenet_model.rollout_model(round(dt, 9)).rollout(x, np.array([[a, delta]]))[-1])
-        return x
+        segments = [(first if (j == 0 and len(issued) == self.n_in_flight) else self.period, a, delta)
+                    for j, (a, delta) in enumerate(issued)]
+        return rollout_controls(frenet_model, x, segments)
 
     def reset(self) -> None:
         self._issued.clear()
+
+
+def rollout_controls(frenet_model, x, segments) -> np.ndarray:
+    """Planner state [s, ey, v, epsi] after piecewise-constant controls: ``segments`` is a sequence of
+    (duration s, a m/s^2, delta rad), applied in order; durations <= 1 ns are skipped."""
+    x = np.asarray(x, dtype=float)
+    for dt, a, delta in segments:
+        if dt <= 1e-9:
+            continue
+        x = np.asarray(frenet_model.rollout_model(round(dt, 9)).rollout(x, np.array([[a, delta]]))[-1])
+    return x

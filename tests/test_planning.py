@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner
+from planning.commands import rollout_controls
 from planning.config import PlannerConfigError
 from vehicles.params import CarParams, Corrections
 
@@ -71,6 +72,17 @@ def test_delay_prediction_on_straight(track, car):
     s, v = 0.2 + 1.0 * t1, 1.0 + 1.0 * t1
     s, v = s + v * t2, v + 2.0 * t2
     assert x == pytest.approx([s, 0.0, v, 0.0], abs=1e-9)
+
+
+def test_rollout_controls_on_straight(track, car):
+    """Piecewise-constant controls of unequal durations (the real-time loop's in-flight commands) on the
+    straight: one explicit Euler step per segment, s += v dt, v += a dt; a zero duration is skipped."""
+    tm = FrenetTrackModel(track, car, PlannerConfig())
+    segments = [(0.004, 2.0, 0.0), (0.0, 9.0, 0.0), (0.0333, -1.0, 0.0), (0.0187, 0.5, 0.0)]
+    s, v = 0.2, 1.0
+    for dt, a, _ in segments:
+        s, v = s + v * dt, v + a * dt
+    assert rollout_controls(tm, [0.2, 0.0, 1.0, 0.0], segments) == pytest.approx([s, 0.0, v, 0.0], abs=1e-9)
 
 
 def test_progress_unwrapper_across_the_line(track):
