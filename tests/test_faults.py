@@ -85,7 +85,7 @@ def test_nan_state(fault_race):
 
 def test_solver_failure(fault_race):
     events = fault_race[1]["events"]
-    # A job fails when the time it plans for (now + plan_latency_s) is in the window: its failure
+    # A job fails when the time it plans for (its tick + plan_latency_s) is in the window: its failure
     # may be logged up to plan_latency_s before 1.2 s.
     fault = _first(events, "fault", "planner failed: SolverFailure: injected", 1.2 - PLAN_LATENCY)
     assert fault["time_s"] < 1.5 + 0.1

@@ -11,6 +11,7 @@ import pytest
 
 from app.realtime.config import FaultSpec, LoopConfig, LoopConfigError, StageBudgets, parse_fault
 from app.realtime.loop import DeadlineMonitor
+from app.realtime.planning import controls_between
 from test_loop_support import load_json, run_cli
 
 
@@ -42,6 +43,26 @@ def test_loop_config_validation():
         LoopConfig(lost_search_every=0)
     with pytest.raises(LoopConfigError, match="budgets.detect"):
         LoopConfig(budgets=StageBudgets(detect=-1))
+    with pytest.raises(LoopConfigError, match="plan_ticks"):
+        LoopConfig(plan_ticks=0)
+    with pytest.raises(LoopConfigError, match="command_delay_s"):
+        LoopConfig(command_delay_s=float("nan"))
+    # A plan made at tick k acts plan_ticks periods later plus the command's delay.
+    assert LoopConfig(rate_hz=50, plan_hz=25, plan_ticks=3, command_delay_s=0.01).plan_latency_s == pytest.approx(0.07)
+
+
+def test_controls_between_cuts_the_log_to_the_interval():
+    """Each logged control acts from its time until the next one's; hand-computed intervals."""
+    log = [(1.00, 1.0, 0.1), (1.02, 2.0, 0.2), (1.05, 3.0, 0.3)]
+
+    def between(t0, t1):
+        return np.array(controls_between(log, t0, t1))
+
+    np.testing.assert_allclose(between(1.01, 1.10), [(0.01, 1.0, 0.1), (0.03, 2.0, 0.2), (0.05, 3.0, 0.3)])
+    np.testing.assert_allclose(between(1.03, 1.04), [(0.01, 2.0, 0.2)])  # inside one entry
+    np.testing.assert_allclose(between(1.06, 1.08), [(0.02, 3.0, 0.3)])  # the last acts until t1
+    np.testing.assert_allclose(between(0.90, 1.01), [(0.01, 1.0, 0.1)])  # nothing before the log
+    assert controls_between(log, 1.10, 1.10) == []
 
 
 # ----------------------------------------------------------------------------- deadline monitor
@@ -80,7 +101,7 @@ def test_mode_flags_are_checked():
         ["--camera", "0", "--serial", "/dev/null", "--calibration", "x.json", "--fault", "occlude@1+1"])
     assert "needs a duration" in _race_error(["--hil", "--fault", "occlude@1"])
     assert "--marker-ids" in _race_error(["--hil", "--marker-ids", "3,3"])
-    assert "--plan-latency-ms must be in [0, 500]" in _race_error(["--hil", "--plan-latency-ms", "-5"])
+    assert "--command-delay-ms must be in (0, 500]" in _race_error(["--hil", "--command-delay-ms", "-5"])
 
 
 def test_hardware_mode_reports_missing_devices(tmp_path):
@@ -118,10 +139,12 @@ def test_hil_race_summary(hil_race):
         assert key in s
     assert s["ticks"] >= 80 and s["plans"] > 0 and s["frames"] > 0
     assert set(s["stage_ms_p50"]) == {"frame", "detect", "estimate", "plan", "command", "telemetry"}
-    # A plan is predicted plan_latency_s past its job, to when its command reaches the cars: the loop applies it
-    # before that instant, and the simulated cars get it within two loop periods of it (median; measured about
-    # 1 ms on an idle machine: the prediction covers the loop, link, relay and box).
-    assert -1e3 * LoopConfig().plan_latency_s <= s["plan_lag_ms_p50"] <= 1e3 / 60
+    # A plan made at tick k is predicted to t_k + plan_ticks periods + command_delay_s and applied at tick
+    # k + plan_ticks, never earlier (so its lag is at least -command_delay_s), and later only when its solve
+    # ran late; the simulated cars get it within two loop periods of t_plan (median; about 1 ms on an idle
+    # machine: command_delay_s covers the loop's stages, link, relay and box).
+    cfg = LoopConfig()
+    assert -1e3 * cfg.command_delay_s <= s["plan_lag_ms_p50"] <= 1e3 / 60
     assert abs(s["command_lag_ms_p50"]) <= 2e3 / 60
 
 

@@ -39,11 +39,15 @@ class LoopConfig:
     rate_hz: float = 60.0            # loop ticks per second
     plan_hz: float = 30.0            # planning jobs per second (asynchronous, latest plan applied)
     link_hz: float = 120.0           # serial frames per second (SerialCarLink sender)
-    # States are predicted this far ahead for planning: to when the plan's command reaches the cars. With 25 ms
-    # the HIL cars got it 16 ms later than that (median over 20 races, `command_lag_ms`: the loop's own stages
-    # before the command, the link's 120 Hz cadence, relay and box), which shifted HIL's race outcomes the way
-    # a 20 ms hidden delay shifts the simulation's (docs/benchmarks.md).
-    plan_latency_s: float = 0.040
+    # A plan made at tick k is applied at tick k + plan_ticks (a late plan: at the first tick after it is
+    # done), so every plan acts after the same, known delay, as in the simulated race, whatever its solve
+    # time. Applied as soon as done, plans acted 17 ms early or on time depending on the solve.
+    plan_ticks: int = 2
+    # From a tick's scheduled start until the cars act on the command that tick sends: the loop's stages
+    # before the command, the link's 120 Hz cadence, relay and box (HIL; on hardware add the radio and
+    # the servo). Measured in HIL by `command_lag_ms` (docs/race-stack.md, "Latency, measured per plan"):
+    # with 15 ms the cars got the commands 3-5 ms after t_plan (median of 20 races, two runs).
+    command_delay_s: float = 0.019
     max_plan_age_s: float = 0.15     # an older plan is a planner fault (neutral)
     lost_after_s: float = 0.25       # a car without an accepted measurement this long is lost (neutral)
     lost_search_every: int = 6       # full-frame marker search every n frames while a car is lost
@@ -77,6 +81,12 @@ class LoopConfig:
     @property
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def plan_latency_s(self) -> float:
+        """From a planning job's tick to when its plan's command acts on the cars: the instant the
+        states are predicted to (t_plan)."""
+        return self.plan_ticks * self.period_s + self.command_delay_s
 
     @property
     def plan_every(self) -> int:

@@ -15,9 +15,11 @@ only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.har
   (``held_neutral``) when holds have lasted ``stop_after_hold_s`` without a break. A serial link
   fault (device gone) ends the race: the link cannot be reopened (docs/serial-protocol.md); the
   transmitter box's failsafe keeps the cars neutral.
-* Planning is asynchronous (``app.realtime.planning.PlannerWorker``): a job every
-  rate_hz / plan_hz ticks with the states predicted ``plan_latency_s`` ahead; the latest plan's
-  first control is applied (zero-order hold) until the next plan arrives.
+* Planning is asynchronous (``app.realtime.planning.PlannerWorker``): a job every rate_hz / plan_hz
+  ticks for the instant t_plan = its tick + ``plan_latency_s`` (plan_ticks periods + command_delay_s)
+  when its command will act; the plan is applied at tick k + plan_ticks, not earlier, and its first
+  control is held (zero-order hold) until the next plan is due. The commanded cars are predicted to
+  t_plan through the controls the loop has sent them (``PlanJob.in_flight``).
 """
 from __future__ import annotations
 
@@ -31,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.realtime.config import STAGES, FaultSpec, LoopConfig
-from app.realtime.planning import CAR_NAMES, PlanJob, PlannerWorker, PlanResult, RacePlanners
+from app.realtime.planning import CAR_NAMES, PlanJob, PlannerWorker, PlanResult, RacePlanners, controls_between
 from planning.frenet import EY, S
 from vehicles.protocol import CarCommand, ProtocolError
 
@@ -116,10 +118,10 @@ class LoopOutcome:
     stage_overruns: dict = field(default_factory=dict)
     solve_ms: dict = field(default_factory=dict)
     # Per plan: when the loop first applied it minus the instant its states were predicted to
-    # (t_plan = job time + plan_latency_s); > 0 means the plan acts later than it assumed.
+    # (t_plan = job tick + plan_latency_s); >= -command_delay_s when applied at its tick, > 0 when late.
     plan_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # HIL: per plan, when the simulated car got its first command minus the plan's t_plan (the whole path
-    # loop -> serial link -> box -> car); what plan_latency_s should cover. Empty on hardware.
+    # loop -> serial link -> box -> car); ~0 when command_delay_s is right. Empty on hardware.
     command_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plans: int = 0
     plan_failures: int = 0
@@ -212,6 +214,7 @@ class RaceLoop:
         self.plan_lag_ms: list[float] = []
         self._plan_commands: list[tuple[float, int, float, float]] = []  # (t_plan, car index, throttle, steering)
         self._last_sent: dict[str, tuple[float, float]] = {}
+        self._controls: dict[str, list[tuple[float, float, float]]] = {}  # car -> [(t_effect, a, delta)]
         self.plans = 0
         self.plan_failures = 0
         self.frames = 0
@@ -327,6 +330,32 @@ class RaceLoop:
             self._laps = LapBookkeeper(float(self.track.length), self.setup.laps, np.array(s0), start_time=0.0)
         self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
                     t_race=0.0)
+
+    def _log_control(self, name: str, t_effect: float, control: tuple[float, float] | None) -> None:
+        """Record the planning-model control [a, delta] car `name` executes from t_effect on (one
+        second of history is kept)."""
+        log = self._controls.setdefault(name, [])
+        if control is None:
+            log.clear()  # not a model control (pure pursuit): nothing to predict with
+            return
+        if not log or log[-1][1:] != control:
+            log.append((t_effect, *control))
+        while len(log) > 1 and log[1][0] < t_effect - 1.0:
+            log.pop(0)
+
+    def _in_flight(self, t_plan: float) -> dict[str, tuple[np.ndarray, list]]:
+        """PlanJob.in_flight: for each commanded car with a control log covering its last measurement,
+        that measured state and the logged controls from then to t_plan."""
+        out = {}
+        for c in self.commanded:
+            log = self._controls.get(c.name)
+            f = self.estimator.filters.get(c.marker_id)
+            if not log or f is None or f.t_s is None or not log[0][0] <= f.t_s < t_plan:
+                continue
+            state = self._state6(f.predict_to(f.t_s))
+            if np.all(np.isfinite(state)):
+                out[c.name] = (state, controls_between(log, f.t_s, t_plan))
+        return out
 
     def _command_lags(self, applied) -> np.ndarray:
         """For each plan's new command: the first time the simulated car got those values (HIL world's
@@ -480,7 +509,8 @@ class RaceLoop:
                         self.estimator.filters[c.marker_id].x[:] = np.nan
                 self._event("fault_injected", f"estimator state of {f.car or 'all cars'} set to NaN")
         now = time.monotonic()
-        t_plan = now + cfg.plan_latency_s
+        t_tick = deadline - cfg.period_s  # the tick's scheduled start: plans are timed from it, not from `now`
+        t_plan = t_tick + cfg.plan_latency_s
         states: dict[str, np.ndarray] = {}
         for c in self.cars:
             f = self.estimator.filters.get(c.marker_id)
@@ -504,28 +534,37 @@ class RaceLoop:
         t0 = self._stage("estimate", t0, times)
         # ---- plan: take the newest result, check its age, submit the next job
         result = self.worker.latest()
-        if result is not None and result.seq != self._last_seq:
+        # A plan is applied at its scheduled tick, not earlier: every plan then acts plan_latency_s after
+        # its job, whatever its solve time (a failure is taken at once: it is a fault).
+        if result is not None and result.seq != self._last_seq and (
+                result.error or result.job.tick < 0 or k >= result.job.tick + cfg.plan_ticks):
             self._take_plan(result, now)
         if self._active is not None:
             age = now - self._active.job.t_plan
             self._set_hold("planner_stale", age > cfg.max_plan_age_s,
                            f"no new plan for {1e3 * age:.0f} ms (limit {1e3 * cfg.max_plan_age_s:.0f} ms)")
-        if k % cfg.plan_every == 0 and len(states) == len(self.cars):
-            self.worker.submit(PlanJob(k, t_plan, states))
-        t0 = self._stage("plan", t0, times)
-        # ---- command
+        # This tick's commands (sent in the command stage), logged as the controls the cars execute from
+        # t_tick + command_delay_s on: the next job predicts its own cars through them.
         commands: dict[int, CarCommand] = {}
         sent = {c.name: (0.0, 0.0) for c in self.commanded}
-        if not self.holds and self._active is not None:
-            for c in self.commanded:
-                cp = self._active.cars[c.name]
+        driving = not self.holds and self._active is not None
+        for c in self.commanded:
+            cp = self._active.cars[c.name] if driving else None
+            if cp is not None:
                 commands[c.radio_id] = CarCommand(steering=cp.steering_rad / self.max_steer, throttle=cp.throttle)
                 sent[c.name] = (cp.throttle, cp.steering_rad)
                 if self._last_sent.get(c.name) != sent[c.name] and self._active.job.tick >= 0:
                     self._plan_commands.append((self._active.job.t_plan, CAR_NAMES.index(c.name), *sent[c.name]))
+            else:
+                commands[c.radio_id] = CarCommand(0.0, 0.0)
+            speed = float(states[c.name][3]) if c.name in states else 0.0
+            self._log_control(c.name, t_tick + cfg.command_delay_s, self.planners.executed_control(c.name, cp, speed))
+        if driving:
             self._last_sent = dict(sent)
-        else:
-            commands = {c.radio_id: CarCommand(0.0, 0.0) for c in self.commanded}
+        if k % cfg.plan_every == 0 and len(states) == len(self.cars):
+            self.worker.submit(PlanJob(k, t_plan, states, self._in_flight(t_plan)))
+        t0 = self._stage("plan", t0, times)
+        # ---- command
         try:
             self.link.set_commands(commands)
             self._set_hold("command", False)

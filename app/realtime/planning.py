@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from planning import MPCOpponent, ProgressUnwrapper, RacingPlanner, frenet_state
+from planning.commands import rollout_controls
 from planning.frenet import S, V
 from sim import PurePursuitController
 
@@ -23,6 +24,19 @@ OPPONENT_MODES = ("mpc", "pursuit", "human")
 PLANNER_PRIORITY_BELOW_LOOP = 4
 
 
+def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, float]]:
+    """The piecewise-constant controls of ``log`` ([(t_on s, a, delta), ...], ascending t_on, each acting
+    until the next one's t_on, the last until t1) that act in [t0, t1), as [(duration s, a, delta), ...];
+    the part before the first entry is not covered."""
+    out = []
+    for j, (t_on, a, delta) in enumerate(log):
+        t_off = log[j + 1][0] if j + 1 < len(log) else t1
+        lo, hi = max(t_on, t0), min(t_off, t1)
+        if hi > lo:
+            out.append((hi - lo, a, delta))
+    return out
+
+
 class SolverFailure(RuntimeError):
     """A planning call failed (raised, or produced non-finite output)."""
 
@@ -32,6 +46,11 @@ class PlanJob:
     tick: int
     t_plan: float                     # absolute time (monotonic) the states are predicted to
     states: dict[str, np.ndarray]     # car name -> [x, y, heading, vx, vy, yaw_rate]
+    # Commanded cars: (state [x, y, heading, vx, vy, yaw_rate] at the car's last measurement, the
+    # controls it executes from then to t_plan as [(duration s, a m/s^2, delta rad), ...]). The planner
+    # then predicts its own car with the planning model and these controls rather than taking
+    # ``states`` (the estimator's constant-turn-rate prediction, which cannot know the commands).
+    in_flight: dict[str, tuple[np.ndarray, list]] = field(default_factory=dict)
 
 
 @dataclass
@@ -78,15 +97,17 @@ class RacePlanners:
             self.unwrap = ProgressUnwrapper(self.track, fs[:, S])
         fs[:, S] = self.unwrap.update(fs[:, S])
         result = PlanResult(job=job, progress=fs[:, S].copy())
+        # Both cars at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
+        at_plan = [self._own_state(job, name, fs[i]) for i, name in enumerate(CAR_NAMES)]
         t0 = time.perf_counter()
-        x_self = self.ours.mapper.predict(self.ours.tm, fs[0])
-        plan = self.ours.plan(x_self, fs[1])
+        x_self = self.ours.mapper.predict(self.ours.tm, at_plan[0])
+        plan = self.ours.plan(x_self, at_plan[1])
         throttle, steer = self.ours.mapper.commands(*plan.control, speed=float(x_self[V]))
         result.cars["rd3g"] = CarPlan(throttle, steer, plan, 1e3 * (time.perf_counter() - t0))
         if self.theirs is not None:
             t0 = time.perf_counter()
-            x_opp = self.theirs.mapper.predict(self.theirs.tm, fs[1])
-            oplan = self.theirs.plan(x_opp, fs[0])
+            x_opp = self.theirs.mapper.predict(self.theirs.tm, at_plan[1])
+            oplan = self.theirs.plan(x_opp, at_plan[0])
             throttle, steer = self.theirs.mapper.commands(*oplan.control, speed=float(x_opp[V]))
             result.cars["opponent"] = CarPlan(throttle, steer, oplan, 1e3 * (time.perf_counter() - t0))
         elif self.pursuit is not None:
@@ -97,6 +118,32 @@ class RacePlanners:
                 raise SolverFailure(f"{name}: planner produced a non-finite command "
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
         return result
+
+    def executed_control(self, name: str, car_plan: CarPlan | None, speed: float) -> tuple[float, float] | None:
+        """The planning-model control [a m/s^2, delta rad] car `name` executes when it gets `car_plan`'s
+        command (None: neutral, at `speed` m/s); None for a car without a planning model (pursuit, human)."""
+        planner = self.ours if name == "rd3g" else self.theirs
+        if planner is None:
+            return None
+        if car_plan is None or car_plan.plan is None:
+            mapper = planner.mapper
+            return float(mapper.acceleration(0.0, speed)), float(mapper.car.corrections.steering_offset_rad)
+        a, delta = car_plan.plan.control
+        return float(a), float(delta)
+
+    def _own_state(self, job: PlanJob, name: str, at_plan: np.ndarray) -> np.ndarray:
+        """Frenet state of a commanded car at t_plan: from its last measured state through the controls
+        it executes (job.in_flight), with the progress unwrapped like ``at_plan`` (the estimator's
+        prediction to t_plan, used when the job has no in-flight record for the car)."""
+        if name not in job.in_flight:
+            return at_plan
+        state, segments = job.in_flight[name]
+        planner = self.ours if name == "rd3g" else self.theirs
+        x = rollout_controls(planner.tm, frenet_state(self.track, state), segments)
+        length = float(self.track.length)
+        ds = math.remainder(float(x[S]) - float(at_plan[S]), length)  # same lap as the unwrapped progress
+        x[S] = at_plan[S] + ds
+        return x
 
 
 class PlannerWorker:

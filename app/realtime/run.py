@@ -22,9 +22,10 @@ def add_realtime_arguments(p) -> None:
     g.add_argument("--serial", help="hardware: serial device of the transmitter box, e.g. /dev/ttyUSB0")
     g.add_argument("--calibration", help="hardware: camera calibration JSON (python -m app calibrate)")
     g.add_argument("--loop-hz", type=float, default=60.0, help="loop rate (default 60 Hz); planning runs at --control-hz")
-    g.add_argument("--plan-latency-ms", type=float, default=None, metavar="MS",
-                   help="how far ahead the states are predicted for planning: to when a plan's command reaches the "
-                        "cars (default: LoopConfig.plan_latency_s, 40 ms, measured in HIL; see command_lag_ms)")
+    g.add_argument("--command-delay-ms", type=float, default=None, metavar="MS",
+                   help="from a loop tick's start until the cars act on its command (loop stages, serial link, "
+                        "radio); plans are made for that instant, plan_ticks ticks ahead (default: "
+                        "LoopConfig.command_delay_s, 19 ms, measured in HIL; see command_lag_ms)")
     g.add_argument("--fps", type=float, default=60.0, help="HIL camera frame rate (default 60)")
     g.add_argument("--fault", action="append", default=[], metavar="KIND@START[+DUR][:CAR]",
                    help="HIL fault injection (repeatable): occlude, serial_corrupt, serial_vanish, solver_fail, nan_state")
@@ -132,10 +133,10 @@ def _run_realtime(args, mode: str) -> int:
         if not getattr(args, name) > 0:
             raise UserError(f"--{name.replace('_', '-')} must be positive")
     latency = {}
-    if args.plan_latency_ms is not None:
-        if not (math.isfinite(args.plan_latency_ms) and 0 <= args.plan_latency_ms <= 500):
-            raise UserError(f"--plan-latency-ms must be in [0, 500] ms, got {args.plan_latency_ms}")
-        latency["plan_latency_s"] = args.plan_latency_ms / 1e3
+    if args.command_delay_ms is not None:
+        if not (math.isfinite(args.command_delay_ms) and 0 < args.command_delay_ms <= 500):
+            raise UserError(f"--command-delay-ms must be in (0, 500] ms, got {args.command_delay_ms}")
+        latency["command_delay_s"] = args.command_delay_ms / 1e3
     try:
         config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz, stop_after_hold_s=args.stop_after_hold,
                             **latency)
