@@ -248,11 +248,12 @@ def _plan_or_fallback(planner, own_state, other_state):
         return planner.fallback_plan(own_state, other_state, f"{type(exc).__name__}: {exc}")
 
 
-def run_race(setup: RaceSetup, telemetry_path=None, progress=None) -> RaceOutcome:
-    """Simulate one race until a car completes `laps` laps (or max_time_s)."""
+def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator) -> RaceOutcome:
+    """Simulate one race until a car completes `laps` laps (or max_time_s). ``simulator_cls``: a
+    Simulator subclass that perturbs how commands reach the cars (bench/race_perturbations.py)."""
     track, car = setup.track, setup.car
     sim_car = car if setup.sim_car is None else setup.sim_car
-    sim = Simulator(track, [sim_car, sim_car], effects=setup.sim_effects, seed=setup.seed, physics_dt=setup.physics_dt_s,
+    sim = simulator_cls(track, [sim_car, sim_car], effects=setup.sim_effects, seed=setup.seed, physics_dt=setup.physics_dt_s,
                     laps_to_win=setup.laps)
     x0 = start_states(setup)
     sim.reset(x0)
