@@ -252,3 +252,34 @@ def test_car_moved_elsewhere_is_reacquired_before_lost():
     reasons = [ekf.update(k / RATE_HZ, 1.0 + 1.5 * k / RATE_HZ, 1.5, 0.0).reason for k in range(30, 34)]
     assert reasons[:2] == ["gated", "gated"] and reasons[2] == "reacquired" and reasons[3] == "accepted"
     assert abs(ekf.x[3] - 1.5) < 0.05 and abs(ekf.x[1] - 1.5) < 0.01
+
+
+@pytest.mark.parametrize("known", [False, True])
+def test_launch_with_known_acceleration(known):
+    """A car launching at 5 m/s^2 along x from rest, measured exactly at 60 Hz from t = 0, with the
+    acceleration known from t = 0.05 s. Analytic reference: v = a (t - 0.05), x = a (t - 0.05)^2 / 2.
+    Without the input the random-walk speed lags; with it the filter follows."""
+    a, t_on = 5.0, 0.05
+
+    def accel(t0, t1):
+        lo, hi = max(t0, t_on), t1
+        return [(hi - lo, a)] if hi > lo else []
+
+    ekf = CarEKF()
+    if known:
+        ekf.accel_input = accel
+    speed_errors = []
+    for k in range(25):
+        t = k / 60.0
+        x = 0.5 * a * max(t - t_on, 0.0) ** 2
+        ekf.update(t, x, 0.0, 0.0)
+        if t >= 0.25:
+            speed_errors.append(ekf.predict_to(t).speed - a * (t - t_on))
+    worst = max(abs(e) for e in speed_errors)
+    if known:
+        assert worst < 0.02
+        ahead = ekf.predict_to(0.45)  # predicted 50 ms past the last measurement
+        assert ahead.x == pytest.approx(0.5 * a * (0.45 - t_on) ** 2, abs=1e-3)
+        assert ahead.speed == pytest.approx(a * (0.45 - t_on), abs=0.03)
+    else:
+        assert worst > 0.05
