@@ -320,6 +320,8 @@ class RaceLoop:
         self.t_go = time.monotonic() + 2 * self.cfg.period_s
         result.job.t_plan = self.t_go  # the cold-start plan is the plan for the start
         self._take_plan(result, time.monotonic())
+        for c in self.commanded:  # on the grid: at rest and neutral until tick 0's command acts
+            self._log_control(c.name, t - 1.0, self.planners.executed_control(c.name, None, 0.0))
         if self.world is not None:
             self.world.go(self.t_go)
         if self.mode == "hardware":
@@ -342,6 +344,11 @@ class RaceLoop:
             log.append((t_effect, *control))
         while len(log) > 1 and log[1][0] < t_effect - 1.0:
             log.pop(0)
+
+    def _accel_input(self, name: str):
+        """CarEKF.accel_input of car `name`: its logged accelerations."""
+        log = self._controls[name]
+        return lambda t0, t1: [(d, a) for d, a, _ in controls_between(log, t0, t1)]
 
     def _in_flight(self, t_plan: float) -> dict[str, tuple[np.ndarray, list]]:
         """PlanJob.in_flight: for each commanded car with a control log covering its last measurement,
@@ -484,6 +491,10 @@ class RaceLoop:
         t0 = self._stage("detect", t0, times)
         # ---- estimate (+ safety checks on tracking and state)
         if frame is not None and det is not None:
+            for c in self.commanded:  # the filters predict commanded cars with their known acceleration
+                f = self.estimator.filters.get(c.marker_id)
+                if f is not None and c.name in self._controls:
+                    f.accel_input = self._accel_input(c.name)
             results = self.estimator.update(frame.t_capture_s, meas)
             if packet.truth is not None:
                 for m in meas:
