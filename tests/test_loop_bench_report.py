@@ -24,3 +24,18 @@ def test_counts_and_exact_mcnemar_p():
 def test_no_discordant_pairs_means_no_evidence_of_a_difference():
     d = winner_distribution([_row("rd3g", "rd3g"), _row("opponent", "opponent")])
     assert d["mcnemar_p"] == 1.0 and d["sim_only"] == d["hil_only"] == 0
+
+
+def test_pool_adds_the_runs_seed_pairs(tmp_path, capsys):
+    import json
+
+    from app.realtime.bench import main
+
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps([_row("rd3g", "opponent"), _row("opponent", "rd3g")]))
+    b.write_text(json.dumps([_row("opponent", "rd3g"), _row("rd3g", "rd3g")]))
+    assert main(["--pool", str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    # 4 pairs: simulation-only 1, HIL-only 2 -> p = 2 * P(X <= 1), X ~ Bin(3, 1/2) = 1
+    assert "2 runs, 4 seed pairs: RD3G won 2 in simulation and 3 in HIL" in out
+    assert "discordant seeds 1 (simulation only) : 2 (HIL only), exact McNemar p = 1" in out

@@ -46,7 +46,17 @@ def main(argv=None) -> int:
     parser.add_argument("--figure", default="docs/figures/loop_bench.png",
                         help="per-seed figure (PNG) written beside the table (default docs/figures/loop_bench.png)")
     parser.add_argument("--replot", metavar="JSON", help="only redraw --figure from a saved --json file")
+    parser.add_argument("--pool", nargs="+", metavar="JSON",
+                        help="only print the winner distribution pooled over saved --json runs (a 20-seed run's HIL "
+                             "win count alone moved from 4 to 10 between two runs of one build)")
     args = parser.parse_args(argv)
+    if args.pool:
+        rows = [row for path in args.pool for row in json.loads(Path(path).read_text())]
+        d = winner_distribution(rows)
+        print(f"{len(args.pool)} runs, {len(rows)} seed pairs: RD3G won {d['sim_rd3g_wins']} in simulation and "
+              f"{d['hil_rd3g_wins']} in HIL; discordant seeds {d['sim_only']} (simulation only) : {d['hil_only']} "
+              f"(HIL only), exact McNemar p = {d['mcnemar_p']:.3g}")
+        return 0
     if args.replot:
         print(plot(json.loads(Path(args.replot).read_text()), args.figure))
         return 0
