@@ -3,6 +3,7 @@ none for a human-driven car), run asynchronously in a worker thread; the loop ap
 plan. The C++ solver releases the GIL, so a solve does not stall the loop thread."""
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 import time
@@ -29,7 +30,11 @@ def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, floa
     until the next one's t_on, the last until t1) that act in [t0, t1), as [(duration s, a, delta), ...];
     the part before the first entry is not covered."""
     out = []
-    for j, (t_on, a, delta) in enumerate(log):
+    # The loop calls this several times a tick (EKF predictions): start at the entry acting at t0.
+    for j in range(max(bisect.bisect_right(log, t0, key=lambda e: e[0]) - 1, 0), len(log)):
+        t_on, a, delta = log[j]
+        if t_on >= t1:
+            break
         t_off = log[j + 1][0] if j + 1 < len(log) else t1
         lo, hi = max(t_on, t0), min(t_off, t1)
         if hi > lo:
