@@ -86,6 +86,11 @@ class CommandMapper:
         cmd = np.clip(cmd, -m, m)
         return cmd if cmd.ndim else float(cmd)
 
+    def neutral_control(self, speed: float) -> tuple[float, float]:
+        """Planning-model control [a, delta] of the neutral command (zero throttle and steering) at
+        ``speed``: the drive model's coasting deceleration and the steering offset."""
+        return float(self.acceleration(0.0, speed)), float(self.car.corrections.steering_offset_rad)
+
     def commands(self, accel: float, delta: float, speed: float) -> tuple[float, float]:
         """(throttle, steering command) for the planned control at the speed the plan starts from;
         records the planned control as in flight."""

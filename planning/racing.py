@@ -203,7 +203,7 @@ class _RecedingHorizon:
                                              lam=None if self._prev.lam is None else self._shifted(self._prev.lam))
         else:
             v = float(x_self[V]) if math.isfinite(x_self[V]) else 0.0
-            neutral = [float(self.mapper.acceleration(0.0, v)), self.mapper.car.corrections.steering_offset_rad]
+            neutral = list(self.mapper.neutral_control(v))
             u = np.tile(neutral, (c.horizon, 1))
         own = (np.asarray(self.tm.rollout_model(c.plan_dt_s).rollout(x_self, u)) if finite
                else np.tile(x_self, (c.horizon + 1, 1)))

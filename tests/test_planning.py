@@ -38,6 +38,13 @@ def test_throttle_inversion_round_trip(car):
     assert m.throttle_for_acceleration(50.0, 1.0) == 1.0
 
 
+def test_neutral_control_is_coasting_with_the_steering_offset(car):
+    c2 = dataclasses.replace(car, corrections=Corrections(steering_offset_rad=0.03))
+    a, delta = CommandMapper(c2, PERIOD).neutral_control(1.5)
+    assert a == pytest.approx(_drive_accel(c2, 0.0, 1.5), abs=1e-9) and a < 0
+    assert delta == pytest.approx(0.03)
+
+
 def test_extra_drag_correction_changes_throttle(car):
     heavy = dataclasses.replace(car, corrections=Corrections(extra_drag_n_per_mps2=0.05))
     u0 = CommandMapper(car, PERIOD).throttle_for_acceleration(0.0, 2.0)

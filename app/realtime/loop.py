@@ -493,7 +493,7 @@ class RaceLoop:
         if frame is not None and det is not None:
             for c in self.commanded:  # the filters predict commanded cars with their known acceleration
                 f = self.estimator.filters.get(c.marker_id)
-                if f is not None and c.name in self._controls:
+                if f is not None and f.accel_input is None and c.name in self._controls:
                     f.accel_input = self._accel_input(c.name)
             results = self.estimator.update(frame.t_capture_s, meas)
             if packet.truth is not None:

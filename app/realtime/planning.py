@@ -124,15 +124,18 @@ class RacePlanners:
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
         return result
 
+    def _planner_of(self, name: str):
+        """The planner commanding car `name` (None: pure pursuit or a human)."""
+        return self.ours if name == "rd3g" else self.theirs
+
     def executed_control(self, name: str, car_plan: CarPlan | None, speed: float) -> tuple[float, float] | None:
         """The planning-model control [a m/s^2, delta rad] car `name` executes when it gets `car_plan`'s
         command (None: neutral, at `speed` m/s); None for a car without a planning model (pursuit, human)."""
-        planner = self.ours if name == "rd3g" else self.theirs
+        planner = self._planner_of(name)
         if planner is None:
             return None
         if car_plan is None or car_plan.plan is None:
-            mapper = planner.mapper
-            return float(mapper.acceleration(0.0, speed)), float(mapper.car.corrections.steering_offset_rad)
+            return planner.mapper.neutral_control(speed)
         a, delta = car_plan.plan.control
         return float(a), float(delta)
 
@@ -143,8 +146,7 @@ class RacePlanners:
         if name not in job.in_flight:
             return at_plan
         state, segments = job.in_flight[name]
-        planner = self.ours if name == "rd3g" else self.theirs
-        x = rollout_controls(planner.tm, frenet_state(self.track, state), segments)
+        x = rollout_controls(self._planner_of(name).tm, frenet_state(self.track, state), segments)
         length = float(self.track.length)
         ds = math.remainder(float(x[S]) - float(at_plan[S]), length)  # same lap as the unwrapped progress
         x[S] = at_plan[S] + ds
