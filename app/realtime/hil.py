@@ -441,14 +441,16 @@ class _World:
         while sim.time < target - 1e-9:
             t_abs = t_go + sim.time
             cmds = self._commands(t_abs)
-            for i in np.nonzero(np.any(cmds != self._last_applied, axis=1))[0]:
-                self.applied_changes.append((t_abs, int(i), float(cmds[i, 0]), float(cmds[i, 1])))
-            self._last_applied = cmds
-            neutral = not np.any(cmds)
-            if neutral != self.neutral_at_box:
-                self.events.append((sim.time, "cars_neutral" if neutral else "cars_driving",
-                                    "every car neutral at the box" if neutral else "commands reach the cars"))
-                self.neutral_at_box = neutral
+            changed = np.any(cmds != self._last_applied, axis=1)
+            if changed.any():  # the box's output changed: record it; only then can "neutral" change
+                for i in np.nonzero(changed)[0]:
+                    self.applied_changes.append((t_abs, int(i), float(cmds[i, 0]), float(cmds[i, 1])))
+                self._last_applied = cmds
+                neutral = not np.any(cmds)
+                if neutral != self.neutral_at_box:
+                    self.events.append((sim.time, "cars_neutral" if neutral else "cars_driving",
+                                        "every car neutral at the box" if neutral else "commands reach the cars"))
+                    self.neutral_at_box = neutral
             for ev in sim.step(cmds, dt):
                 if ev.kind == "collision":
                     who = CAR_NAMES[self.fault_of(sim.states)]
