@@ -125,7 +125,9 @@ class VirtualCarBox:
 
     ``on_commands(commands, t)`` is called from the reader thread with the complete
     command set (every car seen so far) after each accepted frame and once when a
-    failsafe engages; ``on_failsafe(event)`` then too, after it. ``clock`` must be monotonic; it timestamps received frames and is
+    failsafe engages; ``on_failsafe(event)`` then too, after it. Both are called after the
+    box's state (``latest``, ``stats``, ``failsafe_active``) shows the change, outside its lock,
+    so a reader may see the new state a moment before the callback runs. ``clock`` must be monotonic; it timestamps received frames and is
     the time base of ``commands_at``. ``history_s`` seconds of frames are kept for it.
     ``max_cars`` is how many cars this box drives (its radio channels; default the protocol's maximum,
     16): a frame announcing more is damaged, and is known to be so from its header alone (a bit error
