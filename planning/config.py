@@ -35,6 +35,15 @@ class PlannerConfig:
     # feasible at k = 1 and must grow back towards the nominal value at this rate (m/s) over the
     # horizon (per-step d_min); 0 = the relaxed d_min at every step (the plan only may not close in).
     separation_recovery_mps: float = 0.3
+    # Defending (RacingPlanner.defend_reference, RD3G only): while a car with a higher top speed is
+    # between defend_min_gap_m and defend_distance_m behind along the track, our lateral reference
+    # moves to the inside of the turn ahead (mean curvature over defend_lookahead_m), defend_margin_m
+    # inside the track-limit bound, with weight q_defend instead of q_lateral. 0 distance = off.
+    defend_distance_m: float = 1.0
+    defend_min_gap_m: float = 0.2     # closer than this the other car's nose is beside ours: no pull in
+    defend_lookahead_m: float = 1.5
+    defend_margin_m: float = 0.03
+    q_defend: float = 5.0             # 1/m^2
     lateral_reach_m: float = 0.1      # lateral motion over a plan assumed when correcting d_min for curvature
     max_brake_mps2: float = 4.0       # planner's braking bound (tyre-limited; the motor could brake harder)
     steering_margin: float = 0.95     # fraction of the steering range the planner may use

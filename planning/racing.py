@@ -318,6 +318,31 @@ class RacingPlanner(_RecedingHorizon):
         v_match = other_rate * max(stretch[0], 0.2) / max(math.cos(float(x_self[EPSI])), 0.5)
         return min(top, max(v_match, float(x_self[V]) - _FOLLOW_BRAKE_DV_MPS))
 
+    def defend_reference(self, x_self, x_other, ey_bound: float) -> float | None:
+        """Lateral reference (m) while defending, or None. Defending = the other car has the higher
+        top speed and is behind us along the track by between defend_min_gap_m and
+        defend_distance_m; the reference is then the inside of the turn ahead (sign of the mean
+        curvature over defend_lookahead_m), defend_margin_m inside the track-limit bound ey_bound.
+        None on a straight with no turn in the lookahead, or with defend_distance_m = 0.
+
+        Why: the open-loop game does not make our car cover. Its lead term depends on the other
+        car's plan only through that car's own choice, and with the shared collision multiplier our
+        car takes half of the avoidance and drifts out from a car passing on the inside. In the
+        front/slow races our car lost, the faster car passed on the inside of a turn while our car
+        was 5-9 cm outside the centre line. On the inside of a turn, our car leaves too little room
+        for a pass there (d_min between the discs), and the pass around the outside is the longer way.
+        From defend_min_gap_m on, the other car's nose is beside ours: pulling in then would turn us
+        into its side."""
+        c = self.config
+        behind = float(x_self[S] - x_other[S])
+        if not (self.opponent_top_speed > c.top_speed_mps and c.defend_min_gap_m < behind < c.defend_distance_m):
+            return None
+        ahead = np.mod(float(x_self[S]) + np.linspace(0.0, c.defend_lookahead_m, 31), self.tm.track.length)
+        kappa = float(np.mean(self.tm.track.curvature(ahead)))
+        if abs(kappa) < 1e-3:
+            return None
+        return math.copysign(max(ey_bound - c.defend_margin_m, 0.0), kappa)
+
     def plan(self, x_self, x_other) -> Plan:
         """x_self, x_other: [s (unwrapped, same origin), ey, v, epsi]; x_self already delay-predicted."""
         c = self.config
@@ -325,10 +350,15 @@ class RacingPlanner(_RecedingHorizon):
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
         x_other = np.array(x_other, dtype=float)
+        own_cost = self._cost(c.top_speed_mps)
+        defend_ey = self.defend_reference(x_self, x_other, ey_bound)
+        if defend_ey is not None:
+            own_cost.x_ref = [own_cost.x_ref[0], defend_ey, *own_cost.x_ref[2:]]
+            own_cost.Q_ref = [own_cost.Q_ref[0], c.q_defend, *own_cost.Q_ref[2:]]
         nominal_d_min = d_min
         ey_bound, d_min = self._feasible_limits([x_self, x_other], ey_bound, d_min)
         top = self.follow_speed_cap(x_self, x_other, d_min < nominal_d_min)
-        agents = [self._agent(x_self, top, ey_bound, self._cost(c.top_speed_mps), c.lead_weight),
+        agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
                   self._agent(x_other, self.opponent_top_speed, ey_bound, self._cost(self.opponent_top_speed), c.lead_weight)]
         d_steps = self._distance_steps(d_min, nominal_d_min)
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,

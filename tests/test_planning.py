@@ -298,3 +298,43 @@ def test_separation_below_the_collision_distance_is_recovered_over_the_plan(trac
         assert np.all(gap >= required - p.config.accept_violation_m), (cls.__name__, gap - required)
         assert gap[-1] >= nominal - p.config.accept_violation_m  # back to the nominal distance by the end
         assert plan.d_min < nominal - 0.02                     # the scenario needs the relaxation
+
+
+def test_defend_reference_is_the_inside_of_the_turn_ahead_only_against_a_faster_car_behind(track, car):
+    """Oval geometry: the 2 m straights end in 1 m left turns (kappa = +1/m) at s = 1 and s = 3 + pi. From
+    s = 0.5 the 1.5 m lookahead reaches 1 m into the first turn: the inside is +ey, defend_margin_m
+    inside the bound. The rule applies only to a car with a higher top speed, behind by more than
+    defend_min_gap_m and less than defend_distance_m, with a turn ahead."""
+    p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=2.0, config={"top_speed_mps": 1.6})
+    bound = 0.22
+    me = np.array([0.5, 0.0, 1.6, 0.0])
+    assert p.defend_reference(me, np.array([0.1, 0.0, 2.0, 0.0]), bound) == pytest.approx(bound - 0.03)
+    assert p.defend_reference(me, np.array([0.35, 0.0, 2.0, 0.0]), bound) is None   # its nose beside ours
+    assert p.defend_reference(me, np.array([-0.6, 0.0, 2.0, 0.0]), bound) is None   # 1.1 m behind: too far
+    assert p.defend_reference(me, np.array([0.9, 0.0, 2.0, 0.0]), bound) is None    # ahead of us
+    straight = np.array([1.0 + math.pi + 0.1, 0.0, 1.6, 0.0])                      # 1.9 m of straight ahead
+    assert p.defend_reference(straight, straight - [0.4, 0, 0, 0], bound) is None
+    slower = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.6, config={"top_speed_mps": 2.0})
+    assert slower.defend_reference(me, np.array([0.1, 0.0, 1.6, 0.0]), bound) is None
+    off = _planner(RacingPlanner, track, car, opponent_top_speed_mps=2.0,
+                   config={"top_speed_mps": 1.6, "defend_distance_m": 0.0})
+    assert off.defend_reference(me, np.array([0.1, 0.0, 2.0, 0.0]), bound) is None
+
+
+def test_defending_plan_moves_to_the_inside_before_the_turn(track, car):
+    """On the straight before the first (left) turn, a faster car 0.4 m behind and to the right: the
+    defending plan ends well left of the centre line (inside of the turn, where the other car cannot
+    fit between us and the track limit); without the rule the plan leaves room there."""
+    x_self = np.array([0.4, 0.0, 1.6, 0.0])
+    x_other = np.array([0.0, -0.05, 1.9, 0.0])
+    ends = {}
+    for distance in (1.0, 0.0):
+        p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=2.0,
+                     config={"top_speed_mps": 1.6, "defend_distance_m": distance})
+        plan = p.plan(x_self, x_other)
+        assert plan.used in ("converged", "accepted")
+        ends[distance] = float(plan.x[0, -1, 1])
+    bound = p.tm.ey_bound([x_self[0], x_other[0]])
+    d_min = 2 * p.tm.footprint_radius + p.config.collision_margin_m  # between the discs, on the straight
+    assert ends[1.0] > bound - d_min + 0.05   # the inside is closed: no room for the other disc
+    assert ends[0.0] < bound - d_min          # without the rule the inside stays open
