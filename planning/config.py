@@ -38,9 +38,11 @@ class PlannerConfig:
     # Defending (RacingPlanner.defend_reference, RD3G only): while a car with a higher top speed is
     # between defend_min_gap_m and defend_distance_m behind along the track, our lateral reference
     # moves to the inside of the turn ahead (mean curvature over defend_lookahead_m), defend_margin_m
-    # inside the track-limit bound, with weight q_defend instead of q_lateral. 0 distance = off.
+    # inside the track-limit bound, with weight q_defend instead of q_lateral. Not when the other car is
+    # already further inside than ours and less than defend_cross_gap_m behind. 0 distance = off.
     defend_distance_m: float = 1.0
     defend_min_gap_m: float = 0.2     # closer than this the other car's nose is beside ours: no pull in
+    defend_cross_gap_m: float = 0.45  # no crossing to the inside in front of a car already inside of us this close
     defend_lookahead_m: float = 1.5
     defend_margin_m: float = 0.03
     q_defend: float = 5.0             # 1/m^2

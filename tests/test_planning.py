@@ -304,7 +304,8 @@ def test_defend_reference_is_the_inside_of_the_turn_ahead_only_against_a_faster_
     """Oval geometry: the 2 m straights end in 1 m left turns (kappa = +1/m) at s = 1 and s = 3 + pi. From
     s = 0.5 the 1.5 m lookahead reaches 1 m into the first turn: the inside is +ey, defend_margin_m
     inside the bound. The rule applies only to a car with a higher top speed, behind by more than
-    defend_min_gap_m and less than defend_distance_m, with a turn ahead."""
+    defend_min_gap_m and less than defend_distance_m, with a turn ahead, and not across the nose of a car
+    that already has the inside within defend_cross_gap_m."""
     p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=2.0, config={"top_speed_mps": 1.6})
     bound = 0.22
     me = np.array([0.5, 0.0, 1.6, 0.0])
@@ -312,6 +313,8 @@ def test_defend_reference_is_the_inside_of_the_turn_ahead_only_against_a_faster_
     assert p.defend_reference(me, np.array([0.35, 0.0, 2.0, 0.0]), bound) is None   # its nose beside ours
     assert p.defend_reference(me, np.array([-0.6, 0.0, 2.0, 0.0]), bound) is None   # 1.1 m behind: too far
     assert p.defend_reference(me, np.array([0.9, 0.0, 2.0, 0.0]), bound) is None    # ahead of us
+    assert p.defend_reference(me, np.array([0.1, 0.05, 2.0, 0.0]), bound) is None   # it has the inside: no chop
+    assert p.defend_reference(me, np.array([-0.2, 0.05, 2.0, 0.0]), bound) == pytest.approx(bound - 0.03)  # 0.7 m back
     straight = np.array([1.0 + math.pi + 0.1, 0.0, 1.6, 0.0])                      # 1.9 m of straight ahead
     assert p.defend_reference(straight, straight - [0.4, 0, 0, 0], bound) is None
     slower = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.6, config={"top_speed_mps": 2.0})
