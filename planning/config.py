@@ -25,6 +25,9 @@ class PlannerConfig:
     q_speed: float = 1.0              # 1/(m/s)^2
     q_lateral: float = 0.5            # 1/m^2, pulls towards raceline_ey
     q_heading: float = 2.0            # 1/rad^2
+    # Cornering: the speed bound of a plan is at most sqrt(max_lateral_accel / |kappa|) for the largest
+    # centre-line curvature within the plan's reach (the kinematic planning model has no tyre limit).
+    max_lateral_accel_mps2: float = 4.2  # on the centre line; see RacingPlanner.corner_speed_cap
     r_accel: float = 0.05             # 1/(m/s^2)^2
     r_steer: float = 1.0              # 1/rad^2
     raceline_ey_m: float = 0.0        # lateral reference (m, left positive); 0 = centre line
@@ -73,7 +76,7 @@ class PlannerConfig:
     fallback_speed_gain: float = 2.0
 
     def __post_init__(self) -> None:
-        positive = {"plan_dt_s", "top_speed_mps", "max_brake_mps2", "curvature_table_ds_m", "solver_tol", "steering_margin", "warm_rho_init"}
+        positive = {"plan_dt_s", "top_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "solver_tol", "steering_margin", "warm_rho_init"}
         ints = {"horizon": 1, "max_iterations": 1, "solver_restarts": 0, "line_search_steps": 1, "lm_tries": 0}
         for f in fields(self):
             v = getattr(self, f.name)

@@ -162,6 +162,23 @@ class _RecedingHorizon:
                 d_min = min(d_min, d - 0.01)
         return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M)
 
+    def corner_speed_cap(self, x, top_speed: float) -> float:
+        """Speed bound (m/s) for a plan from state x: top_speed, lowered to sqrt(max_lateral_accel /
+        |kappa|) for the largest centre-line curvature between the car and the end of its reach
+        (top_speed x horizon + 0.5 m), but asking for at most 0.2 m/s below the current speed per plan
+        (reachable: 2 m/s^2 over the first planning step). The kinematic planning model has no tyre
+        limit, so without this the planners drove into the twisty track's 0.4 m turns at 2 m/s (1 g)
+        and the simulated cars slid off. On the oval's 1 m turns the cap is 2.4 m/s, above both top
+        speeds of the batch: no change there."""
+        c = self.config
+        reach = top_speed * c.horizon * c.plan_dt_s + 0.5
+        s = np.mod(float(x[S]) + np.arange(0.0, reach, 0.02), self.tm.track.length)
+        kappa = float(np.max(np.abs(self.tm.track.curvature(s))))
+        if kappa <= 0:
+            return float(top_speed)
+        v_corner = math.sqrt(c.max_lateral_accel_mps2 / kappa)
+        return float(min(top_speed, max(v_corner, float(x[V]) - _FOLLOW_BRAKE_DV_MPS)))
+
     def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
         """Controls (N, T, 2) of the previous plan shifted by one control period, the planning car's
         first control replaced by the closed-loop tracking control towards that plan."""
@@ -355,16 +372,18 @@ class RacingPlanner(_RecedingHorizon):
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
         x_other = np.array(x_other, dtype=float)
-        own_cost = self._cost(c.top_speed_mps)
+        own_top = self.corner_speed_cap(x_self, c.top_speed_mps)
+        other_top = self.corner_speed_cap(x_other, self.opponent_top_speed)
+        own_cost = self._cost(own_top)
         defend_ey = self.defend_reference(x_self, x_other, ey_bound)
         if defend_ey is not None:
             own_cost.x_ref = [own_cost.x_ref[0], defend_ey, *own_cost.x_ref[2:]]
             own_cost.Q_ref = [own_cost.Q_ref[0], c.q_defend, *own_cost.Q_ref[2:]]
         nominal_d_min = d_min
         ey_bound, d_min = self._feasible_limits([x_self, x_other], ey_bound, d_min)
-        top = self.follow_speed_cap(x_self, x_other, d_min < nominal_d_min)
+        top = min(own_top, self.follow_speed_cap(x_self, x_other, d_min < nominal_d_min))
         agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
-                  self._agent(x_other, self.opponent_top_speed, ey_bound, self._cost(self.opponent_top_speed), c.lead_weight)]
+                  self._agent(x_other, other_top, ey_bound, self._cost(other_top), c.lead_weight)]
         d_steps = self._distance_steps(d_min, nominal_d_min)
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
                               collision=Collision(min_distance=d_steps, form="distance", pos_x=S, pos_y=EY))
@@ -380,7 +399,8 @@ class MPCOpponent(_RecedingHorizon):
         s_now = [x_self[S], x_other[S]]
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
-        cost = self._cost(c.top_speed_mps)
+        top = self.corner_speed_cap(x_self, c.top_speed_mps)
+        cost = self._cost(top)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
             cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]
             cost.Q_ref = [c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M), *cost.Q_ref[1:]]
@@ -389,7 +409,7 @@ class MPCOpponent(_RecedingHorizon):
         ey_bound, d_min = self._feasible_limits([x_self], ey_bound, d_min, [other])
         d_steps = self._distance_steps(d_min, nominal_d_min)
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon,
-                              agents=[self._agent(x_self, c.top_speed_mps, ey_bound, cost, 0.0)],
+                              agents=[self._agent(x_self, top, ey_bound, cost, 0.0)],
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
                               obstacles=[Obstacle(positions=other, min_distance=d_steps)])
         plan = self._finish(problem, d_steps, ey_bound)

@@ -8,6 +8,7 @@ import pytest
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner
 from planning.commands import rollout_controls
 from planning.config import PlannerConfigError
+from tracks import load_track
 from vehicles.params import CarParams, Corrections
 
 PERIOD = 1.0 / 30.0
@@ -341,3 +342,23 @@ def test_defending_plan_moves_to_the_inside_before_the_turn(track, car):
     d_min = 2 * p.tm.footprint_radius + p.config.collision_margin_m  # between the discs, on the straight
     assert ends[1.0] > bound - d_min + 0.05   # the inside is closed: no room for the other disc
     assert ends[0.0] < bound - d_min          # without the rule the inside stays open
+
+
+def test_corner_speed_cap_from_the_curvature_within_reach(track, car):
+    """sqrt(a_lat / |kappa|) for the tightest centre-line curvature within the plan's reach (top speed x
+    horizon + 0.5 m), never more than 0.2 m/s below the current speed. Oval: 1 m turns (kappa = 1/m)
+    from s = 1; the top straight runs from s = 1 + pi to 3 + pi. Twisty: a 0.4 m hairpin (|kappa| = 2.5/m)."""
+    p = _planner(MPCOpponent, track, car, config={"max_lateral_accel_mps2": 0.5, "top_speed_mps": 1.0})
+    v_turn = math.sqrt(0.5 / 1.0)
+    assert p.corner_speed_cap(np.array([0.0, 0.0, 0.8, 0.0]), 1.0) == pytest.approx(v_turn)  # turn 1 m ahead, 1.5 m reach
+    assert p.corner_speed_cap(np.array([0.0, 0.0, 1.0, 0.0]), 1.0) == pytest.approx(0.8)     # reachable in one plan
+    assert p.corner_speed_cap(np.array([1.0 + math.pi + 0.05, 0.0, 1.0, 0.0]), 1.0) == 1.0  # straight within reach
+    default = _planner(MPCOpponent, track, car)
+    assert default.corner_speed_cap(np.array([0.0, 0.0, 2.0, 0.0]), 2.0) == 2.0  # the oval batch's speeds: no cap
+    twisty = load_track("twisty")
+    s = np.arange(0.0, twisty.length, 0.005)
+    s_hairpin = float(s[np.argmax(np.abs(twisty.curvature(s)))])
+    assert float(np.max(np.abs(twisty.curvature(s)))) == pytest.approx(2.5, abs=1e-3)
+    q = _planner(MPCOpponent, twisty, car)
+    a_lat = q.config.max_lateral_accel_mps2
+    assert q.corner_speed_cap(np.array([s_hairpin - 0.3, 0.0, 1.3, 0.0]), 2.0) == pytest.approx(math.sqrt(a_lat / 2.5), abs=1e-3)
