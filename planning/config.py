@@ -27,7 +27,7 @@ class PlannerConfig:
     q_heading: float = 2.0            # 1/rad^2
     # Cornering: the speed bound of a plan is at most sqrt(max_lateral_accel / |kappa|) for the largest
     # centre-line curvature within the plan's reach (the kinematic planning model has no tyre limit).
-    max_lateral_accel_mps2: float = 4.2  # on the centre line; see RacingPlanner.corner_speed_cap
+    max_lateral_accel_mps2: float = 4.2  # on the centre line; see _RecedingHorizon.corner_speed_cap
     r_accel: float = 0.05             # 1/(m/s^2)^2
     r_steer: float = 1.0              # 1/rad^2
     raceline_ey_m: float = 0.0        # lateral reference (m, left positive); 0 = centre line

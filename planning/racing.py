@@ -33,8 +33,9 @@ _COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=3
 # simulator after a contact); below the floor the k = 1 constraint may be infeasible, and then the
 # usual fallback applies.
 _MIN_COLLISION_DISTANCE_M = 0.01
-# RacingPlanner.follow_speed_cap: largest speed drop (m/s) one plan's speed bound asks for.
-_FOLLOW_BRAKE_DV_MPS = 0.2
+# Largest speed drop (m/s) below the current speed that one plan's speed bound asks for
+# (follow_speed_cap, corner_speed_cap): reachable with 2 m/s^2 over the first planning step.
+_BOUND_DROP_MPS = 0.2
 
 
 @dataclass
@@ -168,7 +169,7 @@ class _RecedingHorizon:
         (top_speed x horizon + 0.5 m), but asking for at most 0.2 m/s below the current speed per plan
         (reachable: 2 m/s^2 over the first planning step). The kinematic planning model has no tyre
         limit, so without this the planners drove into the twisty track's 0.4 m turns at 2 m/s (1 g)
-        and the simulated cars slid off. On the oval's 1 m turns the cap is 2.4 m/s, above both top
+        and the simulated cars slid off. On the oval's 1 m turns the cap is 2.05 m/s, above both top
         speeds of the batch: no change there."""
         c = self.config
         reach = top_speed * c.horizon * c.plan_dt_s + 0.5
@@ -177,7 +178,7 @@ class _RecedingHorizon:
         if kappa <= 0:
             return float(top_speed)
         v_corner = math.sqrt(c.max_lateral_accel_mps2 / kappa)
-        return float(min(top_speed, max(v_corner, float(x[V]) - _FOLLOW_BRAKE_DV_MPS)))
+        return float(min(top_speed, max(v_corner, float(x[V]) - _BOUND_DROP_MPS)))
 
     def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
         """Controls (N, T, 2) of the previous plan shifted by one control period, the planning car's
@@ -333,7 +334,7 @@ class RacingPlanner(_RecedingHorizon):
         stretch = [1.0 - float(kappa[i]) * float(x[EY]) for i, x in enumerate((x_self, x_other))]
         other_rate = max(float(x_other[V]), 0.0) * math.cos(float(x_other[EPSI])) / max(stretch[1], 0.2)
         v_match = other_rate * max(stretch[0], 0.2) / max(math.cos(float(x_self[EPSI])), 0.5)
-        return min(top, max(v_match, float(x_self[V]) - _FOLLOW_BRAKE_DV_MPS))
+        return min(top, max(v_match, float(x_self[V]) - _BOUND_DROP_MPS))
 
     def defend_reference(self, x_self, x_other, ey_bound: float) -> float | None:
         """Lateral reference (m) while defending, or None. Defending = the other car has the higher
@@ -347,7 +348,7 @@ class RacingPlanner(_RecedingHorizon):
         car's plan only through that car's own choice, and with the shared collision multiplier our
         car takes half of the avoidance and drifts out from a car passing on the inside. In the
         front/slow races our car lost, the faster car passed on the inside of a turn while our car
-        was 5-9 cm outside the centre line. On the inside of a turn, our car leaves too little room
+        was 4-9 cm outside the centre line. On the inside of a turn, our car leaves too little room
         for a pass there (d_min between the discs), and the pass around the outside is the longer way.
         From defend_min_gap_m on, the other car's nose is beside ours: pulling in then would turn us
         into its side. Crossing over in front of a car that already has the inside, closer than
