@@ -48,10 +48,10 @@ class Recorder:
         with self._lock:
             return list(self.calls)
 
-    def last_after(self, predicate, timeout: float = 1.0):
-        """The last call once ``predicate(calls)`` holds: the box updates its state, then calls back."""
-        assert wait_until(lambda: predicate(self.snapshot()), timeout=timeout)
-        return self.snapshot()[-1]
+    def nth(self, n: int, timeout: float = 3.0):
+        """The n-th call (1-based), waiting for it: the box updates its state, then calls back."""
+        assert wait_until(lambda: len(self.snapshot()) >= n, timeout=timeout)
+        return self.snapshot()[n - 1]
 
 
 @pytest.fixture
@@ -142,8 +142,7 @@ def test_loop_url_frames_decode_in_sequence():
 def test_neutral_on_start_and_stop(box, recorder):
     link = SerialCarLink(box.path, rate_hz=50, car_ids=[1, 2], handle_signals=False)
     with link:
-        assert wait_until(lambda: len(recorder.snapshot()) >= 1)
-        first_t, first = recorder.snapshot()[0]
+        first_t, first = recorder.nth(1)
         assert first == {1: NEUTRAL, 2: NEUTRAL}
         link.set_commands({1: CarCommand(0.2, 0.6), 2: CarCommand(-0.2, 0.4)})
         assert wait_until(lambda: box.latest()[1].command.throttle > 0.5)
@@ -202,7 +201,7 @@ def test_failsafe_neutral_after_sender_goes_silent(box, recorder, raw_writer):
     t_last = box.latest()[4].t_received
     assert wait_until(lambda: box.failsafe_active, timeout=2.0)
     assert box.stats.failsafe_events == 1 and box.failsafe_log()[0].reason == "timeout"
-    t_failsafe, commands = recorder.last_after(lambda calls: len(calls) == 4)
+    t_failsafe, commands = recorder.nth(4)
     assert commands == {4: NEUTRAL}
     silence = t_failsafe - t_last
     assert 0.1 <= silence <= 0.1 + 0.15, silence
@@ -234,7 +233,7 @@ def test_corrupt_frame_makes_every_car_neutral_at_once_until_the_next_valid_fram
     # (the box stamps the read; it is after the valid frame and before the timeout would have fired).
     assert event.reason == "corrupt" and event.last_valid_t == t_valid
     assert t_valid < event.t < t_valid + 0.1
-    t_neutral, commands = recorder.last_after(lambda calls: len(calls) == 2)
+    t_neutral, commands = recorder.nth(2)
     assert t_neutral == event.t and commands == {4: NEUTRAL, 5: NEUTRAL}
     assert box.commands_at(event.t) == {4: NEUTRAL, 5: NEUTRAL}
     assert box.commands_at(event.t - 1e-6)[4].throttle == pytest.approx(0.8, abs=1e-4)  # frame in effect before
@@ -288,7 +287,7 @@ def test_host_hanging_up_makes_every_car_neutral_at_once(box, recorder):
     assert event.reason == "hangup" and event.last_valid_t == t_valid
     assert t_closed <= event.t < t_valid + 0.1  # before the silence timer could have fired
     assert box.commands_at(event.t) == {2: NEUTRAL}
-    assert recorder.last_after(lambda calls: len(calls) == 2) == (event.t, {2: NEUTRAL})
+    assert recorder.nth(2) == (event.t, {2: NEUTRAL})
     assert box.stats.hangups == 1
     # A new host (sequence back at 0) is accepted at once, and its hang-up is seen again.
     fd = os.open(box.path, os.O_WRONLY | os.O_NOCTTY)
