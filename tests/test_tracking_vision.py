@@ -113,6 +113,43 @@ def test_roi_search_finds_the_same_cars(scene, camera, fixed):
         assert math.hypot(roi.cars[i].x - full.cars[i].x, roi.cars[i].y - full.cars[i].y) < 1e-4
 
 
+def test_car_marker_of_the_wrong_size_is_rejected(camera):
+    # A 80 mm marker where the tracker expects 55 mm: 45 % too large at the roof's height.
+    big = CarAppearance(marker_size_m=0.08, length_m=0.2, width_m=0.1)
+    synth = SyntheticCamera(camera, car=big, effects=RenderEffects(seed=6))
+    frame = synth.render([CarPose(3, 2.0, 1.0, 0.3)], 0.0)
+    tracker = ArucoTracker(CameraCalibration(camera), marker_size_m=CAR.marker_size_m, marker_height_m=big.roof_height_m)
+    det = tracker.process(frame)
+    assert not det.cars and det.rejected == {3: "size"} and tracker.rejected_counts["size"] == 1
+    right = ArucoTracker(CameraCalibration(camera), marker_size_m=big.marker_size_m, marker_height_m=big.roof_height_m)
+    assert set(right.process(frame).cars) == {3}
+
+
+def test_car_far_from_its_prediction_is_rejected_unless_unpredicted(scene, camera, fixed):
+    synth, poses, frame = scene
+    tracker = ArucoTracker(CameraCalibration(camera), marker_size_m=CAR.marker_size_m,
+                           marker_height_m=CAR.roof_height_m, fixed_ids=fixed.markers, full_search_every=1)
+    first, second = poses[0], poses[1]
+    predictions = {p.marker_id: (p.x + 0.01, p.y) for p in poses[2:]}
+    predictions[first.marker_id] = (first.x + 0.3, first.y)  # 0.3 m off: beyond roi_radius_m (0.2 m)
+    det = tracker.process(frame, predictions)  # full search (every frame), so the far car is seen
+    assert det.full_search and det.rejected == {first.marker_id: "jump"}
+    assert set(det.cars) == {p.marker_id for p in poses} - {first.marker_id}  # second: no prediction, kept
+    assert second.marker_id not in predictions
+
+
+def test_fixed_marker_away_from_its_surveyed_place_is_rejected(scene, camera, fixed):
+    _, _, frame = scene
+    moved = dict(fixed.markers)
+    m = moved[40]
+    moved[40] = type(m)(m.marker_id, m.x + 0.3, m.y, m.size, m.heading_rad, m.z)  # survey says 0.3 m elsewhere
+    tracker = ArucoTracker(CameraCalibration(camera), marker_size_m=CAR.marker_size_m,
+                           marker_height_m=CAR.roof_height_m, fixed_ids=moved)
+    det = tracker.process(frame)
+    assert det.rejected == {40: "fixed_position"}
+    assert set(det.markers) & set(fixed.markers) == set(fixed.markers) - {40}
+
+
 def test_downscaled_detection_with_large_markers(camera):
     big = CarAppearance(length_m=0.3, width_m=0.16, marker_size_m=0.13, label_margin_m=0.012, roof_height_m=0.08)
     synth = SyntheticCamera(camera, car=big, effects=RenderEffects(seed=1))

@@ -13,22 +13,28 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from tracking.calibration import CameraCalibration
+from tracking.calibration import CameraCalibration, FixedMarker, marker_corners_track
 from tracking.camera import Frame
 
 
 def default_detector_parameters() -> cv2.aruco.DetectorParameters:
     """Parameters for small markers (10-20 px, ~2 px per bit) seen from overhead.
 
-    Tuned on rendered frames (random poses, motion blur up to 3 m/s): OpenCV's defaults find
-    ~75 % of 12 px markers, these 100 % (docs/tracking.md). Bits are sampled at 8 px per cell
-    after perspective removal, polygons may deviate more from straight edges, and all bit
-    errors the dictionary can correct are corrected (DICT_4X4_50's ids are far apart).
+    Recall (rendered frames, random poses, motion blur up to 3 m/s): OpenCV's defaults find ~75 % of
+    12 px markers; bits sampled at 8 px per cell after perspective removal, adaptive-threshold windows
+    3/13/23, a looser polygon fit and correcting every bit error the dictionary allows
+    (``errorCorrectionRate`` 1.0) find nearly all. OpenCV's default rate 0.6 (no corrected bit in
+    DICT_4X4_50) loses 11 % of the faster car's detections along HIL race trajectories, so the false
+    ids that bit correction lets through (ChArUco squares and grid boards read as ids 9, 24, 43, 44 in
+    real photographs) are rejected after decoding instead, by :class:`MarkerDetector`'s pattern check.
+    ``minOtsuStdDev`` 20 grey levels (OpenCV: 5) rejects low-contrast candidates: a dark printed icon
+    on a cardboard box decodes as id 17 with no bit error and matches its pattern (docs/tracking.md,
+    "False detections").
     """
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -39,6 +45,7 @@ def default_detector_parameters() -> cv2.aruco.DetectorParameters:
     params.perspectiveRemovePixelPerCell = 8
     params.polygonalApproxAccuracyRate = 0.05
     params.errorCorrectionRate = 1.0
+    params.minOtsuStdDev = 20.0
     return params
 
 
@@ -46,6 +53,7 @@ _ECC_PX_PER_CELL = 6  # template resolution; 4 loses accuracy on ~12 px markers,
 _ECC_MARGIN_CELLS = 0.5  # white quiet zone included in the template (labels must be at least this wide)
 _ECC_MAX_SHIFT = 0.15  # a refinement moving a corner further than this (in marker sides, at least
 # 2 px) is treated as diverged
+MIN_PATTERN_CORRELATION = 0.87  # at the ECC alignment: rendered car markers >= 0.91, false ids in real photos <= 0.81
 
 
 class MarkerDetector:
@@ -59,25 +67,35 @@ class MarkerDetector:
     pattern to the image with ``cv2.findTransformECC`` (homography, intensity-affine invariant,
     so uneven lighting does not bias it). On markers of 10-15 px this brings corner errors from
     ~0.5 px (ArUco's own sub-pixel step, which has too few pixels per edge) to ~0.05 px; see
-    docs/tracking.md. ``refine="aruco"`` keeps the detector's corners. Refinements that fail
+    docs/tracking.md. ``refine="aruco"`` keeps the detector's corners (ECC still runs for the pattern check). Refinements that fail
     or move a corner more than 15 % of the marker side (at least 2 px) keep the detector's corners and are counted in
     ``refine_failures``.
+
+    Every detection is then checked against its id's pattern: the image inside the final corners
+    (with half a cell of white margin) must correlate with the marker's template, blurred to the
+    marker's scale, by at least ``min_pattern_correlation``; ids decoded from something that only
+    resembles a marker at the bit level (board squares, printed patterns) fail and are counted in
+    ``pattern_mismatches``.
     """
 
     def __init__(self, dictionary: int = cv2.aruco.DICT_4X4_50,
                  parameters: cv2.aruco.DetectorParameters | None = None, downscale: float = 1.0,
-                 refine: str = "ecc"):
+                 refine: str = "ecc", min_pattern_correlation: float = MIN_PATTERN_CORRELATION):
         if not 0 < downscale <= 1:
             raise ValueError(f"downscale: must be in (0, 1], got {downscale}")
         if refine not in ("ecc", "aruco"):
             raise ValueError(f"refine: must be 'ecc' or 'aruco', got {refine!r}")
+        if not -1.0 <= min_pattern_correlation < 1.0:
+            raise ValueError(f"min_pattern_correlation: must be in [-1, 1), got {min_pattern_correlation}")
         self.downscale = float(downscale)
         self.refine = refine
+        self.min_pattern_correlation = float(min_pattern_correlation)
         self._dictionary = cv2.aruco.getPredefinedDictionary(dictionary)
         self._detector = cv2.aruco.ArucoDetector(self._dictionary, parameters or default_detector_parameters())
         self._templates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.duplicates_dropped = 0
         self.refine_failures = 0
+        self.pattern_mismatches = 0
 
     def _template(self, marker_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Marker pattern with a white margin (float32) and its outer corners in template pixels."""
@@ -92,29 +110,46 @@ class MarkerDetector:
             self._templates[marker_id] = (image.astype(np.float32), corners)
         return self._templates[marker_id]
 
-    def _refine_ecc(self, gray: np.ndarray, marker_id: int, corners: np.ndarray) -> np.ndarray:
+    def _blurred_template(self, marker_id: int, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """The template blurred to roughly the image's sharpness at this marker's size (pixel area + a
+        little optics), its corners and the marker's mean side in image pixels."""
         template, t_corners = self._template(marker_id)
+        side_px = float(np.mean(np.linalg.norm(np.diff(corners, axis=0, append=corners[:1]), axis=1)))
+        scale = (t_corners[1, 0] - t_corners[0, 0]) / max(side_px, 1.0)
+        return cv2.GaussianBlur(template, (0, 0), 0.5 * scale), t_corners, side_px
+
+    def _refine_ecc(self, gray: np.ndarray, marker_id: int, corners: np.ndarray) -> tuple[np.ndarray, float]:
+        """ECC-refined corners and the pattern correlation at them; when ECC fails or diverges, the
+        given corners and the correlation there (counted in ``refine_failures``)."""
+        smooth, t_corners, side_px = self._blurred_template(marker_id, corners)
         h, w = gray.shape
         x0, y0 = np.maximum(np.floor(corners.min(0)).astype(int) - 4, 0)
         x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 5, (w, h))
         patch = gray[y0:y1, x0:x1].astype(np.float32)
         offset = np.array([x0, y0], float)
         warp = cv2.getPerspectiveTransform(t_corners.astype(np.float32), (corners - offset).astype(np.float32))
-        # Blur the template to roughly the image's sharpness (pixel area + a little optics).
-        side_px = np.mean(np.linalg.norm(np.diff(corners, axis=0, append=corners[:1]), axis=1))
-        scale = (t_corners[1, 0] - t_corners[0, 0]) / max(side_px, 1.0)
-        smooth = cv2.GaussianBlur(template, (0, 0), 0.5 * scale)
         try:
-            _, warp = cv2.findTransformECC(smooth, patch, warp.astype(np.float32), cv2.MOTION_HOMOGRAPHY,
-                                           (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3), None, 1)
+            rho, warp = cv2.findTransformECC(smooth, patch, warp.astype(np.float32), cv2.MOTION_HOMOGRAPHY,
+                                             (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3), None, 1)
         except cv2.error:
             self.refine_failures += 1
-            return corners
+            return corners, self.pattern_correlation(gray, marker_id, corners)
         refined = cv2.perspectiveTransform(t_corners.reshape(-1, 1, 2).astype(np.float32), warp).reshape(4, 2) + offset
         if not np.all(np.isfinite(refined)) or np.max(np.linalg.norm(refined - corners, axis=1)) > max(2.0, _ECC_MAX_SHIFT * side_px):
             self.refine_failures += 1
-            return corners
-        return refined.astype(float)
+            return corners, self.pattern_correlation(gray, marker_id, corners)
+        return refined.astype(float), float(rho)
+
+    def pattern_correlation(self, gray: np.ndarray, marker_id: int, corners: np.ndarray) -> float:
+        """Correlation coefficient between the image resampled inside ``corners`` (plus the white
+        margin) and ``marker_id``'s blurred template: 1 for a perfect match, ~0 for unrelated texture."""
+        smooth, t_corners, _ = self._blurred_template(marker_id, corners)
+        to_image = cv2.getPerspectiveTransform(t_corners.astype(np.float32), np.asarray(corners, np.float32))
+        sampled = cv2.warpPerspective(gray, to_image, smooth.shape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                      borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+        a, b = smooth.ravel() - smooth.mean(), sampled.ravel() - sampled.mean()
+        denominator = math.sqrt(float(a @ a) * float(b @ b))
+        return float(a @ b) / denominator if denominator > 0 else 0.0
 
     @staticmethod
     def _gray(image: np.ndarray) -> np.ndarray:
@@ -144,11 +179,19 @@ class MarkerDetector:
         off = np.asarray(offset, float)
         return [(int(i), np.asarray(c, float).reshape(4, 2) + off) for i, c in zip(ids.ravel(), corners)]
 
-    def _maybe_refine(self, gray, found, refine_ids):
-        if self.refine != "ecc":
-            return found
-        return [(marker_id, self._refine_ecc(gray, marker_id, corners)
-                 if refine_ids is None or marker_id in refine_ids else corners) for marker_id, corners in found]
+    def _refine_and_verify(self, gray, found, refine_ids) -> list[tuple[int, np.ndarray]]:
+        """Refine (``refine="ecc"``, ids in ``refine_ids``) and keep the detections whose pattern
+        correlation, measured at the ECC alignment (which removes the ~0.5 px corner error of small
+        markers that would otherwise lower it), reaches ``min_pattern_correlation``."""
+        kept = []
+        for marker_id, corners in found:
+            refined, rho = self._refine_ecc(gray, marker_id, corners)
+            if rho < self.min_pattern_correlation:
+                self.pattern_mismatches += 1
+                continue
+            use_refined = self.refine == "ecc" and (refine_ids is None or marker_id in refine_ids)
+            kept.append((marker_id, refined if use_refined else corners))
+        return kept
 
     def detect(self, image: np.ndarray, rois: list[tuple[int, int, int, int]] | None = None,
                refine_ids=None) -> dict[int, np.ndarray]:
@@ -164,7 +207,7 @@ class MarkerDetector:
                 x0, y0, x1, y1 = max(int(x0), 0), max(int(y0), 0), min(int(x1), w), min(int(y1), h)
                 if x1 - x0 > 8 and y1 - y0 > 8:
                     found += self._detect_raw(gray[y0:y1, x0:x1], (x0, y0))
-        found = self._maybe_refine(gray, found, refine_ids)
+        found = self._refine_and_verify(gray, found, refine_ids)
         result: dict[int, np.ndarray] = {}
         seen_twice: set[int] = set()
         for marker_id, corners in found:
@@ -192,9 +235,10 @@ class FrameDetections:
     t_capture_s: float
     index: int
     cars: dict[int, CarMeasurement]
-    markers: dict[int, np.ndarray]  # every detected marker: id -> image corners
+    markers: dict[int, np.ndarray]  # every detected marker that passed the checks: id -> image corners
     full_search: bool
     detect_time_s: float
+    rejected: dict[int, str] = field(default_factory=dict)  # id -> why it was implausible (ArucoTracker.process)
 
 
 def procrustes_pose(points_xy: np.ndarray, size: float) -> tuple[float, float, float, float]:
@@ -226,18 +270,29 @@ class ArucoTracker:
     """Finds car markers in frames and converts them to car poses in track coordinates.
 
     ``car_ids``: ids worn by cars (None = every id that is not a fixed marker).
+    ``fixed_ids``: ids of the fixed markers, or ``{id: FixedMarker}`` (e.g. ``FixedMarkerSet.markers``);
+    with surveyed markers, a fixed id is kept only near the projection of its surveyed centre.
     ``marker_height_m``: marker height above the track; ``correct_height=False`` maps the
     corners on the track plane instead (only for comparison, it is biased).
     ROI mode: :meth:`process` with ``predictions`` ({id: (x, y)}) searches only squares of
     ``roi_radius_m`` around them, with a full-frame search every ``full_search_every`` frames
     to pick up new cars.
+
+    Plausibility (every detection, reasons in ``FrameDetections.rejected`` and counted in
+    ``rejected_counts``): ``"size"``, a car marker whose measured side (at the marker's height,
+    i.e. its size in pixels against the size the calibration and the marker geometry predict there)
+    differs from ``marker_size_m`` by more than ``max_side_error`` (fraction); ``"jump"``, a car
+    detected farther than ``roi_radius_m`` from its predicted position (the ROI search would not have
+    looked there; cars without a prediction, e.g. lost ones, are not checked, so a car put down
+    elsewhere is picked up again); ``"fixed_position"``, a surveyed fixed marker whose image centre is
+    more than half its projected side from where the calibration projects it.
     """
 
     def __init__(self, calibration: CameraCalibration, marker_size_m: float = 0.055,
                  marker_height_m: float = 0.045, marker_offset_m: float = 0.0, car_ids=None,
                  fixed_ids=(), correct_height: bool = True, dictionary: int | None = None,
                  downscale: float = 1.0, refine: str = "ecc", roi_radius_m: float = 0.2, full_search_every: int = 30,
-                 parameters: cv2.aruco.DetectorParameters | None = None):
+                 parameters: cv2.aruco.DetectorParameters | None = None, max_side_error: float = 0.2):
         if marker_size_m <= 0:
             raise ValueError(f"marker_size_m: must be positive, got {marker_size_m}")
         cam_height = calibration.camera.position[2]
@@ -245,6 +300,8 @@ class ArucoTracker:
             raise ValueError(f"marker_height_m: must be in [0, camera height {cam_height:.2f} m), got {marker_height_m}")
         if full_search_every < 1:
             raise ValueError(f"full_search_every: must be >= 1, got {full_search_every}")
+        if not max_side_error > 0:
+            raise ValueError(f"max_side_error: must be positive, got {max_side_error}")
         if dictionary is None:
             dictionary = getattr(cv2.aruco, calibration.dictionary)
         self.calibration = calibration
@@ -253,11 +310,24 @@ class ArucoTracker:
         self.marker_offset_m = float(marker_offset_m)
         self.car_ids = None if car_ids is None else set(int(i) for i in car_ids)
         self.fixed_ids = set(int(i) for i in fixed_ids)
+        surveyed = fixed_ids.values() if isinstance(fixed_ids, dict) else ()
+        self._fixed_expected = {m.marker_id: self._expected_image(m) for m in surveyed if isinstance(m, FixedMarker)}
         self.correct_height = bool(correct_height)
         self.roi_radius_m = float(roi_radius_m)
         self.full_search_every = int(full_search_every)
+        self.max_side_error = float(max_side_error)
         self.detector = MarkerDetector(dictionary, parameters, downscale, refine)
+        self.rejected_counts = {"size": 0, "jump": 0, "fixed_position": 0}
         self._frames_since_full = full_search_every  # first frame is a full search
+
+    def _expected_image(self, marker: FixedMarker) -> tuple[np.ndarray, float]:
+        """Projected centre (px) of a surveyed marker and the tolerance for its detected centre (half
+        its projected side; the heading does not change the side, so 0 stands in when not surveyed)."""
+        corners = marker_corners_track(marker.x, marker.y, marker.heading_rad or 0.0, marker.size, marker.z)
+        px = self.calibration.camera.project(corners)
+        side = float(np.mean(np.linalg.norm(np.diff(px, axis=0, append=px[:1]), axis=1)))
+        centre = self.calibration.camera.project(np.array([[marker.x, marker.y, marker.z]]))[0]
+        return centre, 0.5 * side
 
     def is_car(self, marker_id: int) -> bool:
         if marker_id in self.fixed_ids:
@@ -290,9 +360,28 @@ class ArucoTracker:
         car_ids = self.car_ids if self.car_ids is not None else _AllExcept(self.fixed_ids)
         markers = self.detector.detect(frame.image, None if full else self._rois(predictions), car_ids)
         self._frames_since_full = 0 if full else self._frames_since_full + 1
-        cars = {}
+        cars, rejected = {}, {}
         for marker_id, corners in markers.items():
             if self.is_car(marker_id):
                 x, y, heading, side_err = self.car_pose(corners)
-                cars[marker_id] = CarMeasurement(marker_id, x, y, heading, frame.t_capture_s, side_err)
-        return FrameDetections(frame.t_capture_s, frame.index, cars, markers, full, time.perf_counter() - start)
+                reason = self._implausible_car(marker_id, x, y, side_err, predictions)
+                if reason is None:
+                    cars[marker_id] = CarMeasurement(marker_id, x, y, heading, frame.t_capture_s, side_err)
+                else:
+                    rejected[marker_id] = reason
+            elif marker_id in self._fixed_expected:
+                centre, tolerance = self._fixed_expected[marker_id]
+                if np.linalg.norm(corners.mean(axis=0) - centre) > tolerance:
+                    rejected[marker_id] = "fixed_position"
+        for reason in rejected.values():
+            self.rejected_counts[reason] += 1
+        markers = {i: c for i, c in markers.items() if i not in rejected}
+        return FrameDetections(frame.t_capture_s, frame.index, cars, markers, full, time.perf_counter() - start, rejected)
+
+    def _implausible_car(self, marker_id: int, x: float, y: float, side_err: float, predictions) -> str | None:
+        if abs(side_err) > self.max_side_error * self.marker_size_m:
+            return "size"
+        predicted = (predictions or {}).get(marker_id)
+        if predicted is not None and math.hypot(x - predicted[0], y - predicted[1]) > self.roi_radius_m:
+            return "jump"
+        return None

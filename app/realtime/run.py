@@ -231,7 +231,7 @@ def _open_hil(args, setup, cars, config, faults):
                 packet = world.poll(5.0)
             calibration = calibrate_image(packet.frame.image, marker_set,
                                           Intrinsics(camera.camera_matrix, camera.dist_coeffs, camera.image_size))
-            fixed_ids = tuple(marker_set.markers)
+            fixed_ids = marker_set.markers  # surveyed: fixed ids are accepted only near their projections
             err = 1e3 * float(np.linalg.norm(calibration.camera.position - camera.position))
             note = (f"calibration from {len(calibration.markers_used)} fixed markers: reprojection rms "
                     f"{calibration.reprojection_rms_px:.3f} px, camera position error {err:.1f} mm")
