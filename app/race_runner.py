@@ -215,6 +215,7 @@ class _Telemetry:
 
     def close(self) -> None:
         self.rec.flush()
+        self.rec.disconnect()  # finishes the file: a recording without its RRD footer reads as truncated
 
 
 def _make_planner(cls, setup: RaceSetup, top: float, **kw):

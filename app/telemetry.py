@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from recording.integrity import read_verified
+
 APPLICATION_ID = "rd3g_race"
 EVENTS_ENTITY = "race/events"
 SETUP_ENTITY = "race/setup"
@@ -215,24 +217,17 @@ class RecordingData:
 
 
 def load_recording(path) -> RecordingData:
-    """Read a race recording with rerun's chunk reader. Raises RecordingError naming the file."""
+    """Read a race recording with rerun's chunk reader. Raises RecordingError naming the file, and
+    saying what is readable if the file is truncated or corrupt (recording.integrity)."""
     import pyarrow as pa
-    import rerun as rr
 
     path = Path(path)
-    if not path.is_file():
-        raise RecordingError(f"{path}: recording not found")
     try:
-        reader = rr.chunk.RrdReader(path)
-        recordings = reader.recordings()
-        if not recordings:
-            raise RecordingError(f"{path}: the file holds no rerun recording")
-        store = recordings[0]
-        chunks = list(reader.stream(store=store))
-    except RecordingError:
-        raise
-    except Exception as exc:  # the reader raises plain exceptions for damaged files
-        raise RecordingError(f"{path}: not a readable rerun recording ({type(exc).__name__}: {exc})") from None
+        store, chunks = read_verified(path)  # truncated or corrupt files: RecordingDamage (a ValueError)
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: recording not found") from None
+    except ValueError as exc:
+        raise RecordingError(str(exc)) from None
     parts: dict[str, list] = defaultdict(list)
     static: dict[str, dict[str, list]] = defaultdict(dict)
     for chunk in chunks:
