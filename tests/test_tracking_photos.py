@@ -140,3 +140,30 @@ def test_no_ids_in_marker_free_photographs(package, parts, licence):
     assert image is not None
     for name in ("DICT_4X4_50", "DICT_6X6_250"):
         assert not MarkerDetector(dictionary(name)).detect(image), f"{path.name}: false id with {name}"
+
+
+@needs_photos
+def test_focal_length_uncertainty_covers_the_error_on_real_photos():
+    """Single-view focal length from each board photo against OpenCV's published multi-view
+    calibration of that camera (fx 452.5 px, principal point 38 px below the image centre)."""
+    from tracking.calibration import estimate_focal_length
+
+    storage = cv2.FileStorage(str(PHOTOS / "tutorial_camera_charuco.yml"), cv2.FILE_STORAGE_READ)
+    fx_truth = storage.getNode("camera_matrix").mat()[0, 0]
+    storage.release()
+    d6 = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)
+    board = cv2.aruco.CharucoBoard((5, 7), 0.04, 0.02, d6)
+    # board frame (y down, z into the board) turned 180 deg about x: z up, camera above, as on a track
+    on_board = {int(i): np.asarray(p, float).reshape(4, 3) * [1, -1, 1] for i, p in zip(board.getIds().ravel(), board.getObjPoints())}
+    rows = []
+    for name in BOARD_PHOTOS:
+        found = MarkerDetector(cv2.aruco.DICT_6X6_250).detect(photo(name))
+        ids = sorted(found)
+        est = estimate_focal_length(np.vstack([on_board[i] for i in ids]), np.vstack([found[i] for i in ids]),
+                                    np.repeat(ids, 4), (640, 480))
+        error = est.camera_matrix[0, 0] - fx_truth
+        rows.append(f"{name}: {est.camera_matrix[0, 0]:.1f} px ({100 * error / fx_truth:+.1f} %), std {est.std_px:.1f} px "
+                    f"(markers {est.std_markers_px:.1f}, principal point {est.std_principal_point_px:.1f})")
+        assert abs(error) <= 1.5 * est.std_px, rows[-1]
+        assert abs(error) > 3 * est.std_markers_px  # the marker spread alone (or a Jacobian std) would not cover it
+    print("\n" + "\n".join(rows))

@@ -236,7 +236,9 @@ class CameraCalibration:
     camera: PinholeCamera
     dictionary: str = "DICT_4X4_50"
     intrinsics_source: str = "file"  # "file" or "estimated" (single-view, see docs/tracking.md)
-    focal_std_px: float | None = None
+    focal_std_px: float | None = None  # estimated focal length: standard deviation, both sources below combined
+    focal_std_markers_px: float | None = None  # spread over marker bootstrap resamples (noise, lens misfit)
+    focal_std_principal_point_px: float | None = None  # from the principal point's prior (PRINCIPAL_POINT_STD)
     reprojection_rms_px: float = float("nan")
     reprojection_max_px: float = float("nan")
     marker_errors_px: dict[int, float] = field(default_factory=dict)
@@ -281,6 +283,80 @@ def correspondences(detected: dict[int, np.ndarray], marker_set: FixedMarkerSet,
     return np.vstack(obj), np.vstack(img), np.asarray(ids)
 
 
+# Single-view focal length (docs/tracking.md, "Method"). One view of a plane gives two constraints on
+# the intrinsics, so the principal point is fixed at the image centre; real lenses put it elsewhere
+# (OpenCV's calibration of its tutorial camera: 38 px = 8 % of the height off), and the focal length
+# follows it (about 2 px per px there). Its uncertainty therefore adds the spread over bootstrap
+# resamples of the markers to the effect of a principal point PRINCIPAL_POINT_STD of the image
+# diagonal off-centre (1 sigma, each axis).
+PRINCIPAL_POINT_STD = 0.05
+FOCAL_BOOTSTRAP_SAMPLES = 100
+MAX_FOCAL_MARKER_STD = 0.10  # relative: beyond it the markers do not determine the focal length (3 deg tilt: 17 %)
+
+
+@dataclass(frozen=True)
+class FocalEstimate:
+    camera_matrix: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    std_markers_px: float
+    std_principal_point_px: float
+
+    @property
+    def std_px(self) -> float:
+        return math.hypot(self.std_markers_px, self.std_principal_point_px)
+
+
+def _fit_focal(obj, img, image_size, principal_point):
+    width, height = image_size
+    k0 = np.array([[max(width, height), 0, principal_point[0]], [0, max(width, height), principal_point[1]], [0, 0, 1]])
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
+    _, k, _, rvecs, tvecs = cv2.calibrateCamera([obj.astype(np.float32)], [img.astype(np.float32)],
+                                                (width, height), k0, np.zeros(5), flags=flags)
+    return k, rvecs[0], tvecs[0]
+
+
+def estimate_focal_length(obj: np.ndarray, img: np.ndarray, groups: np.ndarray, image_size: tuple[int, int],
+                          seed: int = 0) -> FocalEstimate:
+    """One focal length (square pixels, principal point at the image centre, no distortion) and the
+    pose from track points ``obj`` (N,3) seen at pixels ``img`` (N,2); ``groups`` names the marker of
+    each point (the bootstrap resamples whole markers). CalibrationError when the markers do not
+    determine the focal length (e.g. a view straight down on a flat scene, where focal length and
+    height trade off): bootstrap spread above MAX_FOCAL_MARKER_STD or a failed fit."""
+    width, height = image_size
+    centre = np.array([(width - 1) / 2, (height - 1) / 2])
+    try:
+        k, rvec, tvec = _fit_focal(obj, img, image_size, centre)
+    except cv2.error as exc:
+        raise CalibrationError(f"focal-length estimation failed ({exc.err}); supply --intrinsics") from None
+    focal = float(k[0, 0])
+    rng = np.random.default_rng(seed)
+    names = np.unique(groups)
+    rows = {g: np.flatnonzero(groups == g) for g in names}
+    samples = []
+    for _ in range(FOCAL_BOOTSTRAP_SAMPLES):
+        pick = np.concatenate([rows[g] for g in rng.choice(names, len(names))])
+        try:
+            samples.append(float(_fit_focal(obj[pick], img[pick], image_size, centre)[0][0, 0]))
+        except cv2.error:
+            samples.append(math.nan)  # a degenerate resample (e.g. all points on a line) says as much
+    samples = np.asarray(samples)
+    spread = float(np.std(samples[np.isfinite(samples)])) if np.isfinite(samples).sum() > 1 else math.inf
+    if not (np.isfinite(samples).mean() > 0.9 and spread <= MAX_FOCAL_MARKER_STD * focal and 0 < focal < math.inf):
+        raise CalibrationError(
+            f"the view does not determine the focal length (estimate {focal:.0f} px, spread over marker resamples "
+            f"{spread:.0f} px = {100 * spread / focal:.0f} %, limit {100 * MAX_FOCAL_MARKER_STD:.0f} %): a camera "
+            "looking straight down at a flat scene cannot tell focal length from height; supply --intrinsics")
+    step = PRINCIPAL_POINT_STD * math.hypot(width, height)
+    slopes = []
+    for axis in (0, 1):
+        shifted = [centre + sign * step * np.eye(2)[axis] for sign in (-1, 1)]
+        f_minus, f_plus = (float(_fit_focal(obj, img, image_size, pp)[0][0, 0]) for pp in shifted)
+        slopes.append((f_plus - f_minus) / 2)  # focal-length change for a 1-sigma principal-point offset
+    return FocalEstimate(k, rvec, tvec, spread, float(np.hypot(*slopes)))
+
+
 def calibrate_from_detections(detected: dict[int, np.ndarray], marker_set: FixedMarkerSet,
                               image_size: tuple[int, int], intrinsics: Intrinsics | None = None
                               ) -> CameraCalibration:
@@ -288,8 +364,8 @@ def calibrate_from_detections(detected: dict[int, np.ndarray], marker_set: Fixed
 
     ``detected`` maps marker id -> its 4 image corners in ArUco order (raw pixels).
     With intrinsics: corners are undistorted, then ``cv2.solvePnP`` (SQPnP + Levenberg-Marquardt
-    refinement). Without: a single-view ``cv2.calibrateCamera`` that estimates one focal length
-    with the principal point fixed at the image centre, square pixels and no distortion.
+    refinement). Without: :func:`estimate_focal_length` (one focal length and its uncertainty, or
+    CalibrationError if the view does not determine it).
     """
     width, height = int(image_size[0]), int(image_size[1])
     if intrinsics is not None and tuple(intrinsics.image_size) != (width, height):
@@ -310,7 +386,7 @@ def calibrate_from_detections(detected: dict[int, np.ndarray], marker_set: Fixed
     if np.linalg.matrix_rank(centred, tol=1e-3) < 2:
         raise CalibrationError(f"fixed markers {found} are collinear; spread them over the arena")
 
-    focal_std = None
+    focal: FocalEstimate | None = None
     if intrinsics is not None:
         k = intrinsics.camera_matrix
         ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, flags=cv2.SOLVEPNP_SQPNP)
@@ -320,18 +396,10 @@ def calibrate_from_detections(detected: dict[int, np.ndarray], marker_set: Fixed
         dist = intrinsics.dist_coeffs
         source = "file"
     else:
-        k0 = np.array([[max(width, height), 0, (width - 1) / 2], [0, max(width, height), (height - 1) / 2], [0, 0, 1]])
-        flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
-                 | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
-        try:
-            result = cv2.calibrateCameraExtended(
-                [obj.astype(np.float32)], [img.astype(np.float32)], (width, height), k0, np.zeros(5), flags=flags)
-        except cv2.error as exc:
-            raise CalibrationError(f"focal-length estimation failed ({exc.err}); supply --intrinsics") from None
-        _, k, _, rvecs, tvecs, std_intr, _, _ = result
-        rvec, tvec = rvecs[0], tvecs[0]
+        estimate = estimate_focal_length(obj, img, ids, (width, height))
+        k, rvec, tvec = estimate.camera_matrix, estimate.rvec, estimate.tvec
         dist = np.zeros(5)
-        focal_std = float(np.max(std_intr.ravel()[:2]))  # fx is tied to fy by the fixed aspect ratio
+        focal = estimate
         source = "estimated"
     rot, _ = cv2.Rodrigues(rvec)
     camera = PinholeCamera(k, dist, rot, tvec.ravel(), (width, height))
@@ -342,7 +410,10 @@ def calibrate_from_detections(detected: dict[int, np.ndarray], marker_set: Fixed
     residual = np.linalg.norm(camera.project(raw_obj) - raw_img, axis=1)
     per_marker = {int(m): float(np.sqrt(np.mean(residual[raw_ids == m] ** 2))) for m in found}
     return CameraCalibration(
-        camera=camera, dictionary=marker_set.dictionary, intrinsics_source=source, focal_std_px=focal_std,
+        camera=camera, dictionary=marker_set.dictionary, intrinsics_source=source,
+        focal_std_px=None if focal is None else focal.std_px,
+        focal_std_markers_px=None if focal is None else focal.std_markers_px,
+        focal_std_principal_point_px=None if focal is None else focal.std_principal_point_px,
         reprojection_rms_px=float(np.sqrt(np.mean(residual ** 2))), reprojection_max_px=float(residual.max()),
         marker_errors_px=per_marker, markers_missing=missing)
 
@@ -370,6 +441,8 @@ def save_calibration(path, calibration: CameraCalibration) -> None:
         "dist_coeffs": cam.dist_coeffs.tolist(),
         "intrinsics_source": calibration.intrinsics_source,
         "focal_std_px": calibration.focal_std_px,
+        "focal_std_markers_px": calibration.focal_std_markers_px,
+        "focal_std_principal_point_px": calibration.focal_std_principal_point_px,
         "rvec": rvec.ravel().tolist(),
         "tvec": cam.translation.tolist(),
         "camera_position_m": cam.position.tolist(),
@@ -410,6 +483,8 @@ def load_calibration(path) -> CameraCalibration:
         dictionary=str(data.get("dictionary", "DICT_4X4_50")),
         intrinsics_source=str(data.get("intrinsics_source", "file")),
         focal_std_px=data.get("focal_std_px"),
+        focal_std_markers_px=data.get("focal_std_markers_px"),
+        focal_std_principal_point_px=data.get("focal_std_principal_point_px"),
         reprojection_rms_px=float(data.get("reprojection_rms_px", float("nan"))),
         reprojection_max_px=float(data.get("reprojection_max_px", float("nan"))),
         marker_errors_px={int(key): float(v) for key, v in errors.items()},

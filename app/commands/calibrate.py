@@ -63,13 +63,15 @@ def run(args) -> int:
     fx = cam.camera_matrix[0, 0]
     focal = f"focal length {fx:.1f} px ({cal.intrinsics_source}"
     if cal.focal_std_px is not None:
-        focal += f", std {cal.focal_std_px:.1f} px"
+        focal += (f", std {cal.focal_std_px:.1f} px: {cal.focal_std_markers_px:.1f} over marker resamples, "
+                  f"{cal.focal_std_principal_point_px:.1f} from the unknown principal point")
     print(focal + ")")
     x, y, z = cam.position
     tilt = math.degrees(math.acos(min(1.0, abs(cam.rotation[2] @ [0.0, 0.0, -1.0]))))
     print(f"camera at x={x:.3f} y={y:.3f} z={z:.3f} m, optical axis {tilt:.1f} deg from vertical")
     if cal.intrinsics_source == "estimated" and cal.focal_std_px is not None and cal.focal_std_px > 0.02 * fx:
-        print("warning: the focal length is poorly determined from this view (camera nearly straight down); "
-              "marker-height correction will be inaccurate: pass --intrinsics")
+        print("warning: the focal length is poorly determined from this view (a single view cannot place the "
+              "principal point; the more the camera looks straight down, the more the focal length depends on "
+              "it); marker-height correction will be inaccurate: pass --intrinsics")
     print(f"wrote {args.out}")
     return 0
