@@ -12,6 +12,7 @@ import numpy as np
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner, frenet_state
 from planning.frenet import EY, S, V
+from recording.blueprint import race_blueprint
 from sim import PurePursuitController, SimEffects, Simulator
 from sim.collision import footprint_corners, rectangles_overlap
 from vehicles.params import CarParams
@@ -173,7 +174,7 @@ class _Telemetry:
         self.car = car
         self.track = track
         self.rec = rr.RecordingStream("rd3g_race", recording_id=f"race-seed{setup.seed}")
-        self.rec.save(str(path))
+        self.rec.save(str(path), default_blueprint=race_blueprint(CAR_NAMES, realtime=False))
         left, right = track.boundaries(0.02)
         centre = track.position(np.linspace(0, track.length, 400))
         self.rec.log("world/track/left", rr.LineStrips2D([np.vstack([left, left[:1]])]), static=True)
@@ -183,6 +184,7 @@ class _Telemetry:
         self.rec.log("race/setup", rr.TextDocument(str(dataclasses.asdict(dataclasses.replace(
             setup, track=track.name, car=car.name, sim_car=sim_car)))), static=True)
         self.colors = {"rd3g": [230, 60, 40], "opponent": [40, 110, 230]}
+        self.event(0.0, "start: race started (simulation)")  # the events view has its entity from the start
 
     def step(self, k: int, t: float, states: np.ndarray, plans: dict, commands: np.ndarray, solve_ms: dict) -> None:
         rr, rec = self.rr, self.rec

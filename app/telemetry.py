@@ -19,9 +19,11 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
+from recording.blueprint import race_blueprint
 from recording.integrity import read_verified
 
 APPLICATION_ID = "rd3g_race"
@@ -35,15 +37,16 @@ class RecordingError(ValueError):
 
 # --------------------------------------------------------------------------- writer
 class RaceRecorder:
-    """Buffered rerun recording of one race (one .rrd file)."""
+    """Buffered rerun recording of one race (one .rrd file) of the cars ``car_names``, opening in the
+    viewer on the real-time race layout (recording.blueprint)."""
 
-    def __init__(self, path, recording_id: str, flush_every_s: float = 0.5) -> None:
+    def __init__(self, path, recording_id: str, flush_every_s: float = 0.5, car_names: Sequence[str] = ()) -> None:
         import rerun as rr
 
         self.rr = rr
         self.path = Path(path)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-        self.rec.save(str(self.path))
+        self.rec.save(str(self.path), default_blueprint=race_blueprint(car_names, realtime=True))
         self.flush_every_s = float(flush_every_s)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._rows: dict[tuple[str, str], list] = defaultdict(list)

@@ -204,3 +204,11 @@ def test_scheduling_defaults_to_real_time_when_permitted(monkeypatch, capsys):
         run._set_scheduling(20)
     with pytest.raises(UserError, match="--rt-priority: must be in 1..99"):
         run._set_scheduling(120)
+
+
+def test_hil_recording_opens_on_the_race_layout(hil_race):
+    from test_recording_blueprint import SIMULATION_VIEWS, assert_blueprint_matches, named_paths
+
+    views = assert_blueprint_matches(hil_race[0], SIMULATION_VIEWS | {"camera"})
+    assert named_paths(views["camera"]) == ["camera", "camera/image", "camera/detections"]
+    assert "loop/period_ms" in named_paths(views["solve and loop times (ms)"])

@@ -167,7 +167,7 @@ def _run_realtime(args, mode: str) -> int:
 
         planners = RacePlanners(setup, opponent)
         out.parent.mkdir(parents=True, exist_ok=True)
-        recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}")
+        recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars])
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
         for name, rgb in (("rd3g", (230, 60, 40)), ("opponent", (40, 110, 230))):
