@@ -64,7 +64,7 @@ def test_row_numbers_count_comment_and_blank_lines(tmp_path):
 
 
 def test_damaged_rrd_and_unknown_formats_are_rejected_clearly(tmp_path):
-    with pytest.raises(LogFormatError, match="not a readable rerun recording|holds no rerun recording"):
+    with pytest.raises(LogFormatError, match="corrupt recording .*Not an RRD file"):
         read_log(write(tmp_path, "not a recording", "run.rrd"))
     with pytest.raises(LogFormatError, match="recording not found"):
         read_log(tmp_path / "missing.rrd")
