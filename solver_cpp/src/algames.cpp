@@ -6,6 +6,8 @@
 #include <cstdio>
 #include <stdexcept>
 
+#include "rd3g/validate.hpp"
+
 namespace rd3g {
 
 namespace {
@@ -14,7 +16,8 @@ double seconds_since(Clock::time_point t0) { return std::chrono::duration<double
 }  // namespace
 
 void ALGamesSolver::setup(const Problem& problem, const ALGamesSettings& s) {
-  prob_ = baseline::validated_problem(problem);
+  validate_problem(problem);
+  prob_ = with_defaults(problem);
   if (!(s.tol > 0 && s.max_iter >= 0 && s.time_limit >= 0 && s.violation_tol >= 0 && s.dynamics_tol > 0 && s.rho_init > 0 &&
         s.rho_growth >= 1 && s.rho_max >= s.rho_init && s.inner_max_iter >= 1 && s.ls_alpha > 0 && s.ls_alpha < 1 &&
         s.ls_beta > 0 && s.ls_beta < 1 && s.ls_max_steps >= 0))
@@ -25,7 +28,7 @@ void ALGamesSolver::setup(const Problem& problem, const ALGamesSettings& s) {
   nx_ = prob_.dynamics[0]->nx();
   nu_ = prob_.dynamics[0]->nu();
   n_vars_ = N_ * T_ * stage_size();
-  cons_ = baseline::list_constraints(prob_, s.bounds);
+  cons_ = list_constraints(prob_, s.bounds);
   const int C = static_cast<int>(cons_.size());
   lambda_ = Vec::Zero(C);
   h_ = Vec::Zero(C);
@@ -112,10 +115,10 @@ bool ALGamesSolver::evaluate(const Vec& y, bool jac, Vec& G, Vec& h) {
   }
   // Constraints: each involved player's stationarity gets w grad h, w = max(0, lambda + rho h). A variable
   // belongs to exactly one player, so the rows of a constraint's variables are those players' rows.
-  baseline::ConstraintValue cv;
+  ConstraintValue cv;
   const double rho = rho_;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    baseline::eval_constraint(prob_, cons_[c], X_, U_, cv);
+    eval_constraint(prob_, cons_[c], X_, U_, cv);
     h[c] = cv.h;
     const double w = std::max(0.0, lambda_[c] + rho * cv.h);
     const int k = cons_[c].k;

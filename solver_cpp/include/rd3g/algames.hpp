@@ -8,7 +8,7 @@
 #include <Eigen/SparseLU>
 #include <vector>
 
-#include "rd3g/ilqgames.hpp"  // baseline:: helpers shared with iLQGames
+#include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/solver.hpp"
 
