@@ -10,7 +10,7 @@ the races are the default simulated races. Prints each seed's winner and RD3G's 
   tick).
 * ``--neutral P MS``: with probability P per control period both cars get neutral (zero throttle and
   steering) for MS ms first (a deadline miss of the loop).
-* ``--max-iterations N``: RD3G's and the MPC's Newton iteration cap (planner default 15).
+* ``--max-iterations N``: RD3G's and the MPC's Newton iteration cap per warm-started plan (``max_iter`` in ``PlannerConfig.solver``, default 15).
 * ``--car-params FILE``: e.g. a car file with actuation delays, which the planners compensate.
 """
 from __future__ import annotations
@@ -87,7 +87,8 @@ def main(argv=None) -> int:
         setup = race.make_setup(args, seed, args.start or defaults.start, args.rd3g_speed, args.opponent_speed,
                                 defaults.laps, defaults.max_time)
         if args.max_iterations is not None:
-            setup = dataclasses.replace(setup, planner=dataclasses.replace(setup.planner, max_iterations=args.max_iterations))
+            solver = {**setup.planner.solver, "max_iter": args.max_iterations}
+            setup = dataclasses.replace(setup, planner=dataclasses.replace(setup.planner, solver=solver))
         winners[seed] = run_race(setup, simulator_cls=sim_cls).winner
         print(f"seed {seed}: {winners[seed]}", flush=True)
     wins = [s for s, w in winners.items() if w == "rd3g"]

@@ -162,7 +162,8 @@ def result_to_dict(result: GameResult) -> dict:
         "u": result.u.tolist(),
         "residual_history": result.residual_history.tolist(),
         "timings_s": {"assembly": result.assembly_time_s, "linear_solve": result.linear_solve_time_s,
-                      "line_search": result.line_search_time_s},
+                      "line_search": result.line_search_time_s, "setup": result.setup_time_s,
+                      "update": result.update_time_s},
     }
 
 

@@ -98,6 +98,7 @@ void Solver::list_and_allocate() {
   trip_.reserve(static_cast<size_t>(N_) * T_ * (3 * (nx_ + nu_) * (nx_ + nu_) + 4 * nx_) + 24 * C);
   merits_.reserve(static_cast<size_t>(settings_.max_iter) + 2);
   lu_analyzed_ = false;
+  ++structure_version_;
 }
 
 // ---- updates --------------------------------------------------------------------------------------
@@ -202,10 +203,10 @@ void Solver::update_obstacle(int index, const Eigen::MatrixXd& positions, double
 void Solver::update(const Problem& p) {
   if (N_ == 0) throw std::logic_error("setup() must be called before update()");
   const auto t0 = Clock::now();
+  const int agents = static_cast<int>(p.dynamics.empty() ? p.x0.size() : p.dynamics.size());
+  require(agents == N_, "update: agents must have the set-up's " + std::to_string(N_) + " agents, got " + std::to_string(agents));
   Problem q = p;
   if (q.dynamics.empty()) q.dynamics = prob_.dynamics;
-  require(q.num_agents() == N_, "update: agents must have the set-up's " + std::to_string(N_) + " agents, got " +
-                                    std::to_string(q.num_agents()));
   require(q.horizon == T_, "update: horizon must be the set-up's " + std::to_string(T_) + ", got " + std::to_string(q.horizon));
   validate_problem(q);
   require(q.dynamics[0]->nx() == nx_ && q.dynamics[0]->nu() == nu_, "update: agents[0].dynamics must keep nx and nu");
@@ -791,7 +792,8 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
   barrier_ = settings_.barrier;
   if (variant >= 2)
     barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
-  lu_analyzed_ = false;
+  // The LU's symbolic analysis is kept across attempts and solves: it depends only on the sparsity pattern,
+  // i.e. on the partition (pattern_state_) and the constraint list, and is redone when either changes.
 }
 
 bool Solver::assemble(bool first, Info& info) {

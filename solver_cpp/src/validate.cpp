@@ -92,8 +92,14 @@ void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int
   const bool pairs = c.enabled && num_agents > 1;
   // Obstacles use the same position indices, so they are checked whenever either constraint exists.
   if (pairs || has_obstacles) {
-    check_index(c.pos_x, nx, "collision.pos_x");
-    check_index(c.pos_y, nx, "collision.pos_y");
+    try {
+      check_index(c.pos_x, nx, "collision.pos_x");
+      check_index(c.pos_y, nx, "collision.pos_y");
+    } catch (const std::invalid_argument& e) {
+      if (pairs) throw;
+      throw std::invalid_argument(std::string(e.what()) +
+                                  " (obstacles use the collision block's position indices, default 0 and 1)");
+    }
   }
   require(c.form == CollisionForm::Distance || c.form == CollisionForm::Squared, "collision.form is not a known form");
   if (pairs) validate_min_distance(c.min_distance, c.min_distance_steps, horizon, "collision.min_distance");

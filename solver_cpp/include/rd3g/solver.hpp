@@ -51,6 +51,8 @@ class Solver {
   Result solve(const WarmStart* warm = nullptr);
 
   const std::vector<Constraint>& constraints() const { return cons_; }
+  /// Changes whenever the constraint list does (set-up, or an update that made a bound finite or infinite).
+  int structure_version() const { return structure_version_; }
 
   /// For tests: residual r and dense Newton matrix J at a given primal-dual point (x per agent (T+1) x nx,
   /// u T x nu, lambda T x nx, mu one per constraint) and barrier weight rho, with the constraints
@@ -135,6 +137,7 @@ class Solver {
   BarrierMode barrier_ = BarrierMode::PrimalDual;  // barrier form of the current attempt
 
   double setup_time_ = 0, update_time_ = 0;  // (s) last set-up; updates since the last solve
+  int structure_version_ = 0;
   int setups_ = 0;                            // set-ups since the last solve (setup + structural updates)
 
   // Solve state.
