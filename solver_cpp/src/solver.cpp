@@ -46,17 +46,14 @@ void Solver::setup(const Problem& p, const Settings& s) {
   nx_ = prob_.dynamics[0]->nx();
   nu_ = prob_.dynamics[0]->nu();
   per_agent_multipliers_ = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
+  layout_ = StageLayout{N_, nx_, nu_};
   n_primal_ = N_ * T_ * stage_size();
 
   // Buffers that depend only on the sizes.
-  A_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nx_)));
-  B_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nu_)));
+  stage_.resize(nx_, nu_);
   fx_ = Mat::Zero(nx_, 1);
-  Hl_ = Mat::Zero(nx_ + nu_, nx_ + nu_);
   Atmp_ = Mat::Zero(nx_, nx_);
   Btmp_ = Mat::Zero(nx_, nu_);
-  Huu_ = Mat::Zero(nu_, nu_);
-  Hc_ = Mat::Zero(nx_, nx_);
   u_init_.assign(N_, Mat::Zero(nu_, T_));
   lam_init_.assign(N_, Mat::Zero(nx_, T_));
   riccati_.setup(N_, T_, nx_, nu_);
@@ -316,70 +313,15 @@ void Solver::number_multipliers() {
 bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc) {
   const bool pd = barrier_ == BarrierMode::PrimalDual;
   rc.setZero();
-  const int ss = stage_size();
   r.head(n_vars_).setZero();
   if (jac) {
     trip_.clear();
     rhs_.head(n_vars_).setZero();
   }
-  auto add_block = [&](int r0, int c0, const Mat& M) {
-    for (int a = 0; a < M.rows(); ++a)
-      for (int b = 0; b < M.cols(); ++b) trip_.emplace_back(r0 + a, c0 + b, M(a, b));
-  };
-  auto add_neg_identity = [&](int r0, int c0, int n) {
-    for (int a = 0; a < n; ++a) trip_.emplace_back(r0 + a, c0 + a, -1.0);
-  };
-  (void)ss;
-
-  for (int i = 0; i < N_; ++i) {
-    const Dynamics& f = *prob_.dynamics[i];
-    const QuadraticCost& cost = prob_.costs[i];
-    const LeadCost& lead = prob_.lead[i];
-    for (int k = 0; k < T_; ++k) {
-      const int ru = col_u(i, k), rf = col_lam(i, k), rx1 = col_x(i, k + 1);
-      Mat& A = A_[i][k];
-      Mat& B = B_[i][k];
-      f.eval(y.x[i].col(k), y.u[i].col(k), fx_.col(0), A, B);
-      const auto lk = y.lam[i].col(k);
-      // dL/du_k = 2 R u_k + B' lambda_k
-      r.segment(ru, nu_) = 2.0 * cost.R.cwiseProduct(y.u[i].col(k)) + B.transpose() * lk;
-      // F_k = f(x_k, u_k) - x_{k+1}
-      r.segment(rf, nx_) = fx_.col(0) - y.x[i].col(k + 1);
-      // dL/dx_{k+1}: cost gradient - lambda_k (+ A_{k+1}' lambda_{k+1}, added at stage k+1)
-      const bool terminal = (k + 1 == T_);
-      const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
-      const Vec& q = terminal ? cost.Qf : cost.Q;
-      const auto x1 = y.x[i].col(k + 1);
-      r.segment(rx1, nx_) += 2.0 * (qr.cwiseProduct(x1 - cost.x_ref) + q.cwiseProduct(x1)) - lk;
-      if (lead.weight != 0.0 && N_ > 1) r[rx1 + lead.index] += -lead.weight * (N_ - 1);
-      if (k >= 1) r.segment(col_x(i, k), nx_) += A.transpose() * lk;
-
-      if (jac) {
-        f.lambda_hessian(y.x[i].col(k), y.u[i].col(k), lk, Hl_);
-        // rows dL/du_k
-        Huu_ = Hl_.bottomRightCorner(nu_, nu_);
-        Huu_.diagonal() += 2.0 * cost.R;
-        add_block(ru, ru, Huu_);
-        add_block(ru, rf, B.transpose());
-        // rows F_k
-        add_block(rf, ru, B);
-        add_neg_identity(rf, rx1, nx_);
-        // rows dL/dx_{k+1}
-        add_neg_identity(rx1, rf, nx_);
-        Hc_.setZero();
-        Hc_.diagonal() = 2.0 * (qr + q);
-        add_block(rx1, rx1, Hc_);
-        if (k >= 1) {
-          const int rxk = col_x(i, k);
-          add_block(ru, rxk, Hl_.bottomLeftCorner(nu_, nx_));
-          add_block(rxk, ru, Hl_.topRightCorner(nx_, nu_));
-          add_block(rxk, rxk, Hl_.topLeftCorner(nx_, nx_));
-          add_block(rxk, rf, A.transpose());
-          add_block(rf, rxk, A);
-        }
-      }
-    }
-  }
+  for (int i = 0; i < N_; ++i)
+    for (int k = 0; k < T_; ++k)
+      add_stage_terms(layout_, i, k, T_, *prob_.dynamics[i], prob_.costs[i], prob_.lead[i], y.x[i], y.u[i],
+                      y.lam[i].col(k), r, jac ? &trip_ : nullptr, stage_);
 
   // Constraints: equality rows + multiplier columns (Active), barrier terms (Barrier), nothing (Free).
   using Kd = Constraint::Kind;

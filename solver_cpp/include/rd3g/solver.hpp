@@ -13,6 +13,7 @@
 #include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/riccati.hpp"
+#include "rd3g/stage_terms.hpp"
 
 namespace rd3g {
 
@@ -78,10 +79,10 @@ class Solver {
   };
 
   // index helpers
-  int stage_size() const { return nu_ + 2 * nx_; }
-  int col_u(int i, int k) const { return (k * N_ + i) * stage_size(); }
-  int col_lam(int i, int k) const { return col_u(i, k) + nu_; }
-  int col_x(int i, int k) const { return col_u(i, k - 1) + nu_ + nx_; }  // k = 1..T
+  int stage_size() const { return layout_.stage_size(); }
+  int col_u(int i, int k) const { return layout_.col_u(i, k); }
+  int col_lam(int i, int k) const { return layout_.col_lam(i, k); }
+  int col_x(int i, int k) const { return layout_.col_x(i, k); }  // k = 1..T
 
   /// Why an attempt (one pass of Newton iterations from the initial guess) ended.
   enum class AttemptEnd { Finished, Restart };
@@ -152,8 +153,9 @@ class Solver {
 
   // buffers (allocated in setup)
   Iterate y_, trial_, best_, best_seen_;
-  std::vector<std::vector<Mat>> A_, B_;
-  Mat fx_, Hl_, Atmp_, Btmp_, Huu_, Hc_;
+  StageLayout layout_;
+  StageWorkspace stage_;
+  Mat fx_, Atmp_, Btmp_;
   Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_, neg_rhs_, lin_res_;
   std::vector<Triplet> trip_;
   SpMat J_;
