@@ -12,7 +12,8 @@ from .problem import GameProblem
 
 
 def make_settings(**overrides) -> _core.Settings:
-    """C++ defaults, with keyword overrides; unknown names or bad values raise ValueError naming them."""
+    """C++ defaults, with keyword overrides; unknown names, bad types or values out of range raise
+    ValueError naming them."""
     s = _core.Settings()
     for name, value in overrides.items():
         if name.startswith("_") or not hasattr(s, name):
@@ -39,6 +40,7 @@ def make_settings(**overrides) -> _core.Settings:
             if str(exc).startswith(f"solver.{name}"):
                 raise
             raise ValueError(f"solver.{name}: invalid value {value!r}") from None
+    _core.validate_settings(s)  # ranges, with the C++ set-up's messages
     return s
 
 
