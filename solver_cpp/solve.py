@@ -2,6 +2,7 @@
 C++ Settings struct (defaults live only there, in solver_cpp/include/rd3g/problem.hpp)."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -147,6 +148,10 @@ class Solver:
         collision form and position indices and number of obstacles; everything else (x0, costs, lead
         terms, bounds, collision distances, obstacle positions and distances) may change. ValueError
         names the field at fault, and the solver keeps its previous problem."""
+        for i, (new, old) in enumerate(zip(problem.agents, self.problem.agents)):
+            if new.dynamics is not old.dynamics and not _same_model(new.dynamics, old.dynamics):
+                raise ValueError(f"agents[{i}].dynamics: update keeps the set-up's models; set up a new Solver "
+                                 "for another model")
         self._solver.update(problem.to_core(validate=False, models=False))
         self.problem = problem
 
@@ -172,6 +177,14 @@ class Solver:
             line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
             symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, constraints=self.constraints,
             setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups)
+
+
+def _same_model(a, b) -> bool:
+    """Model descriptions with equal fields (arrays compared by value)."""
+    if type(a) is not type(b) or not dataclasses.is_dataclass(a):
+        return False
+    return all(np.array_equal(np.asarray(getattr(a, f.name)), np.asarray(getattr(b, f.name)))
+               for f in dataclasses.fields(a))
 
 
 def _to_core_warm(w: WarmStart, sizes: tuple[int, int, int, int], n_constraints: int) -> _core.WarmStart:

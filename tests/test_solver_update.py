@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from bench.merging import merging_problem
-from solver_cpp import (Agent, Collision, GameProblem, LinearModel, Obstacle, QuadraticCost, Solver, WarmStart,
-                        _core)
+from solver_cpp import (Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, QuadraticCost, Solver,
+                        WarmStart, _core)
 
 A = np.array([[1.0, 0.1], [0.0, 1.0]])  # double integrator, dt = 0.1
 B = np.array([[0.005], [0.1]])
@@ -85,7 +85,6 @@ def test_update_of_an_obstacle_trajectory_moves_the_solution():
     def problem(y_obstacle):
         pos = np.column_stack([np.linspace(2.0, 6.0, 21), np.full(21, y_obstacle)])
         cost = QuadraticCost(x_ref=(0.0, 0.0, 2.0, 0.0), Q_ref=(0.0, 1.0, 1.0, 1.0), R=(0.3, 0.3))
-        from solver_cpp import KinematicBicycle
         return GameProblem(dt=0.2, horizon=20, agents=[Agent(KinematicBicycle(1.0, 1.0), x0=[0, 0, 2, 0], cost=cost)],
                            obstacles=[Obstacle(positions=pos, min_distance=1.0)])
     solver = Solver(problem(0.3))
@@ -122,7 +121,8 @@ def test_a_bound_that_becomes_finite_rebuilds_the_constraint_list():
     (lambda p: setattr(p.agents[1], "x0", [0.0, 1.0, np.nan, 0.0]), "agents[1].x0[2]"),
     (lambda p: setattr(p.agents[2], "lead_index", 4), "agents[2].lead_index"),
     (lambda p: setattr(p, "collision", Collision(np.ones(7), form="squared")), "collision.min_distance"),
-], ids=["horizon", "agents", "obstacles", "collision form", "NaN x0", "lead index", "distance steps"])
+    (lambda p: setattr(p.agents[0], "dynamics", KinematicBicycle(1.0, 1.5)), "agents[0].dynamics"),
+], ids=["horizon", "agents", "obstacles", "collision form", "NaN x0", "lead index", "distance steps", "model"])
 def test_update_refuses_bad_data_and_keeps_the_problem(change, field):
     solver = Solver(merging_problem(3, 0))
     before = solver.solve()
