@@ -1,7 +1,7 @@
 """time_limit holds on the slow linear-solver paths (issue 17): the deadline is checked inside LSCG and
 before a SparseQR factorisation, and the result is the iterate with the lowest merit seen. Wall-time bounds
-are deliberately loose (5x the limit plus a second: the machine is shared); the status and the returned
-iterate are what is asserted."""
+are deliberately loose (5x the limit plus the one uninterruptible factorisation and half a second: the
+machine is shared); the status and the returned iterate are what is asserted."""
 import time
 
 import numpy as np
@@ -20,11 +20,14 @@ LIMIT_S = 0.05
 ], ids=["sparse_qr", "lscg"])
 def test_slow_path_stops_at_the_time_limit_with_the_best_iterate(settings):
     problem = merging_problem(6, 3)
+    # One iteration's linear solve: a SparseQR factorisation cannot be interrupted, so the documented
+    # overshoot is at most one of them (LSCG is checked every 50 iterations).
+    one_step = solve(problem, max_iter=1, **settings).linear_solve_time_s if settings["linear_solver"] == "sparse_qr" else 0.0
     t0 = time.perf_counter()
     result = solve(problem, time_limit=LIMIT_S, **settings)
     wall = time.perf_counter() - t0
     assert result.status == "time_limit"
-    assert wall < 5 * LIMIT_S + 1.0
+    assert wall < 5 * LIMIT_S + 2 * one_step + 0.5
     assert result.residual_history.size >= 1
     assert result.residual_norm == pytest.approx(np.min(result.residual_history), rel=0, abs=0)
     # The returned trajectory is a rollout of the returned controls from x0 up to the merit's dynamics

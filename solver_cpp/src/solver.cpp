@@ -472,13 +472,17 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
   neg_rhs_.head(n) = -rhs_.head(n);
   const auto rhs = neg_rhs_.head(n);
   auto qr_solve = [&]() -> bool {
-    // SparseQR cannot be interrupted: with a time limit it is not started once the deadline has passed.
-    if (past_deadline()) {
+    // SparseQR cannot be interrupted: with a time limit it is not started once the deadline has passed,
+    // nor when the previous factorisation of this solver would not fit into the time left.
+    if (past_deadline() ||
+        (settings_.time_limit > 0 && seconds_since(t_start_) + last_qr_seconds_ > settings_.time_limit)) {
       timed_out_ = true;
       return false;
     }
+    const auto t_qr = Clock::now();
     Eigen::SparseQR<SpMat, Eigen::COLAMDOrdering<int>> qr;
     qr.compute(J_);
+    last_qr_seconds_ = seconds_since(t_qr);
     if (qr.info() != Eigen::Success) return false;
     dy.head(n) = qr.solve(rhs);
     info.qr_fallbacks++;

@@ -149,6 +149,7 @@ class Solver {
   std::normal_distribution<double> noise_{0.0, 1.0};
   std::vector<double> merits_;          // merit per iteration of the current attempt
   bool timed_out_ = false;              // the deadline passed inside a step
+  double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
   double best_merit_ = 0;               // with a time limit: lowest merit seen, its iterate in best_seen_
 
   // buffers (allocated in setup)
