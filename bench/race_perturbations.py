@@ -1,7 +1,7 @@
 """Simulated races under the control-path imperfections of the real-time loop, to see which of them
 change who wins (docs/benchmarks.md, HIL loop bench notes): ``python -m bench.race_perturbations``.
 
-Each option perturbs the pure simulation (``app.race_runner.run_race``) in one way; without options
+Each option perturbs the pure simulation (``race.simulation.run_race``) in one way; without options
 the races are the default simulated races. Prints each seed's winner and RD3G's win count.
 
 * ``--late-ms LO HI``: each control period's new command reaches both cars a uniform random LO..HI ms
@@ -59,7 +59,7 @@ def perturbed_simulator(late_ms=(0.0, 0.0), tail=(0.0, 0.0, 0.0), neutral=(0.0, 
 
 def main(argv=None) -> int:
     from app.commands import race
-    from app.race_runner import run_race
+    from race.simulation import run_race
 
     parser = argparse.ArgumentParser(prog="python -m bench.race_perturbations", description=__doc__.split("\n\n")[0])
     race.add_race_arguments(parser)

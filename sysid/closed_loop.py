@@ -3,7 +3,7 @@
 The simulator carries hidden effects (``sim.SimEffects``) on the nominal car; the same seeded races are
 run with the planners using (a) the nominal car file and (b) the corrected one (written by ``sysid``),
 plus (c) the clean reference: nominal planners on a car without the effects. Each race is recorded
-(``app.race_runner.run_race``) and measured from its recording with the race stack's reader:
+(``race.simulation.run_race``) and measured from its recording with the race stack's reader:
 
 * lap time of the RD3G car (a race ends when the first car finishes, so a losing RD3G has none) and its
   mean progress speed along the track over the race (always defined; a car off the track may cut the
@@ -118,7 +118,7 @@ def plan_tracking_errors(data, car: str, start_delay_s: float, plan_dt_s: float)
 
 
 def measure_race(variant: str, seed: int, outcome, recording: Path, planner_car: CarParams, plan_dt_s: float) -> RaceMeasurement:
-    from app.telemetry import load_recording
+    from race.recording import load_recording
 
     delay = max(planner_car.corrections.steering_delay_s, planner_car.corrections.throttle_delay_s)
     by_step = plan_errors_by_step(load_recording(recording), PLANNER_CAR, delay, plan_dt_s)
@@ -137,7 +137,7 @@ def measure_race(variant: str, seed: int, outcome, recording: Path, planner_car:
 
 def race_setups(nominal: CarParams, corrected: CarParams, effects: SimEffects, seed: int, race: RaceSettings):
     """{variant: RaceSetup} for one seed: the planners' car file and what the simulator runs."""
-    from app.race_runner import RaceSetup
+    from race.simulation import RaceSetup
     from tracks import load_track
 
     track = load_track(race.track)
@@ -156,7 +156,7 @@ def run_closed_loop(nominal: CarParams, corrected: CarParams, effects: SimEffect
                     race: RaceSettings = RaceSettings(), recordings_dir: Path | None = None,
                     progress=None) -> list[RaceMeasurement]:
     """Every variant for every seed; recordings go to ``recordings_dir`` (kept) or a temporary folder."""
-    from app.race_runner import run_race
+    from race.simulation import run_race
 
     out = []
     with tempfile.TemporaryDirectory(prefix="sysid_closed_loop_") as tmp:

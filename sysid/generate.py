@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from sim import PurePursuitController, SimEffects, Simulator
+from planning import PurePursuitController
+from sim import SimEffects, Simulator
 from sysid.log import DriveLog
 from tracks import load_track
 from vehicles.params import CarParams

@@ -1,6 +1,6 @@
 """Drive logs from race-stack Rerun recordings (`python -m app race --out RUN.rrd`, also --hil / hardware).
 
-The recording is read with the race stack's own reader (``app.telemetry.load_recording``, rerun's chunk
+The recording is read with the race stack's own reader (``race.recording.load_recording``, rerun's chunk
 reader). Per car (``cars/{car}/command/*`` present) the rows are the car's pose measurements with the
 commands in effect (docs/sysid.md, "Rerun recordings"):
 
@@ -50,7 +50,7 @@ class CarRows:
 
 
 def read_rrd(path: Path) -> DriveLog:
-    from app.telemetry import RecordingError, load_recording
+    from race.recording import RecordingError, load_recording
 
     try:
         data = load_recording(path)
@@ -97,7 +97,7 @@ def _one_point(data, entity: str, t: np.ndarray, pts: list[np.ndarray]) -> np.nd
 
 def _poses(data, name: str, mode: str):
     """(t, x, y, heading, speed or None, source) of one car; see the module doc for the order."""
-    from app.realtime.review import _rectangles  # footprint corners -> centre, heading, half extents
+    from race.review import _rectangles  # footprint corners -> centre, heading, half extents
 
     det, det_heading = f"world/cars/{name}/detection", f"cars/{name}/detection_heading_rad"
     if data.has(det_heading):

@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
-from app.realtime.config import FaultSpec, LoopConfig, LoopConfigError, StageBudgets, parse_fault
-from app.realtime.loop import DeadlineMonitor
-from app.realtime.planning import controls_between
+from race.config import FaultSpec, LoopConfig, LoopConfigError, StageBudgets, parse_fault
+from race.loop import DeadlineMonitor
+from race.planning import controls_between
 from test_loop_support import load_json, run_cli
 
 
@@ -151,7 +151,7 @@ def test_hil_race_summary(hil_race):
 def test_hil_tracking_against_simulator_truth(hil_race):
     """Independent check: the logged detections against the logged true positions at the same capture
     times (the detector and the simulator do not share code)."""
-    from app.telemetry import load_recording
+    from race.recording import load_recording
 
     rec = load_recording(hil_race[0])
     errors = []
@@ -171,7 +171,7 @@ def test_hil_tracking_against_simulator_truth(hil_race):
 def test_hil_cars_move_with_the_commands(hil_race):
     """The commands that went through the serial protocol reached the simulated cars: they started
     from rest and moved forward along the track."""
-    from app.telemetry import load_recording
+    from race.recording import load_recording
 
     rec = load_recording(hil_race[0])
     for car in ("rd3g", "opponent"):

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from app.race_runner import RaceSetup, fault_of, footprint_gap, run_race, start_states
+from race.simulation import RaceSetup, fault_of, footprint_gap, run_race, start_states
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_off_track_win_is_not_clean_and_not_counted(track, car):
     """A win by a car that left the track is recorded but not counted: RaceOutcome.clean_winner is
     None and the batch win rate only counts RD3G wins without an excursion."""
     from app.commands.batch import summarise
-    from app.race_runner import RaceOutcome
+    from race.simulation import RaceOutcome
 
     base = dict(lap_times_s={}, min_gap_m=0.1, collisions=[], solve_ms=np.ones(3), opponent_solve_ms=np.ones(3),
                 control_period_ms=33.3, race_time_s=5.0, fallbacks=0, start_states=np.zeros((2, 6)))

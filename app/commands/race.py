@@ -49,7 +49,7 @@ def register(sub) -> None:
 
 
 def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1, max_time=None):
-    from app.race_runner import RaceSetup
+    from race.simulation import RaceSetup
     from planning import PlannerConfig
     from tracks import load_track
     from tracks.io import UnknownTrackError
@@ -100,7 +100,7 @@ def _simulated_car(args):
 
 
 def run(args) -> int:
-    from app.race_runner import run_race
+    from race.simulation import run_race
 
     # --- real-time race stack: --hil or hardware mode runs the loop in app/realtime instead
     from app.realtime.run import run_realtime, wants_realtime

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.realtime.config import FaultSpec
+from race.config import FaultSpec
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN
 
 CAR_NAMES = ("rd3g", "opponent")
@@ -143,7 +143,7 @@ def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float,
     ("vanish",), ("stop",). Times are time.monotonic() (shared by the processes of one machine)."""
     import signal
 
-    from app.realtime.config import lower_realtime_priority
+    from race.config import lower_realtime_priority
     from vehicles.virtual_box import VirtualCarBox
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us
@@ -274,7 +274,7 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
     from multiprocessing import shared_memory
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us; Ctrl-C goes to the parent
-    from app.realtime.config import lower_realtime_priority
+    from race.config import lower_realtime_priority
 
     lower_realtime_priority(5)  # --rt-priority: the world (camera, cars) just below the loop
     import sys
@@ -295,7 +295,7 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
 
 class _World:
     def __init__(self, spec: WorldSpec, conn, shm, box_conn) -> None:
-        from app.race_runner import fault_of, footprint_gap
+        from race.simulation import fault_of, footprint_gap
         from sim import Simulator
         from tracking.camera import CarPose
         self.spec, self.conn, self.shm = spec, conn, shm

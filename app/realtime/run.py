@@ -122,10 +122,10 @@ def run_realtime(args) -> int:
 
 def _run_realtime(args, mode: str) -> int:
     from app.commands.race import DEFAULT_OUT, make_setup
-    from app.realtime.config import LoopConfig, LoopConfigError, parse_fault
-    from app.realtime.loop import CarBinding, LoopError, RaceLoop, setup_document
-    from app.realtime.planning import RacePlanners
-    from app.telemetry import RaceRecorder
+    from race.config import LoopConfig, LoopConfigError, parse_fault
+    from race.loop import CarBinding, LoopError, RaceLoop, setup_document
+    from race.planning import RacePlanners
+    from race.recording import RaceRecorder
 
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
@@ -206,7 +206,7 @@ def _run_realtime(args, mode: str) -> int:
 
 
 def _open_hil(args, setup, cars, config, faults):
-    from app.race_runner import start_states
+    from race.simulation import start_states
     from app.realtime.hil import HilWorld, WorldSpec
     from tracking.calibration import CameraCalibration, Intrinsics, calibrate_image, load_fixed_markers
     from tracking.estimator import MultiCarEstimator

@@ -1,6 +1,6 @@
 """Review of a race recording (simulated race or real-time loop): summary numbers and PNG plots.
 
-Everything is recomputed from the recording (app.telemetry.load_recording), independently of the
+Everything is recomputed from the recording (race.recording.load_recording), independently of the
 code that ran the race: laps from the logged car positions (sim.race.LapBookkeeper on the track
 named in race/setup), the minimum gap from the logged footprint rectangles, loop and solver
 statistics from the logged timings, deadline misses and collisions from race/events.
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.telemetry import EVENTS_ENTITY, RecordingData
+from race.recording import EVENTS_ENTITY, RecordingData
 
 SUMMARY_KEYS = ("laps", "lap_times_s", "min_gap_m", "collisions", "loop_hz_median", "loop_period_p99_ms",
                 "deadline_misses", "frames", "solve_ms_p50", "solve_ms_p99", "tracking_error_mm_median",

@@ -15,7 +15,7 @@ only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.har
   (``held_neutral``) when holds have lasted ``stop_after_hold_s`` without a break. A serial link
   fault (device gone) ends the race: the link cannot be reopened (docs/serial-protocol.md); the
   transmitter box's failsafe keeps the cars neutral.
-* Planning is asynchronous (``app.realtime.planning.PlannerWorker``): a job every rate_hz / plan_hz
+* Planning is asynchronous (``race.planning.PlannerWorker``): a job every rate_hz / plan_hz
   ticks for the instant t_plan = its tick + ``plan_latency_s`` (plan_ticks periods + command_delay_s)
   when its command will act; the plan is applied at tick k + plan_ticks, not earlier, and its first
   control is held (zero-order hold) until the next plan is due. The commanded cars are predicted to
@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.realtime.config import STAGES, FaultSpec, LoopConfig
-from app.realtime.planning import CAR_NAMES, PlanJob, PlannerWorker, PlanResult, RacePlanners, controls_between
+from race.config import STAGES, FaultSpec, LoopConfig
+from race.planning import CAR_NAMES, PlanJob, PlannerWorker, PlanResult, RacePlanners, controls_between
 from planning.frenet import EY, S
 from vehicles.protocol import CarCommand, ProtocolError
 

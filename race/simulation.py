@@ -12,7 +12,8 @@ import numpy as np
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner, frenet_state
 from planning.frenet import EY, S, V
-from sim import PurePursuitController, SimEffects, Simulator
+from planning import PurePursuitController
+from sim import SimEffects, Simulator
 from sim.collision import footprint_corners, rectangles_overlap
 from vehicles.params import CarParams
 

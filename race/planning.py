@@ -15,7 +15,7 @@ import numpy as np
 from planning import MPCOpponent, ProgressUnwrapper, RacingPlanner, frenet_state
 from planning.commands import rollout_controls
 from planning.frenet import S, V
-from sim import PurePursuitController
+from planning import PurePursuitController
 
 CAR_NAMES = ("rd3g", "opponent")
 OPPONENT_MODES = ("mpc", "pursuit", "human")
@@ -77,10 +77,10 @@ class PlanResult:
 
 
 class RacePlanners:
-    """The two cars' planners with the simulated race's settings (app.race_runner)."""
+    """The two cars' planners with the simulated race's settings (race.simulation)."""
 
     def __init__(self, setup, opponent: str = "mpc") -> None:
-        from app.race_runner import _make_planner
+        from race.simulation import _make_planner
 
         if opponent not in OPPONENT_MODES:
             raise ValueError(f"opponent: must be one of {OPPONENT_MODES}, got {opponent!r}")
@@ -216,7 +216,7 @@ class PlannerWorker:
         return result
 
     def _run(self) -> None:
-        from app.realtime.config import lower_realtime_priority
+        from race.config import lower_realtime_priority
 
         lower_realtime_priority(PLANNER_PRIORITY_BELOW_LOOP)
         while True:

@@ -94,7 +94,7 @@ class RaceRecorder:
 
     # ---- background thread
     def _run(self) -> None:
-        from app.realtime.config import lower_realtime_priority
+        from race.config import lower_realtime_priority
 
         # Under --rt-priority: below the loop, but still real-time - a time-shared thread that is
         # preempted while holding the GIL would stall the loop (priority inversion).
