@@ -152,14 +152,3 @@ def lower_realtime_priority(by: int) -> None:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, prio - by)))
     except (AttributeError, OSError):
         pass
-
-
-def normal_priority() -> None:
-    """Return this thread to the normal time-sharing policy (background work under --rt-priority)."""
-    import os
-
-    try:
-        if os.sched_getscheduler(0) == os.SCHED_FIFO:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except (AttributeError, OSError):
-        pass

@@ -33,7 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from race.config import STAGES, FaultSpec, LoopConfig
-from race.planning import CAR_NAMES, PlanJob, PlannerWorker, PlanResult, RacePlanners, controls_between
+from race.planning import PlanJob, PlannerWorker, PlanResult, RacePlanners, controls_between
+from race.referee import Referee
+from race.setup import CAR_NAMES
 from planning.frenet import EY, S
 from vehicles.protocol import CarCommand, ProtocolError
 
@@ -203,7 +205,7 @@ class RaceLoop:
         self._lock = threading.Lock()
         self._misses_by_monitor: set[int] = set()
         self.monitor: DeadlineMonitor | None = None
-        self._laps = None
+        self.referee: Referee | None = None  # hardware: laps from the estimated states
         # statistics
         self.period_ms: list[float] = []
         self.busy_ms: list[float] = []
@@ -325,11 +327,9 @@ class RaceLoop:
         if self.world is not None:
             self.world.go(self.t_go)
         if self.mode == "hardware":
-            from sim.race import LapBookkeeper
-
-            s0 = [float(self.track.to_frenet(np.array([st[0]]), np.array([st[1]]))[0][0])
-                  for st in self._states_at(self.t_go).values()]
-            self._laps = LapBookkeeper(float(self.track.length), self.setup.laps, np.array(s0), start_time=0.0)
+            self.referee = Referee(self.track, self.setup.car, self.setup.laps)
+            at_go = self._states_at(self.t_go)
+            self.referee.observe(0.0, np.array([at_go[name] for name in CAR_NAMES]))
         self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
                     t_race=0.0)
 
@@ -602,13 +602,11 @@ class RaceLoop:
         if packet.winner is not None and self.winner_seen is None:
             self.winner_seen = packet.winner
             return "finished"
-        if self._laps is not None and len(states) == len(self.cars):
-            s = [float(self.track.to_frenet(np.array([states[c.name][0]]), np.array([states[c.name][1]]))[0][0])
-                 for c in self.cars]
-            for ev in self._laps.update(t_race, np.array(s)):
+        if self.referee is not None and len(states) == len(self.cars):
+            for ev in self.referee.observe(t_race, np.array([states[name] for name in CAR_NAMES])):
                 self._event(ev.kind, f"{CAR_NAMES[ev.car]}" + (f" lap {ev.lap} in {ev.lap_time:.3f} s" if ev.lap_time else ""))
-            if self._laps.winner is not None:
-                self.winner_seen = CAR_NAMES[self._laps.winner]
+            if self.referee.winner is not None:
+                self.winner_seen = self.referee.winner
                 return "finished"
         if not self.holds:
             self._held_since = None
@@ -736,8 +734,9 @@ class RaceLoop:
         else:
             out.winner = self.winner_seen
             out.race_time_s = self.race_time() if self.t_go else 0.0
-            if self._laps is not None:
-                out.lap_times_s = {n: list(self._laps.lap_times[i]) for i, n in enumerate(CAR_NAMES)}
+            if self.referee is not None:
+                out.lap_times_s = self.referee.lap_times_s
+                out.min_gap_m = self.referee.min_gap_m if math.isfinite(self.referee.min_gap_m) else None
         if self.rec is not None:
             out.recording = str(self.rec.path)
         return out

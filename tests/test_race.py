@@ -4,7 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from race.simulation import RaceSetup, fault_of, footprint_gap, run_race, start_states
+from race.referee import fault_of
+from race.setup import RaceSetup, start_states
+from race.simulation import run_race
+from sim.collision import footprint_gap
 
 
 @pytest.fixture(scope="module")
@@ -60,14 +63,14 @@ def test_fault_is_the_car_whose_front_hits(car):
 def test_footprint_gap_matches_geometry(car):
     L, W = car.geometry.footprint_length_m, car.geometry.footprint_width_m
     aligned = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [L + 0.1, 0.0, 0.0, 0, 0, 0]])
-    assert footprint_gap(aligned, car) == pytest.approx(0.1)
+    assert footprint_gap(aligned, car.geometry) == pytest.approx(0.1)
     beside = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [0.0, W + 0.05, 0.0, 0, 0, 0]])
-    assert footprint_gap(beside, car) == pytest.approx(0.05)
+    assert footprint_gap(beside, car.geometry) == pytest.approx(0.05)
     # Corner to corner at 45 degrees: the gap is the distance between the nearest corners.
     diag = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [L + 0.03, W + 0.04, 0.0, 0, 0, 0]])
-    assert footprint_gap(diag, car) == pytest.approx(0.05)
+    assert footprint_gap(diag, car.geometry) == pytest.approx(0.05)
     overlapping = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [0.05, 0.0, 0.3, 0, 0, 0]])
-    assert footprint_gap(overlapping, car) == 0.0
+    assert footprint_gap(overlapping, car.geometry) == 0.0
 
 
 def test_setup_validation_names_field(track, car):

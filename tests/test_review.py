@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from race.review import SUMMARY_KEYS, rectangle_gap
+from race.review import SUMMARY_KEYS
+from sim.collision import rectangle_gap
 from test_loop_support import run_cli
 
 
@@ -84,7 +85,8 @@ def test_review_of_a_loop_recording(tmp_path):
 def test_review_of_a_simulated_race(tmp_path):
     """The simulated race's recording: laps, lap times and the minimum gap agree with the race's own
     outcome; loop-only fields are null."""
-    from race.simulation import RaceSetup, run_race
+    from race.setup import RaceSetup
+    from race.simulation import run_race
     from tracks import load_track
     from vehicles.params import load_car_params
 

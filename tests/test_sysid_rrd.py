@@ -29,7 +29,8 @@ def wrap(a):
 def offset_race(tmp_path_factory):
     """Two laps (about 10 s) against pure pursuit; both simulated cars carry a 0.03 rad steering offset
     the planners do not know about."""
-    from race.simulation import RaceSetup, run_race
+    from race.setup import RaceSetup
+    from race.simulation import run_race
     from tracks import load_track
 
     setup = RaceSetup(track=load_track("oval"), car=NOMINAL, seed=0, laps=2, opponent="pursuit", start="rear",
@@ -41,7 +42,7 @@ def offset_race(tmp_path_factory):
 
 def replay(setup, car, effects, throttle, steering, steps):
     """Positions of both cars after each of `steps` control periods in a fresh simulator."""
-    from race.simulation import start_states
+    from race.setup import start_states
 
     sim = Simulator(setup.track, [car, car], effects=effects, seed=setup.seed)
     sim.reset(start_states(setup))
@@ -196,7 +197,8 @@ def test_race_accepts_the_sysid_car_file_and_the_simulator_keeps_the_effect(tmp_
     simulator runs the nominal car with the hidden effect."""
     from app.commands.race import make_setup
     from app.cli import build_parser
-    from race.simulation import RacingPlanner, _make_planner
+    from planning import RacingPlanner
+    from race.planning import make_planner
     from race.recording import load_recording
 
     # Written the way `sysid` writes it (save_car_params of the identified car), with values sysid fits.
@@ -212,7 +214,7 @@ def test_race_accepts_the_sysid_car_file_and_the_simulator_keeps_the_effect(tmp_
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     assert setup.sim_car == NOMINAL and setup.sim_effects == EFFECT
     assert setup.car.corrections.steering_offset_rad == by_hand["steering_offset_rad"]
-    mapper = _make_planner(RacingPlanner, setup, 2.0, opponent_top_speed_mps=1.8).mapper
+    mapper = make_planner(RacingPlanner, setup, 2.0, opponent_top_speed_mps=1.8).mapper
     assert mapper.delay_s == max(by_hand["steering_delay_s"], by_hand["throttle_delay_s"])
     assert mapper.steering_command(0.2) == pytest.approx((0.2 - by_hand["steering_offset_rad"]) / by_hand["steering_gain"])
 
@@ -224,7 +226,7 @@ def test_race_accepts_the_sysid_car_file_and_the_simulator_keeps_the_effect(tmp_
     np.testing.assert_allclose(command, np.clip((delta - by_hand["steering_offset_rad"]) / by_hand["steering_gain"],
                                                 -limit, limit), atol=1e-9)
     # The simulator ran the nominal car plus the hidden offset (not the corrected file): a fresh replay agrees.
-    from race.simulation import start_states
+    from race.setup import start_states
 
     log = read_log(out)
     rows = [log.select_car(i) for i in (0, 1)]

@@ -15,7 +15,7 @@ from tracking.calibration import (CalibrationError, CameraCalibration, FixedMark
 from tracking.camera import (CameraError, CarAppearance, CarPose, EndOfStream, OpenCVCamera, RenderEffects,
                              SyntheticCamera, TrackDrawing, VideoFileCamera, overhead_camera)
 from tracking.markers import ArucoTracker, procrustes_pose
-from tracking.motion import wrap_angle
+from tracks.geometry import wrap_angle
 
 FIXED_FILE = Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json"
 CAR = CarAppearance()

@@ -19,7 +19,7 @@ def main(argv=None) -> int:
     from tracking.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
     from tracking.estimator import MultiCarEstimator
     from tracking.markers import ArucoTracker
-    from tracking.motion import wrap_angle
+    from tracks.geometry import wrap_angle
     from tracks import load_track
     from pathlib import Path
 

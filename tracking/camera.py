@@ -23,6 +23,7 @@ import numpy as np
 from tracking.calibration import FixedMarker, marker_corners_track
 from tracking.geometry import PinholeCamera, rotation_look_at
 from tracking.motion import ctrv_transition
+from vehicles.params import MarkerParams
 
 
 @dataclass
@@ -140,8 +141,8 @@ class CarAppearance:
 
     length_m: float = 0.16
     width_m: float = 0.075
-    roof_height_m: float = 0.045  # height of the marker above the track surface
-    marker_size_m: float = 0.055
+    roof_height_m: float = MarkerParams.height_m  # height of the marker above the track surface
+    marker_size_m: float = MarkerParams.size_m
     label_margin_m: float = 0.008  # white border around the marker (quiet zone)
     marker_offset_m: float = 0.0  # marker centre ahead of the car reference point
     body_gray: int = 40

@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tracking.motion import slip_jacobian, slip_transition, wrap_angle
+from tracking.motion import slip_jacobian, slip_transition
+from tracks.geometry import wrap_angle
 
 
 @dataclass(frozen=True)

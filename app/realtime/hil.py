@@ -33,9 +33,11 @@ from pathlib import Path
 import numpy as np
 
 from race.config import FaultSpec
+from race.referee import fault_of
+from race.setup import CAR_NAMES
+from sim.collision import footprint_gap
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN
 
-CAR_NAMES = ("rd3g", "opponent")
 FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[2] / "tracking" / "data" / "oval_fixed_markers.json"}
 
 
@@ -261,7 +263,7 @@ def make_camera(spec: WorldSpec):
     left, right = track.boundaries(0.01)
     fixed_path = FIXED_MARKERS.get(track.name)
     fixed = list(load_fixed_markers(fixed_path).markers.values()) if fixed_path else []
-    appearance = CarAppearance(roof_height_m=spec.car.marker.height_m)
+    appearance = CarAppearance(roof_height_m=spec.car.marker.height_m, marker_size_m=spec.car.marker.size_m)
     synth = SyntheticCamera(camera, TrackDrawing(left, right, arena_bounds=bounds), fixed, car=appearance,
                             effects=RenderEffects(seed=spec.seed), fps=spec.fps)
     return synth, camera, fixed_path, appearance
@@ -295,7 +297,6 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
 
 class _World:
     def __init__(self, spec: WorldSpec, conn, shm, box_conn) -> None:
-        from race.simulation import fault_of, footprint_gap
         from sim import Simulator
         from tracking.camera import CarPose
         self.spec, self.conn, self.shm = spec, conn, shm
@@ -507,7 +508,7 @@ class _World:
                     self.conn.send(("box", {"box_corrupt": self.box.line_errors}))
             self._advance(t_go, sim_target)
             self._box_events(self.sim.time)
-            self.min_gap = min(self.min_gap, self.footprint_gap(self.sim.states, spec.car))
+            self.min_gap = min(self.min_gap, self.footprint_gap(self.sim.states, spec.car.geometry))
             self._snapshot(index, t_go + self.sim.time, self.sim.time)
             index += 1
             k += 1

@@ -206,7 +206,7 @@ def _run_realtime(args, mode: str) -> int:
 
 
 def _open_hil(args, setup, cars, config, faults):
-    from race.simulation import start_states
+    from race.setup import start_states
     from app.realtime.hil import HilWorld, WorldSpec
     from tracking.calibration import CameraCalibration, Intrinsics, calibrate_image, load_fixed_markers
     from tracking.estimator import MultiCarEstimator
@@ -263,7 +263,7 @@ def _open_hardware(args, setup, cars, config):
         camera = OpenCVCamera(source, latency_s=args.camera_latency_ms / 1e3)
     except CameraError as exc:
         raise UserError(f"--camera: {exc}") from None
-    tracker = ArucoTracker(calibration, 0.055, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
+    tracker = ArucoTracker(calibration, setup.car.marker.size_m, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
                            full_search_every=10 ** 9)
     return None, CameraFeed(camera), tracker, MultiCarEstimator(), args.serial, None
 
