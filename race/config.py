@@ -49,7 +49,6 @@ class LoopConfig:
     # with 15 ms the cars got the commands 3-5 ms after t_plan (median of 20 races, two runs).
     command_delay_s: float = 0.019
     max_plan_age_s: float = 0.15     # an older plan is a planner fault (neutral)
-    lost_after_s: float = 0.25       # a car without an accepted measurement this long is lost (neutral)
     lost_search_every: int = 6       # full-frame marker search every n frames while a car is lost
     serial_quiet_s: float = 0.3      # HIL: corrupt-frame counter unchanged this long = stream healthy again
     acquire_timeout_s: float = 10.0  # pre-race: time to find every car

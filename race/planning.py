@@ -21,8 +21,6 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable
-
 import numpy as np
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
@@ -192,14 +190,51 @@ class RacePlanners:
         return x
 
 
+def run_job(planners, job: PlanJob, t_done: float, seq: int) -> PlanResult:
+    """One planning job; any exception (a planner fault, race.faults' injected failure) becomes the
+    result's ``error`` (module doc)."""
+    try:
+        result = planners.plan(job)
+    except Exception as exc:  # any planner exception is a planner fault for the loop
+        result = PlanResult(job=job, error=f"{type(exc).__name__}: {exc}")
+    result.t_done = t_done
+    result.seq = seq
+    return result
+
+
+class SyncPlanRunner:
+    """Runs each planning job when it is submitted, in the caller's thread: the plan is ready at once
+    (a race on a simulated clock, tests). Same interface as PlannerWorker."""
+
+    def __init__(self, planners, clock) -> None:
+        self.planners, self.clock = planners, clock
+        self._latest: PlanResult | None = None
+        self._seq = 0
+
+    def start(self, first: PlanResult | None = None) -> None:
+        if first is not None:
+            self._latest = first
+
+    def run_sync(self, job: PlanJob) -> PlanResult:
+        self._seq += 1
+        return run_job(self.planners, job, self.clock.now(), self._seq)
+
+    def submit(self, job: PlanJob) -> None:
+        self._latest = self.run_sync(job)
+
+    def latest(self) -> PlanResult | None:
+        return self._latest
+
+    def stop(self) -> None:
+        pass
+
+
 class PlannerWorker:
-    """Runs planning jobs in a background thread; the newest pending job replaces an older one.
+    """Runs planning jobs in a background thread; the newest pending job replaces an older one."""
 
-    ``inject_failure(t_plan) -> bool``: fault injection, the job raises SolverFailure when true."""
-
-    def __init__(self, planners: RacePlanners, inject_failure: Callable[[float], bool] | None = None) -> None:
+    def __init__(self, planners, clock) -> None:
         self.planners = planners
-        self.inject_failure = inject_failure
+        self.clock = clock
         self._cv = threading.Condition()
         self._pending: PlanJob | None = None
         self._latest: PlanResult | None = None
@@ -233,15 +268,10 @@ class PlannerWorker:
             self._thread.join(timeout=5.0)
 
     def _execute(self, job: PlanJob) -> PlanResult:
-        try:
-            if self.inject_failure is not None and self.inject_failure(job.t_plan):
-                raise SolverFailure("injected solver failure")
-            result = self.planners.plan(job)
-        except Exception as exc:  # any planner exception is a planner fault for the loop
-            result = PlanResult(job=job, error=f"{type(exc).__name__}: {exc}")
-        result.t_done = time.monotonic()
         self._seq += 1
-        result.seq = self._seq
+        seq = self._seq
+        result = run_job(self.planners, job, 0.0, seq)
+        result.t_done = self.clock.now()
         return result
 
     def _run(self) -> None:

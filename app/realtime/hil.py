@@ -27,14 +27,16 @@ import select
 import threading
 import time
 import tty
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from race.commands import physical_command
 from race.config import FaultSpec
 from race.referee import fault_of
 from race.setup import CAR_NAMES
+from race.world import WorldPacket
 from sim.collision import footprint_gap
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN
 
@@ -312,7 +314,6 @@ class _World:
                 raise RuntimeError("the virtual box process did not start")
             self.box.pump()
         self.synth, self.camera, self.fixed_path, self.appearance = make_camera(spec)
-        self.max_steer = spec.car.actuators.max_steering_rad
         self.events: list[tuple] = []      # (race time, kind, text) not yet sent
         self.collisions: list[dict] = []
         self.min_gap = math.inf
@@ -344,7 +345,7 @@ class _World:
         for i, rid in enumerate(self.spec.radio_ids):
             c = cmds.get(rid)
             if c is not None:
-                out[i] = (c.throttle, c.steering * self.max_steer)
+                out[i] = physical_command(self.spec.car, c)
         return out
 
     def _poses(self, states: np.ndarray, t_race: float | None) -> list:
@@ -538,22 +539,6 @@ class _World:
 
 
 # --------------------------------------------------------------------------- parent side
-@dataclass
-class WorldPacket:
-    """What the loop gets per poll: the newest frame (copied out of shared memory) and everything
-    the world reported since the last poll."""
-
-    frame: object | None = None              # tracking.camera.Frame
-    truth: np.ndarray | None = None          # (2, 6) true states at the frame's capture time
-    t_race: float | None = None
-    render_ms: list[float] = field(default_factory=list)
-    events: list[tuple] = field(default_factory=list)
-    winner: str | None = None
-    box_corrupt: int = 0
-    box_failsafe_events: int = 0
-    dropped: int = 0
-
-
 class HilWorld:
     """Starts the world process and reads its frames (parent side)."""
 
