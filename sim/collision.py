@@ -63,12 +63,15 @@ def rectangle_poses(corners) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def rectangle_gap(a, b) -> np.ndarray:
     """Distance (m) between pairs of rectangles a[i], b[i] ((n, 4, 2) corners in footprint order), 0
-    where they overlap: the closest corner-to-edge distance either way round (for disjoint convex
+    where they overlap. Overlap: no separating axis among the four edge directions (separating-axis
+    theorem); distance: the closest corner-to-edge distance either way round (for disjoint convex
     polygons the closest points include a corner of one of them)."""
     a, b = np.asarray(a, float), np.asarray(b, float)
-    ca, ha, sa = rectangle_poses(a)
-    cb, hb, sb = rectangle_poses(b)
-    overlap = np.asarray(rectangles_overlap(ca, ha, sa, cb, hb, sb), dtype=bool).reshape(-1)
+    axes = np.stack([a[:, 1] - a[:, 0], a[:, 3] - a[:, 0], b[:, 1] - b[:, 0], b[:, 3] - b[:, 0]], axis=1)  # (n, 4, 2)
+    pa = np.einsum("nkd,ncd->nkc", axes, a)                   # corners projected on each axis (n, 4, 4)
+    pb = np.einsum("nkd,ncd->nkc", axes, b)
+    separated = (pa.max(axis=2) < pb.min(axis=2)) | (pb.max(axis=2) < pa.min(axis=2))
+    overlap = ~separated.any(axis=1)
     best = np.full(len(a), np.inf)
     for p, q in ((a, b), (b, a)):
         q0, q1 = q, np.roll(q, -1, axis=1)                    # edges of q: (n, 4, 2)
