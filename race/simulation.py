@@ -13,6 +13,7 @@ import numpy as np
 from planning import MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
 from planning.frenet import EY, S
 from race.planning import cold_plan, make_planner, plan_step
+from race.recording import SETUP_ENTITY, RaceRecorder
 from race.referee import CollisionRecord, Referee
 from race.setup import CAR_NAMES, RaceSetup, start_states
 from sim import Simulator
@@ -72,57 +73,45 @@ def _percentiles(ms: np.ndarray) -> tuple[float | None, float | None]:
 
 
 class _Telemetry:
-    """rerun recording of one race (entity paths in docs/racing.md)."""
+    """The simulated race's recording through the one writer (race.recording.RaceRecorder, synchronous
+    mode); entity paths in docs/racing.md."""
 
     def __init__(self, path, track, car: CarParams, setup: RaceSetup) -> None:
-        import rerun as rr
-
-        self.rr = rr
-        self.car = car
-        self.track = track
-        self.rec = rr.RecordingStream("rd3g_race", recording_id=f"race-seed{setup.seed}")
-        self.rec.save(str(path))
-        left, right = track.boundaries(0.02)
-        centre = track.position(np.linspace(0, track.length, 400))
-        self.rec.log("world/track/left", rr.LineStrips2D([np.vstack([left, left[:1]])]), static=True)
-        self.rec.log("world/track/right", rr.LineStrips2D([np.vstack([right, right[:1]])]), static=True)
-        self.rec.log("world/track/centre", rr.LineStrips2D([centre], colors=[[120, 120, 120]]), static=True)
+        self.car, self.track = car, track
+        self.rec = RaceRecorder(path, recording_id=f"race-seed{setup.seed}", background=False)
+        self.rec.static_track(track)
         sim_car = None if setup.sim_car is None else setup.sim_car.name
-        self.rec.log("race/setup", rr.TextDocument(str(dataclasses.asdict(dataclasses.replace(
-            setup, track=track.name, car=car.name, sim_car=sim_car)))), static=True)
-        self.colors = {"rd3g": [230, 60, 40], "opponent": [40, 110, 230]}
+        self.rec.static_document(SETUP_ENTITY, str(dataclasses.asdict(dataclasses.replace(
+            setup, track=track.name, car=car.name, sim_car=sim_car))))
+        self.rec.static_car_colors()
 
     def step(self, k: int, t: float, states: np.ndarray, plans: dict, commands: np.ndarray, solve_ms: dict) -> None:
-        rr, rec = self.rr, self.rec
-        rec.set_time("control_step", sequence=k)
-        rec.set_time("sim_time", duration=t)
+        rec = self.rec
         g = self.car.geometry
         corners = footprint_corners(states[:, 0], states[:, 1], states[:, 2], g.footprint_length_m,
                                     g.footprint_width_m, g.footprint_offset_m)
         for i, name in enumerate(CAR_NAMES):
-            col = self.colors[name]
-            rec.log(f"world/cars/{name}/footprint", rr.LineStrips2D([np.vstack([corners[i], corners[i][:1]])], colors=[col]))
-            rec.log(f"world/cars/{name}/position", rr.Points2D([states[i, :2]], colors=[col], radii=[0.01]))
-            rec.log(f"cars/{name}/speed_mps", rr.Scalars(float(math.hypot(states[i, 3], states[i, 4]))))
-            rec.log(f"cars/{name}/command/throttle", rr.Scalars(float(commands[i, 0])))
-            rec.log(f"cars/{name}/command/steering_rad", rr.Scalars(float(commands[i, 1])))
+            rec.strip(f"world/cars/{name}/footprint", k, t, np.vstack([corners[i], corners[i][:1]]))
+            rec.points(f"world/cars/{name}/position", k, t, states[i, :2])
+            rec.scalar(f"cars/{name}/speed_mps", k, t, math.hypot(states[i, 3], states[i, 4]))
+            rec.scalar(f"cars/{name}/command/throttle", k, t, commands[i, 0])
+            rec.scalar(f"cars/{name}/command/steering_rad", k, t, commands[i, 1])
             plan = plans.get(name)
             if plan is not None:
-                x, y = self.track.to_cartesian(plan.x[0, :, S], plan.x[0, :, EY])
-                rec.log(f"world/cars/{name}/plan", rr.LineStrips2D([np.column_stack([x, y])], colors=[col]))
-                x, y = self.track.to_cartesian(plan.x[1, :, S], plan.x[1, :, EY])
-                rec.log(f"world/cars/{name}/predicted_other", rr.LineStrips2D([np.column_stack([x, y])], colors=[[150, 150, 150]]))
-                rec.log(f"cars/{name}/planned/accel_mps2", rr.Scalars(float(plan.u[0, 0])))
-                rec.log(f"cars/{name}/planned/delta_rad", rr.Scalars(float(plan.u[0, 1])))
-                rec.log(f"planner/{name}/solve_ms", rr.Scalars(solve_ms[name]))
-                rec.log(f"planner/{name}/iterations", rr.Scalars(float(plan.iterations)))
+                for row, entity in ((0, "plan"), (1, "predicted_other")):
+                    x, y = self.track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
+                    rec.strip(f"world/cars/{name}/{entity}", k, t, np.column_stack([x, y]))
+                rec.scalar(f"cars/{name}/planned/accel_mps2", k, t, plan.u[0, 0])
+                rec.scalar(f"cars/{name}/planned/delta_rad", k, t, plan.u[0, 1])
+                rec.scalar(f"planner/{name}/solve_ms", k, t, solve_ms[name])
+                rec.scalar(f"planner/{name}/iterations", k, t, plan.iterations)
 
     def event(self, t: float, text: str) -> None:
-        self.rec.set_time("sim_time", duration=t)
-        self.rec.log("race/events", self.rr.TextLog(text))
+        kind, _, rest = text.partition(": ")
+        self.rec.event(t, kind, rest)
 
     def close(self) -> None:
-        self.rec.flush()
+        self.rec.close()
 
 
 def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator) -> RaceOutcome:

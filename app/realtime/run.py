@@ -170,9 +170,7 @@ def _run_realtime(args, mode: str) -> int:
         recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}")
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
-        for name, rgb in (("rd3g", (230, 60, 40)), ("opponent", (40, 110, 230))):
-            for entity, kind in (("position", "points"), ("footprint", "strips"), ("plan", "strips")):
-                recorder.static_color(f"world/cars/{name}/{entity}", kind, rgb)
+        recorder.static_car_colors()
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
                         planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
         commanded = [c.radio_id for c in cars if c.name in planners.commanded]
