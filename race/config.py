@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass, field, fields
 
@@ -142,8 +143,6 @@ def parse_fault(text: str) -> FaultSpec:
 def lower_realtime_priority(by: int) -> None:
     """In a thread running under SCHED_FIFO (``--rt-priority``), drop this thread's priority by
     `by` (at least 1), so the loop thread keeps precedence over helpers; no-op otherwise."""
-    import os
-
     try:
         if os.sched_getscheduler(0) != os.SCHED_FIFO:
             return

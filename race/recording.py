@@ -15,6 +15,7 @@ sorted by ``sim_time``. Entity paths: docs/racing.md (simulated race) and docs/r
 """
 from __future__ import annotations
 
+import ast
 import json
 import queue
 import threading
@@ -24,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from race.config import lower_realtime_priority
 
 APPLICATION_ID = "rd3g_race"
 EVENTS_ENTITY = "race/events"
@@ -117,8 +120,6 @@ class RaceRecorder:
 
     # ---- background thread
     def _run(self) -> None:
-        from race.config import lower_realtime_priority
-
         # Under --rt-priority: below the loop, but still real-time - a time-shared thread that is
         # preempted while holding the GIL would stall the loop (priority inversion).
         lower_realtime_priority(10)
@@ -233,8 +234,6 @@ class RecordingData:
 
     def setup(self) -> dict:
         """The race setup document as a dict (JSON, or the Python repr the simulated race writes)."""
-        import ast
-
         text = self.document(SETUP_ENTITY)
         if text is None:
             return {}
@@ -250,7 +249,7 @@ class RecordingData:
 
 def load_recording(path) -> RecordingData:
     """Read a race recording with rerun's chunk reader. Raises RecordingError naming the file."""
-    import pyarrow as pa
+    import pyarrow as pa  # with rerun, loaded when a recording is read (see RaceRecorder.__init__)
     import rerun as rr
 
     path = Path(path)
