@@ -106,7 +106,7 @@ def test_mode_flags_are_checked():
 
 def test_hardware_mode_reports_missing_devices(tmp_path):
     from tracking.calibration import CameraCalibration, save_calibration
-    from tracking.camera import overhead_camera
+    from sim.camera import overhead_camera
     from vehicles.virtual_box import VirtualCarBox
 
     missing = tmp_path / "nope.json"

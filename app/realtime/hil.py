@@ -256,7 +256,7 @@ def make_camera(spec: WorldSpec):
     """The synthetic overhead camera of the track's arena (and its fixed markers, if the track has a
     fixed-marker file)."""
     from tracking.calibration import load_fixed_markers
-    from tracking.camera import CarAppearance, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
+    from sim.camera import CarAppearance, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
 
     track = spec.track
     arena = track.arena
@@ -300,7 +300,7 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
 class _World:
     def __init__(self, spec: WorldSpec, conn, shm, box_conn) -> None:
         from sim import Simulator
-        from tracking.camera import CarPose
+        from sim.camera import CarPose
         self.spec, self.conn, self.shm = spec, conn, shm
         self.CarPose, self.fault_of, self.footprint_gap = CarPose, fault_of, footprint_gap
         w, h = spec.image_size
