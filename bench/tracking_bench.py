@@ -33,7 +33,7 @@ def main(argv=None) -> int:
 
     track = load_track("oval")
     left, right = track.boundaries()
-    fixed = load_fixed_markers(Path(__file__).parent / "data" / "oval_fixed_markers.json")
+    fixed = load_fixed_markers(Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json")
     camera = overhead_camera(image_size=(args.width, args.height))
     car = CarAppearance()
     speed = 2.0
