@@ -44,6 +44,7 @@ from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between
 from race.referee import Referee
 from race.safety import SafetyHolds
 from race.setup import CAR_NAMES
+from race.summary import percentile, race_summary
 from race.world import Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, Tracker
 from sim.collision import footprint_corners
 from tracking.estimator import EstimatorConfig
@@ -152,17 +153,14 @@ class LoopOutcome:
 
     def summary(self) -> dict:
         """The `race --hil/--camera --json` record: the simulated race's keys plus loop statistics."""
-        def pct(a, q):
-            return float(np.percentile(a, q)) if len(a) else None
-
+        pct = percentile
         solve = self.solve_ms.get("rd3g", np.zeros(0))
         kinds: dict[str, int] = {}
         for _, kind, _ in self.events:
             kinds[kind] = kinds.get(kind, 0) + 1
         return {
-            "winner": self.winner, "lap_times_s": self.lap_times_s, "min_gap_m": self.min_gap_m,
-            "collisions": len(self.collisions), "solve_ms_p50": pct(solve, 50), "solve_ms_p99": pct(solve, 99),
-            "control_period_ms": self.control_period_ms,
+            **race_summary(winner=self.winner, lap_times_s=self.lap_times_s, min_gap_m=self.min_gap_m,
+                           collisions=len(self.collisions), solve_ms=solve, control_period_ms=self.control_period_ms),
             "mode": self.mode, "end_reason": self.reason, "race_time_s": self.race_time_s, "ticks": self.ticks,
             "loop_hz_median": 1e3 / float(np.median(self.period_ms)) if len(self.period_ms) else None,
             "loop_period_p99_ms": pct(self.period_ms, 99), "deadline_misses": self.deadline_misses,

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from race.recording import EVENTS_ENTITY, RecordingData
+from race.summary import percentile
 from sim.collision import rectangle_gap
 from sim.race import LapBookkeeper
 from tracks import draw_track, load_track
@@ -99,10 +100,6 @@ def min_gap(data: RecordingData) -> float | None:
     return float(np.min(rectangle_gap(ca[ia], cb[ib])))
 
 
-def _pct(values: np.ndarray, q: float):
-    return float(np.percentile(values, q)) if len(values) else None
-
-
 def summarize(data: RecordingData) -> dict:
     """The review record (SUMMARY_KEYS), None where the recording has nothing to say."""
     setup = data.setup()
@@ -126,13 +123,13 @@ def summarize(data: RecordingData) -> dict:
         "min_gap_m": min_gap(data),
         "collisions": sum(e["kind"] == "collision" for e in evs),
         "loop_hz_median": 1e3 / float(np.median(period)) if realtime and len(period) else None,
-        "loop_period_p99_ms": _pct(period, 99) if realtime else None,
+        "loop_period_p99_ms": percentile(period, 99) if realtime else None,
         "deadline_misses": misses if realtime else None,
         "frames": frames,
-        "solve_ms_p50": _pct(solve, 50),
-        "solve_ms_p99": _pct(solve, 99),
-        "tracking_error_mm_median": _pct(errors, 50),
-        "tracking_error_mm_p95": _pct(errors, 95),
+        "solve_ms_p50": percentile(solve, 50),
+        "solve_ms_p99": percentile(solve, 99),
+        "tracking_error_mm_median": percentile(errors, 50),
+        "tracking_error_mm_p95": percentile(errors, 95),
         "events": evs,
     }
 

@@ -16,6 +16,7 @@ from race.planning import cold_plan, make_planner, plan_step
 from race.recording import SETUP_ENTITY, RaceRecorder
 from race.referee import CollisionRecord, Referee
 from race.setup import CAR_NAMES, RaceSetup, start_states
+from race.summary import race_summary
 from sim import Simulator
 from sim.collision import footprint_corners
 from vehicles.params import CarParams
@@ -57,19 +58,12 @@ class RaceOutcome:
 
     def summary(self) -> dict:
         """The `race --json` record (docs/racing.md)."""
-        p = _percentiles(self.solve_ms)
-        return {"winner": self.winner, "clean_winner": self.clean_winner, "lap_times_s": self.lap_times_s,
-                "min_gap_m": self.min_gap_m, "collisions": len(self.collisions),
-                "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in self.collisions), "off_track": self.off_track,
-                "fallbacks": self.fallbacks, "solve_ms_p50": p[0], "solve_ms_p99": p[1],
-                "prestart_ms": self.prestart_ms, "control_period_ms": self.control_period_ms,
+        return {**race_summary(winner=self.winner, lap_times_s=self.lap_times_s, min_gap_m=self.min_gap_m,
+                               collisions=len(self.collisions), solve_ms=self.solve_ms,
+                               control_period_ms=self.control_period_ms),
+                "clean_winner": self.clean_winner, "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in self.collisions),
+                "off_track": self.off_track, "fallbacks": self.fallbacks, "prestart_ms": self.prestart_ms,
                 "planner_errors": len(self.planner_errors)}
-
-
-def _percentiles(ms: np.ndarray) -> tuple[float | None, float | None]:
-    if len(ms) == 0:
-        return None, None
-    return float(np.percentile(ms, 50)), float(np.percentile(ms, 99))
 
 
 class _Telemetry:
