@@ -35,18 +35,17 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from planning.frenet import EY, S
 from race.commands import link_command
 from race.config import STAGES, FaultSpec, LoopConfig
 from race.faults import FailingPlanners, NanStateEstimator
 from race.perception import Perception, body_state
 from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between
+from race.recording import record_car, record_plan
 from race.referee import Referee
 from race.safety import SafetyHolds
 from race.setup import CAR_NAMES
 from race.summary import percentile, race_summary
 from race.world import Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, Tracker
-from sim.collision import footprint_corners
 from tracking.estimator import EstimatorConfig
 from vehicles.protocol import CarCommand, ProtocolError
 
@@ -404,15 +403,9 @@ class RaceLoop:
             self.solve_ms[name].append(cp.solve_ms)
             if self.rec is None or cp.plan is None:
                 continue
-            plan, step = cp.plan, max(self.k, 0)
-            for row, entity in ((0, "plan"), (1, "predicted_other")):
-                x, y = self.track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
-                self.rec.strip(f"world/cars/{name}/{entity}", step, t_race, np.column_stack([x, y]))
-            self.rec.scalar(f"cars/{name}/planned/accel_mps2", step, t_race, plan.u[0, 0])
-            self.rec.scalar(f"cars/{name}/planned/delta_rad", step, t_race, plan.u[0, 1])
-            self.rec.scalar(f"planner/{name}/solve_ms", step, t_race, cp.solve_ms)
-            self.rec.scalar(f"planner/{name}/iterations", step, t_race, plan.iterations)
-            self.rec.scalar(f"planner/{name}/fallback", step, t_race, float(plan.used == "fallback"))
+            step = max(self.k, 0)
+            record_plan(self.rec, step, t_race, self.track, name, cp.plan, cp.solve_ms)
+            self.rec.scalar(f"planner/{name}/fallback", step, t_race, float(cp.plan.used == "fallback"))
 
     # ------------------------------------------------------------------ the race
     def _race(self) -> str:
@@ -651,13 +644,8 @@ class RaceLoop:
             t_truth = packet.t_race
         else:
             return
-        g = self.setup.car.geometry
         for name, st in truth_states.items():
-            corners = footprint_corners(np.array([st[0]]), np.array([st[1]]), np.array([st[2]]),
-                                        g.footprint_length_m, g.footprint_width_m, g.footprint_offset_m)[0]
-            rec.points(f"world/cars/{name}/position", k, t_truth, st[:2])
-            rec.strip(f"world/cars/{name}/footprint", k, t_truth, np.vstack([corners, corners[:1]]))
-            rec.scalar(f"cars/{name}/speed_mps", k, t_truth, math.hypot(st[3], st[4]))
+            record_car(rec, k, t_truth, name, st, self.car.geometry)
 
     # ------------------------------------------------------------------ shutdown
     def _shutdown(self) -> dict | None:

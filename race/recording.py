@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import ast
 import json
+import math
 import queue
 import threading
 import time
@@ -26,7 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from planning.frenet import EY, S
 from race.config import lower_realtime_priority
+from sim.collision import footprint_corners
 
 APPLICATION_ID = "rd3g_race"
 EVENTS_ENTITY = "race/events"
@@ -178,6 +181,28 @@ class RaceRecorder:
                 columns = rr.LineStrips2D.columns(strips=[r[2] for r in items]).partition([1] * len(items))
             self.rec.send_columns(entity, indexes=indexes, columns=columns)
             self.rows_written += len(items)
+
+
+def record_car(rec: RaceRecorder, step: int, t: float, name: str, state, geometry) -> None:
+    """One car's pose rows (every mode): ``world/cars/{name}/position``, ``footprint`` (closed rectangle
+    of the car file's geometry) and ``cars/{name}/speed_mps``; state [x, y, heading, vx, vy, ...]."""
+    corners = footprint_corners(state[0], state[1], state[2], geometry.footprint_length_m,
+                                geometry.footprint_width_m, geometry.footprint_offset_m)
+    rec.points(f"world/cars/{name}/position", step, t, state[:2])
+    rec.strip(f"world/cars/{name}/footprint", step, t, np.vstack([corners, corners[:1]]))
+    rec.scalar(f"cars/{name}/speed_mps", step, t, math.hypot(state[3], state[4]))
+
+
+def record_plan(rec: RaceRecorder, step: int, t: float, track, name: str, plan, solve_ms: float) -> None:
+    """One plan's rows (every mode): the car's planned trajectory and its prediction of the other car
+    (world frame), the first planned control, the planning wall time (ms) and the solver iterations."""
+    for row, entity in ((0, "plan"), (1, "predicted_other")):
+        x, y = track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
+        rec.strip(f"world/cars/{name}/{entity}", step, t, np.column_stack([x, y]))
+    rec.scalar(f"cars/{name}/planned/accel_mps2", step, t, plan.u[0, 0])
+    rec.scalar(f"cars/{name}/planned/delta_rad", step, t, plan.u[0, 1])
+    rec.scalar(f"planner/{name}/solve_ms", step, t, solve_ms)
+    rec.scalar(f"planner/{name}/iterations", step, t, plan.iterations)
 
 
 # --------------------------------------------------------------------------- reader

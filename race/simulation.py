@@ -11,14 +11,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planning import MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
-from planning.frenet import EY, S
+from planning.frenet import S
 from race.planning import cold_plan, make_planner, plan_step
-from race.recording import SETUP_ENTITY, RaceRecorder
+from race.recording import SETUP_ENTITY, RaceRecorder, record_car, record_plan
 from race.referee import CollisionRecord, Referee
 from race.setup import CAR_NAMES, RaceSetup, start_states
 from race.summary import race_summary
 from sim import Simulator
-from sim.collision import footprint_corners
 from vehicles.params import CarParams
 
 
@@ -81,24 +80,12 @@ class _Telemetry:
 
     def step(self, k: int, t: float, states: np.ndarray, plans: dict, commands: np.ndarray, solve_ms: dict) -> None:
         rec = self.rec
-        g = self.car.geometry
-        corners = footprint_corners(states[:, 0], states[:, 1], states[:, 2], g.footprint_length_m,
-                                    g.footprint_width_m, g.footprint_offset_m)
         for i, name in enumerate(CAR_NAMES):
-            rec.strip(f"world/cars/{name}/footprint", k, t, np.vstack([corners[i], corners[i][:1]]))
-            rec.points(f"world/cars/{name}/position", k, t, states[i, :2])
-            rec.scalar(f"cars/{name}/speed_mps", k, t, math.hypot(states[i, 3], states[i, 4]))
+            record_car(rec, k, t, name, states[i], self.car.geometry)
             rec.scalar(f"cars/{name}/command/throttle", k, t, commands[i, 0])
             rec.scalar(f"cars/{name}/command/steering_rad", k, t, commands[i, 1])
-            plan = plans.get(name)
-            if plan is not None:
-                for row, entity in ((0, "plan"), (1, "predicted_other")):
-                    x, y = self.track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
-                    rec.strip(f"world/cars/{name}/{entity}", k, t, np.column_stack([x, y]))
-                rec.scalar(f"cars/{name}/planned/accel_mps2", k, t, plan.u[0, 0])
-                rec.scalar(f"cars/{name}/planned/delta_rad", k, t, plan.u[0, 1])
-                rec.scalar(f"planner/{name}/solve_ms", k, t, solve_ms[name])
-                rec.scalar(f"planner/{name}/iterations", k, t, plan.iterations)
+            if plans.get(name) is not None:
+                record_plan(rec, k, t, self.track, name, plans[name], solve_ms[name])
 
     def event(self, t: float, text: str) -> None:
         kind, _, rest = text.partition(": ")
