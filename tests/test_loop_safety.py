@@ -190,7 +190,7 @@ class StallingRunner(SyncPlanRunner):
 
 @pytest.fixture(scope="module")
 def setup():
-    return RaceSetup(track=load_track("oval"), car=load_car_params("buzzracer"), max_time_s=2.5)
+    return RaceSetup(track=load_track("oval"), car=load_car_params("buzzracer"), max_time_s=2.0)
 
 
 def make_loop(setup, faults=(), runner=None, config=LoopConfig()):
