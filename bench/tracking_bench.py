@@ -10,19 +10,19 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 
+from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
+from tracking.calibration import CameraCalibration, load_fixed_markers
+from tracking.estimator import MultiCarEstimator
+from tracking.markers import ArucoTracker
+from tracks import load_track
+from tracks.geometry import wrap_angle
+
 
 def main(argv=None) -> int:
-    from tracking.calibration import CameraCalibration, load_fixed_markers
-    from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
-    from tracking.estimator import MultiCarEstimator
-    from tracking.markers import ArucoTracker
-    from tracks.geometry import wrap_angle
-    from tracks import load_track
-    from pathlib import Path
-
     parser = argparse.ArgumentParser(prog="python -m bench.tracking_bench")
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--cars", type=int, default=4)

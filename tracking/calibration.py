@@ -338,7 +338,7 @@ def calibrate_from_detections(detected: dict[int, np.ndarray], marker_set: Fixed
 def calibrate_image(image: np.ndarray, marker_set: FixedMarkerSet, intrinsics: Intrinsics | None = None
                     ) -> CameraCalibration:
     """Detect the fixed markers in one frame and calibrate (see :func:`calibrate_from_detections`)."""
-    from tracking.markers import MarkerDetector
+    from tracking.markers import MarkerDetector  # here: tracking.markers imports this module
 
     detector = MarkerDetector(aruco_dictionary_id(marker_set.dictionary))
     detected = detector.detect(image)

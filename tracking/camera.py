@@ -7,6 +7,7 @@ Every source implements :class:`CameraSource`: ``read()`` returns the next :clas
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from typing import Protocol
@@ -80,8 +81,6 @@ class VideoFileCamera:
     in milliseconds if it reports no frame rate)."""
 
     def __init__(self, path):
-        import os
-
         self.path = str(path)
         if not os.path.exists(self.path):
             raise CameraError(f"{self.path}: video file not found")
