@@ -45,7 +45,7 @@ from race.referee import Referee
 from race.safety import SafetyHolds
 from race.setup import CAR_NAMES
 from race.summary import percentile, race_summary
-from race.world import Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, Tracker
+from race.world import Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, Tracker, World
 from tracking.estimator import EstimatorConfig
 from vehicles.protocol import CarCommand, ProtocolError
 
@@ -193,7 +193,7 @@ class RaceLoop:
 
     def __init__(self, *, setup, config: LoopConfig, feed: Feed, tracker: Tracker, estimator, link: Link,
                  planners: Planners, cars: list[CarBinding], recorder=None, faults: tuple[FaultSpec, ...] = (),
-                 world=None, mode: str = "hil", clock: Clock | None = None, worker_factory=None,
+                 world: World | None = None, mode: str = "hil", clock: Clock | None = None, worker_factory=None,
                  monitor_factory=DeadlineMonitor) -> None:
         self.setup, self.cfg, self.feed = setup, config, feed
         self.link, self.cars, self.rec, self.world, self.mode = link, cars, recorder, world, mode

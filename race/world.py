@@ -53,6 +53,16 @@ class Feed(Protocol):
         """The newest frame and reports; waits up to ``timeout`` s for a frame. RuntimeError: the world failed."""
 
 
+class World(Feed, Protocol):
+    """A feed that is a whole simulated world (the HIL world): it starts the race and reports its end."""
+
+    def go(self, t_go: float) -> None:
+        """The race starts at clock time ``t_go``."""
+
+    def close(self) -> dict | None:
+        """Stop; the world's own race summary (winner, lap times, gap, collisions, events, ...)."""
+
+
 class Tracker(Protocol):
     def process(self, frame, predictions):
         """Marker detections of one frame (tracking.markers.FrameDetections); ``predictions`` {marker id:
