@@ -77,6 +77,9 @@ class GameResult:
     active_constraints: int
     symbolic_factorizations: int
     attempts: int = 1  # 1 + restarts used
+    # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
+    # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
+    second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
     constraints: list = field(repr=False, default_factory=list)
 
     @property
@@ -138,7 +141,8 @@ class Solver:
             residual_history=np.asarray(i.residual_history), solve_time_s=i.timings.total,
             assembly_time_s=i.timings.assembly, linear_solve_time_s=i.timings.linear_solve,
             line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
-            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, constraints=self._constraints)
+            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts,
+            second_order=np.asarray(i.second_order, dtype=float), constraints=self._constraints)
 
 
 def _to_core_warm(w: WarmStart, problem: GameProblem, n_constraints: int) -> _core.WarmStart:

@@ -13,7 +13,8 @@ void bind_solver(py::module_& m) {
       .value("line_search_failed", Status::LineSearchFailed)
       .value("numerical_error", Status::NumericalError)
       .value("time_limit", Status::TimeLimit)
-      .value("stalled", Status::Stalled);
+      .value("stalled", Status::Stalled)
+      .value("saddle", Status::Saddle);
   m.def("status_name", &status_name);
   py::class_<Timings>(m, "Timings")
       .def_readonly("total", &Timings::total)
@@ -32,6 +33,7 @@ void bind_solver(py::module_& m) {
       .def_readonly("riccati_solves", &Info::riccati_solves)
       .def_readonly("lm_steps", &Info::lm_steps)
       .def_readonly("attempts", &Info::attempts)
+      .def_readonly("second_order", &Info::second_order)
       .def_readonly("residual_history", &Info::residual_history)
       .def_readonly("step_history", &Info::step_history)
       .def_readonly("timings", &Info::timings);

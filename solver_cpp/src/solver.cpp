@@ -1,5 +1,7 @@
 #include "rd3g/solver.hpp"
 
+#include "rd3g/second_order.hpp"
+
 #include <Eigen/IterativeLinearSolvers>
 #include <algorithm>
 #include <chrono>
@@ -30,6 +32,7 @@ std::string status_name(Status s) {
     case Status::NumericalError: return "numerical_error";
     case Status::TimeLimit: return "time_limit";
     case Status::Stalled: return "stalled";
+    case Status::Saddle: return "saddle";
   }
   return "unknown";
 }
@@ -82,6 +85,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   require(s.restart_u_std >= 0, "solver.restart_u_std must be >= 0");
   require(s.polish_gap >= 0, "solver.polish_gap must be >= 0 (0 = off)");
   require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
+  require(s.second_order_tol > 0, "solver.second_order_tol must be positive");
   prob_ = p;
   if (prob_.lead.empty()) prob_.lead.assign(N_, LeadCost{});
   auto fill_bounds = [&](std::vector<Vec>& b, int n, double val, const char* name) {
@@ -175,6 +179,8 @@ void Solver::setup(const Problem& p, const Settings& s) {
   trip_.reserve(static_cast<size_t>(N_) * T_ * (3 * (nx_ + nu_) * (nx_ + nu_) + 4 * nx_) + 24 * C);
   lu_analyzed_ = false;
   riccati_.setup(N_, T_, nx_, nu_);
+  if (!second_order_) second_order_ = std::make_shared<SecondOrderCheck>();
+  second_order_->setup(N_, T_, nx_, nu_);
 }
 
 // -------------------------------------------------------------------------------------------------
@@ -806,6 +812,9 @@ Result Solver::solve(const WarmStart* warm) {
 
   // Result: trajectories, multipliers (barrier-implied -rho/h for inactive constraints).
   eval_all_constraints(y_, h_);
+  if (settings_.second_order_gap >= 0 && info.status != Status::NumericalError && !check_second_order(info) &&
+      info.status == Status::Converged)
+    info.status = Status::Saddle;
   res.x.resize(N_);
   res.u.resize(N_);
   res.lambda.resize(N_);

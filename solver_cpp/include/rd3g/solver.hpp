@@ -6,12 +6,15 @@
 #include <Eigen/SparseLU>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseQR>
+#include <memory>
 #include <vector>
 
 #include "rd3g/problem.hpp"
 #include "rd3g/riccati.hpp"
 
 namespace rd3g {
+
+class SecondOrderCheck;
 
 /// One inequality constraint h <= 0 of the game, in a fixed order established at setup.
 struct Constraint {
@@ -113,6 +116,9 @@ class Solver {
   StageRiccati riccati_;
   void build_J();
   Info* info_ = nullptr;
+  /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
+  bool check_second_order(Info& info);
+  std::shared_ptr<SecondOrderCheck> second_order_;
 };
 
 }  // namespace rd3g
