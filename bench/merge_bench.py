@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from tqdm import tqdm
 
+from bench.families import family_problem
 from bench.merging import merging_problem
 
 PAPER_MS = {  # Table I of the paper (mean ms over converged runs, i7-7700K)
@@ -25,6 +26,7 @@ DYNAMICS_TOL = 1e-6  # state units
 COLLISION_TOL_M = 1e-3  # m
 STATIONARITY_REL_TOL = 1e-3  # per-player KKT residual / cost-gradient scale (bench/verify.py)
 ACTIVE_GAP_M = 1e-2  # a collision constraint counts as active when the gap is within this of d_min
+SECOND_ORDER_TOL = 1e-6  # smallest reduced-Hessian eigenvalue accepted (the solver's own test is relative to scale)
 
 
 def run_solver(name: str, problem, time_limit_s: float):
@@ -53,13 +55,18 @@ class RunRecord:
     failure: str
     active_collision: bool
     min_slack_m: float  # smallest distance - d_min over all pairs and steps
+    family: str = "authors"
+    # RD3G's second-order test (Info::second_order): every agent's reduced Hessian is positive definite there.
+    # None for solvers that do not report it.
+    second_order_ok: bool | None = None
 
 
-def one_run(job: tuple[str, int, int, float]) -> RunRecord:
+def one_run(job: tuple) -> RunRecord:
     from bench import verify
 
-    name, cars, seed, time_limit = job
-    problem = merging_problem(cars, seed)
+    name, cars, seed, time_limit = job[:4]
+    family = job[4] if len(job) > 4 else "authors"
+    problem = family_problem(family, cars, seed)
     r = run_solver(name, problem, time_limit)
     x, u = np.asarray(r.x), np.asarray(r.u)
     failure = ""
@@ -78,12 +85,15 @@ def one_run(job: tuple[str, int, int, float]) -> RunRecord:
             failure = f"stationarity {stat.max():.1e}"
     # collision_gaps_m is h in metres (d_min - distance, positive = violated): slack = -h.
     min_slack = float(-np.max(gaps)) if np.size(gaps) else float("inf")
+    so = getattr(r, "second_order", None)
+    second_order_ok = None if so is None else bool(r.status != "saddle" and np.all(np.asarray(so) >= -SECOND_ORDER_TOL))
     return RunRecord(name, cars, seed, r.status, 1e3 * r.solve_time_s, int(r.iterations), failure == "",
-                     failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack)
+                     failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack, family, second_order_ok)
 
 
-def run(solvers: list[str], cars: list[int], instances: int, workers: int, time_limit_s: float) -> list[RunRecord]:
-    jobs = [(s, n, seed, time_limit_s) for n in cars for s in solvers for seed in range(instances)]
+def run(solvers: list[str], cars: list[int], instances: int, workers: int, time_limit_s: float,
+        families: tuple[str, ...] = ("authors",)) -> list[RunRecord]:
+    jobs = [(s, n, seed, time_limit_s, f) for f in families for n in cars for s in solvers for seed in range(instances)]
     records: list[RunRecord] = []
     with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:
         if workers <= 1:
@@ -114,6 +124,59 @@ def summarize(records: list[RunRecord]) -> list[dict]:
             "active_fraction": float(np.mean([r.active_collision for r in ok])) if ok else nan,
         })
     return out
+
+
+def summarize_families(records: list[RunRecord]) -> list[dict]:
+    """Per family, solver and size: success by the common test, the share of successes the second-order test
+    confirms, statuses, and median / p90 / max time (ms) and iterations over all runs (failures included: they
+    cost time too)."""
+    out = []
+    for f, s, n in sorted({(r.family, r.solver, r.cars) for r in records}, key=lambda k: (k[0], k[1], k[2])):
+        rs = [r for r in records if (r.family, r.solver, r.cars) == (f, s, n)]
+        ok = [r for r in rs if r.success]
+        t = np.array([r.solve_ms for r in rs])
+        it = np.array([r.iterations for r in rs])
+        so = [r.second_order_ok for r in ok if r.second_order_ok is not None]
+        statuses: dict[str, int] = {}
+        for r in rs:
+            statuses[r.status] = statuses.get(r.status, 0) + 1
+        out.append({
+            "family": f, "solver": s, "cars": n, "instances": len(rs), "solved": len(ok),
+            "second_order_confirmed": int(sum(so)) if so else None,
+            "converged_but_rejected": sum(r.status == "converged" and r.second_order_ok is False for r in rs),
+            "statuses": statuses,
+            "median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "max_ms": float(t.max()),
+            "median_iterations": float(np.median(it)), "p90_iterations": float(np.percentile(it, 90)),
+            "max_iterations": int(it.max()),
+            "failures": [f"seed {r.seed}: {r.status}, {r.failure}" for r in rs if not r.success][:5],
+        })
+    return out
+
+
+def family_markdown(summary: list[dict], command: str, machine: str, seconds: float) -> str:
+    lines = [
+        "## Game families: RD3G beyond the authors' merging benchmark",
+        "",
+        f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
+        "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "
+        f"collision violation <= {COLLISION_TOL_M:g} m, per-player stationarity <= {STATIONARITY_REL_TOL:g}); "
+        "2nd order = share of the solved results whose every player passes the solver's second-order test; "
+        "'conv. rejected' = results reported converged at a point the test rejects (must be 0). Times and "
+        "iterations over all instances, failures included.",
+        "",
+        "| family | cars | solved | 2nd order | conv. rejected | statuses | time median / p90 / max ms | "
+        "iterations median / p90 / max |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in summary:
+        so = "—" if r["second_order_confirmed"] is None or not r["solved"] else \
+            f"{100 * r['second_order_confirmed'] / r['solved']:.0f}%"
+        st = ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items()))
+        lines.append(f"| {r['family']} ({r['solver']}) | {r['cars']} | {r['solved']}/{r['instances']} "
+                     f"({100 * r['solved'] / r['instances']:.0f}%) | {so} | {r['converged_but_rejected']} | {st} | "
+                     f"{r['median_ms']:.1f} / {r['p90_ms']:.1f} / {r['max_ms']:.0f} | "
+                     f"{r['median_iterations']:.0f} / {r['p90_iterations']:.0f} / {r['max_iterations']} |")
+    return "\n".join(lines)
 
 
 def _fmt(v, spec=".1f"):
@@ -232,4 +295,4 @@ def default_workers() -> int:
     return max(1, min(2, os.cpu_count() or 1))
 
 
-__all__ = ["run", "summarize", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]
+__all__ = ["run", "summarize", "summarize_families", "family_markdown", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]

@@ -39,7 +39,10 @@ def register(sub) -> None:
     m = kinds.add_parser("merge", help="RD3G vs iLQGames vs ALGames on the paper's merging games (Table I)")
     m.add_argument("--cars", default="2-8")
     m.add_argument("--instances", type=int, default=100)
-    m.add_argument("--solvers", default="rd3g,ilqgames,algames")
+    m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
+    m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "
+                                    "from bench/families.py (docs/merging.md) or 'all'; reports success, second-order "
+                                    "confirmation, time and iteration tails per family and size")
     m.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
     m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver)")
     m.add_argument("--json", help="write the per-solver, per-size figures here")
@@ -78,7 +81,9 @@ def run_merge(args) -> int:
     from bench.report import machine_description, write_section
 
     cars = parse_range(args.cars)
-    solvers = [x.strip() for x in args.solvers.split(",") if x.strip()]
+    if args.family:
+        return _run_families(args, cars)
+    solvers = [x.strip() for x in (args.solvers or "rd3g,ilqgames,algames").split(",") if x.strip()]
     for s in solvers:
         if s not in merge_bench.SOLVERS:
             raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
@@ -104,4 +109,40 @@ def run_merge(args) -> int:
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('merge-bench-' + '-'.join(solvers), md)}")
+    return 0
+
+
+def _run_families(args, cars: list[int]) -> int:
+    import json
+    from pathlib import Path
+
+    from bench import merge_bench
+    from bench.families import FAMILIES
+    from bench.report import machine_description, write_section
+
+    names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
+    for n in names:
+        if n not in FAMILIES:
+            raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
+    solvers = [x.strip() for x in (args.solvers or "rd3g").split(",") if x.strip()]
+    for s in solvers:
+        if s not in merge_bench.SOLVERS:
+            raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
+    if args.instances < 1 or args.workers < 1:
+        raise UserError("--instances and --workers must be at least 1")
+    import os
+
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit, tuple(names))
+    summary = merge_bench.summarize_families(records)
+    command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
+    md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0)
+    print(md)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"results": summary}, indent=1))
+        print(f"wrote {args.json}")
+    if not args.no_docs:
+        print(f"recorded in {write_section('merge-families', md)}")
     return 0

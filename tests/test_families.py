@@ -1,0 +1,47 @@
+"""The generated game families (bench/families.py): reproducible from (family, cars, seed), documented geometry,
+feasible starts, and the authors' family equal to bench/merging.py's instances."""
+import numpy as np
+import pytest
+
+from bench.families import FAMILIES, family_problem
+from bench.merging import merging_problem
+
+
+def _x0(problem):
+    return np.array([a.x0 for a in problem.agents], dtype=float)
+
+
+def test_authors_family_is_the_merging_benchmark():
+    for cars, seed in ((2, 0), (5, 3), (8, 11)):
+        a, b = family_problem("authors", cars, seed), merging_problem(cars, seed)
+        np.testing.assert_array_equal(_x0(a), _x0(b))
+        assert (a.dt, a.horizon, a.collision.min_distance, a.collision.form) == (b.dt, b.horizon, 2.0, "squared")
+
+
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_family_instances_are_seeded_and_start_feasible(name):
+    for cars in range(2, 9):
+        p = family_problem(name, cars, 4)
+        assert p.num_agents == cars
+        np.testing.assert_array_equal(_x0(p), _x0(family_problem(name, cars, 4)))
+        assert not np.array_equal(_x0(p), _x0(family_problem(name, cars, 5)))
+        xy = _x0(p)[:, :2]
+        gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(cars, 1)]
+        assert gaps.min() >= p.collision.min_distance + 0.1 - 1e-12
+
+
+def test_crossing_and_head_on_geometry():
+    cross = _x0(family_problem("crossing", 4, 0))
+    np.testing.assert_array_equal(cross[[0, 2], 1], 0.0)           # east-bound on y = 0
+    np.testing.assert_array_equal(cross[[1, 3], 0], 0.0)           # north-bound on x = 0
+    np.testing.assert_allclose(cross[[1, 3], 3], np.pi / 2)
+    assert np.all(cross[[0, 2], 0] < -4) and np.all(cross[[1, 3], 1] < -4)  # all before the intersection
+    head = _x0(family_problem("head-on", 4, 0))
+    assert np.all(head[[0, 2], 0] < -9) and np.all(head[[1, 3], 0] > 9)
+    np.testing.assert_allclose(head[[1, 3], 3], np.pi)
+    assert np.all(np.abs(head[:, 1]) <= 0.3)
+
+
+def test_unknown_family_is_named():
+    with pytest.raises(ValueError, match="unknown family 'nope'"):
+        family_problem("nope", 3, 0)
