@@ -26,20 +26,31 @@ DYNAMICS_TOL = 1e-6  # state units
 COLLISION_TOL_M = 1e-3  # m
 STATIONARITY_REL_TOL = 1e-3  # per-player KKT residual / cost-gradient scale (bench/verify.py)
 ACTIVE_GAP_M = 1e-2  # a collision constraint counts as active when the gap is within this of d_min
+# Single-agent solves of the iterated-best-response guess: a short budget, one restart (a guess, not an answer).
+BEST_RESPONSE_SETTINGS = dict(max_iter=100, restarts=1)
 SECOND_ORDER_TOL = 1e-6  # smallest reduced-Hessian eigenvalue accepted (the solver's own test is relative to scale)
 
 
-def run_solver(name: str, problem, time_limit_s: float):
+def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: int = 0):
+    """The solver's result and the wall time of any initial-guess work before it (s)."""
     if name == "rd3g":
-        from solver_cpp import solve
+        import time
 
-        return solve(problem, time_limit=time_limit_s)
+        from solver_cpp import solve
+        from solver_cpp.best_response import best_response_guess
+
+        if best_response_rounds <= 0:
+            return solve(problem, time_limit=time_limit_s), 0.0
+        t0 = time.perf_counter()
+        guess = best_response_guess(problem, best_response_rounds, **BEST_RESPONSE_SETTINGS)
+        setup_s = time.perf_counter() - t0
+        return solve(problem, time_limit=max(time_limit_s - setup_s, 1e-6), warm_start=guess), setup_s
     from bench import baselines
 
     if name == "ilqgames":
-        return baselines.solve_ilqgames(problem, time_limit=time_limit_s)
+        return baselines.solve_ilqgames(problem, time_limit=time_limit_s), 0.0
     if name == "algames":
-        return baselines.solve_algames(problem, time_limit=time_limit_s)
+        return baselines.solve_algames(problem, time_limit=time_limit_s), 0.0
     raise ValueError(f"unknown solver {name!r}; choose from {SOLVERS}")
 
 
@@ -66,8 +77,9 @@ def one_run(job: tuple) -> RunRecord:
 
     name, cars, seed, time_limit = job[:4]
     family = job[4] if len(job) > 4 else "authors"
+    rounds = job[5] if len(job) > 5 else 0
     problem = family_problem(family, cars, seed)
-    r = run_solver(name, problem, time_limit)
+    r, setup_s = run_solver(name, problem, time_limit, rounds)
     x, u = np.asarray(r.x), np.asarray(r.u)
     failure = ""
     defect = verify.dynamics_defect(problem, x, u)
@@ -87,13 +99,16 @@ def one_run(job: tuple) -> RunRecord:
     min_slack = float(-np.max(gaps)) if np.size(gaps) else float("inf")
     so = getattr(r, "second_order", None)
     second_order_ok = None if so is None else bool(r.status != "saddle" and np.all(np.asarray(so) >= -SECOND_ORDER_TOL))
-    return RunRecord(name, cars, seed, r.status, 1e3 * r.solve_time_s, int(r.iterations), failure == "",
+    return RunRecord(name, cars, seed, r.status, 1e3 * (r.solve_time_s + setup_s), int(r.iterations), failure == "",
                      failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack, family, second_order_ok)
 
 
 def run(solvers: list[str], cars: list[int], instances: int, workers: int, time_limit_s: float,
-        families: tuple[str, ...] = ("authors",)) -> list[RunRecord]:
-    jobs = [(s, n, seed, time_limit_s, f) for f in families for n in cars for s in solvers for seed in range(instances)]
+        families: tuple[str, ...] = ("authors",), best_response_rounds: int = 0) -> list[RunRecord]:
+    """best_response_rounds > 0: RD3G starts from solver_cpp.best_response_guess (its time counts, within the
+    time limit)."""
+    jobs = [(s, n, seed, time_limit_s, f, best_response_rounds)
+            for f in families for n in cars for s in solvers for seed in range(instances)]
     records: list[RunRecord] = []
     with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:
         if workers <= 1:
@@ -153,9 +168,11 @@ def summarize_families(records: list[RunRecord]) -> list[dict]:
     return out
 
 
-def family_markdown(summary: list[dict], command: str, machine: str, seconds: float) -> str:
+def family_markdown(summary: list[dict], command: str, machine: str, seconds: float, best_response_rounds: int = 0) -> str:
+    guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
+             if best_response_rounds else "")
     lines = [
-        "## Game families: RD3G beyond the authors' merging benchmark",
+        "## Game families: RD3G beyond the authors' merging benchmark" + guess,
         "",
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
         "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "

@@ -45,3 +45,31 @@ def test_crossing_and_head_on_geometry():
 def test_unknown_family_is_named():
     with pytest.raises(ValueError, match="unknown family 'nope'"):
         family_problem("nope", 3, 0)
+
+
+def test_bench_rejects_an_unknown_family():
+    from app.cli import UserError, build_parser
+
+    args = build_parser().parse_args(["bench", "merge", "--family", "merge-dense,nope", "--no-docs"])
+    with pytest.raises(UserError, match="unknown family 'nope'"):
+        args.func(args)
+
+
+def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw():
+    """The last player of the last sweep solved against the others' final plans: its controls are a KKT point of its
+    own problem with them fixed (bench/verify.py's stationarity on that one-player problem, the other car as a moving
+    disc), collision free."""
+    from bench.verify import max_collision_violation_m, stationarity_residual
+    from solver_cpp import GameProblem, Obstacle
+    from solver_cpp.best_response import best_response_guess
+
+    problem = family_problem("head-on", 2, 0)
+    guess = best_response_guess(problem, rounds=1, tol=1e-8)
+    x = np.stack([a.dynamics.build(problem.dt).rollout(np.asarray(a.x0, float), guess.u[i])
+                  for i, a in enumerate(problem.agents)])
+    assert max_collision_violation_m(problem, x) <= 1e-6
+    alone = GameProblem(dt=problem.dt, horizon=problem.horizon, agents=[problem.agents[1]],
+                        obstacles=[Obstacle(x[0, :, :2], problem.collision.min_distance)])
+    assert stationarity_residual(alone, x[1:], guess.u[1:], relative=True)[0] < 1e-5
+    with pytest.raises(ValueError, match="rounds"):
+        best_response_guess(problem, rounds=0)

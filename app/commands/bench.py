@@ -45,6 +45,9 @@ def register(sub) -> None:
                                     "confirmation, time and iteration tails per family and size")
     m.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
     m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver)")
+    m.add_argument("--best-response-rounds", type=int, default=0,
+                   help="with --family: start RD3G from this many rounds of iterated best response "
+                        "(solver_cpp/best_response.py; its time counts)")
     m.add_argument("--json", help="write the per-solver, per-size figures here")
     m.add_argument("--figures", default="docs/figures", help="folder for the PNG figures")
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
@@ -134,15 +137,19 @@ def _run_families(args, cars: list[int]) -> int:
 
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit, tuple(names))
+    if args.best_response_rounds < 0:
+        raise UserError("--best-response-rounds must be >= 0")
+    records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit, tuple(names),
+                              args.best_response_rounds)
     summary = merge_bench.summarize_families(records)
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
-    md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0)
+    md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0, args.best_response_rounds)
     print(md)
     if args.json:
         Path(args.json).write_text(json.dumps({"results": summary}, indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
-        print(f"recorded in {write_section('merge-families', md)}")
+        section = "merge-families" + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")
+        print(f"recorded in {write_section(section, md)}")
     return 0
