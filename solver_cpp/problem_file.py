@@ -158,6 +158,8 @@ def result_to_dict(result: GameResult) -> dict:
         "residual_norm": float(result.residual_norm),
         "max_violation": float(result.max_violation),
         "solve_time_s": float(result.solve_time_s),
+        # per agent, smallest reduced-Hessian eigenvalue; null = no free direction (inf)
+        "second_order": [float(v) if np.isfinite(v) else None for v in result.second_order],
         "x": result.x.tolist(),
         "u": result.u.tolist(),
         "residual_history": result.residual_history.tolist(),

@@ -80,6 +80,9 @@ class GameResult:
     active_constraints: int
     symbolic_factorizations: int
     attempts: int = 1  # 1 + restarts used
+    # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
+    # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
+    second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
     constraints: list = field(repr=False, default_factory=list)
     setup_time_s: float = 0.0   # the solver's last set-up (validation, constraint list, allocation), maybe older
     update_time_s: float = 0.0  # update calls since the previous solve
@@ -176,7 +179,8 @@ class Solver:
             assembly_time_s=i.timings.assembly, linear_solve_time_s=i.timings.linear_solve,
             line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
             symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, constraints=self.constraints,
-            setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups)
+            setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups,
+            second_order=np.asarray(i.second_order, dtype=float))
 
 
 def _same_model(a, b) -> bool:

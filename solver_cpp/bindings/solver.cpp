@@ -14,7 +14,8 @@ void bind_solver(py::module_& m) {
       .value("line_search_failed", Status::LineSearchFailed)
       .value("numerical_error", Status::NumericalError)
       .value("time_limit", Status::TimeLimit)
-      .value("stalled", Status::Stalled);
+      .value("stalled", Status::Stalled)
+      .value("saddle", Status::Saddle);
   m.def("status_name", &status_name);
   m.def("validate_problem", &validate_problem, py::arg("problem"),
         "Checks every field of a problem (the validation Solver.setup and the baselines run); ValueError names the field.");
@@ -39,6 +40,7 @@ void bind_solver(py::module_& m) {
       .def_readonly("lm_steps", &Info::lm_steps)
       .def_readonly("attempts", &Info::attempts)
       .def_readonly("setups", &Info::setups)
+      .def_readonly("second_order", &Info::second_order)
       .def_readonly("residual_history", &Info::residual_history)
       .def_readonly("step_history", &Info::step_history)
       .def_readonly("timings", &Info::timings);

@@ -1,5 +1,7 @@
 #include "rd3g/solver.hpp"
 
+#include "rd3g/second_order.hpp"
+
 #include <Eigen/IterativeLinearSolvers>
 #include <algorithm>
 #include <chrono>
@@ -30,6 +32,7 @@ std::string status_name(Status s) {
     case Status::NumericalError: return "numerical_error";
     case Status::TimeLimit: return "time_limit";
     case Status::Stalled: return "stalled";
+    case Status::Saddle: return "saddle";
   }
   return "unknown";
 }
@@ -57,6 +60,8 @@ void Solver::setup(const Problem& p, const Settings& s) {
   u_init_.assign(N_, Mat::Zero(nu_, T_));
   lam_init_.assign(N_, Mat::Zero(nx_, T_));
   riccati_.setup(N_, T_, nx_, nu_);
+  if (!second_order_) second_order_ = std::make_shared<SecondOrderCheck>();
+  second_order_->setup(N_, T_, nx_, nu_);
   list_and_allocate();
   setups_ = 1;
   setup_time_ = seconds_since(t0);
@@ -870,6 +875,9 @@ void Solver::write_result(Result& res, Info& info) {
   const int C = static_cast<int>(cons_.size());
   // Result: trajectories, multipliers (barrier-implied -rho/h for inactive constraints).
   eval_all_constraints(y_, h_);
+  if (settings_.second_order_gap >= 0 && info.status != Status::NumericalError && !check_second_order(info) &&
+      info.status == Status::Converged)
+    info.status = Status::Saddle;
   res.x.resize(N_);
   res.u.resize(N_);
   res.lambda.resize(N_);

@@ -179,6 +179,7 @@ void validate_settings(const Settings& s) {
   require(s.restart_u_std >= 0, "solver.restart_u_std must be >= 0");
   require(s.polish_gap >= 0, "solver.polish_gap must be >= 0 (0 = off)");
   require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
+  require(s.second_order_tol > 0, "solver.second_order_tol must be positive");
 }
 
 }  // namespace rd3g

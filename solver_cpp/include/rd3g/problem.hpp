@@ -135,11 +135,19 @@ struct Settings {
   /// equalities (once per attempt); the usual partition rules release them again. 0 = off.
   double polish_gap = 1e-3;
   double restart_u_std = 0.2;  ///< (control units)
+  /// Second-order test after convergence (rd3g/second_order.hpp): each agent's constraints with
+  /// h >= -second_order_gap (constraint units) and a positive multiplier are held as equalities; the agent passes
+  /// if the smallest eigenvalue of its reduced Hessian is >= -second_order_tol * max(1, its largest |eigenvalue|).
+  /// A converged point that fails is reported as Status::Saddle. second_order_gap < 0 turns the test off.
+  double second_order_gap = 1e-2;
+  double second_order_tol = 1e-6;
   bool verbose = false;
 };
 
 /// stalled: every attempt (see restarts) stopped making progress before max_iter.
-enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit, Stalled };
+/// saddle: the first-order conditions hold but some agent's own problem is not at a local minimum there
+/// (Info::second_order), i.e. the point is not a local equilibrium.
+enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit, Stalled, Saddle };
 std::string status_name(Status s);
 
 /// Timings in seconds. total, assembly, linear_solve and line_search are accumulated over the whole solve
@@ -164,6 +172,9 @@ struct Info {
   int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
   int attempts = 0;            ///< 1 + restarts used
   int setups = 0;              ///< set-ups since the previous solve (setup, or an update that changed the constraint list)
+  /// Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
+  /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.
+  std::vector<double> second_order;
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
   std::vector<double> step_history;      ///< accepted line-search step t per iteration
   Timings timings;

@@ -7,6 +7,7 @@
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseQR>
 #include <chrono>
+#include <memory>
 #include <random>
 #include <vector>
 
@@ -16,6 +17,8 @@
 #include "rd3g/stage_terms.hpp"
 
 namespace rd3g {
+
+class SecondOrderCheck;
 
 /// How a constraint enters the current Newton system.
 enum class ConstraintState : char {
@@ -165,6 +168,9 @@ class Solver {
   bool J_built_ = false;  // J_ holds this iteration's matrix (the Riccati path does not need it)
   StageRiccati riccati_;
   void build_J();
+  /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
+  bool check_second_order(Info& info);
+  std::shared_ptr<SecondOrderCheck> second_order_;
 };
 
 }  // namespace rd3g
