@@ -2,8 +2,8 @@
 parts it drives, and time. The HIL world (``app.realtime.hil``), the hardware camera feed
 (``app.realtime.hardware``) and the tests' fakes implement them; the loop knows nothing else.
 
-Time is injected: :class:`MonotonicClock` for real time (HIL, hardware); a test passes a clock whose
-``sleep`` advances its own time, so the loop runs as fast as the CPU allows.
+Time is injected: :class:`MonotonicClock` for real time (HIL, hardware); :class:`SimulatedClock`
+(the fake-clock tests) advances at once on ``sleep``, so the loop runs as fast as the CPU allows.
 """
 from __future__ import annotations
 
@@ -46,6 +46,27 @@ class MonotonicClock:
 
     def sleep(self, seconds: float) -> None:
         time.sleep(seconds)
+
+
+class SimulatedClock:
+    """Simulated time: ``sleep`` advances the clock at once, so a loop on it runs as fast as the CPU
+    allows. ``watchers`` are called after every advance (a deadline monitor on simulated time checks
+    its deadline there instead of waiting in a thread)."""
+
+    def __init__(self, t0: float = 0.0) -> None:
+        self.t = float(t0)
+        self.watchers: list = []
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.advance(seconds)
+
+    def advance(self, seconds: float) -> None:
+        self.t += max(float(seconds), 0.0)
+        for watch in list(self.watchers):
+            watch()
 
 
 class Feed(Protocol):

@@ -19,6 +19,7 @@ from race.config import FaultSpec, LoopConfig
 from race.loop import CarBinding, RaceLoop
 from race.planning import CarPlan, PlanResult, SyncPlanRunner
 from race.setup import CAR_NAMES, RaceSetup
+from race.world import SimulatedClock
 from tracking.estimator import EstimatorConfig, MultiCarEstimator
 from tracking.markers import CarMeasurement
 from tracks import load_track
@@ -34,27 +35,10 @@ CARS = [CarBinding("rd3g", 0, 0), CarBinding("opponent", 1, 1)]
 LOST_AFTER_S = EstimatorConfig().lost_after_s
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = T0
-        self.watchers = []
-
-    def now(self) -> float:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.advance(seconds)
-
-    def advance(self, seconds: float) -> None:
-        self.t += max(float(seconds), 0.0)
-        for watch in list(self.watchers):
-            watch()
-
-
 class FakeMonitor:
     """DeadlineMonitor on the fake clock: fires when the clock moves past the armed deadline."""
 
-    def __init__(self, on_miss, clock: FakeClock) -> None:
+    def __init__(self, on_miss, clock: SimulatedClock) -> None:
         self.on_miss, self.clock, self.stage = on_miss, clock, "-"
         self._deadline = None
         self._fired = False
@@ -93,7 +77,7 @@ class Detections:
 class World:
     """Cars on the centre line, 0.5 m apart, at SPEED_MPS; frames every 1/FPS on the fake clock."""
 
-    def __init__(self, clock: FakeClock, track) -> None:
+    def __init__(self, clock: SimulatedClock, track) -> None:
         self.clock, self.track = clock, track
         self.t_go = None           # set by the test from the loop once it started
         self.box_corrupt_at = None  # race time the box starts reporting corrupt frames
@@ -194,7 +178,7 @@ def setup():
 
 
 def make_loop(setup, faults=(), runner=None, config=LoopConfig()):
-    clock = FakeClock()
+    clock = SimulatedClock(T0)
     world = World(clock, setup.track)
     tracker, link = Tracker(world), Link(world)
     planners = Planners()
@@ -399,3 +383,13 @@ def test_stop_after_a_long_hold(setup):
     assert o.reason == "held_neutral" and "car rd3g lost" in text
     assert t_fault + cfg.stop_after_hold_s < t_stop <= t_fault + cfg.stop_after_hold_s + 2 / cfg.rate_hz
     check_held(link, t_fault, math.inf)
+
+
+def test_simulated_clock_advances_at_once_and_calls_watchers():
+    clock = SimulatedClock(5.0)
+    seen = []
+    clock.watchers.append(lambda: seen.append(clock.now()))
+    clock.sleep(0.25)
+    clock.sleep(-1.0)             # a negative wait does not move time back
+    assert clock.now() == 5.25
+    assert seen == [5.25, 5.25]
