@@ -10,6 +10,7 @@ time, pose measurements and the commands sent; the generating effects are not wr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, fields
 from typing import Any
@@ -30,6 +31,9 @@ GENERATOR_EFFECTS: dict[str, tuple[str, ...]] = {
     "steering_gain": ("steering_gain",),
     "longitudinal_drag": ("extra_drag_n_per_mps2",),
     "tire_slip": ("grip_scale",),
+    "steering_backlash": ("steering_backlash_rad",),
+    "steering_asymmetry": ("steering_gain_asymmetry",),
+    "motor_drift": ("motor_force_drift_per_s",),
 }
 CAMERA_POSITION_NOISE_M = 0.002
 CAMERA_HEADING_NOISE_RAD = 0.01
@@ -154,7 +158,9 @@ def generate_log(
     rows: list[tuple[float, float, float, float, float, float]] = []
     t_offset = 0.0
     for stint, path in enumerate((track, ReversedTrack(track))):
-        sim = Simulator(path, [car], effects=eff, seed=int(rng.integers(2**31)) + stint, physics_dt=physics_dt,
+        # The battery keeps discharging over the pause: the second stint starts with the drift so far.
+        stint_eff = dataclasses.replace(eff, drift_start_s=t_offset)
+        sim = Simulator(path, [car], effects=stint_eff, seed=int(rng.integers(2**31)) + stint, physics_dt=physics_dt,
                         check_dt=0.01)
         sim.reset([_start_state(path, float(rng.uniform(0, path.length)))])
         ctrl = PurePursuitController(path, car, target_speed_mps=excitation.speed_min_mps,
@@ -194,6 +200,8 @@ def effects_as_corrections(effects: dict[str, float]) -> dict[str, float]:
     """The [corrections] values that describe generator effects (for comparisons in tests/docs)."""
     mapping = {"steering_delay_s": "steering_delay_s", "throttle_delay_s": "throttle_delay_s",
                "steering_offset_rad": "steering_offset_rad", "steering_gain": "steering_gain",
-               "extra_drag_n_per_mps2": "extra_drag_n_per_mps2", "grip_scale": "tire_grip_scale"}
+               "extra_drag_n_per_mps2": "extra_drag_n_per_mps2", "grip_scale": "tire_grip_scale",
+               "steering_backlash_rad": "steering_backlash_rad", "steering_gain_asymmetry": "steering_gain_asymmetry",
+               "motor_force_drift_per_s": "motor_force_drift_per_s"}
     eff = sim_effects(effects, 0.0, 0.0)
     return {mapping[f.name]: getattr(eff, f.name) for f in fields(eff) if f.name in mapping}

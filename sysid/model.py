@@ -14,59 +14,40 @@ the kinematic one; that is the "tire_slip" candidate.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from sysid.data import Trajectory
 from vehicles.dynamic_bicycle import ModelCoefficients, derivative, drive_force
-from vehicles.params import CarParams
+from vehicles.extra_terms import car_extra_terms, extra_rates
+from vehicles.linkage import asymmetric, play
+from vehicles.params import CarParams, motor_force_scale
 
 WARMUP_S = 0.2  # model run-in before each dynamic prediction (>> the ~0.03 s lateral/yaw time constants)
-
-# Library of the sparse-regression fallback ("other"): functions of speed v, throttle u and wheel angle d.
-LIBRARY_TERMS: dict[str, callable] = {
-    "1": lambda v, u, d: np.ones_like(v),
-    "v": lambda v, u, d: v,
-    "v|v|": lambda v, u, d: v * np.abs(v),
-    "u": lambda v, u, d: u,
-    "u*v": lambda v, u, d: u * v,
-    "d": lambda v, u, d: d,
-    "d*v": lambda v, u, d: d * v,
-    "d*v^2": lambda v, u, d: d * v * v,
-    "d|d|*v": lambda v, u, d: d * np.abs(d) * v,
-    "d^2*v^2": lambda v, u, d: d * d * v * v,
-}
-
-
-@dataclass(frozen=True)
-class ExtraTerms:
-    """Sparse additive corrections: d(speed)/dt += sum accel[i] * term_i, d(heading)/dt += sum yaw[i] * term_i."""
-
-    names: tuple[str, ...]
-    accel: np.ndarray
-    yaw: np.ndarray
-
-    def evaluate(self, v: np.ndarray, u: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        dv = np.zeros_like(v)
-        dth = np.zeros_like(v)
-        for name, ca, cy in zip(self.names, self.accel, self.yaw):
-            if ca == 0.0 and cy == 0.0:
-                continue
-            term = LIBRARY_TERMS[name](v, u, d)
-            dv = dv + ca * term
-            dth = dth + cy * term
-        return dv, dth
+# Actuator run-in before a prediction (rate limits and play have memory; the servo crosses its whole
+# range in 2 * 0.47 rad / 10.5 rad/s = 0.09 s): the actuators start at the delayed command this long before.
+ACTUATOR_RUN_IN_S = 0.2
+PIECES_PER_SUBSTEP = 2  # actuator resolution: pieces per RK4 sub-step (exact mean of the rate-limited path per piece)
 
 
 @dataclass(frozen=True)
 class ModelSetup:
-    """What a prediction runs: the car (with its corrections), the model family, extra terms."""
+    """What a prediction runs: the car (corrections and ``[other_terms]`` included) and the model family."""
 
     car: CarParams
     dynamic: bool = False
-    extra: ExtraTerms | None = None
     substeps: int = field(default=0)  # RK4 steps per sample; 0: 2 (h = 17 ms at 30 Hz, well inside RK4 stability)
+
+
+def _piece_weights(delay_s: float, dt: float, pieces: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per piece p of a sample split into ``pieces``: index offset o_p and weight w_p such that the mean
+    of the held command shifted by delay_s over piece p of sample k is w_p u[k + o_p] + (1 - w_p) u[k + o_p + 1]."""
+    shift = np.arange(pieces) / pieces - delay_s / dt
+    offset = np.floor(shift + 1e-12)
+    weight = np.minimum(1.0, (offset + 1.0 - shift) * pieces)
+    return offset.astype(int), weight
 
 
 def delayed_command(traj: Trajectory, command: np.ndarray, idx: np.ndarray, delay_s: float) -> np.ndarray:
@@ -77,22 +58,119 @@ def delayed_command(traj: Trajectory, command: np.ndarray, idx: np.ndarray, dela
     """
     if delay_s <= 0.0:
         return command[idx]
-    steps = delay_s / traj.dt
-    m = int(np.floor(steps))
-    f = steps - m
+    offset, weight = _piece_weights(delay_s, traj.dt, 1)
     first = traj.seg_start[idx]
-    a = command[np.maximum(idx - m, first)]
-    b = command[np.maximum(idx - m - 1, first)]
-    return (1.0 - f) * a + f * b
+    a = command[np.maximum(idx + offset[0], first)]
+    b = command[np.maximum(idx + offset[0] + 1, first)]
+    return weight[0] * a + (1.0 - weight[0]) * b
 
 
-def inputs_at(traj: Trajectory, idx: np.ndarray, car: CarParams) -> tuple[np.ndarray, np.ndarray]:
-    """(throttle, steering command) acting during sample idx, after the car's delays."""
-    c = car.corrections
-    return (
-        delayed_command(traj, traj.throttle, idx, c.throttle_delay_s),
-        delayed_command(traj, traj.steering, idx, c.steering_delay_s),
-    )
+@dataclass(frozen=True)
+class Actuation:
+    """Inputs acting on the car over samples first..first+steps-1 of each window, per RK4 sub-step."""
+
+    throttle: np.ndarray  # (N, steps, n_sub): mean applied throttle over the sub-step
+    steering: np.ndarray  # (N, steps, n_sub): linkage angle after play and asymmetry (before gain/offset)
+    motor_scale: np.ndarray | None  # (N, steps) motor force scale (battery drift); None without drift
+
+
+def _rate_limited(a: np.ndarray, target: np.ndarray, rate: float, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """(end value, exact mean) of an actuator moving from a toward a constant target at <= rate over length."""
+    gap = target - a
+    reach = rate * length
+    end = a + np.clip(gap, -reach, reach)
+    # Linear all the way, or reaching the target after tau = |gap| / rate and holding it.
+    frac = np.minimum(np.abs(gap) / max(reach, 1e-300), 1.0)
+    mean = np.where(np.abs(gap) <= reach, target - 0.5 * gap * frac, 0.5 * (a + end))
+    return end, mean
+
+
+_ACTUATION_CACHE: dict[tuple, Actuation] = {}
+
+
+def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n_sub: int) -> Actuation:
+    """The car's command chain for every window (docs/sysid.md, "The model being checked"): delay (exact
+    mean of the shifted held command), limits, rate limits, steering play, left/right asymmetry, motor drift.
+
+    The actuators start at the delayed, limited command ACTUATOR_RUN_IN_S before ``first`` (or at the
+    segment start) and run over the run-in unrecorded. Cached on the actuator parameters: a fit that
+    varies only gain, offset, drag or grip reuses it.
+    """
+    c, act = car.corrections, car.actuators
+    key = (id(traj), first.tobytes(), steps, n_sub, c.steering_delay_s, c.throttle_delay_s,
+           c.steering_backlash_rad, c.steering_gain_asymmetry, c.motor_force_drift_per_s, act)
+    hit = _ACTUATION_CACHE.get(key)
+    if hit is not None:
+        return hit
+    run_in = np.minimum(int(round(ACTUATOR_RUN_IN_S / traj.dt)), first - traj.seg_start[first])
+    begin = first - run_in
+    n_run = int(run_in.max()) if run_in.size else 0
+    pieces = n_sub * PIECES_PER_SUBSTEP
+    length = traj.dt / pieces
+    last = traj.throttle.size - 1
+    seg_first = traj.seg_start[first]
+    channels = []
+    for command, delay, lo, hi, rate in (
+            (traj.throttle, c.throttle_delay_s, act.throttle_min, act.throttle_max, act.throttle_rate_limit_per_s),
+            (traj.steering, c.steering_delay_s, -act.max_steering_rad, act.max_steering_rad,
+             act.steering_rate_limit_radps)):
+        offset, weight = _piece_weights(delay, traj.dt, pieces)
+        limited = np.clip(command, lo, hi)
+
+        def target(k: np.ndarray, p: int, offset=offset, weight=weight, limited=limited) -> np.ndarray:
+            i0 = np.clip(k + offset[p], seg_first, last)
+            i1 = np.clip(k + offset[p] + 1, seg_first, last)
+            return weight[p] * limited[i0] + (1.0 - weight[p]) * limited[i1]
+
+        channels.append((target, rate))
+    (throttle_target, throttle_rate), (steer_target, steer_rate) = channels
+    # Windows with a shorter run-in (near a segment start) hold their first target until their own start.
+    k0 = np.maximum(begin, first - n_run)
+    u = throttle_target(k0, 0)
+    s = steer_target(k0, 0)
+    w = s.copy()
+    backlash, asym = c.steering_backlash_rad, c.steering_gain_asymmetry
+    thr_out = np.empty((first.size, steps, n_sub))
+    steer_out = np.empty((first.size, steps, n_sub))
+    thr_acc = np.zeros(first.size)
+    steer_acc = np.zeros(first.size)
+    for j in range(-n_run, steps):
+        k = first + j
+        active = k >= begin
+        for p in range(pieces):
+            u_end, u_mean = _rate_limited(u, throttle_target(k, p), throttle_rate, length)
+            s_end, s_mean = _rate_limited(s, steer_target(k, p), steer_rate, length)
+            if backlash > 0.0:
+                w_mean = play(w, s_mean, backlash)
+                w = np.where(active, play(w, s_end, backlash), w)
+            else:
+                w_mean = s_mean
+            u = np.where(active, u_end, u)
+            s = np.where(active, s_end, s)
+            if j >= 0:
+                thr_acc += u_mean
+                steer_acc += w_mean
+                if (p + 1) % PIECES_PER_SUBSTEP == 0:
+                    q = p // PIECES_PER_SUBSTEP
+                    thr_out[:, j, q] = thr_acc / PIECES_PER_SUBSTEP
+                    steer_out[:, j, q] = steer_acc / PIECES_PER_SUBSTEP
+                    thr_acc[:] = 0.0
+                    steer_acc[:] = 0.0
+    if asym != 0.0:
+        steer_out = asymmetric(steer_out, asym)
+    motor_scale = None
+    if c.motor_force_drift_per_s != 0.0:
+        t_mid = traj.t[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt - traj.t[0]
+        motor_scale = motor_force_scale(c.motor_force_drift_per_s, t_mid)
+    out = Actuation(thr_out, steer_out, motor_scale)
+    if len(_ACTUATION_CACHE) > 64:
+        _ACTUATION_CACHE.clear()
+    _ACTUATION_CACHE[key] = out
+    return out
+
+
+def _with_motor_scale(k: ModelCoefficients, scale: np.ndarray | None) -> ModelCoefficients:
+    return k if scale is None else dataclasses.replace(k, motor_force=k.motor_force * scale)
 
 
 def predict(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup) -> np.ndarray:
@@ -110,32 +188,32 @@ def predict(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetu
 
 def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup) -> np.ndarray:
     car = setup.car
-    k = ModelCoefficients.from_params(car)
+    k_nominal = ModelCoefficients.from_params(car)
     lr, wheelbase, mass = car.geometry.lr_m, car.geometry.wheelbase_m, car.inertia.mass_kg
     n_sub = setup.substeps or 2
     h = traj.dt / n_sub
+    acts = actuation(traj, starts, horizon, car, n_sub)
+    extra = car_extra_terms(car)
     out = np.empty((starts.size, horizon + 1, 4))
     x, y, th, v = traj.xs[starts], traj.ys[starts], traj.headings[starts], traj.speed[starts]
     out[:, 0] = np.stack([x, y, th, v], axis=-1)
     for j in range(horizon):
-        idx = starts + j
-        throttle, steering = inputs_at(traj, idx, car)
-        delta = k.steering_gain * steering + k.steering_offset
-        beta = np.arctan(lr / wheelbase * np.tan(delta))
-        yaw_per_speed = np.sin(beta) / lr
-        if setup.extra is not None:
-            extra = setup.extra
+        k = _with_motor_scale(k_nominal, None if acts.motor_scale is None else acts.motor_scale[:, j])
+        for q in range(n_sub):
+            throttle = acts.throttle[:, j, q]
+            delta = k.steering_gain * acts.steering[:, j, q] + k.steering_offset
+            beta = np.arctan(lr / wheelbase * np.tan(delta))
+            yaw_per_speed = np.sin(beta) / lr
 
             def rates(v_):
-                dv, dth = extra.evaluate(v_, throttle, delta)
-                return drive_force(v_, throttle, k, partials=False)[0] / mass + dv, v_ * yaw_per_speed + dth
-        else:
+                a = drive_force(v_, throttle, k, partials=False)[0] / mass
+                w = v_ * yaw_per_speed
+                if extra:
+                    dv, dth = extra_rates(v_, throttle, delta, extra)
+                    return a + dv, w + dth
+                return a, w
 
-            def rates(v_):
-                return drive_force(v_, throttle, k, partials=False)[0] / mass, v_ * yaw_per_speed
-
-        for _ in range(n_sub):
-            # RK4 on (x, y, heading, speed); inputs constant over the sample.
+            # RK4 on (x, y, heading, speed); inputs constant over the sub-step.
             a1, w1 = rates(v)
             c1x, c1y = v * np.cos(th + beta), v * np.sin(th + beta)
             v2, th2 = v + 0.5 * h * a1, th + 0.5 * h * w1
@@ -162,57 +240,52 @@ def _measured_state(traj: Trajectory, idx: np.ndarray) -> np.ndarray:
 
 def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup) -> np.ndarray:
     car = setup.car
-    k = ModelCoefficients.from_params(car)
+    k_nominal = ModelCoefficients.from_params(car)
     n_sub = setup.substeps or 2
     h = traj.dt / n_sub
+    extra = car_extra_terms(car)
     # Lateral velocity and yaw rate are not measured and their derivative estimates are poor under
     # fast steering, so they come from running the model over the preceding WARMUP_S from the
     # (smoothed) measured state; pose and forward speed are then reset to the measurements.
     warm = min(int(round(WARMUP_S / traj.dt)), int(np.min(starts - traj.seg_start[starts])))
+    acts = actuation(traj, starts - warm, warm + horizon, car, n_sub)
     state = _measured_state(traj, starts - warm)
-    for j in range(warm):
-        state = _rk4_steps(state, traj, starts - warm + j, setup, k, h, n_sub)
-    measured = _measured_state(traj, starts)
-    state[:, :4] = measured[:, :4]
     out = np.empty((starts.size, horizon + 1, 4))
 
     def record(j: int) -> None:
         speed = np.hypot(state[:, 3], state[:, 4]) * np.sign(state[:, 3])
         out[:, j] = np.stack([state[:, 0], state[:, 1], state[:, 2], speed], axis=-1)
 
-    record(0)
-    for j in range(horizon):
-        state = _rk4_steps(state, traj, starts + j, setup, k, h, n_sub)
-        record(j + 1)
+    for j in range(warm + horizon):
+        if j == warm:
+            state[:, :4] = _measured_state(traj, starts)[:, :4]
+            record(0)
+        k = _with_motor_scale(k_nominal, None if acts.motor_scale is None else acts.motor_scale[:, j])
+        for q in range(n_sub):
+            throttle, steering = acts.throttle[:, j, q], acts.steering[:, j, q]
+            u = np.stack([throttle, steering], axis=-1)
+            if extra:
+                delta = k.steering_gain * steering + k.steering_offset
+
+                def f(s):
+                    xdot = derivative(s, u, k)
+                    dv, dth = extra_rates(s[:, 3], throttle, delta, extra)
+                    xdot[:, 3] += dv
+                    xdot[:, 2] += dth
+                    return xdot
+            else:
+
+                def f(s):
+                    return derivative(s, u, k)
+
+            k1 = f(state)
+            k2 = f(state + 0.5 * h * k1)
+            k3 = f(state + 0.5 * h * k2)
+            k4 = f(state + h * k3)
+            state = state + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        if j >= warm:
+            record(j - warm + 1)
     return out
-
-
-def _rk4_steps(state: np.ndarray, traj: Trajectory, idx: np.ndarray, setup: ModelSetup, k: ModelCoefficients,
-               h: float, n_sub: int) -> np.ndarray:
-    """Advance the dynamic model over sample idx (n_sub RK4 steps of h, inputs held)."""
-    throttle, steering = inputs_at(traj, idx, setup.car)
-    u = np.stack([throttle, steering], axis=-1)
-    if setup.extra is not None:
-        extra, delta = setup.extra, k.steering_gain * steering + k.steering_offset
-
-        def f(s):
-            xdot = derivative(s, u, k)
-            dv, dth = extra.evaluate(s[:, 3], throttle, delta)
-            xdot[:, 3] += dv
-            xdot[:, 2] += dth
-            return xdot
-    else:
-
-        def f(s):
-            return derivative(s, u, k)
-
-    for _ in range(n_sub):
-        k1 = f(state)
-        k2 = f(state + 0.5 * h * k1)
-        k3 = f(state + 0.5 * h * k2)
-        k4 = f(state + h * k3)
-        state = state + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return state
 
 
 @dataclass(frozen=True)

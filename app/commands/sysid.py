@@ -38,6 +38,7 @@ def register(sub) -> None:
     g.add_argument("--track", default="oval", help="track name or file for tracks.load_track (default oval)")
     g.add_argument("--position-noise", type=float, default=None, help="camera position noise std [m] (default 0.002)")
     g.add_argument("--heading-noise", type=float, default=None, help="camera heading noise std [rad] (default 0.01)")
+    g.add_argument("--rate", type=float, default=30.0, help="command and camera rate [Hz] (default 30)")
     g.set_defaults(func=run_generate)
 
     c = sub.add_parser("sysid-closed-loop",
@@ -107,29 +108,36 @@ def run(args) -> int:
                       encoding="utf-8")
     elapsed = time.perf_counter() - started
     if result.selected:
-        summary = ", ".join(f"{e.effect} ({100 * e.heldout_error_reduction:.0f} %)" for e in result.selected)
+        summary = ", ".join(f"{e.effect} ({100 * e.reduction_vs_nominal:.0f} %)" for e in result.selected)
+        if result.unnamed_effect_remains:
+            summary += " -- an effect the tool cannot name remains (`other`)"
     else:
         summary = "no significant effect"
     print(f"{summary}; held-out horizon position RMSE {100 * result.planner.heldout.horizon_pos_rmse_m:.1f} cm "
-          f"(planner) -> {100 * result.final.heldout.horizon_pos_rmse_m:.1f} cm; wrote {report}, {params_out}"
+          f"(planner) / {100 * result.dynamic_nominal.heldout.horizon_pos_rmse_m:.1f} cm (nominal dynamic) -> "
+          f"{100 * result.final.heldout.horizon_pos_rmse_m:.1f} cm ({100 * result.heldout_error_reduction:.0f} % "
+          f"vs nominal dynamic); wrote {report}, {params_out}"
           + (f", {json_path}" if json_path else "") + f" in {elapsed:.1f} s")
     return 0
 
 
 def run_generate(args) -> int:
-    from sysid.generate import CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, generate_log, parse_effects
+    from sysid.generate import (CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, ExcitationSettings, generate_log,
+                                parse_effects)
     from sysid.log import write_log_csv
     from vehicles.params import load_car_params
 
     if not args.minutes > 0:
         raise UserError(f"--minutes must be > 0, got {args.minutes}")
+    if not 1.0 <= args.rate <= 1000.0:
+        raise UserError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
     effects = parse_effects(args.effects)
     car = load_car_params(args.car_params)
     pos = CAMERA_POSITION_NOISE_M if args.position_noise is None else args.position_noise
     head = CAMERA_HEADING_NOISE_RAD if args.heading_noise is None else args.heading_noise
     started = time.perf_counter()
     log = generate_log(car, effects, args.minutes, args.seed, position_noise_m=pos, heading_noise_rad=head,
-                       track=args.track)
+                       track=args.track, excitation=ExcitationSettings(control_rate_hz=args.rate))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_log_csv(out, log)
