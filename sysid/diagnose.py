@@ -22,7 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sysid.data import Trajectory
-from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, predict, prediction_errors
+from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, predict, prediction_errors, substeps
 from sysid.sparse import coefficient_std, stlsq
 from vehicles.extra_terms import LIBRARY, terms_from_coefficients
 from vehicles.params import CarParams, OtherTermsParams
@@ -269,32 +269,51 @@ def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetu
     def setup_for(theta: np.ndarray) -> ModelSetup:
         return ModelSetup(with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic)
 
-    def resid(theta: np.ndarray) -> np.ndarray:
-        return _residual(traj, starts, predict(traj, starts, horizon, setup_for(theta)), steps)
+    def resid_many(thetas: list[np.ndarray]) -> np.ndarray:
+        """Residuals of several parameter vectors, predicted in one batch: shape (len(thetas), M)."""
+        preds = predict(traj, starts, horizon, [setup_for(t) for t in thetas])
+        return np.stack([_residual(traj, starts, p, steps) for p in preds])
 
-    # Delays make the cost non-convex over whole samples: start from the best of a coarse grid.
+    # Delays and the play make the cost non-convex from the neutral value: start from the best of a
+    # coarse grid per such parameter (all trials in one batch).
+    trials = [x0]
     delay_idx = [i for i, n in enumerate(names) if n.endswith("_delay_s")]
     if delay_idx:
-        best, best_cost = x0, float(np.sum(resid(x0) ** 2))
         for d in np.arange(1, 6) * traj.dt * 1.5:
             trial = x0.copy()
             trial[delay_idx] = np.clip(x0[delay_idx] + d, lower[delay_idx], upper[delay_idx])
-            cost = float(np.sum(resid(trial) ** 2))
-            if cost < best_cost:
-                best, best_cost = trial, cost
-        x0 = best
+            trials.append(trial)
     for i, n in enumerate(names):
-        if n in _START_GRID:
-            best, best_cost = x0, float(np.sum(resid(x0) ** 2))
-            for v in _START_GRID[n]:
-                trial = x0.copy()
-                trial[i] = np.clip(v, lower[i], upper[i])
-                cost = float(np.sum(resid(trial) ** 2))
-                if cost < best_cost:
-                    best, best_cost = trial, cost
-            x0 = best
-    res = least_squares(resid, x0, bounds=(lower, upper), x_scale=scale, diff_step=1e-3, max_nfev=30,
-                        xtol=1e-6, ftol=1e-8)
+        for v in _START_GRID.get(n, ()):
+            trial = x0.copy()
+            trial[i] = np.clip(v, lower[i], upper[i])
+            trials.append(trial)
+    if len(trials) > 1:
+        costs = np.sum(resid_many(trials) ** 2, axis=1)
+        x0 = trials[int(np.argmin(costs))]
+    # Forward differences of all parameters in one batch with the point itself.
+    step = 0.05 * scale
+    last: dict[str, np.ndarray] = {}
+
+    def evaluate_with_jacobian(theta: np.ndarray) -> None:
+        h = np.where(theta + step <= upper, step, -step)
+        thetas = [theta] + [theta + h[i] * np.eye(theta.size)[i] for i in range(theta.size)]
+        r = resid_many(thetas)
+        last["x"], last["f"] = theta.copy(), r[0]
+        last["jac"] = ((r[1:] - r[0]) / h[:, None]).T
+
+    def fun(theta: np.ndarray) -> np.ndarray:
+        if "x" not in last or not np.array_equal(last["x"], theta):
+            evaluate_with_jacobian(theta)
+        return last["f"]
+
+    def jac(theta: np.ndarray) -> np.ndarray:
+        if "x" not in last or not np.array_equal(last["x"], theta):
+            evaluate_with_jacobian(theta)
+        return last["jac"]
+
+    res = least_squares(fun, x0, jac=jac, bounds=(lower, upper), x_scale=scale, max_nfev=30, xtol=1e-6,
+                        ftol=1e-8)
     n_per = steps.size * 4
     std = _sandwich_std(res.jac, res.fun, _clusters(traj, starts, n_per, s.bootstrap_block_s))
     # Back to physical units: residuals were scaled, parameters were not.
@@ -347,7 +366,7 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     r_th = (traj.headings[end] - pred[:, -1, 2]) / (lag * traj.dt)
     car = plain.car
     # Terms at the mean inputs and speed over the 0.1 s the residual accumulates over.
-    acts = actuation(traj, starts, lag, car, plain.substeps or 2)
+    acts = actuation(traj, starts, lag, car, substeps(plain, traj.dt))
     throttle = acts.throttle.mean(axis=(1, 2))
     delta = car.corrections.steering_gain * acts.steering.mean(axis=(1, 2)) + car.corrections.steering_offset_rad
     v = traj.speed[starts[:, None] + np.arange(lag + 1)[None, :]].mean(axis=1)
@@ -395,6 +414,38 @@ class _Selection:
     switched_after: list[str] | None
 
 
+_SCORE_TOP = 2  # candidates the score test adds to a forward-selection round
+_SCORE_MIN = 0.01  # smallest predicted relative drop of the training cost that counts
+
+
+def _score_test(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, cands: list[Candidate],
+                s: SysidSettings) -> dict[str, float]:
+    """Predicted relative drop of the training cost per candidate: one Gauss-Newton step from the current
+    values (secants over each parameter's typical size, all in one batch; bounds respected)."""
+    steps = _fit_steps(horizon, s.fit_steps)
+    corr = base.car.corrections
+    setups, cols = [base], []
+    for c in cands:
+        for p, lo, hi, size in zip(c.params, c.lower, c.upper, c.scale):
+            v = getattr(corr, p)
+            h = size if v + size <= hi else -size
+            setups.append(ModelSetup(with_corrections(base.car, {p: v + h}), base.dynamic, base.substeps))
+            cols.append((c.effect, v, h, lo, hi))
+    preds = predict(traj, split.fit, horizon, setups)
+    r0 = _residual(traj, split.fit, preds[0], steps)
+    jac = np.stack([(_residual(traj, split.fit, pr, steps) - r0) / h
+                    for pr, (_, _, h, _, _) in zip(preds[1:], cols)], axis=1)
+    cost0 = float(r0 @ r0)
+    out = {}
+    for c in cands:
+        idx = [i for i, col in enumerate(cols) if col[0] == c.effect]
+        step = np.linalg.lstsq(jac[:, idx], -r0, rcond=None)[0]
+        step = np.clip(step, [cols[i][3] - cols[i][1] for i in idx], [cols[i][4] - cols[i][1] for i in idx])
+        r1 = r0 + jac[:, idx] @ step
+        out[c.effect] = 1.0 - float(r1 @ r1) / cost0 if cost0 > 0 else 0.0
+    return out
+
+
 def _leave_one_out(traj: Trajectory, split: Split, horizon: int, chosen: list[Candidate], named: Fit, full: Fit,
                    reference: Fit, s: SysidSettings, with_other: bool) -> list[tuple[CandidateResult, int, Fit, Fit]]:
     """Each chosen effect judged against ``full`` refitted without it: (verdict, index, model without it,
@@ -431,10 +482,16 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
     selected: list[CandidateResult] = []
     by_name = {c.effect: c for c in CANDIDATES}
     while len(chosen) < s.max_effects:
-        # Later rounds only revisit candidates that helped at all on their own (keeps the joint refits
-        # few); an effect masked by a larger one still helps a little alone.
+        # Later rounds refit jointly only the candidates that helped on their own and the ones a score
+        # test on top of the current model ranks highest: an effect masked by a larger one (a play
+        # hidden behind an offset) may not help alone, but it does once the larger one is in.
         pool = [by_name[c.effect] for c in candidates if by_name[c.effect] not in chosen
                 and c.heldout_error_reduction > 0]
+        if chosen:
+            rest = [c for c in CANDIDATES if c not in chosen and (current.setup.dynamic or not c.dynamic)]
+            scores = _score_test(traj, split, horizon, current.setup, rest, s)
+            ranked = sorted(scores, key=scores.get, reverse=True)
+            pool += [by_name[e] for e in ranked[:_SCORE_TOP] if scores[e] > _SCORE_MIN and by_name[e] not in pool]
         if not pool:
             break
         trials = []

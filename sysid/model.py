@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -38,7 +39,7 @@ class ModelSetup:
 
     car: CarParams
     dynamic: bool = False
-    substeps: int = field(default=0)  # RK4 steps per sample; 0: 2 (h = 17 ms at 30 Hz, well inside RK4 stability)
+    substeps: int = field(default=0)  # RK4 steps per sample; 0: sub-steps of <= MAX_SUBSTEP_S (2 at 30 Hz, 1 at 60 Hz)
 
 
 def _piece_weights(delay_s: float, dt: float, pieces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -169,39 +170,69 @@ def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n
     return out
 
 
+MAX_SUBSTEP_S = 0.0175  # longest RK4 sub-step: 2 per sample at 30 Hz, 1 at 60 Hz
+
+
+def substeps(setup: ModelSetup, dt: float) -> int:
+    return setup.substeps or max(1, int(np.ceil(dt / MAX_SUBSTEP_S - 1e-9)))
+
+
+def _stack(setups: Sequence[ModelSetup], traj: Trajectory, first: np.ndarray, steps: int, n_sub: int):
+    """Coefficients (one per window, windows of setup 0 first) and actuation of several setups."""
+    n = first.size
+    cars = [s.car for s in setups]
+    if any(c.other_terms != cars[0].other_terms or c.geometry != cars[0].geometry for c in cars[1:]):
+        raise ValueError("predict: stacked setups may differ in [corrections] only")
+    acts = [actuation(traj, first, steps, c, n_sub) for c in cars]
+    k = ModelCoefficients.from_params(cars)
+    if len(cars) == 1:
+        k = ModelCoefficients(**{f.name: float(getattr(k, f.name)[0]) for f in dataclasses.fields(k)})
+        return k, acts[0].throttle, acts[0].steering, acts[0].motor_scale
+    k = ModelCoefficients(**{f.name: np.repeat(getattr(k, f.name), n) for f in dataclasses.fields(k)})
+    scale = None
+    if any(a.motor_scale is not None for a in acts):
+        scale = np.concatenate([np.ones((n, steps)) if a.motor_scale is None else a.motor_scale for a in acts])
+    return (k, np.concatenate([a.throttle for a in acts]), np.concatenate([a.steering for a in acts]), scale)
+
+
 def _with_motor_scale(k: ModelCoefficients, scale: np.ndarray | None) -> ModelCoefficients:
     return k if scale is None else dataclasses.replace(k, motor_force=k.motor_force * scale)
 
 
-def predict(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup) -> np.ndarray:
+def predict(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup | Sequence[ModelSetup]) -> np.ndarray:
     """Predicted [x, y, heading, speed] at steps 0..horizon from each start: shape (N, horizon+1, 4).
 
-    Every start must have ``start + horizon`` inside its segment.
+    Given a sequence of S setups (same model family, differing in ``[corrections]`` only), all are run
+    in one batch and the result has shape (S, N, horizon+1, 4). Every start must have
+    ``start + horizon`` inside its segment.
     """
     starts = np.asarray(starts, dtype=int)
     if np.any(starts + horizon >= traj.seg_end[starts]):
         raise ValueError("predict: a prediction window runs past the end of its segment")
-    if setup.dynamic:
-        return _predict_dynamic(traj, starts, horizon, setup)
-    return _predict_kinematic(traj, starts, horizon, setup)
+    setups = [setup] if isinstance(setup, ModelSetup) else list(setup)
+    if len({s.dynamic for s in setups}) != 1 or len({s.substeps for s in setups}) != 1:
+        raise ValueError("predict: stacked setups must share the model family and sub-steps")
+    run = _predict_dynamic if setups[0].dynamic else _predict_kinematic
+    out = run(traj, starts, horizon, setups)
+    return out[0] if isinstance(setup, ModelSetup) else out
 
 
-def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup) -> np.ndarray:
-    car = setup.car
-    k_nominal = ModelCoefficients.from_params(car)
+def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setups: list[ModelSetup]) -> np.ndarray:
+    car = setups[0].car
     lr, wheelbase, mass = car.geometry.lr_m, car.geometry.wheelbase_m, car.inertia.mass_kg
-    n_sub = setup.substeps or 2
+    n_sub = substeps(setups[0], traj.dt)
     h = traj.dt / n_sub
-    acts = actuation(traj, starts, horizon, car, n_sub)
+    k_all, thr, steer, motor_scale = _stack(setups, traj, starts, horizon, n_sub)
     extra = car_extra_terms(car)
-    out = np.empty((starts.size, horizon + 1, 4))
-    x, y, th, v = traj.xs[starts], traj.ys[starts], traj.headings[starts], traj.speed[starts]
+    idx = np.tile(starts, len(setups))
+    out = np.empty((idx.size, horizon + 1, 4))
+    x, y, th, v = traj.xs[idx], traj.ys[idx], traj.headings[idx], traj.speed[idx]
     out[:, 0] = np.stack([x, y, th, v], axis=-1)
     for j in range(horizon):
-        k = _with_motor_scale(k_nominal, None if acts.motor_scale is None else acts.motor_scale[:, j])
+        k = _with_motor_scale(k_all, None if motor_scale is None else motor_scale[:, j])
         for q in range(n_sub):
-            throttle = acts.throttle[:, j, q]
-            delta = k.steering_gain * acts.steering[:, j, q] + k.steering_offset
+            throttle = thr[:, j, q]
+            delta = k.steering_gain * steer[:, j, q] + k.steering_offset
             beta = np.arctan(lr / wheelbase * np.tan(delta))
             yaw_per_speed = np.sin(beta) / lr
 
@@ -230,7 +261,7 @@ def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup
             th = th + h / 6.0 * (w1 + 2 * w2 + 2 * w3 + w4)
             v = v + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
         out[:, j + 1] = np.stack([x, y, th, v], axis=-1)
-    return out
+    return out.reshape(len(setups), starts.size, horizon + 1, 4)
 
 
 def _measured_state(traj: Trajectory, idx: np.ndarray) -> np.ndarray:
@@ -238,19 +269,19 @@ def _measured_state(traj: Trajectory, idx: np.ndarray) -> np.ndarray:
                      traj.yaw_rate[idx]], axis=-1)
 
 
-def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup) -> np.ndarray:
-    car = setup.car
-    k_nominal = ModelCoefficients.from_params(car)
-    n_sub = setup.substeps or 2
+def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setups: list[ModelSetup]) -> np.ndarray:
+    car = setups[0].car
+    n_sub = substeps(setups[0], traj.dt)
     h = traj.dt / n_sub
     extra = car_extra_terms(car)
     # Lateral velocity and yaw rate are not measured and their derivative estimates are poor under
     # fast steering, so they come from running the model over the preceding WARMUP_S from the
     # (smoothed) measured state; pose and forward speed are then reset to the measurements.
     warm = min(int(round(WARMUP_S / traj.dt)), int(np.min(starts - traj.seg_start[starts])))
-    acts = actuation(traj, starts - warm, warm + horizon, car, n_sub)
-    state = _measured_state(traj, starts - warm)
-    out = np.empty((starts.size, horizon + 1, 4))
+    k_all, thr, steer, motor_scale = _stack(setups, traj, starts - warm, warm + horizon, n_sub)
+    idx = np.tile(starts, len(setups))
+    state = _measured_state(traj, idx - warm)
+    out = np.empty((idx.size, horizon + 1, 4))
 
     def record(j: int) -> None:
         speed = np.hypot(state[:, 3], state[:, 4]) * np.sign(state[:, 3])
@@ -258,11 +289,11 @@ def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setup: 
 
     for j in range(warm + horizon):
         if j == warm:
-            state[:, :4] = _measured_state(traj, starts)[:, :4]
+            state[:, :4] = _measured_state(traj, idx)[:, :4]
             record(0)
-        k = _with_motor_scale(k_nominal, None if acts.motor_scale is None else acts.motor_scale[:, j])
+        k = _with_motor_scale(k_all, None if motor_scale is None else motor_scale[:, j])
         for q in range(n_sub):
-            throttle, steering = acts.throttle[:, j, q], acts.steering[:, j, q]
+            throttle, steering = thr[:, j, q], steer[:, j, q]
             u = np.stack([throttle, steering], axis=-1)
             if extra:
                 delta = k.steering_gain * steering + k.steering_offset
@@ -285,7 +316,7 @@ def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setup: 
             state = state + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
         if j >= warm:
             record(j - warm + 1)
-    return out
+    return out.reshape(len(setups), starts.size, horizon + 1, 4)
 
 
 @dataclass(frozen=True)
