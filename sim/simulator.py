@@ -381,6 +381,11 @@ class Simulator:
             t=self.time,
         )
 
+    def linkage_inputs(self, i: int) -> np.ndarray:
+        """[throttle, linkage angle] the physics uses for car i now: the servo angle after the steering
+        play and the left/right asymmetry (the wheel angle is gain * this + offset)."""
+        return np.array(self._effective[self._car_index(i)])
+
     @property
     def events(self) -> list[SimEvent]:
         return list(self._events)

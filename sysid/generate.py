@@ -100,6 +100,34 @@ class ReversedTrack:
         return self.base.is_inside_frenet(np.mod(self.length - np.asarray(s), self.length), -np.asarray(ey), margin)
 
 
+class StanleyDriver(PurePursuitController):
+    """A second driver for generated logs: Stanley steering (heading error + atan(k e / (v + v0)) at the
+    front axle, plus the curvature's feed-forward wheel angle) and a proportional speed loop; the
+    speed reference and feed-forward throttle are the pure-pursuit driver's."""
+
+    gain = 2.5  # 1/s: cross-track gain k
+    softening_mps = 0.3  # v0
+
+    def command(self, state, dt: float) -> tuple[float, float]:
+        x, y, heading, vx = (float(v) for v in state[:4])
+        geo, act = self.params.geometry, self.params.actuators
+        fx, fy = x + geo.lf_m * math.cos(heading), y + geo.lf_m * math.sin(heading)
+        s, ey, epsi = self.track.to_frenet(np.array([fx]), np.array([fy]), np.array([heading]))
+        s, ey, epsi = (float(np.asarray(v).reshape(-1)[0]) for v in (s, ey, epsi))
+        kappa = float(np.asarray(self.track.curvature(np.array([s]))).reshape(-1)[0])
+        steering = (math.atan(geo.wheelbase_m * kappa) - epsi
+                    - math.atan2(self.gain * (ey - self.lateral_offset_m), max(vx, 0.0) + self.softening_mps))
+        corr = self.params.corrections
+        steering = (steering - corr.steering_offset_rad) / corr.steering_gain
+        steering = min(max(steering, -act.max_steering_rad), act.max_steering_rad)
+        v_ref = self.speed_reference(s)
+        throttle = self.feedforward_throttle(v_ref) + 1.2 * self.speed_kp * (v_ref - vx)
+        return min(max(throttle, act.throttle_min), act.throttle_max), steering
+
+
+DRIVERS = {"pursuit": PurePursuitController, "stanley": StanleyDriver}
+
+
 @dataclass(frozen=True)
 class ExcitationSettings:
     """How the generator excites the car; defaults keep lateral acceleration moderate."""
@@ -145,8 +173,13 @@ def generate_log(
     excitation: ExcitationSettings = ExcitationSettings(),
     track: str | Any = "oval",
     physics_dt: float = 0.001,
+    driver: str = "pursuit",
 ) -> DriveLog:
-    """A log of ``minutes`` of driving on ``track`` (a tracks/ name or a Track object)."""
+    """A log of ``minutes`` of driving on ``track`` (a tracks/ name or a Track object) by ``driver``
+    (a name of DRIVERS). ``car`` is the simulated car (its ``[corrections]`` and ``[other_terms]``
+    included); the effects are added on top."""
+    if driver not in DRIVERS:
+        raise ValueError(f"driver: unknown {driver!r}; known: {sorted(DRIVERS)}")
     if not (math.isfinite(minutes) and minutes > 0):
         raise ValueError(f"minutes: must be > 0, got {minutes!r}")
     if isinstance(track, str):
@@ -163,8 +196,8 @@ def generate_log(
         sim = Simulator(path, [car], effects=stint_eff, seed=int(rng.integers(2**31)) + stint, physics_dt=physics_dt,
                         check_dt=0.01)
         sim.reset([_start_state(path, float(rng.uniform(0, path.length)))])
-        ctrl = PurePursuitController(path, car, target_speed_mps=excitation.speed_min_mps,
-                                     max_lateral_accel_mps2=excitation.max_lateral_accel_mps2)
+        ctrl = DRIVERS[driver](path, car, target_speed_mps=excitation.speed_min_mps,
+                               max_lateral_accel_mps2=excitation.max_lateral_accel_mps2)
         steer_dither = _dither(rng, stint_steps, excitation.steering_dither_rad, excitation.dither_corner_hz,
                                excitation.control_rate_hz)
         throttle_dither = _dither(rng, stint_steps, excitation.throttle_dither, excitation.dither_corner_hz,

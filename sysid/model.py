@@ -82,6 +82,8 @@ def _rate_limited(a: np.ndarray, target: np.ndarray, rate: float, length: float)
     end = a + np.clip(gap, -reach, reach)
     # Linear all the way, or reaching the target after tau = |gap| / rate and holding it.
     frac = np.minimum(np.abs(gap) / max(reach, 1e-300), 1.0)
+    if length <= 0.0:
+        return a, a
     mean = np.where(np.abs(gap) <= reach, target - 0.5 * gap * frac, 0.5 * (a + end))
     return end, mean
 
@@ -118,17 +120,27 @@ def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n
         offset, weight = _piece_weights(delay, traj.dt, pieces)
         limited = np.clip(command, lo, hi)
 
-        def target(k: np.ndarray, p: int, offset=offset, weight=weight, limited=limited) -> np.ndarray:
-            i0 = np.clip(k + offset[p], seg_first, last)
-            i1 = np.clip(k + offset[p] + 1, seg_first, last)
-            return weight[p] * limited[i0] + (1.0 - weight[p]) * limited[i1]
+        def move(a: np.ndarray, k: np.ndarray, p: int, offset=offset, weight=weight, limited=limited, rate=rate):
+            """(end, mean) over piece p of sample k: the held command switches once inside the piece, after
+            the fraction weight[p] of it (exact for the shifted zero-order hold; continuous in the delay)."""
+            first_target = limited[np.clip(k + offset[p], seg_first, last)]
+            w = weight[p]
+            if w >= 1.0:
+                return _rate_limited(a, first_target, rate, length)
+            mid, mean0 = _rate_limited(a, first_target, rate, w * length)
+            end, mean1 = _rate_limited(mid, limited[np.clip(k + offset[p] + 1, seg_first, last)], rate,
+                                       (1.0 - w) * length)
+            return end, w * mean0 + (1.0 - w) * mean1
 
-        channels.append((target, rate))
-    (throttle_target, throttle_rate), (steer_target, steer_rate) = channels
+        def start_value(k: np.ndarray, offset=offset, weight=weight, limited=limited) -> np.ndarray:
+            return limited[np.clip(k + offset[0] + (weight[0] <= 0.0), seg_first, last)]
+
+        channels.append((move, start_value))
+    (throttle_move, throttle_start), (steer_move, steer_start) = channels
     # Windows with a shorter run-in (near a segment start) hold their first target until their own start.
     k0 = np.maximum(begin, first - n_run)
-    u = throttle_target(k0, 0)
-    s = steer_target(k0, 0)
+    u = throttle_start(k0)
+    s = steer_start(k0)
     w = s.copy()
     backlash, asym = c.steering_backlash_rad, c.steering_gain_asymmetry
     thr_out = np.empty((first.size, steps, n_sub))
@@ -139,8 +151,8 @@ def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n
         k = first + j
         active = k >= begin
         for p in range(pieces):
-            u_end, u_mean = _rate_limited(u, throttle_target(k, p), throttle_rate, length)
-            s_end, s_mean = _rate_limited(s, steer_target(k, p), steer_rate, length)
+            u_end, u_mean = throttle_move(u, k, p)
+            s_end, s_mean = steer_move(s, k, p)
             if backlash > 0.0:
                 w_mean = play(w, s_mean, backlash)
                 w = np.where(active, play(w, s_end, backlash), w)
