@@ -646,6 +646,10 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     for i, (before, _) in enumerate(effect_steps):
         selected[i] = dataclasses.replace(
             selected[i], reduction_vs_nominal=(before.heldout.horizon_pos_rmse_m - final_rmse) / nominal_rmse)
+    # Named effects best first, `other` (the remainder) last.
+    order = sorted(range(len(selected)), key=lambda i: (selected[i].effect == "other",
+                                                        -selected[i].reduction_vs_nominal))
+    selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
     car_out = dataclasses.replace(with_corrections(car, {k: v for k, v in final_values.items()}),
                                   other_terms=current.setup.car.other_terms)
     planner_after = evaluate(traj, split, horizon, ModelSetup(car_out), tuple(final_values), final_values, final_std)
