@@ -167,3 +167,35 @@ def test_an_effect_outside_the_library_of_names_is_reported_as_other_and_written
     assert result.car_out.corrections == NOMINAL.corrections
     assert result.car_out.other_terms.yaw_rate_u_v == pytest.approx(0.5, rel=0.2)
     assert result.heldout_error_reduction >= 0.5
+
+
+# ----------------------------------------------------------------------------- planner's command mapping
+def test_command_mapping_puts_the_wheels_where_planned_through_play_and_asymmetry():
+    """The planner's mapper with the identified play and asymmetry, commanding the simulator's car that
+    has them: after each step the wheel angle (gain * linkage + offset) is the planned one."""
+    from planning.commands import CommandMapper
+
+    corr = dict(steering_backlash_rad=0.06, steering_gain_asymmetry=0.15, steering_offset_rad=0.02,
+                steering_gain=0.9)
+    fast = dataclasses.replace(NOMINAL.actuators, steering_rate_limit_radps=1e6)
+    car = dataclasses.replace(NOMINAL, actuators=fast, corrections=dataclasses.replace(NOMINAL.corrections, **corr))
+    mapper = CommandMapper(car, 0.02)
+    sim = Simulator(load_track("oval"), [dataclasses.replace(car, corrections=NOMINAL.corrections)],
+                    effects=SimEffects(steering_backlash_rad=0.06, steering_gain_asymmetry=0.15,
+                                       steering_offset_rad=0.02, steering_gain=0.9))
+    sim.reset([[2.5, 0.5, 0.0, 0.5, 0.0, 0.0]])
+    planned = [0.1, 0.2, 0.15, 0.16, -0.1, -0.05, -0.2, 0.0, 0.3]
+    for delta in planned:
+        throttle, steering = mapper.commands(0.0, delta, speed=0.5)
+        sim.step([[throttle, steering]], 0.02)
+        wheel = 0.9 * sim.linkage_inputs(0)[1] + 0.02
+        assert wheel == pytest.approx(delta, abs=1e-9)
+    # Without the mapper's play compensation the reversals miss by up to half the play (times the gain).
+    plain = CommandMapper(dataclasses.replace(car, corrections=dataclasses.replace(
+        car.corrections, steering_backlash_rad=0.0)), 0.02)
+    sim.reset([[2.5, 0.5, 0.0, 0.5, 0.0, 0.0]])
+    misses = []
+    for delta in planned:
+        sim.step([list(plain.commands(0.0, delta, speed=0.5))], 0.02)
+        misses.append(abs(0.9 * sim.linkage_inputs(0)[1] + 0.02 - delta))
+    assert max(misses) > 0.02
