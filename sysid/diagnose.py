@@ -652,7 +652,10 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
     car_out = dataclasses.replace(with_corrections(car, {k: v for k, v in final_values.items()}),
                                   other_terms=current.setup.car.other_terms)
-    planner_after = evaluate(traj, split, horizon, ModelSetup(car_out), tuple(final_values), final_values, final_std)
+    # What a planner gets from the new file: its command mapping inverts the named effects; it has no
+    # [other_terms] (docs/sysid.md, "Fallback `other`").
+    planner_after = evaluate(traj, split, horizon, without_other_terms(ModelSetup(car_out)), tuple(final_values),
+                             final_values, final_std)
     return SysidResult(
         settings=s, horizon_steps=horizon, traj=traj, split=split, car_in=car, car_out=car_out,
         planner=planner, dynamic_nominal=dynamic_nominal, reference=reference,

@@ -156,8 +156,10 @@ def test_unseen_track_and_driver():
 def test_declared_rate_limits_leave_nothing_to_explain_under_hard_throttle_steps():
     result = _identified("", 46, hard=True)
     assert not result.significant and result.car_out == NOMINAL
+    # The delay candidate alone finds no throttle lag worth a third of a sample (before the rate limits were
+    # modelled, such steps gave a claimed false throttle delay of about 11 ms).
     delay = next(c for c in result.candidates if c.effect == "actuation_delay")
-    assert delay.params["throttle_delay_s"] < 0.005  # no false throttle lag
+    assert not delay.significant and delay.params["throttle_delay_s"] < 1 / 90
     assert abs(result.heldout_error_reduction) < 0.02
 
 
