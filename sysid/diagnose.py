@@ -390,9 +390,33 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
 
     ca, sa = sparse_fit(r_v)
     cy, sy = sparse_fit(r_th)
-    terms = terms_from_coefficients({n: c for n, c in zip(names, ca) if c != 0.0},
-                                    {n: c for n, c in zip(names, cy) if c != 0.0})
-    setup = dataclasses.replace(plain, car=dataclasses.replace(car, other_terms=terms))
+    steps = _fit_steps(horizon, s.fit_steps)
+
+    def with_terms(a: np.ndarray, y: np.ndarray) -> ModelSetup:
+        terms = terms_from_coefficients({n: c for n, c in zip(names, a) if c != 0.0},
+                                        {n: c for n, c in zip(names, y) if c != 0.0})
+        return dataclasses.replace(plain, car=dataclasses.replace(car, other_terms=terms))
+
+    def training_cost(setup: ModelSetup) -> float:
+        r = _residual(traj, split.fit, predict(traj, split.fit, horizon, setup), steps)
+        return float(r @ r)
+
+    # The 0.1 s regression can pick up terms that do not help over the whole horizon (e.g. where the
+    # smoothed speed misses fast throttle changes): drop, one at a time, any term whose removal lowers
+    # the multi-step cost on the training windows.
+    cost = training_cost(with_terms(ca, cy))
+    while np.count_nonzero(ca) + np.count_nonzero(cy) > 0:
+        trials = []
+        for coef in (ca, cy):
+            for i in np.flatnonzero(coef):
+                saved, coef[i] = coef[i], 0.0
+                trials.append((training_cost(with_terms(ca, cy)), coef, i, saved))
+                coef[i] = saved
+        best_cost, coef, i, _ = min(trials, key=lambda t: t[0])
+        if best_cost >= cost:
+            break
+        coef[i], cost = 0.0, best_cost
+    setup = with_terms(ca, cy)
     fit = evaluate(traj, split, horizon, setup, base.effects + ("other",), base.values, base.std)
     params = {f"accel[{n}]": float(c) for n, c in zip(names, ca) if c != 0.0}
     params |= {f"yaw_rate[{n}]": float(c) for n, c in zip(names, cy) if c != 0.0}
