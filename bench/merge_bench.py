@@ -4,7 +4,6 @@ Every solver gets the same instances and time limit; success is decided here, by
 the returned trajectories (bench/verify.py), not by the solvers' own status."""
 from __future__ import annotations
 
-import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 
@@ -226,10 +225,6 @@ def plot_merge(cars: int, seed: int, path: str) -> str:
 
 def records_json(summary: list[dict]) -> dict:
     return {"results": summary}
-
-
-def default_workers() -> int:
-    return max(1, min(2, os.cpu_count() or 1))
 
 
 __all__ = ["run", "summarize", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]

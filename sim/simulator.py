@@ -18,6 +18,7 @@ import numpy as np
 from sim.collision import rectangles_overlap
 from sim.effects import SimEffects
 from sim.race import LapBookkeeper, RaceStatus, SimEvent
+from tracks.geometry import wrap_angle
 from vehicles.dynamic_bicycle import STATE_DIM, ModelCoefficients, derivative, derivative_one
 from vehicles.extra_terms import car_extra_terms, extra_rates
 from vehicles.linkage import asymmetric, play
@@ -31,12 +32,8 @@ class PoseMeasurement:
     car: int
     x: float
     y: float
-    heading: float  # wrapped to [-pi, pi)
+    heading: float  # wrapped to (-pi, pi]
     t: float
-
-
-def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class Simulator:
@@ -377,7 +374,7 @@ class Simulator:
             car=i,
             x=x + e.position_noise_m * float(noise[0]),
             y=y + e.position_noise_m * float(noise[1]),
-            heading=wrap_angle(heading + e.heading_noise_rad * float(noise[2])),
+            heading=float(wrap_angle(heading + e.heading_noise_rad * float(noise[2]))),
             t=self.time,
         )
 

@@ -17,59 +17,15 @@ from typing import Any
 
 import numpy as np
 
-from sim import PurePursuitController, SimEffects, Simulator
+from planning import PurePursuitController
+from sim import SimEffects, Simulator
+from sim.effects import GENERATOR_EFFECTS, parse_effects, sim_effects  # noqa: F401 - re-exported for sysid callers
 from sysid.log import DriveLog
 from tracks import load_track
 from vehicles.params import CarParams
 
-# Generator effect names (docs/sysid.md) -> SimEffects fields they set.
-GENERATOR_EFFECTS: dict[str, tuple[str, ...]] = {
-    "actuation_delay": ("steering_delay_s", "throttle_delay_s"),
-    "steering_delay": ("steering_delay_s",),
-    "throttle_delay": ("throttle_delay_s",),
-    "steering_offset": ("steering_offset_rad",),
-    "steering_gain": ("steering_gain",),
-    "longitudinal_drag": ("extra_drag_n_per_mps2",),
-    "tire_slip": ("grip_scale",),
-    "steering_backlash": ("steering_backlash_rad",),
-    "steering_asymmetry": ("steering_gain_asymmetry",),
-    "motor_drift": ("motor_force_drift_per_s",),
-}
 CAMERA_POSITION_NOISE_M = 0.002
 CAMERA_HEADING_NOISE_RAD = 0.01
-
-
-def parse_effects(text: str, flag: str = "--effects") -> dict[str, float]:
-    """'steering_offset=0.03,actuation_delay=0.08' -> {name: value}; names from GENERATOR_EFFECTS.
-    ``flag`` names the option in error messages."""
-    out: dict[str, float] = {}
-    for part in (p.strip() for p in text.split(",")):
-        if not part:
-            continue
-        name, sep, value = part.partition("=")
-        name = name.strip()
-        if not sep:
-            raise ValueError(f"{flag}: {part!r} must look like name=value")
-        if name not in GENERATOR_EFFECTS:
-            raise ValueError(f"{flag}: unknown effect {name!r}; known: {sorted(GENERATOR_EFFECTS)}")
-        try:
-            v = float(value)
-        except ValueError:
-            raise ValueError(f"{flag}: {name}: not a number: {value.strip()!r}") from None
-        if not math.isfinite(v):
-            raise ValueError(f"{flag}: {name}: must be finite, got {value.strip()!r}")
-        if name in out:
-            raise ValueError(f"{flag}: {name} given twice")
-        out[name] = v
-    return out
-
-
-def sim_effects(effects: dict[str, float], position_noise_m: float, heading_noise_rad: float) -> SimEffects:
-    values: dict[str, float] = {"position_noise_m": position_noise_m, "heading_noise_rad": heading_noise_rad}
-    for name, v in effects.items():
-        for f in GENERATOR_EFFECTS[name]:
-            values[f] = v
-    return SimEffects(**values)
 
 
 class ReversedTrack:

@@ -114,6 +114,7 @@ class ModelParams:
 class MarkerParams:
     aruco_id: int = _int(0, _between(0, 999))
     height_m: float = _num(0.045, _non_negative, doc="marker plane above the ground")
+    size_m: float = _num(0.055, doc="side of the printed ArUco marker (outer black border)")
 
 
 @dataclass(frozen=True)

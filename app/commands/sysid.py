@@ -206,7 +206,8 @@ def run_closed_loop_command(args) -> int:
     import numpy as np
 
     from sim import SimEffectsError
-    from sysid.closed_loop import PLANNER_CAR, RaceSettings, format_table, plot, run_closed_loop, summarize
+    from race.setup import RaceSpec
+    from sysid.closed_loop import PLANNER_CAR, format_table, plot, run_closed_loop, summarize
     from sysid.generate import parse_effects, sim_effects
     from vehicles.params import CarParamsError, load_car_params
 
@@ -230,7 +231,7 @@ def run_closed_loop_command(args) -> int:
             raise UserError(f"{flag}: {exc}") from None
     if args.max_time is not None and not args.max_time > 0:
         raise UserError(f"--max-time must be positive, got {args.max_time}")
-    race = RaceSettings(track=args.track, laps=args.laps, opponent=args.opponent, max_time_s=args.max_time)
+    race = RaceSpec(track=args.track, laps=args.laps, opponent=args.opponent, max_time_s=args.max_time)
     started = time.perf_counter()
 
     def progress(m) -> None:

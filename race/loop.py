@@ -1,0 +1,721 @@
+"""The real-time race loop: frame -> detect -> estimate -> plan -> command -> telemetry at a fixed rate.
+
+One loop for the hardware-in-the-loop simulation (``--hil``) and real hardware (``--camera``):
+only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.hardware.CameraFeed``).
+
+* Tick k starts at t_go + k T (T = 1 / rate_hz) and must issue its command by t_go + (k+1) T (its
+  deadline). Every stage is timed. A tick that starts more than a period late skips the ticks it
+  missed (each counted as a deadline miss).
+* :class:`DeadlineMonitor` (its own thread) sends neutral at the deadline of a tick that has not
+  issued its command yet, and logs which stage was running.
+* Safety holds: a lost car (no accepted measurement for ``lost_after_s``), a non-finite state, a
+  failed or stale plan, an invalid command, and (HIL, where the box is observable) a corrupt serial
+  stream each put every car to neutral: a neutral frame is written at once (not at the sender's
+  next tick) and an event is logged; the race resumes when every hold has cleared, and stops
+  (``held_neutral``) when holds have lasted ``stop_after_hold_s`` without a break. A serial link
+  fault (device gone) ends the race: the link cannot be reopened (docs/serial-protocol.md); the
+  transmitter box's failsafe keeps the cars neutral.
+* Planning is asynchronous (``race.planning.PlannerWorker``): a job every rate_hz / plan_hz
+  ticks for the instant t_plan = its tick + ``plan_latency_s`` (plan_ticks periods + command_delay_s)
+  when its command will act; the plan is applied at tick k + plan_ticks, not earlier, and its first
+  control is held (zero-order hold) until the next plan is due. The commanded cars are predicted to
+  t_plan through the controls the loop has sent them (``PlanJob.in_flight``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from race.commands import link_command
+from race.config import STAGES, FaultSpec, LoopConfig
+from race.faults import FailingPlanners, NanStateEstimator
+from race.perception import Perception, body_state
+from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between
+from race.recording import record_car, record_plan
+from race.referee import Referee
+from race.safety import SafetyHolds
+from race.setup import CAR_NAMES
+from race.summary import percentile, race_summary
+from race.world import Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, Tracker, World
+from tracking.estimator import EstimatorConfig
+from vehicles.protocol import CarCommand, ProtocolError
+
+
+class LoopError(RuntimeError):
+    """The race could not start or had to stop for a reason the operator must see."""
+
+
+@dataclass(frozen=True)
+class CarBinding:
+    name: str          # "rd3g" or "opponent"
+    marker_id: int     # ArUco id on the roof
+    radio_id: int      # id in the serial protocol
+
+
+class DeadlineMonitor:
+    """Watchdog thread: if the armed tick has not finished its command by the deadline, call
+    ``on_miss(tick, stage)`` (which sends neutral) from this thread. Real time only: the thread waits
+    on the clock's time (a simulated clock's race has no deadlines to watch)."""
+
+    def __init__(self, on_miss, clock: Clock | None = None) -> None:
+        self.on_miss = on_miss
+        self.clock = clock if clock is not None else MonotonicClock()
+        self.stage = "-"
+        self._cv = threading.Condition()
+        self._deadline: float | None = None
+        self._tick = -1
+        self._fired = False
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="DeadlineMonitor", daemon=True)
+        self._thread.start()
+
+    def arm(self, tick: int, deadline: float) -> None:
+        with self._cv:
+            self._tick, self._deadline, self._fired = tick, deadline, False
+            self._cv.notify()
+
+    def disarm(self) -> bool:
+        """Returns True if the monitor fired for the armed tick."""
+        with self._cv:
+            self._deadline = None
+            return self._fired
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        with self._cv:
+            while not self._stop:
+                if self._deadline is None:
+                    self._cv.wait()
+                    continue
+                remaining = self._deadline - self.clock.now()
+                if remaining > 0:
+                    self._cv.wait(remaining)
+                    continue
+                self._fired = True
+                self._deadline = None
+                tick, stage = self._tick, self.stage
+                self._cv.release()
+                try:
+                    self.on_miss(tick, stage)
+                finally:
+                    self._cv.acquire()
+
+
+@dataclass
+class LoopOutcome:
+    reason: str                                  # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
+    mode: str
+    winner: str | None = None
+    lap_times_s: dict = field(default_factory=dict)
+    min_gap_m: float | None = None
+    collisions: list = field(default_factory=list)
+    race_time_s: float = 0.0
+    ticks: int = 0
+    deadline_misses: int = 0
+    period_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stage_ms: dict = field(default_factory=dict)
+    busy_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stage_overruns: dict = field(default_factory=dict)
+    solve_ms: dict = field(default_factory=dict)
+    # Per plan: when the loop first applied it minus the instant its states were predicted to
+    # (t_plan = job tick + plan_latency_s); >= -command_delay_s when applied at its tick, > 0 when late.
+    plan_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # HIL: per plan, when the simulated car got its first command minus the plan's t_plan (the whole path
+    # loop -> serial link -> box -> car); ~0 when command_delay_s is right. Empty on hardware.
+    command_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    plans: int = 0
+    plan_failures: int = 0
+    frames: int = 0
+    frames_dropped: int = 0
+    render_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tracking_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    detection_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    events: list = field(default_factory=list)   # (race time s, kind, text)
+    control_period_ms: float = 0.0
+    recording: str | None = None
+    load_average: tuple | None = None
+    box: dict | None = None                      # HIL: virtual box and relay counters (diagnostics)
+
+    def summary(self) -> dict:
+        """The `race --hil/--camera --json` record: the simulated race's keys plus loop statistics."""
+        pct = percentile
+        solve = self.solve_ms.get("rd3g", np.zeros(0))
+        kinds: dict[str, int] = {}
+        for _, kind, _ in self.events:
+            kinds[kind] = kinds.get(kind, 0) + 1
+        return {
+            **race_summary(winner=self.winner, lap_times_s=self.lap_times_s, min_gap_m=self.min_gap_m,
+                           collisions=len(self.collisions), solve_ms=solve, control_period_ms=self.control_period_ms),
+            "mode": self.mode, "end_reason": self.reason, "race_time_s": self.race_time_s, "ticks": self.ticks,
+            "loop_hz_median": 1e3 / float(np.median(self.period_ms)) if len(self.period_ms) else None,
+            "loop_period_p99_ms": pct(self.period_ms, 99), "deadline_misses": self.deadline_misses,
+            "deadline_miss_rate": self.deadline_misses / self.ticks if self.ticks else None,
+            "stage_ms_p50": {k: pct(v, 50) for k, v in self.stage_ms.items()},
+            "stage_ms_p99": {k: pct(v, 99) for k, v in self.stage_ms.items()},
+            "busy_ms_p50": pct(self.busy_ms, 50), "busy_ms_p99": pct(self.busy_ms, 99),
+            "stage_overruns": self.stage_overruns,
+            "opponent_solve_ms_p50": pct(self.solve_ms.get("opponent", np.zeros(0)), 50),
+            "plans": self.plans, "plan_failures": self.plan_failures,
+            "plan_lag_ms_p50": pct(self.plan_lag_ms, 50), "plan_lag_ms_p99": pct(self.plan_lag_ms, 99),
+            "command_lag_ms_p50": pct(self.command_lag_ms, 50), "command_lag_ms_p99": pct(self.command_lag_ms, 99),
+            "frames": self.frames, "frames_dropped": self.frames_dropped,
+            "render_ms_p50": pct(self.render_ms, 50), "render_ms_p99": pct(self.render_ms, 99),
+            "tracking_error_mm_median": pct(self.tracking_error_mm, 50),
+            "tracking_error_mm_p95": pct(self.tracking_error_mm, 95),
+            "detection_error_mm_median": pct(self.detection_error_mm, 50),
+            "events": kinds, "recording": self.recording,
+            "load_average": list(self.load_average) if self.load_average else None,
+            "box": self.box,
+        }
+
+
+class RaceLoop:
+    """One race on the clock. The world behind ``feed`` (``poll(timeout) -> WorldPacket``) and ``link``
+    is the HIL world or the hardware; ``world`` is the HilWorld (None on hardware: laps are then counted
+    from the estimated states). ``faults`` are injected by wrapping the estimator and the planners
+    (race.faults); ``clock`` defaults to real time, ``worker_factory(planners, clock)`` to a PlannerWorker
+    thread (race.planning.SyncPlanRunner plans in the loop's thread) and ``monitor_factory(on_miss,
+    clock)`` to the DeadlineMonitor thread."""
+
+    def __init__(self, *, setup, config: LoopConfig, feed: Feed, tracker: Tracker, estimator, link: Link,
+                 planners: Planners, cars: list[CarBinding], recorder=None, faults: tuple[FaultSpec, ...] = (),
+                 world: World | None = None, mode: str = "hil", clock: Clock | None = None, worker_factory=None,
+                 monitor_factory=DeadlineMonitor) -> None:
+        self.setup, self.cfg, self.feed = setup, config, feed
+        self.link, self.cars, self.rec, self.world, self.mode = link, cars, recorder, world, mode
+        self.clock = clock if clock is not None else MonotonicClock()
+        self.faults = tuple(faults)
+        if any(f.kind == "nan_state" for f in self.faults):
+            estimator = NanStateEstimator(estimator, self.faults, {c.name: c.marker_id for c in cars}, self.race_time,
+                                          lambda text: self._event("fault_injected", text))
+        if any(f.kind == "solver_fail" for f in self.faults):
+            planners = FailingPlanners(planners, self.faults, self.race_time)
+        self.estimator, self.planners = estimator, planners
+        self.perception = Perception(tracker, estimator, cars, config.lost_search_every)
+        self.safety = SafetyHolds(self._neutral_now, self._event, config.stop_after_hold_s)
+        self.track = setup.track
+        self.car = setup.car
+        self.by_marker = {c.marker_id: c for c in cars}
+        self.commanded = [c for c in cars if c.name in planners.commanded]
+        self.worker: PlanRunner = (worker_factory or PlannerWorker)(planners, self.clock)
+        self._monitor_factory = monitor_factory
+        self.t_go: float | None = None
+        self.events: list[tuple] = []
+        self.k = 0
+        self._link_fault: BaseException | None = None
+        self._active: PlanResult | None = None
+        self._last_seq = 0
+        self._last_corrupt = 0
+        self._last_corrupt_t = -math.inf
+        self._lock = threading.Lock()
+        self._misses_by_monitor: set[int] = set()
+        self.monitor: DeadlineMonitor | None = None
+        self.referee: Referee | None = None  # hardware: laps from the estimated states
+        # statistics
+        self.period_ms: list[float] = []
+        self.busy_ms: list[float] = []
+        self.stage_ms = {s: [] for s in STAGES}
+        self.overruns = {s: 0 for s in STAGES}
+        self.deadline_misses = 0
+        self.solve_ms = {name: [] for name in CAR_NAMES}
+        self.plan_lag_ms: list[float] = []
+        self._plan_commands: list[tuple[float, int, float, float]] = []  # (t_plan, car index, throttle, steering)
+        self._last_sent: dict[str, tuple[float, float]] = {}
+        self._controls: dict[str, list[tuple[float, float, float]]] = {}  # car -> [(t_effect, a, delta)]
+        self.plans = 0
+        self.plan_failures = 0
+        self.render_ms: list[float] = []
+        self.tracking_error_mm: list[float] = []
+        self.detection_error_mm: list[float] = []
+        self.dropped = 0
+        self.winner_seen: str | None = None
+
+    # ------------------------------------------------------------------ helpers
+    def race_time(self, t_abs: float | None = None) -> float:
+        t_abs = self.clock.now() if t_abs is None else t_abs
+        return t_abs - self.t_go if self.t_go is not None else 0.0
+
+    def _event(self, kind: str, text: str, t_race: float | None = None) -> None:
+        t_race = self.race_time() if t_race is None else t_race
+        with self._lock:
+            self.events.append((t_race, kind, text))
+        if self.rec is not None:
+            self.rec.event(t_race, kind, text, step=self.k)
+
+    def _neutral_now(self) -> None:
+        try:
+            self.link.neutral()
+        except Exception as exc:  # never let the safety action raise into the loop
+            self._event("error", f"sending neutral failed: {exc}")
+
+    @property
+    def holds(self) -> dict[str, str]:
+        return self.safety.holds
+
+    @property
+    def frames(self) -> int:
+        return self.perception.frames
+
+    def _on_link_fault(self, exc: BaseException) -> None:
+        self._link_fault = exc
+
+    def _on_deadline_miss(self, tick: int, stage: str) -> None:
+        self._neutral_now()
+        with self._lock:
+            self._misses_by_monitor.add(tick)
+        self._event("deadline_miss", f"tick {tick}: no command by the deadline (stage {stage} running) - neutral sent")
+
+    # ------------------------------------------------------------------ phases
+    def run(self) -> LoopOutcome:
+        reason = "interrupted"
+        old_switch = sys.getswitchinterval()
+        sys.setswitchinterval(0.001)  # background threads (telemetry, planner glue) yield the GIL sooner
+        try:
+            self._acquire()
+            self._cold_start()
+            reason = self._race()
+        except KeyboardInterrupt:
+            reason = "interrupted"
+            self._event("stop", "interrupted by the operator")
+        finally:
+            sys.setswitchinterval(old_switch)
+            summary = self._shutdown()
+        return self._outcome(reason, summary)
+
+    def _acquire(self) -> None:
+        """Before the start: full-frame searches until every car has enough accepted measurements."""
+        deadline = self.clock.now() + self.cfg.acquire_timeout_s
+        while True:
+            packet = self.feed.poll(0.1)
+            if packet.frame is not None:
+                meas, _ = self.perception.detect(packet.frame, None)
+                self.estimator.update(packet.frame.t_capture_s, meas)
+            missing = self.perception.acquired(self.cfg.acquire_measurements)
+            if not missing:
+                return
+            if self.clock.now() > deadline:
+                names = ", ".join(f"{c.name} (marker {c.marker_id})" for c in missing)
+                raise LoopError(f"camera did not find {names} within {self.cfg.acquire_timeout_s:.0f} s; "
+                                f"check the markers, the lighting and the calibration")
+
+    def _states_at(self, t_abs: float) -> dict[str, np.ndarray]:
+        return {c.name: body_state(self.estimator.filters[c.marker_id].predict_to(t_abs)) for c in self.cars}
+
+    def _cold_start(self) -> None:
+        """First plan with the solver's full globalisation, before the clock starts."""
+        t = self.clock.now()
+        result = self.worker.run_sync(PlanJob(-1, t, self._states_at(t)))
+        if result.error:
+            raise LoopError(f"cold-start planning failed: {result.error}")
+        self.worker.start()
+        self.t_go = self.clock.now() + 2 * self.cfg.period_s
+        result.job.t_plan = self.t_go  # the cold-start plan is the plan for the start
+        self._take_plan(result, self.clock.now())
+        for c in self.commanded:  # on the grid: at rest and neutral until tick 0's command acts
+            self._log_control(c.name, t - 1.0, self.planners.executed_control(c.name, None, 0.0))
+            self.perception.accel_inputs[c.name] = self._accel_input(c.name)
+        if self.world is not None:
+            self.world.go(self.t_go)
+        if self.mode == "hardware":
+            self.referee = Referee(self.track, self.setup.car, self.setup.laps)
+            at_go = self._states_at(self.t_go)
+            self.referee.observe(0.0, np.array([at_go[name] for name in CAR_NAMES]))
+        self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
+                    t_race=0.0)
+
+    def _log_control(self, name: str, t_effect: float, control: tuple[float, float] | None) -> None:
+        """Record the planning-model control [a, delta] car `name` executes from t_effect on (one
+        second of history is kept)."""
+        log = self._controls.setdefault(name, [])
+        if control is None:
+            log.clear()  # not a model control (pure pursuit): nothing to predict with
+            return
+        if not log or log[-1][1:] != control:
+            log.append((t_effect, *control))
+        while len(log) > 1 and log[1][0] < t_effect - 1.0:
+            log.pop(0)
+
+    def _accel_input(self, name: str):
+        """CarEKF.accel_input of car `name`: its logged accelerations."""
+        log = self._controls[name]
+        return lambda t0, t1: [(d, a) for d, a, _ in controls_between(log, t0, t1)]
+
+    def _in_flight(self, t_plan: float) -> dict[str, tuple[np.ndarray, list]]:
+        """PlanJob.in_flight: for each commanded car with a control log covering its last measurement,
+        that measured state and the logged controls from then to t_plan."""
+        out = {}
+        for c in self.commanded:
+            log = self._controls.get(c.name)
+            f = self.estimator.filters.get(c.marker_id)
+            if not log or f is None or f.t_s is None or not log[0][0] <= f.t_s < t_plan:
+                continue
+            state = body_state(f.predict_to(f.t_s))
+            if np.all(np.isfinite(state)):
+                out[c.name] = (state, controls_between(log, f.t_s, t_plan))
+        return out
+
+    def _command_lags(self, applied) -> np.ndarray:
+        """For each plan's new command: the first time the simulated car got those values (HIL world's
+        applied_changes, same clock) minus the plan's t_plan, in ms. Values match within 1e-3 (the serial
+        protocol's int16 steps are 3e-5 of full scale); searched from the job's creation on."""
+        lags = []
+        by_car: dict[int, list] = {}
+        for t, i, throttle, steer in applied:
+            by_car.setdefault(i, []).append((t, throttle, steer))
+        for t_plan, i, throttle, steer in self._plan_commands:
+            t_job = t_plan - self.cfg.plan_latency_s
+            for t, th, st in by_car.get(i, []):
+                if t >= t_job and abs(th - throttle) < 1e-3 and abs(st - steer) < 1e-3:
+                    lags.append(1e3 * (t - t_plan))
+                    break
+        return np.array(lags)
+
+    def _take_plan(self, result: PlanResult, now: float) -> None:
+        self._last_seq = result.seq
+        if result.error:
+            self.plan_failures += 1
+            self.safety.set("planner", True, f"planner failed: {result.error}")
+            return
+        self._active = result
+        self.plans += 1
+        self.safety.set("planner", False)
+        t_race = self.race_time(result.job.t_plan) if self.t_go is not None else 0.0
+        if self.t_go is not None and result.job.tick >= 0:  # not the cold plan for the start
+            lag = 1e3 * (now - result.job.t_plan)
+            self.plan_lag_ms.append(lag)
+            if self.rec is not None:
+                self.rec.scalar("planner/plan_lag_ms", max(self.k, 0), t_race, lag)
+        for name, cp in result.cars.items():
+            self.solve_ms[name].append(cp.solve_ms)
+            if self.rec is None or cp.plan is None:
+                continue
+            step = max(self.k, 0)
+            record_plan(self.rec, step, t_race, self.track, name, cp.plan, cp.solve_ms)
+            self.rec.scalar(f"planner/{name}/fallback", step, t_race, float(cp.plan.used == "fallback"))
+
+    # ------------------------------------------------------------------ the race
+    def _race(self) -> str:
+        cfg = self.cfg
+        T = cfg.period_s
+        self.monitor = self._monitor_factory(self._on_deadline_miss, self.clock)
+        prev_start = None
+        self.k = 0
+        while True:
+            t_k = self.t_go + self.k * T
+            now = self.clock.now()
+            if now < t_k:
+                self.clock.sleep(t_k - now)
+            start = self.clock.now()
+            if start > t_k + T:  # more than a period late: skip the ticks that are already past
+                skipped = int((start - t_k) / T)
+                self.deadline_misses += skipped
+                self._event("deadline_miss", f"{skipped} tick(s) skipped: loop {1e3 * (start - t_k):.1f} ms late")
+                self._neutral_now()  # the last command is stale by now
+                self.k += skipped
+                t_k = self.t_go + self.k * T
+            if prev_start is not None:
+                self.period_ms.append(1e3 * (start - prev_start))
+            prev_start = start
+            self.monitor.arm(self.k, t_k + T)
+            end_reason = self._tick(start, t_k + T)
+            if end_reason:
+                return end_reason
+            self.k += 1
+
+    def _stage(self, name: str, t0: float, times: dict) -> float:
+        t1 = time.perf_counter()
+        ms = 1e3 * (t1 - t0)
+        times[name] = ms
+        self.stage_ms[name].append(ms)
+        if ms > getattr(self.cfg.budgets, name):
+            self.overruns[name] += 1
+        if self.monitor is not None:
+            self.monitor.stage = next((s for s in STAGES[STAGES.index(name) + 1:]), "-")
+        return t1
+
+    def _tick(self, start: float, deadline: float) -> str | None:
+        """One tick: frame, perception (detect + estimate), safety checks, plan, command, telemetry, end
+        of race. Returns the end reason, or None to go on."""
+        k = self.k
+        t_race = start - self.t_go
+        times: dict[str, float] = {}
+        self.monitor.stage = "frame"
+        if self._link_fault is not None:
+            self._event("serial_fault", f"serial link failed ({self._link_fault}); the box failsafe holds the cars "
+                                        f"neutral - race stopped")
+            return "serial_fault"
+        t0 = time.perf_counter()
+        try:
+            packet = self.feed.poll(0.0)
+        except RuntimeError as exc:
+            self._event("world_error", str(exc).splitlines()[0])
+            return "world_error"
+        for t_ev, kind, text in packet.events:
+            self._event(kind, text, t_race=t_ev)
+        self.render_ms.extend(packet.render_ms)
+        self.dropped = max(self.dropped, packet.dropped)
+        t0 = self._stage("frame", t0, times)
+        t_tick = deadline - self.cfg.period_s  # the tick's scheduled start: plans are timed from it, not from `now`
+        t_plan = t_tick + self.cfg.plan_latency_s
+        marks = [t0]
+
+        def detected() -> None:
+            marks[0] = self._stage("detect", marks[0], times)
+
+        perceived = self.perception.perceive(packet.frame, t_plan, self.clock.now(), after_detect=detected)
+        if packet.truth is not None and perceived.detections is not None:
+            self._tracking_errors(k, packet, perceived)
+        now = self.clock.now()
+        self._safety_checks(perceived, packet, now)
+        t0 = self._stage("estimate", marks[0], times)
+        commands, sent = self._plan_stage(k, now, t_tick, t_plan, perceived.states)
+        t0 = self._stage("plan", t0, times)
+        sent = self._command_stage(k, start, deadline, commands, sent)
+        t0 = self._stage("command", t0, times)
+        if self.rec is not None:
+            self._record(k, t_race, times, packet, perceived.detections, perceived.states, sent)
+        self._stage("telemetry", t0, times)
+        if self.rec is not None:
+            self.rec.scalar("loop/stage/telemetry_ms", k, t_race, times["telemetry"])
+        return self._end_of_race(t_race, now, perceived.states, packet)
+
+    def _tracking_errors(self, k: int, packet, perceived) -> None:
+        """HIL: raw detection and EKF posterior vs the simulator's truth at the frame's capture time."""
+        t_cap = self.race_time(packet.frame.t_capture_s)
+        for m in perceived.measurements:
+            name = self.by_marker[m.marker_id].name
+            truth = packet.truth[CAR_NAMES.index(name)]
+            det_err = 1e3 * math.hypot(m.x - truth[0], m.y - truth[1])
+            self.detection_error_mm.append(det_err)
+            if self.rec is not None:
+                self.rec.scalar(f"tracking/{name}/detection_error_mm", k, t_cap, det_err)
+            f = self.estimator.filters.get(m.marker_id)
+            if f is not None and perceived.results[m.marker_id].accepted:
+                err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
+                self.tracking_error_mm.append(err)
+                if self.rec is not None:
+                    self.rec.scalar(f"tracking/{name}/error_mm", k, t_cap, err)
+
+    def _safety_checks(self, perceived, packet, now: float) -> None:
+        """The tracking, state and serial-stream holds of this tick (race.safety)."""
+        lost_ms = 1e3 * self.estimator.config.lost_after_s
+        for c in self.cars:
+            self.safety.set(f"lost:{c.name}", perceived.lost[c.name],
+                            f"car {c.name} lost (no marker {c.marker_id} for {lost_ms:.0f} ms)")
+            if perceived.lost[c.name]:
+                continue
+            nonfinite = c.name in perceived.nonfinite
+            self.safety.set(f"nan:{c.name}", nonfinite, f"non-finite state of car {c.name}; estimator reset")
+        if packet.box_corrupt > self._last_corrupt:  # HIL: the box reports rejected frames
+            self._last_corrupt = packet.box_corrupt
+            self._last_corrupt_t = now
+        self.safety.set("serial", now - self._last_corrupt_t < self.cfg.serial_quiet_s,
+                        "serial stream corrupt (box rejects frames)")
+
+    def _plan_stage(self, k: int, now: float, t_tick: float, t_plan: float, states: dict):
+        """Apply the plan due at this tick, check its age, decide this tick's commands (neutral while a
+        hold is active), log the controls the cars execute and submit the next planning job.
+        Returns ({radio id: CarCommand}, {car: (throttle, steering rad) sent})."""
+        cfg = self.cfg
+        result = self.worker.latest()
+        # A plan is applied at its scheduled tick, not earlier: every plan then acts plan_latency_s after
+        # its job, whatever its solve time (a failure is taken at once: it is a fault).
+        if result is not None and result.seq != self._last_seq and (
+                result.error or result.job.tick < 0 or k >= result.job.tick + cfg.plan_ticks):
+            self._take_plan(result, now)
+        if self._active is not None:
+            age = now - self._active.job.t_plan
+            self.safety.set("planner_stale", age > cfg.max_plan_age_s,
+                            f"no new plan for {1e3 * age:.0f} ms (limit {1e3 * cfg.max_plan_age_s:.0f} ms)")
+        # This tick's commands (sent in the command stage), logged as the controls the cars execute from
+        # t_tick + command_delay_s on: the next job predicts its own cars through them.
+        commands: dict[int, CarCommand] = {}
+        sent = {c.name: (0.0, 0.0) for c in self.commanded}
+        driving = not self.safety and self._active is not None
+        for c in self.commanded:
+            cp = self._active.cars[c.name] if driving else None
+            if cp is not None:
+                commands[c.radio_id] = link_command(self.car, cp.throttle, cp.steering_rad)
+                sent[c.name] = (cp.throttle, cp.steering_rad)
+                if self._last_sent.get(c.name) != sent[c.name] and self._active.job.tick >= 0:
+                    self._plan_commands.append((self._active.job.t_plan, CAR_NAMES.index(c.name), *sent[c.name]))
+            else:
+                commands[c.radio_id] = CarCommand(0.0, 0.0)
+            speed = float(states[c.name][3]) if c.name in states else 0.0
+            self._log_control(c.name, t_tick + cfg.command_delay_s, self.planners.executed_control(c.name, cp, speed))
+        if driving:
+            self._last_sent = dict(sent)
+        if k % cfg.plan_every == 0 and len(states) == len(self.cars):
+            self.worker.submit(PlanJob(k, t_plan, states, self._in_flight(t_plan)))
+        return commands, sent
+
+    def _command_stage(self, k: int, start: float, deadline: float, commands: dict, sent: dict) -> dict:
+        """Send the commands (an invalid one is a hold), then account for the tick's deadline."""
+        try:
+            self.link.set_commands(commands)
+            self.safety.set("command", False)
+        except ProtocolError as exc:
+            self.safety.set("command", True, f"invalid command: {exc}")
+            sent = {c.name: (0.0, 0.0) for c in self.commanded}
+        t_cmd = self.clock.now()
+        fired = self.monitor.disarm()
+        with self._lock:
+            missed = fired or k in self._misses_by_monitor
+        if missed or t_cmd > deadline:
+            self.deadline_misses += 1
+            if not missed:
+                self._event("deadline_miss", f"tick {k}: command {1e3 * (t_cmd - deadline):.1f} ms after the deadline")
+        self.busy_ms.append(1e3 * (t_cmd - start))
+        return sent
+
+    def _end_of_race(self, t_race: float, now: float, states: dict, packet) -> str | None:
+        if packet.winner is not None and self.winner_seen is None:
+            self.winner_seen = packet.winner
+            return "finished"
+        if self.referee is not None and len(states) == len(self.cars):
+            for ev in self.referee.observe(t_race, np.array([states[name] for name in CAR_NAMES])):
+                self._event(ev.kind, f"{CAR_NAMES[ev.car]}" + (f" lap {ev.lap} in {ev.lap_time:.3f} s" if ev.lap_time else ""))
+            if self.referee.winner is not None:
+                self.winner_seen = self.referee.winner
+                return "finished"
+        stop = self.safety.stop_reason(now)
+        if stop is not None:
+            self._event("stop", stop)
+            return "held_neutral"
+        if t_race > self.setup.max_time_s:
+            self._event("stop", f"time limit {self.setup.max_time_s:.0f} s reached")
+            return "time_limit"
+        return None
+
+    def _record(self, k, t_race, times, packet, det, states, sent) -> None:
+        rec = self.rec
+        if len(self.period_ms):
+            rec.scalar("loop/period_ms", k, t_race, self.period_ms[-1])
+        for name, ms in times.items():
+            rec.scalar(f"loop/stage/{name}_ms", k, t_race, ms)
+        rec.scalar("loop/busy_ms", k, t_race, self.busy_ms[-1])
+        for name, st in states.items():
+            rec.points(f"world/cars/{name}/estimate", k, t_race, st[:2])
+            rec.scalar(f"cars/{name}/estimated_speed_mps", k, t_race, st[3])
+        for name, (throttle, steer) in sent.items():
+            rec.scalar(f"cars/{name}/command/throttle", k, t_race, throttle)
+            rec.scalar(f"cars/{name}/command/steering_rad", k, t_race, steer)
+        rec.scalar("loop/holds", k, t_race, len(self.holds))
+        frame = packet.frame
+        if frame is not None and det is not None:
+            rec.scalar("camera/latency_ms", k, t_race, 1e3 * (self.clock.now() - frame.t_capture_s))
+            rec.scalar("camera/full_search", k, t_race, float(det.full_search))
+            for ms in packet.render_ms:
+                rec.scalar("camera/render_ms", k, t_race, ms)
+            for m in det.cars.values():
+                if m.marker_id in self.by_marker:
+                    rec.points(f"world/cars/{self.by_marker[m.marker_id].name}/detection", k,
+                               self.race_time(frame.t_capture_s), [m.x, m.y])
+                    # the measured heading too: model identification (docs/sysid.md) needs whole poses
+                    rec.scalar(f"cars/{self.by_marker[m.marker_id].name}/detection_heading_rad", k,
+                               self.race_time(frame.t_capture_s), m.heading)
+            if self.frames % self.cfg.image_log_every == 1:
+                d = self.cfg.image_downscale
+                small = cv2.resize(frame.image, None, fx=1.0 / d, fy=1.0 / d, interpolation=cv2.INTER_AREA)
+                rec.image("camera/image", k, t_race, small)
+                if det.markers:
+                    centres = np.array([c.reshape(-1, 2).mean(axis=0) for c in det.markers.values()]) / d
+                    rec.points("camera/detections", k, t_race, centres)
+        truth = packet.truth if packet.t_race is not None else None
+        if truth is None and self.world is None:
+            truth_states = {n: s for n, s in states.items()}  # hardware: the estimate is the best we have
+            t_truth = t_race
+        elif truth is not None:
+            truth_states = {name: truth[i] for i, name in enumerate(CAR_NAMES)}
+            t_truth = packet.t_race
+        else:
+            return
+        for name, st in truth_states.items():
+            record_car(rec, k, t_truth, name, st, self.car.geometry)
+
+    # ------------------------------------------------------------------ shutdown
+    def _shutdown(self) -> dict | None:
+        if self.monitor is not None:
+            self.monitor.stop()
+        self._neutral_now()
+        try:
+            self.link.stop()
+        except Exception:
+            pass
+        self.worker.stop()
+        summary = None
+        if self.world is not None:
+            # Keep reading the world briefly: the box's failsafe (100 ms) and the cars' reaction to the
+            # final neutral happen after the loop has stopped and belong in the recording.
+            t_end = self.clock.now() + self.cfg.linger_s
+            while self.clock.now() < t_end:
+                try:
+                    packet = self.world.poll(0.02)
+                except RuntimeError:
+                    break
+                for t_ev, kind, text in packet.events:
+                    self._event(kind, text, t_race=t_ev)
+            summary = self.world.close()
+            if summary:
+                for t_ev, kind, text in summary.get("events", []):
+                    self._event(kind, text, t_race=t_ev)
+        elif hasattr(self.feed, "close"):
+            self.feed.close()
+        return summary
+
+    def _outcome(self, reason: str, summary: dict | None) -> LoopOutcome:
+        out = LoopOutcome(reason=reason, mode=self.mode, ticks=self.k + (1 if self.t_go else 0),
+                          deadline_misses=self.deadline_misses, period_ms=np.array(self.period_ms),
+                          stage_ms={s: np.array(v) for s, v in self.stage_ms.items()},
+                          busy_ms=np.array(self.busy_ms), stage_overruns=dict(self.overruns),
+                          solve_ms={n: np.array(v) for n, v in self.solve_ms.items()}, plans=self.plans,
+                          plan_lag_ms=np.array(self.plan_lag_ms),
+                          command_lag_ms=self._command_lags((summary or {}).get("applied_changes") or []),
+                          plan_failures=self.plan_failures, frames=self.frames,
+                          render_ms=np.array(self.render_ms), tracking_error_mm=np.array(self.tracking_error_mm),
+                          detection_error_mm=np.array(self.detection_error_mm), events=list(self.events),
+                          control_period_ms=1e3 * self.cfg.period_s, load_average=os.getloadavg())
+        if summary:
+            out.winner = summary["winner"]
+            out.lap_times_s = summary["lap_times_s"]
+            out.min_gap_m = summary["min_gap_m"]
+            out.collisions = summary["collisions"]
+            out.race_time_s = summary["race_time_s"]
+            out.frames_dropped = summary["frames_dropped"]
+            out.render_ms = np.asarray(summary["render_ms"], dtype=float)
+            out.box = summary.get("box")
+        else:
+            out.winner = self.winner_seen
+            out.race_time_s = self.race_time() if self.t_go else 0.0
+            if self.referee is not None:
+                out.lap_times_s = self.referee.lap_times_s
+                out.min_gap_m = self.referee.min_gap_m if math.isfinite(self.referee.min_gap_m) else None
+        if self.rec is not None:
+            out.recording = str(self.rec.path)
+        return out
+
+
+def setup_document(setup, config: LoopConfig, mode: str, cars: list[CarBinding], opponent: str, faults,
+                   estimator: EstimatorConfig = EstimatorConfig()) -> str:
+    """The race/setup TextDocument of a real-time race (JSON); ``loop.lost_after_s`` is the estimator's."""
+    doc = {"mode": mode, "track": setup.track.name, "car": setup.car.name, "seed": setup.seed, "laps": setup.laps,
+           "start": setup.start, "opponent": opponent, "rd3g_top_speed_mps": setup.rd3g_top_speed_mps,
+           "opponent_top_speed_mps": setup.opponent_top_speed_mps, "max_time_s": setup.max_time_s,
+           "planning_period_s": setup.control_period_s,
+           "loop": {**dataclasses.asdict(config), "lost_after_s": estimator.lost_after_s},
+           "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults]}
+    return json.dumps(doc, indent=2)

@@ -1,0 +1,288 @@
+"""The planning step of every race mode: RD3G for our car and the opponent's planner (MPC, pure
+pursuit or none for a human-driven car).
+
+* :func:`make_planner` builds a planner from the race set-up; :func:`plan_step` is one planning step
+  (predict the own car over its actuation delay, plan, map the planned [a, delta] to [throttle,
+  steering angle]).
+* Planner failure, one policy: a planning call that raises (an invalid problem, a solver error) never
+  escapes :func:`plan_step`; that step gets the planner's fallback plan (closed-loop tracking of the
+  previous plan, neutral before the first one) with the exception text in ``plan.error``. The
+  simulated race applies the fallback and logs ``planner_error``; the real-time loop, where any fault
+  sends neutral first (hardware), treats a plan with an error, or a non-finite command, as a planner
+  fault (:class:`SolverFailure`) and holds every car neutral until a good plan arrives.
+* :class:`PlannerWorker` runs the steps of the real-time loop asynchronously in a worker thread; the
+  loop applies the latest plan. The C++ solver releases the GIL, so a solve does not stall the loop.
+"""
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+import numpy as np
+
+from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
+from planning.commands import rollout_controls
+from planning.frenet import S, V
+from race.config import lower_realtime_priority
+from race.setup import CAR_NAMES, RaceSetup
+
+OPPONENT_MODES = ("mpc", "pursuit", "human")
+# Under --rt-priority the planner thread runs this far below the loop thread: above the HIL world
+# process (5 below, the emulated camera and cars) so that on a small machine the emulation, not the
+# product, gives way (it drops camera frames, which the loop reports), and below the HIL box (3 below).
+PLANNER_PRIORITY_BELOW_LOOP = 4
+
+
+def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, float]]:
+    """The piecewise-constant controls of ``log`` ([(t_on s, a, delta), ...], ascending t_on, each acting
+    until the next one's t_on, the last until t1) that act in [t0, t1), as [(duration s, a, delta), ...];
+    the part before the first entry is not covered."""
+    out = []
+    # The loop calls this several times a tick (EKF predictions): start at the entry acting at t0.
+    for j in range(max(bisect.bisect_right(log, t0, key=lambda e: e[0]) - 1, 0), len(log)):
+        t_on, a, delta = log[j]
+        if t_on >= t1:
+            break
+        t_off = log[j + 1][0] if j + 1 < len(log) else t1
+        lo, hi = max(t_on, t0), min(t_off, t1)
+        if hi > lo:
+            out.append((hi - lo, a, delta))
+    return out
+
+
+def make_planner(cls, setup: RaceSetup, top: float, **kw):
+    """A RacingPlanner or MPCOpponent (``cls``) with the race's planner settings and top speed (m/s)."""
+    cfg = dataclasses.replace(setup.planner, top_speed_mps=top)
+    tm = FrenetTrackModel(setup.track, setup.car, cfg)
+    mapper = CommandMapper(setup.car, setup.control_period_s, cfg.max_brake_mps2, cfg.steering_margin)
+    return cls(tm, mapper, cfg, setup.control_period_s, **kw)
+
+
+def plan_step(planner, own_state, other_state) -> tuple[object, np.ndarray, float]:
+    """One planning step from Frenet states [s, ey, v, epsi]: the own state predicted over the car's
+    actuation delay, the plan (the fallback plan if planning raised, see the module doc) and its command
+    [throttle, steering angle rad]. Returns (plan, command, wall time ms)."""
+    t0 = time.perf_counter()
+    x = np.asarray(own_state, dtype=float)
+    try:
+        x = planner.mapper.predict(planner.tm, own_state)
+        plan = planner.plan(x, other_state)
+    except Exception as exc:  # noqa: BLE001 - any planner failure is one fallback step (module doc)
+        plan = planner.fallback_plan(x, other_state, f"{type(exc).__name__}: {exc}")
+    command = planner.mapper.commands(*plan.control, speed=float(x[V]) if math.isfinite(x[V]) else 0.0)
+    return plan, command, 1e3 * (time.perf_counter() - t0)
+
+
+def cold_plan(planner, own_state, other_state):
+    """The first plan, on the grid before the start (no prediction: the cars stand), with plan_step's
+    failure rule."""
+    try:
+        return planner.plan(own_state, other_state)
+    except Exception as exc:  # noqa: BLE001 - as in plan_step
+        return planner.fallback_plan(own_state, other_state, f"{type(exc).__name__}: {exc}")
+
+
+class SolverFailure(RuntimeError):
+    """A planning call failed (raised, or produced non-finite output)."""
+
+
+@dataclass
+class PlanJob:
+    tick: int
+    t_plan: float                     # absolute time (monotonic) the states are predicted to
+    states: dict[str, np.ndarray]     # car name -> [x, y, heading, vx, vy, yaw_rate]
+    # Commanded cars: (state [x, y, heading, vx, vy, yaw_rate] at the car's last measurement, the
+    # controls it executes from then to t_plan as [(duration s, a m/s^2, delta rad), ...]). The planner
+    # then predicts its own car with the planning model and these controls rather than taking
+    # ``states`` (the estimator's constant-turn-rate prediction, which cannot know the commands).
+    in_flight: dict[str, tuple[np.ndarray, list]] = field(default_factory=dict)
+
+
+@dataclass
+class CarPlan:
+    throttle: float
+    steering_rad: float
+    plan: object | None = None        # planning.Plan (None for pursuit)
+    solve_ms: float = 0.0
+
+
+@dataclass
+class PlanResult:
+    job: PlanJob
+    cars: dict[str, CarPlan] = field(default_factory=dict)
+    error: str | None = None
+    t_done: float = 0.0
+    seq: int = 0
+    progress: np.ndarray | None = None  # unwrapped s of both cars
+
+
+class RacePlanners:
+    """The two cars' planners with the simulated race's settings (make_planner)."""
+
+    def __init__(self, setup, opponent: str = "mpc") -> None:
+        if opponent not in OPPONENT_MODES:
+            raise ValueError(f"opponent: must be one of {OPPONENT_MODES}, got {opponent!r}")
+        self.setup = setup
+        self.track = setup.track
+        self.opponent_mode = opponent
+        self.ours = make_planner(RacingPlanner, setup, setup.rd3g_top_speed_mps,
+                                  opponent_top_speed_mps=setup.opponent_top_speed_mps)
+        self.theirs = make_planner(MPCOpponent, setup, setup.opponent_top_speed_mps) if opponent == "mpc" else None
+        self.pursuit = (PurePursuitController(setup.track, setup.car, target_speed_mps=setup.opponent_top_speed_mps)
+                        if opponent == "pursuit" else None)
+        self.unwrap: ProgressUnwrapper | None = None
+        self.commanded = ("rd3g",) if opponent == "human" else CAR_NAMES
+
+    def plan(self, job: PlanJob) -> PlanResult:
+        """One planning step for every commanded car. Raises SolverFailure on non-finite output."""
+        fs = np.array([frenet_state(self.track, job.states[name]) for name in CAR_NAMES])
+        if self.unwrap is None:
+            self.unwrap = ProgressUnwrapper(self.track, fs[:, S])
+        fs[:, S] = self.unwrap.update(fs[:, S])
+        result = PlanResult(job=job, progress=fs[:, S].copy())
+        # Both cars at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
+        at_plan = [self._own_state(job, name, fs[i]) for i, name in enumerate(CAR_NAMES)]
+        plan, (throttle, steer), ms = plan_step(self.ours, at_plan[0], at_plan[1])
+        result.cars["rd3g"] = CarPlan(float(throttle), float(steer), plan, ms)
+        if self.theirs is not None:
+            oplan, (throttle, steer), ms = plan_step(self.theirs, at_plan[1], at_plan[0])
+            result.cars["opponent"] = CarPlan(float(throttle), float(steer), oplan, ms)
+        elif self.pursuit is not None:
+            throttle, steer = self.pursuit.command(job.states["opponent"], self.setup.control_period_s)
+            result.cars["opponent"] = CarPlan(float(throttle), float(steer))
+        for name, cp in result.cars.items():
+            if cp.plan is not None and cp.plan.error is not None:
+                raise SolverFailure(f"{name}: {cp.plan.error}")
+            if not (math.isfinite(cp.throttle) and math.isfinite(cp.steering_rad)):
+                raise SolverFailure(f"{name}: planner produced a non-finite command "
+                                    f"(throttle {cp.throttle}, steering {cp.steering_rad})")
+        return result
+
+    def _planner_of(self, name: str):
+        """The planner commanding car `name` (None: pure pursuit or a human)."""
+        return self.ours if name == "rd3g" else self.theirs
+
+    def executed_control(self, name: str, car_plan: CarPlan | None, speed: float) -> tuple[float, float] | None:
+        """The planning-model control [a m/s^2, delta rad] car `name` executes when it gets `car_plan`'s
+        command (None: neutral, at `speed` m/s); None for a car without a planning model (pursuit, human)."""
+        planner = self._planner_of(name)
+        if planner is None:
+            return None
+        if car_plan is None or car_plan.plan is None:
+            return planner.mapper.neutral_control(speed)
+        a, delta = car_plan.plan.control
+        return float(a), float(delta)
+
+    def _own_state(self, job: PlanJob, name: str, at_plan: np.ndarray) -> np.ndarray:
+        """Frenet state of a commanded car at t_plan: from its last measured state through the controls
+        it executes (job.in_flight), with the progress unwrapped like ``at_plan`` (the estimator's
+        prediction to t_plan, used when the job has no in-flight record for the car)."""
+        if name not in job.in_flight:
+            return at_plan
+        state, segments = job.in_flight[name]
+        x = rollout_controls(self._planner_of(name).tm, frenet_state(self.track, state), segments)
+        length = float(self.track.length)
+        ds = math.remainder(float(x[S]) - float(at_plan[S]), length)  # same lap as the unwrapped progress
+        x[S] = at_plan[S] + ds
+        return x
+
+
+def run_job(planners, job: PlanJob, t_done: float, seq: int) -> PlanResult:
+    """One planning job; any exception (a planner fault, race.faults' injected failure) becomes the
+    result's ``error`` (module doc)."""
+    try:
+        result = planners.plan(job)
+    except Exception as exc:  # any planner exception is a planner fault for the loop
+        result = PlanResult(job=job, error=f"{type(exc).__name__}: {exc}")
+    result.t_done = t_done
+    result.seq = seq
+    return result
+
+
+class SyncPlanRunner:
+    """Runs each planning job when it is submitted, in the caller's thread: the plan is ready at once
+    (a race on a simulated clock, tests). Same interface as PlannerWorker."""
+
+    def __init__(self, planners, clock) -> None:
+        self.planners, self.clock = planners, clock
+        self._latest: PlanResult | None = None
+        self._seq = 0
+
+    def start(self, first: PlanResult | None = None) -> None:
+        if first is not None:
+            self._latest = first
+
+    def run_sync(self, job: PlanJob) -> PlanResult:
+        self._seq += 1
+        return run_job(self.planners, job, self.clock.now(), self._seq)
+
+    def submit(self, job: PlanJob) -> None:
+        self._latest = self.run_sync(job)
+
+    def latest(self) -> PlanResult | None:
+        return self._latest
+
+    def stop(self) -> None:
+        pass
+
+
+class PlannerWorker:
+    """Runs planning jobs in a background thread; the newest pending job replaces an older one."""
+
+    def __init__(self, planners, clock) -> None:
+        self.planners = planners
+        self.clock = clock
+        self._cv = threading.Condition()
+        self._pending: PlanJob | None = None
+        self._latest: PlanResult | None = None
+        self._stop = False
+        self._seq = 0
+        self._thread = threading.Thread(target=self._run, name="PlannerWorker", daemon=True)
+
+    def start(self, first: PlanResult | None = None) -> None:
+        if first is not None:
+            self._latest = first
+        self._thread.start()
+
+    def run_sync(self, job: PlanJob) -> PlanResult:
+        """Plan in the caller's thread (cold start before the race)."""
+        return self._execute(job)
+
+    def submit(self, job: PlanJob) -> None:
+        with self._cv:
+            self._pending = job
+            self._cv.notify()
+
+    def latest(self) -> PlanResult | None:
+        with self._cv:
+            return self._latest
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+
+    def _execute(self, job: PlanJob) -> PlanResult:
+        self._seq += 1
+        seq = self._seq
+        result = run_job(self.planners, job, 0.0, seq)
+        result.t_done = self.clock.now()
+        return result
+
+    def _run(self) -> None:
+        lower_realtime_priority(PLANNER_PRIORITY_BELOW_LOOP)
+        while True:
+            with self._cv:
+                while self._pending is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                job, self._pending = self._pending, None
+            result = self._execute(job)
+            with self._cv:
+                self._latest = result
