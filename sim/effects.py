@@ -22,6 +22,10 @@ class SimEffects:
     steering_gain: float = 1.0
     extra_drag_n_per_mps2: float = 0.0  # added quadratic drag, F = c * vx * |vx|
     grip_scale: float = 1.0  # multiplies the Pacejka D (peak friction) of both axles
+    steering_backlash_rad: float = 0.0  # play between servo and wheels (vehicles.linkage.play)
+    steering_gain_asymmetry: float = 0.0  # left servo angles * (1 + a), right * (1 - a)
+    motor_force_drift_per_s: float = 0.0  # motor force * (1 - rate * (sim time + drift_start_s)), >= 0.2
+    drift_start_s: float = 0.0  # battery age at reset (a log continued over several simulator runs)
     position_noise_m: float = 0.0  # std of Gaussian noise on measured x and y
     heading_noise_rad: float = 0.0  # std of Gaussian noise on measured heading
 
@@ -33,6 +37,10 @@ class SimEffects:
             "steering_gain": (0.2, 5.0),
             "extra_drag_n_per_mps2": (-1.0, 10.0),
             "grip_scale": (0.05, 5.0),
+            "steering_backlash_rad": (0.0, 0.3),
+            "steering_gain_asymmetry": (-0.5, 0.5),
+            "motor_force_drift_per_s": (-0.01, 0.01),
+            "drift_start_s": (0.0, 1e6),
             "position_noise_m": (0.0, 1.0),
             "heading_noise_rad": (0.0, 1.0),
         }
@@ -54,6 +62,9 @@ GENERATOR_EFFECTS: dict[str, tuple[str, ...]] = {
     "steering_gain": ("steering_gain",),
     "longitudinal_drag": ("extra_drag_n_per_mps2",),
     "tire_slip": ("grip_scale",),
+    "steering_backlash": ("steering_backlash_rad",),
+    "steering_asymmetry": ("steering_gain_asymmetry",),
+    "motor_drift": ("motor_force_drift_per_s",),
 }
 
 
