@@ -68,7 +68,8 @@ SIMULATION_VIEWS = {"track", "trails (last 3 s)", "speeds (m/s)", "commands", "s
 
 
 def test_simulated_race_recording_opens_on_the_race_layout(tmp_path):
-    from app.race_runner import RaceSetup, run_race
+    from race.setup import RaceSetup
+    from race.simulation import run_race
     from tracks import load_track
     from vehicles.params import load_car_params
 
