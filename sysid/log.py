@@ -16,15 +16,20 @@ from typing import Callable
 
 import numpy as np
 
+import fileio
+
 REQUIRED_COLUMNS = ("t", "car", "x", "y", "heading", "throttle", "steering")
 OPTIONAL_COLUMNS = ("speed",)
 # Plausibility bounds: values outside are logging errors, not driving.
 MAX_ABS_STEERING_RAD = 1.2
 MAX_ABS_POSITION_M = 1000.0
 MAX_SPEED_MPS = 50.0
+# A row of 8 numbers is under 200 characters; anything far longer is not a drive log.
+MAX_LINE = 4096
+MAX_FILE_BYTES = 1024 * 2**20
 
 
-class LogFormatError(ValueError):
+class LogFormatError(fileio.InputFileError):
     """The log is malformed; the message names the file, row (1-based line number) and column."""
 
 
@@ -71,19 +76,17 @@ class DriveLog:
 
 def _read_csv(path: Path) -> DriveLog:
     source = str(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise LogFormatError(f"{source}: log file not found") from None
-    except UnicodeDecodeError as exc:
-        raise LogFormatError(f"{source}: not a UTF-8 text file ({exc})") from None
+    text = fileio.read_text(path, "log file", max_bytes=MAX_FILE_BYTES, max_line=MAX_LINE, error=LogFormatError)
     lines = text.splitlines()
     # Comment lines (#...) and blank lines are skipped but keep their line numbers.
     numbered = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
     if not numbered:
         raise LogFormatError(f"{source}: empty log (no header row)")
     reader = csv.reader([ln for _, ln in numbered])
-    rows = list(reader)
+    try:
+        rows = list(reader)
+    except csv.Error as exc:  # e.g. a NUL byte; lines are split before csv sees them, so line_num is the row
+        raise LogFormatError(f"{source}: row {numbered[reader.line_num - 1][0]}: not CSV: {exc}") from None
     header_line, header = numbered[0][0], [h.strip() for h in rows[0]]
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
@@ -184,9 +187,10 @@ def write_log_csv(path: str | Path, log: DriveLog) -> Path:
     data = [log.t, log.car, log.x, log.y, log.heading, log.throttle, log.steering]
     if log.speed is not None:
         data.append(log.speed)
-    with path.open("w", encoding="utf-8", newline="") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(columns)
-        for row in zip(*(np.asarray(d).tolist() for d in data)):
-            w.writerow([f"{v:.6f}" if isinstance(v, float) else str(v) for v in row])
-    return path
+    def write(tmp: Path) -> None:
+        with tmp.open("w", encoding="utf-8", newline="") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(columns)
+            for row in zip(*(np.asarray(d).tolist() for d in data)):
+                w.writerow([f"{v:.6f}" if isinstance(v, float) else str(v) for v in row])
+    return fileio.atomic_write_with(path, write)

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+import fileio
+
 from sysid.diagnose import EFFECT_NAMES, ErrorSummary, Fit, SysidResult
 
 # Per effect: (label of the explaining variable, label of the residual it drives).
@@ -111,7 +113,7 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
 
 
 def write_json(result: SysidResult, path: Path, car_params_out: str) -> Path:
-    path.write_text(json.dumps(result_json(result, car_params_out), indent=2) + "\n", encoding="utf-8")
+    fileio.atomic_write_text(path, json.dumps(result_json(result, car_params_out), indent=2) + "\n")
     return path
 
 

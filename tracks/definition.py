@@ -11,8 +11,10 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from fileio import InputFileError, unknown_key_message
 
-class TrackFormatError(ValueError):
+
+class TrackFormatError(InputFileError):
     """A track file or definition is invalid. ``field`` names the part at fault (e.g. ``width``)."""
 
     def __init__(self, field: str, message: str, source: str = "<track>"):
@@ -101,6 +103,8 @@ def _number(value: Any, field: str, source: str) -> float:
     # bool is an int subclass in Python, but `true` is never a valid length.
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise TrackFormatError(field, f"expected a number, got {value!r}", source)
+    if isinstance(value, int) and abs(value) > 1e300:  # float() of a huge int overflows
+        raise TrackFormatError(field, f"must be finite, got an integer of {len(str(abs(value)))} digits", source)
     value = float(value)
     if not math.isfinite(value):
         raise TrackFormatError(field, f"must be finite, got {value!r}", source)
@@ -123,7 +127,7 @@ def _require(data: Mapping[str, Any], key: str, source: str, prefix: str = "") -
 def _check_keys(data: Mapping[str, Any], allowed: set[str], prefix: str, source: str) -> None:
     for key in data:
         if key not in allowed:
-            raise TrackFormatError(f"{prefix}{key}", f"unknown field (allowed: {', '.join(sorted(allowed))})", source)
+            raise TrackFormatError(f"{prefix}{key}", unknown_key_message(key, allowed), source)
 
 
 def parse_definition(data: Any, source: str = "<track>") -> TrackDefinition:

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from app.cli import UserError
+from fileio import atomic_write_text, check_output_path
 
 DEFAULT_OUT = "runs/race.rrd"
 
@@ -52,12 +53,13 @@ def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: f
     from app.race_runner import RaceSetup
     from planning import PlannerConfig
     from tracks import load_track
+    from tracks import TrackFormatError
     from tracks.io import UnknownTrackError
     from vehicles.params import CarParamsError, load_car_params
 
     try:
         track = load_track(args.track)
-    except (UnknownTrackError, FileNotFoundError) as exc:
+    except (UnknownTrackError, TrackFormatError) as exc:
         raise UserError(f"--track: {exc}") from None
     try:
         car = load_car_params(args.car_params)
@@ -117,7 +119,9 @@ def run(args) -> int:
     out = Path(args.out)
     if out.suffix != ".rrd":
         raise UserError(f"--out must be a .rrd file, got {args.out!r}")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    check_output_path(out)
+    if args.json:
+        check_output_path(args.json)
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     o = run_race(setup, telemetry_path=out)
     s = o.summary()
@@ -143,6 +147,8 @@ def run(args) -> int:
               f"first: {first.car} at {first.time_s:.2f} s: {first.message}")
     print(f"telemetry: {out}")
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(s, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(s, indent=2) + "\n")
+    if o.interrupted:
+        print(f"interrupted (Ctrl-C) after {o.race_time_s:.2f} s of race time; the summary covers the race so far")
+        return 130
     return 0
