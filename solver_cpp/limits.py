@@ -2,11 +2,12 @@
 expected to need, and the limits beyond which a caller (the `solve` CLI) refuses to start.
 
 The Newton system couples every agent's stage variables and every constraint at a time step into one
-block of size b = N (2 nx + nu) + (constraints per step); the sparse factorisation of the
-block-banded system holds about T b^2 numbers and costs about T b^3 operations. The constants below
-are fitted to measured peak memory and iteration times (`python -m app bench size`, docs/benchmarks.md)
-and rounded up; the estimate is meant to separate "seconds and megabytes" from "hours and gigabytes",
-not to be exact.
+block of size b = N (2 nx + nu) + (constraints per step), T blocks in all. A factorisation of the
+block-banded system holds about T b^2 numbers and costs about T b^3 operations; when the solver
+falls back to sparse LU on the whole system the time also grows like (T b)^2 (8 cars: 100x the
+time per iteration for 10x the horizon). The constants are fitted to measured peak memory and
+iteration times (`python -m app bench size`, docs/benchmarks.md) as upper envelopes: the estimate
+separates "seconds and megabytes" from "hours and gigabytes"; it is not a prediction.
 """
 from __future__ import annotations
 
@@ -21,9 +22,10 @@ from .problem import GameProblem
 MAX_MEMORY_BYTES = 2 * 2**30
 MAX_SECONDS_PER_ITERATION = 30.0
 # Fitted constants (see module docstring).
-BYTES_PER_BLOCK_ENTRY = 8 * 6.0     # doubles, times the fill and workspace factor
-BASE_BYTES = 80 * 2**20             # the Python process and the solver's fixed state
-SECONDS_PER_BLOCK_FLOP = 2e-9
+BYTES_PER_BLOCK_ENTRY = 48.0        # per entry of T b^2: doubles times the fill and workspace factor
+BASE_BYTES = 40 * 2**20             # the Python process with the extension loaded
+SECONDS_PER_BLOCK_FLOP = 1e-9       # per T b^3
+SECONDS_PER_UNKNOWN_PAIR = 5e-9     # per (T b)^2, the sparse-LU fallback
 
 
 class ProblemTooLargeError(ValueError):
@@ -59,7 +61,8 @@ def estimate_size(problem: GameProblem) -> ProblemSize:
     return ProblemSize(
         agents=N, horizon=T, nx=nx, nu=nu, constraints_per_step=per_step, block=block,
         memory_bytes=BASE_BYTES + BYTES_PER_BLOCK_ENTRY * T * float(block) ** 2,
-        seconds_per_iteration=SECONDS_PER_BLOCK_FLOP * T * float(block) ** 3)
+        seconds_per_iteration=SECONDS_PER_BLOCK_FLOP * T * float(block) ** 3
+        + SECONDS_PER_UNKNOWN_PAIR * (T * float(block)) ** 2)
 
 
 def check_size(size: ProblemSize, max_memory_bytes: float = MAX_MEMORY_BYTES,

@@ -47,6 +47,10 @@ def register(sub) -> None:
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     m.set_defaults(func=run_merge)
 
+    z = kinds.add_parser("size", help="measured memory and time per iteration vs the problem-size estimate")
+    z.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
+    z.set_defaults(func=run_size)
+
     f = kinds.add_parser("fuzz", help="property-based fuzzing of a loader, the frame decoder or the solver API")
     f.add_argument("--target", required=True, help="problem, car, track, fixed_markers, intrinsics, calibration, "
                                                    "sysid_csv, rd3g_decoder, solver_api")
@@ -148,3 +152,18 @@ def run_fuzz(args) -> int:
     if not args.no_docs:
         print(f"recorded in {write_section('fuzz-' + args.target, md)}")
     return 1 if report["failures"] else 0
+
+
+def run_size(args) -> int:
+    import os
+
+    from bench import problem_size
+    from bench.report import machine_description, write_section
+
+    load = os.getloadavg()
+    rows = problem_size.run()
+    md = problem_size.markdown(rows, "python -m app bench size", machine_description(), load)
+    print(md)
+    if not args.no_docs:
+        print(f"recorded in {write_section('problem-size', md)}")
+    return 0
