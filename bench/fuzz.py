@@ -88,16 +88,16 @@ def mutated_document(draw, seeds: list) -> Any:
         if op == "weird":
             container[key] = copy.deepcopy(draw(st.sampled_from(WEIRD_VALUES)))
         elif op == "random":
-            container[key] = draw(json_values)
+            container[key] = copy.deepcopy(draw(json_values))  # drawn values may share WEIRD_VALUES' objects
         elif op == "delete":
             del container[key]
         elif op == "rename" and isinstance(container, dict):
             container[_typo(key, draw)] = container.pop(key)
         elif op == "insert":
             if isinstance(container, dict):
-                container[draw(st.text(max_size=8))] = draw(json_values)
+                container[draw(st.text(max_size=8))] = copy.deepcopy(draw(json_values))
             else:
-                container.insert(key, draw(json_values))
+                container.insert(key, copy.deepcopy(draw(json_values)))
         elif op == "wrap":
             container[key] = [container[key]]
         elif op == "deep":
@@ -591,7 +591,12 @@ def campaign(name: str, examples: int, seed: int, outdir: Path, progress: bool =
                     failures.append(str(path))
                     messages.append(str(exc))
 
-        run()
+        try:
+            run()
+        except Exception as exc:  # hypothesis itself gave up (e.g. flaky generation): report, not crash
+            counts["campaign_error"] += 1
+            failures.append("<none>")
+            messages.append(f"hypothesis stopped the campaign: {type(exc).__name__}: {str(exc)[:300]}")
         bar.close()
         counts = dict(counts)
         failures = [f"{path}: {msg}" for path, msg in zip(failures, messages)]
