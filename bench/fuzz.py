@@ -17,6 +17,7 @@ import copy
 import functools
 import json
 import math
+import os
 import struct
 import tempfile
 from dataclasses import dataclass
@@ -167,7 +168,8 @@ def _file_strategy(seeds: Callable[[], list], render: Callable[[Any], bytes]) ->
 
 @functools.cache
 def _workdir() -> Path:
-    return Path(tempfile.mkdtemp(prefix="rd3g-fuzz-"))
+    shm = Path("/dev/shm")  # memory-backed where available: one file is written per input
+    return Path(tempfile.mkdtemp(prefix="rd3g-fuzz-", dir=shm if shm.is_dir() and os.access(shm, os.W_OK) else None))
 
 
 def _loader_run(suffix: str, load: Callable[[Path], Any], error: Callable[[], type]) -> Callable[[bytes], str]:
