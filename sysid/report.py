@@ -73,7 +73,7 @@ def plot_residual(result: SysidResult, effect: str, before: Fit, after: Fit, pat
     ax.set_title(f"held-out residual vs explaining variable: {effect}")
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
+    fileio.atomic_write_with(path, lambda tmp: fig.savefig(tmp, format="png"))
     plt.close(fig)
     return path
 

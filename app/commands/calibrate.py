@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from fileio import check_output_path
+
 
 def register(sub):
     p = sub.add_parser(
@@ -45,6 +47,7 @@ def run(args) -> int:
     from app.cli import UserError
     from tracking.calibration import calibrate_image, load_fixed_markers, load_intrinsics, save_calibration
 
+    check_output_path(args.out)  # before a camera is opened
     marker_set = load_fixed_markers(args.fixed_markers)
     intrinsics = load_intrinsics(args.intrinsics) if args.intrinsics else None
     if args.image:

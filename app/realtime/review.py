@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from app.telemetry import EVENTS_ENTITY, RecordingData
+from fileio import atomic_write_with
 
 SUMMARY_KEYS = ("laps", "lap_times_s", "min_gap_m", "collisions", "loop_hz_median", "loop_period_p99_ms",
                 "deadline_misses", "frames", "solve_ms_p50", "solve_ms_p99", "tracking_error_mm_median",
@@ -257,7 +258,7 @@ def save_plots(data: RecordingData, folder: Path) -> list[Path]:
 
 def _save(fig, path: Path, plt) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)
     return path
 
