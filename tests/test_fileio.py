@@ -2,6 +2,7 @@
 writing (failures injected with real directories and a monkeypatched disk-full write)."""
 from __future__ import annotations
 
+import dataclasses
 import errno
 import os
 
@@ -150,3 +151,35 @@ def test_read_only_directory(tmp_path):
     ro.chmod(0o500)
     with pytest.raises(OutputFileError, match="is not writable"):
         check_output_path(ro / "x.json")
+
+
+@dataclasses.dataclass
+class _Inner:
+    gain: float = 1.0
+
+
+@dataclasses.dataclass
+class _Outer:
+    size: int
+    weights: list[float]
+    inner: _Inner = dataclasses.field(default_factory=_Inner)
+    label: str | None = None
+    enabled: bool = True
+
+
+def test_schema_follows_the_dataclass():
+    """A field added to a dataclass is in the file format at once: required without a default,
+    optional (null allowed) for `X | None`, typed by its annotation."""
+    from fileio import table_from_dataclass
+
+    spec = table_from_dataclass(_Outer)
+    assert list(spec.fields) == ["size", "weights", "inner", "label", "enabled"]
+    assert [f.required for f in spec.fields.values()] == [True, True, False, False, False]
+    assert validate({"size": 3, "weights": [1, 2.5], "inner": {"gain": 2}, "label": None}, spec, "f") == \
+        {"size": 3, "weights": [1.0, 2.5], "inner": {"gain": 2.0}}
+    for doc, message in (({"size": 3}, "f: weights: missing"), ({"size": 3, "weights": [], "enabled": 1}, "f: enabled: expected true or false"),
+                         ({"size": 3, "weights": [], "inner": {"gian": 1}}, "f: inner.gian: unknown key 'gian'; did you mean 'gain'?"),
+                         ({"size": 2**31, "weights": []}, "f: size: expected an integer >= -2147483647 and <= 2147483647")):
+        with pytest.raises(InputFileError) as info:
+            validate(doc, spec, "f")
+        assert str(info.value).startswith(message), str(info.value)

@@ -274,3 +274,12 @@ def test_ctrl_c_during_a_simulated_race_keeps_summary_and_recording(tmp_path):
     review = subprocess.run([sys.executable, "-m", "app", "review", str(rrd), "--no-plots"], cwd=ROOT,
                             capture_output=True, text=True, timeout=120)
     assert review.returncode == 0, review.stderr
+
+
+def test_calibrate_image_that_is_a_fifo(tmp_path, capsys):
+    os.mkfifo(tmp_path / "frame.png")  # cv2.imread would block on it forever
+    markers = tmp_path / "m.json"
+    markers.write_text(json.dumps({"markers": {"40": {"x": 0.1, "y": 0.1, "size": 0.1, "heading_deg": 0}}}))
+    code, err = _cli(["calibrate", "--image", tmp_path / "frame.png", "--fixed-markers", markers,
+                      "--out", tmp_path / "cal.json"], capsys)
+    assert code == 2 and "frame.png: image is a FIFO (named pipe), not a regular file" in err
