@@ -43,7 +43,11 @@ def run(args) -> int:
         settings["time_limit"] = args.time_limit
     else:
         settings.setdefault("time_limit", DEFAULT_TIME_LIMIT_S)
-    result = Solver(problem, **settings).solve(warm)
+    try:
+        solver = Solver(problem, **settings)  # the C++ set-up checks the settings' ranges
+    except ValueError as exc:
+        raise UserError(f"{args.problem}: {exc}") from None
+    result = solver.solve(warm)
     print(f"status {result.status}  iterations {result.iterations}  |r| {result.residual_norm:.2e}  "
           f"max violation {result.max_violation:.2e}  solve time {1e3 * result.solve_time_s:.1f} ms")
     if args.out:
