@@ -44,8 +44,9 @@ class ProblemSize:
     seconds_per_iteration: float   # estimated
 
 
-def _finite_entries(bounds, n: int) -> int:
-    return 0 if bounds is None else int(np.isfinite(np.asarray(bounds, dtype=float)).sum()) if np.size(bounds) == n else n
+def _finite_entries(bounds) -> int:
+    """Bound components that make a constraint (infinite ones do not)."""
+    return 0 if bounds is None else int(np.isfinite(np.asarray(bounds, dtype=float)).sum())
 
 
 def estimate_size(problem: GameProblem) -> ProblemSize:
@@ -56,7 +57,7 @@ def estimate_size(problem: GameProblem) -> ProblemSize:
     if problem.collision is not None and problem.collision.enabled and N >= 2:
         per_step += N * (N - 1) // 2
     for a in problem.agents:
-        per_step += sum(_finite_entries(b, n) for b, n in ((a.u_min, nu), (a.u_max, nu), (a.x_min, nx), (a.x_max, nx)))
+        per_step += sum(_finite_entries(b) for b in (a.u_min, a.u_max, a.x_min, a.x_max))
     block = N * (2 * nx + nu) + per_step
     return ProblemSize(
         agents=N, horizon=T, nx=nx, nu=nu, constraints_per_step=per_step, block=block,

@@ -1,12 +1,14 @@
 """JSON problem files (docs/problem-format.md): load into a GameProblem + settings + initial guess,
-and write problems and results. Errors name the field at fault."""
+and write problems and results. The file's schema is derived from the problem dataclasses
+(fileio.schema); errors name the file and the field at fault."""
 from __future__ import annotations
 
-import fileio
-from fileio import Array, FieldSpec, ListOf, Number, String, Table, Tagged
 from pathlib import Path
 
 import numpy as np
+
+import fileio
+from fileio import Array, FieldSpec, ListOf, Number, String, Table, Tagged
 
 from . import _core
 from .models import KinematicBicycle, LinearModel
