@@ -15,7 +15,6 @@ from .models import KinematicBicycle, LinearModel
 from .problem import Agent, Collision, GameProblem, Obstacle, QuadraticCost
 from .solve import GameResult, WarmStart, settings_dict
 
-DYNAMICS_TYPES = ("kinematic_bicycle", "linear")
 MAX_FILE_BYTES = 64 * 2**20
 
 
