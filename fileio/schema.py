@@ -292,10 +292,13 @@ def _spec_for_type(tp: Any, name: str) -> tuple[Spec, bool]:
 
 
 def table_from_dataclass(cls: type, overrides: Mapping[str, Spec] | None = None,
-                         extra: Mapping[str, FieldSpec] | None = None, exclude: typing.Iterable[str] = ()) -> Table:
+                         extra: Mapping[str, FieldSpec] | None = None, exclude: typing.Iterable[str] = (),
+                         nullable: typing.Iterable[str] = ()) -> Table:
     """The file form of a dataclass: one key per init field (minus ``exclude``), with ``overrides``
-    replacing the spec derived from a field's type and ``extra`` adding file-only keys."""
+    replacing the spec derived from a field's type, ``extra`` adding file-only keys and ``nullable``
+    naming defaulted fields whose ``null`` means "absent" although their type has no None."""
     overrides = dict(overrides or {})
+    null_ok = set(nullable)
     hints = typing.get_type_hints(cls)
     out: dict[str, FieldSpec] = {}
     for f in dataclasses.fields(cls):
@@ -304,7 +307,7 @@ def table_from_dataclass(cls: type, overrides: Mapping[str, Spec] | None = None,
         spec, nullable = _spec_for_type(hints[f.name], f"{cls.__name__}.{f.name}") if f.name not in overrides \
             else (overrides.pop(f.name), _is_optional(hints[f.name]))
         required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
-        out[f.name] = FieldSpec(spec, required=required, nullable=nullable)
+        out[f.name] = FieldSpec(spec, required=required, nullable=nullable or f.name in null_ok)
     if overrides:
         raise TypeError(f"{cls.__name__}: overrides for unknown fields {sorted(overrides)}")
     out.update(extra or {})

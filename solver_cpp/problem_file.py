@@ -62,6 +62,7 @@ def _schema() -> Table:
     return table(GameProblem, overrides={
         "dt": Number(gt=0), "horizon": Number(integer=True, ge=1, le=fileio.schema.INT32_MAX),
         "agents": ListOf(agent, min_len=1), "collision": collision, "obstacles": ListOf(obstacle)},
+        nullable=("obstacles",),  # "obstacles": null has always meant none
         extra={"solver": FieldSpec(_solver_table(), required=False, nullable=True)})
 
 

@@ -111,6 +111,8 @@ def test_valid_problem_files_still_load(tmp_path, capsys):
     doc["agents"][0]["cost"]["Q"] = None
     doc["collision"]["min_distance"] = [1.0] * 5
     doc["agents"][1]["u_init"] = [[0.0, 0.0]] * 5
+    doc["obstacles"] = None
+    doc["solver"] = None
     f = tmp_path / "p.json"
     f.write_text(json.dumps(doc))
     problem, _, warm = load_problem(f)
@@ -191,7 +193,8 @@ def test_car_files(tmp_path, capsys):
 
 def test_track_and_tracking_files(tmp_path, capsys):
     from tracks import TrackFormatError, available_tracks, load_track
-    from tracking.calibration import CameraCalibration, load_calibration, load_fixed_markers, save_calibration
+    from tracking.calibration import (CameraCalibration, load_calibration, load_fixed_markers, load_intrinsics,
+                                      save_calibration)
     from tracking.geometry import PinholeCamera
     from tracking.markers import ArucoTracker
 
@@ -217,6 +220,11 @@ def test_track_and_tracking_files(tmp_path, capsys):
     path.write_text(json.dumps(data))
     with pytest.raises(ValueError, match="cal.json: rvecc: unknown key 'rvecc'; did you mean 'rvec'?"):
         load_calibration(path)
+    intrinsics = tmp_path / "k.json"
+    intrinsics.write_text(json.dumps({"image_width": 1280, "image_height": 720, "camera_matrix": cam.camera_matrix.tolist(),
+                                      "dist_coeffs": [0.0] * 5, "rms_px": 0.2}))  # as another tool may write it
+    with pytest.warns(UserWarning, match="k.json: ignoring unknown key 'rms_px'"):
+        assert load_intrinsics(intrinsics).image_size == (1280, 720)
     markers = tmp_path / "m.json"
     markers.write_text(json.dumps({"markers": {"40": {"x": 1, "y": 2, "size": True}}}))
     with pytest.raises(ValueError, match=r"m.json: markers\['40'\].size: must be a finite number, got True"):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable
 from pathlib import Path
@@ -223,7 +224,10 @@ def load_intrinsics(path) -> Intrinsics:
     data = _load_json(path, "intrinsics file")
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: top level must be a JSON object")
-    _check_keys(data, INTRINSICS_KEYS, str(path))
+    extra = [k for k in data if k not in INTRINSICS_KEYS]
+    if extra:  # intrinsics often come from other tools, which add their own keys: named, not fatal
+        warnings.warn(f"{path}: ignoring {', '.join(unknown_key_message(k, INTRINSICS_KEYS) for k in extra)}",
+                      stacklevel=2)
     for name in ("camera_matrix", "dist_coeffs", "image_width", "image_height"):
         if name not in data:
             raise CalibrationError(f"{path}: {name}: missing")
