@@ -20,6 +20,7 @@ import math
 import os
 import struct
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -177,7 +178,10 @@ def _loader_run(suffix: str, load: Callable[[Path], Any], error: Callable[[], ty
         path = _workdir() / f"input{suffix}"
         path.write_bytes(data)
         try:
-            load(path)
+            with warnings.catch_warnings():
+                # numpy warns where a value was converted unchecked (e.g. 1e300 cast to int)
+                warnings.simplefilter("error", RuntimeWarning)
+                load(path)
         except error() as exc:
             if path.name not in str(exc):
                 raise FuzzFailure(f"error does not name the file: {exc}") from exc

@@ -54,7 +54,8 @@ def suggestion(key: str, allowed: typing.Iterable[str]) -> str:
 
 def unknown_key_message(key: str, allowed: typing.Iterable[str]) -> str:
     allowed = sorted(allowed)
-    return f"unknown key {str(key)!r}{suggestion(key, allowed)} (allowed: {', '.join(allowed)})"
+    shown = repr(str(key)) if len(str(key)) <= 40 else repr(str(key)[:37] + "...")
+    return f"unknown key {shown}{suggestion(key, allowed)} (allowed: {', '.join(allowed)})"
 
 
 def _at(path: str, key: str | int) -> str:

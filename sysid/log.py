@@ -24,6 +24,8 @@ OPTIONAL_COLUMNS = ("speed",)
 MAX_ABS_STEERING_RAD = 1.2
 MAX_ABS_POSITION_M = 1000.0
 MAX_SPEED_MPS = 50.0
+MAX_CAR_ID = 2**31 - 1
+CAR_ID_RULE = f"must be an integer id in 0..{MAX_CAR_ID}"
 # A row of 8 numbers is under 200 characters; anything far longer is not a drive log.
 MAX_LINE = 4096
 MAX_FILE_BYTES = 1024 * 2**20
@@ -118,9 +120,13 @@ def _read_csv(path: Path) -> DriveLog:
             if not math.isfinite(v):
                 raise LogFormatError(f"{source}: row {line}, column {c}: must be finite, got {raw!r}")
             values[c][k] = v
+    car = values["car"]
+    bad = _first_bad((car != np.round(car)) | (car < 0) | (car > MAX_CAR_ID))
+    if bad is not None:  # before the cast to int, which would turn 1e300 into garbage
+        raise LogFormatError(f"{source}: row {line_numbers[bad]}, column car: {CAR_ID_RULE}, got {float(car[bad])!r}")
     log = DriveLog(
         source=source,
-        t=values["t"], car=values["car"].astype(int), x=values["x"], y=values["y"], heading=values["heading"],
+        t=values["t"], car=car.astype(int), x=values["x"], y=values["y"], heading=values["heading"],
         throttle=values["throttle"], steering=values["steering"], speed=values.get("speed"), row=line_numbers,
     )
     check_values(log, values["car"])
@@ -135,7 +141,7 @@ def _first_bad(mask: np.ndarray) -> int | None:
 def check_values(log: DriveLog, car_raw: np.ndarray) -> None:
     """Range checks (vectorised); the first offending row and column are reported."""
     checks: list[tuple[str, np.ndarray, str]] = [
-        ("car", (car_raw != np.round(car_raw)) | (car_raw < 0), "must be a non-negative integer id"),
+        ("car", (car_raw != np.round(car_raw)) | (car_raw < 0) | (car_raw > MAX_CAR_ID), CAR_ID_RULE),
         ("x", np.abs(log.x) > MAX_ABS_POSITION_M, f"|x| must be <= {MAX_ABS_POSITION_M} m"),
         ("y", np.abs(log.y) > MAX_ABS_POSITION_M, f"|y| must be <= {MAX_ABS_POSITION_M} m"),
         ("heading", np.abs(log.heading) > 100.0, "heading must be in radians (|heading| <= 100)"),
