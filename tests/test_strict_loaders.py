@@ -206,6 +206,20 @@ def test_track_and_tracking_files(tmp_path, capsys):
     f.write_text(json.dumps(doc))
     with pytest.raises(TrackFormatError, match="t.json: widht: unknown key 'widht'; did you mean 'width'?"):
         load_track(f)
+    # Found by `bench fuzz --target track`: positive but subnormal sizes made the curvature infinite
+    # and the lookup table's size overflow; huge coordinates overflow the geometry.
+    oval = json.loads((ROOT / "tracks" / "data" / "oval.json").read_text())
+    for path, value, message in ((("width",), 1e-320, "width: must be >= 0.001 m, got 1e-320"),
+                                 (("segments", 1, "radius"), 1e-320, r"segments\[1\].radius: must be >= 0.001 m"),
+                                 (("start", 0), 1e300, r"start\[0\]: must be within \+-1e\+06 \(m or degrees\)")):
+        f.write_text(json.dumps(_with(path, value, oval)))
+        with pytest.raises(TrackFormatError, match=message):
+            load_track(f)
+    # 100 km of 1 cm road: 20 samples per cm would be 2e8 (the limit is 2e6).
+    f.write_text(json.dumps({"name": "long", "closed": False, "width": 0.01, "start": [0, 0, 0],
+                             "segments": [{"type": "straight", "length": 1e5}]}))
+    with pytest.raises(TrackFormatError, match="width: the track is 100000 m long and 0.01 m wide: 200000000 lookup samples"):
+        load_track(f)
 
     cam = PinholeCamera(np.array([[900.0, 0, 640], [0, 900, 360], [0, 0, 1]]), np.zeros(5), np.diag([1.0, -1, -1]),
                         np.array([-2.5, 1.5, 3.0]), (1280, 720))
