@@ -181,6 +181,7 @@ def _loader_run(suffix: str, load: Callable[[Path], Any], error: Callable[[], ty
             with warnings.catch_warnings():
                 # numpy warns where a value was converted unchecked (e.g. 1e300 cast to int)
                 warnings.simplefilter("error", RuntimeWarning)
+                warnings.simplefilter("ignore", UserWarning)  # an intrinsics file's extra keys: named, accepted
                 load(path)
         except error() as exc:
             if path.name not in str(exc):
