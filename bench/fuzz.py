@@ -293,7 +293,7 @@ def csv_inputs(draw) -> bytes:
 
 
 # --------------------------------------------------------------------------- rd3g frame decoder
-def _reference_frames(stream: bytes) -> dict[int, list[tuple[int, dict]]]:
+def _reference_frames(stream: bytes) -> dict[int, tuple[int, dict]]:
     """Every well-formed frame in the stream by start offset, parsed with struct and binascii only
     (independent of vehicles.protocol): offset -> (seq, {car id: (steering raw, throttle raw)})."""
     found = {}
