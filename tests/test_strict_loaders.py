@@ -245,7 +245,7 @@ def test_track_and_tracking_files(tmp_path, capsys):
         load_fixed_markers(markers)
     # DICT_4X4_50 has ids 0..49: a car wearing id 300 could never be seen.
     with pytest.raises(ValueError, match=r"car_ids: marker id 300 is not in the ArUco dictionary in use \(ids 0..49\)"):
-        ArucoTracker(cal, car_ids=[300])
+        ArucoTracker(cal, 0.055, car_ids=[300])
 
 
 def test_csv_logs(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -11,6 +12,19 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import UserError
+from app.realtime.hardware import CameraFeed
+from app.realtime.hil import HilWorld, WorldSpec
+from race.config import LoopConfig, LoopConfigError, parse_fault
+from race.loop import CarBinding, LoopError, RaceLoop, setup_document
+from race.planning import RacePlanners
+from race.recording import RaceRecorder
+from race.setup import start_states
+from tracking.calibration import (CalibrationError, CameraCalibration, Intrinsics, calibrate_image, load_calibration,
+                                  load_fixed_markers)
+from tracking.camera import CameraError, OpenCVCamera
+from tracking.estimator import MultiCarEstimator
+from tracking.markers import ArucoTracker
+from vehicles.serial_link import SerialCarLink, SerialLinkError
 
 
 def add_realtime_arguments(p) -> None:
@@ -85,8 +99,6 @@ def _set_scheduling(rt_priority: int | None) -> str:
     SCHED_FIFO at AUTO_RT_PRIORITY when permitted, else normal scheduling with a warning: a real-time
     loop is the default because time-sharing on this 2-core machine misses 25-45 % of the HIL
     loop's deadlines (docs/race-stack.md, "Scheduling"). Returns a description for the recording."""
-    import os
-
     if rt_priority == 0:
         return "normal time-sharing (--rt-priority 0)"
     if rt_priority is not None and not 1 <= rt_priority <= 99:
@@ -106,8 +118,6 @@ def _set_scheduling(rt_priority: int | None) -> str:
 
 
 def run_realtime(args) -> int:
-    import os
-
     mode = _check_mode(args)
     policy = (os.sched_getscheduler(0), os.sched_getparam(0)) if hasattr(os, "sched_getscheduler") else None
     try:
@@ -121,11 +131,7 @@ def run_realtime(args) -> int:
 
 
 def _run_realtime(args, mode: str) -> int:
-    from app.commands.race import DEFAULT_OUT, make_setup
-    from app.realtime.config import LoopConfig, LoopConfigError, parse_fault
-    from app.realtime.loop import CarBinding, LoopError, RaceLoop, setup_document
-    from app.realtime.planning import RacePlanners
-    from app.telemetry import RaceRecorder
+    from app.commands.race import DEFAULT_OUT, make_setup  # here: app.commands.race imports this module
 
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
@@ -163,16 +169,12 @@ def _run_realtime(args, mode: str) -> int:
     world, feed, tracker, estimator, link_port, note = parts
     recorder = loop = None
     try:
-        from vehicles.serial_link import SerialCarLink, SerialLinkError
-
         planners = RacePlanners(setup, opponent)
         out.parent.mkdir(parents=True, exist_ok=True)
         recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}")
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
-        for name, rgb in (("rd3g", (230, 60, 40)), ("opponent", (40, 110, 230))):
-            for entity, kind in (("position", "points"), ("footprint", "strips"), ("plan", "strips")):
-                recorder.static_color(f"world/cars/{name}/{entity}", kind, rgb)
+        recorder.static_car_colors()
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
                         planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
         commanded = [c.radio_id for c in cars if c.name in planners.commanded]
@@ -206,11 +208,6 @@ def _run_realtime(args, mode: str) -> int:
 
 
 def _open_hil(args, setup, cars, config, faults):
-    from app.race_runner import start_states
-    from app.realtime.hil import HilWorld, WorldSpec
-    from tracking.calibration import CameraCalibration, Intrinsics, calibrate_image, load_fixed_markers
-    from tracking.estimator import MultiCarEstimator
-    from tracking.markers import ArucoTracker
 
     spec = WorldSpec(track=setup.track, car=setup.car, start_states=start_states(setup),
                      marker_ids=(cars[0].marker_id, cars[1].marker_id), radio_ids=(cars[0].radio_id, cars[1].radio_id),
@@ -244,11 +241,6 @@ def _open_hil(args, setup, cars, config, faults):
 
 
 def _open_hardware(args, setup, cars, config):
-    from tracking.calibration import CalibrationError, load_calibration
-    from tracking.camera import CameraError, OpenCVCamera
-    from tracking.estimator import MultiCarEstimator
-    from tracking.markers import ArucoTracker
-    from app.realtime.hardware import CameraFeed
 
     try:
         calibration = load_calibration(args.calibration)
@@ -263,7 +255,7 @@ def _open_hardware(args, setup, cars, config):
         camera = OpenCVCamera(source, latency_s=args.camera_latency_ms / 1e3)
     except CameraError as exc:
         raise UserError(f"--camera: {exc}") from None
-    tracker = ArucoTracker(calibration, 0.055, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
+    tracker = ArucoTracker(calibration, setup.car.marker.size_m, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
                            full_search_every=10 ** 9)
     return None, CameraFeed(camera), tracker, MultiCarEstimator(), args.serial, None
 
