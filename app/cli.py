@@ -10,6 +10,8 @@ import argparse
 import importlib
 import sys
 
+from fileio import OutputFileError
+
 # Order here is the order shown in --help.
 COMMAND_MODULES = [
     "app.commands.race",
@@ -53,3 +55,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:  # validation errors from the packages name the field at fault
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OutputFileError as exc:  # one line naming the path; the helper left no partial file
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        print(f"error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:  # commands that keep results on Ctrl-C handle it themselves
+        print("interrupted", file=sys.stderr)
+        return 130

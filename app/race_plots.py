@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fileio import atomic_write_with
+
 
 def _clean(r, cell) -> bool:
     """An example race must be a clean RD3G win: both cars always on track, no contact."""
@@ -41,8 +43,7 @@ def _plot(rec, track, title: str, path: Path) -> Path:
     ax2.set_ylabel("RD3G progress minus MPC progress (m)")
     ax2.set_title("lead along the track")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
     plt.close(fig)
     return path
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fileio import atomic_write_with
 from race.recording import EVENTS_ENTITY, RecordingData
 from race.summary import percentile
 from sim.collision import rectangle_gap
@@ -220,7 +221,7 @@ def save_plots(data: RecordingData, folder: Path) -> list[Path]:
 
 def _save(fig, path: Path, plt) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)
     return path
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from planning import PlannerConfig
 from sim.effects import SimEffects, SimEffectsError, parse_effects, sim_effects
-from tracks import load_track
+from tracks import TrackFormatError, load_track
 from tracks.io import UnknownTrackError
 from vehicles.params import CarParams, CarParamsError, load_car_params
 
@@ -104,7 +104,7 @@ class RaceSpec:
         """Read the files and build the RaceSetup; RaceSetupError names the field at fault."""
         try:
             track = load_track(self.track)
-        except (UnknownTrackError, FileNotFoundError) as exc:
+        except (UnknownTrackError, TrackFormatError) as exc:
             raise RaceSetupError("track", str(exc)) from None
         try:
             car = load_car_params(self.car_params)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -46,6 +48,7 @@ class RaceOutcome:
     trace_progress: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))   # (n, 2) unwrapped s (m)
     prestart_ms: float = 0.0        # RD3G's first (cold) plan, computed on the grid before the start
     planner_errors: list[PlannerErrorRecord] = field(default_factory=list)  # steps whose planning raised (either car)
+    interrupted: bool = False       # stopped by Ctrl-C: the record covers the race up to race_time_s
 
     @property
     def clean_winner(self) -> str | None:
@@ -62,7 +65,8 @@ class RaceOutcome:
                                control_period_ms=self.control_period_ms),
                 "clean_winner": self.clean_winner, "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in self.collisions),
                 "off_track": self.off_track, "fallbacks": self.fallbacks, "prestart_ms": self.prestart_ms,
-                "planner_errors": len(self.planner_errors)}
+                "planner_errors": len(self.planner_errors), "interrupted": self.interrupted,
+                "race_time_s": self.race_time_s}
 
 
 class _Telemetry:
@@ -97,9 +101,37 @@ class _Telemetry:
         self.rec.close()
 
 
+class _InterruptRequest:
+    """While active (main thread only), the first Ctrl-C sets ``requested`` instead of raising, so the
+    race loop can stop between steps with its telemetry and summary whole; a second Ctrl-C raises."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous = None
+
+    def _handle(self, signum, frame) -> None:
+        self.requested = True
+        signal.signal(signal.SIGINT, self._previous)
+
+    def __enter__(self) -> "_InterruptRequest":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is not None and not self.requested:
+            signal.signal(signal.SIGINT, self._previous)
+
+
 def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator) -> RaceOutcome:
-    """Simulate one race until a car completes `laps` laps (or max_time_s). ``simulator_cls``: a
-    Simulator subclass that perturbs how commands reach the cars (bench/race_perturbations.py)."""
+    """Simulate one race until a car completes `laps` laps (or max_time_s, or Ctrl-C: ``interrupted``).
+    ``simulator_cls``: a Simulator subclass that perturbs how commands reach the cars
+    (bench/race_perturbations.py)."""
+    with _InterruptRequest() as stop:
+        return _run_race(setup, telemetry_path, progress, simulator_cls, stop)
+
+
+def _run_race(setup: RaceSetup, telemetry_path, progress, simulator_cls, stop: _InterruptRequest) -> RaceOutcome:
     track, car = setup.track, setup.car
     sim_car = car if setup.sim_car is None else setup.sim_car
     sim = simulator_cls(track, [sim_car, sim_car], effects=setup.sim_effects, seed=setup.seed, physics_dt=setup.physics_dt_s,
@@ -140,8 +172,12 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
     if theirs is not None:
         note_error("opponent", cold_plan(theirs, fs0[1], fs0[0]), 0.0)
     n_steps = int(math.ceil(setup.max_time_s / period))
+    interrupted = False
     k = 0
     for k in range(n_steps):
+        if stop.requested:  # Ctrl-C: end the race here; the outcome covers what happened so far
+            interrupted = True
+            break
         states = sim.states
         fs = np.array([frenet_state(track, states[i]) for i in range(2)])
         fs[:, S] = unwrap.update(fs[:, S])
@@ -175,6 +211,8 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
             break
     status = sim.race_status()
     if tel:
+        if interrupted:
+            tel.event(sim.time, "interrupted: Ctrl-C")
         tel.close()
     return RaceOutcome(
         winner=None if status.winner is None else CAR_NAMES[status.winner],
@@ -183,4 +221,4 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
         control_period_ms=1e3 * period, race_time_s=sim.time, fallbacks=int(fallbacks),
         off_track={name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)}, start_states=x0,
         trace_t=np.array(trace_t), trace_states=np.array(trace_x), trace_progress=np.array(trace_s),
-        prestart_ms=prestart_ms, planner_errors=planner_errors)
+        prestart_ms=prestart_ms, planner_errors=planner_errors, interrupted=interrupted)

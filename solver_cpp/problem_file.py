@@ -1,121 +1,113 @@
 """JSON problem files (docs/problem-format.md): load into a GameProblem + settings + initial guess,
-and write problems and results. Errors name the field at fault."""
+and write problems and results. The file's schema is derived from the problem dataclasses
+(fileio.schema); errors name the file and the field at fault."""
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+import fileio
+from fileio import Array, FieldSpec, ListOf, Number, String, Table, Tagged
+
+from . import _core
 from .models import KinematicBicycle, LinearModel
 from .problem import Agent, Collision, GameProblem, Obstacle, QuadraticCost
-from .solve import GameResult, WarmStart, make_settings
+from .solve import GameResult, WarmStart, settings_dict
 
-DYNAMICS_TYPES = ("kinematic_bicycle", "linear")
-
-
-class ProblemFileError(ValueError):
-    """A problem file that cannot be used; the message names the field."""
+MAX_FILE_BYTES = 64 * 2**20
 
 
-def _get(d: dict, key: str, where: str, required: bool = True, default: Any = None):
-    if not isinstance(d, dict):
-        raise ProblemFileError(f"{where} must be a JSON object")
-    if key not in d:
-        if required:
-            raise ProblemFileError(f"{where}.{key} is missing" if where else f"{key} is missing")
-        return default
-    return d[key]
+class ProblemFileError(fileio.InputFileError):
+    """A problem file that cannot be used; the message names the file and the field."""
 
 
-def _numbers(value, where: str, shape: tuple | None = None) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ProblemFileError(f"{where} must be numbers") from None
-    if shape is not None and arr.shape != shape:
-        raise ProblemFileError(f"{where} must have shape {list(shape)}, got {list(arr.shape)}")
-    return arr
+# The file schema is derived from the dataclasses in problem.py/models.py (one field list); below are
+# only the constraints their types do not carry, and the file-only keys (u_init, solver).
+_INDEX = Number(integer=True, ge=0, le=fileio.schema.INT32_MAX)
+_DISTANCE = fileio.AnyOf((Number(gt=0), Array(1, Number(gt=0))))
+_BOUND = Array(1, Number(allow_inf=True))
 
 
-def problem_from_dict(data: dict) -> tuple[GameProblem, dict, WarmStart | None]:
+def _solver_table() -> Table:
+    """Every C++ solver setting by name, typed by its default (docs/solver.md)."""
+    fields = {}
+    for name, default in settings_dict(_core.Settings()).items():
+        if isinstance(default, bool):
+            spec = fileio.Boolean()
+        elif isinstance(default, int):
+            spec = Number(integer=True, ge=-fileio.schema.INT32_MAX, le=fileio.schema.INT32_MAX)
+        elif isinstance(default, float):
+            spec = Number()
+        else:  # a C++ enum, named by its value
+            spec = String(choices=tuple(type(getattr(_core.Settings(), name)).__members__))
+        fields[name] = FieldSpec(spec, required=False)
+    return Table(fields, "solver")
+
+
+def _schema() -> Table:
+    table = fileio.table_from_dataclass
+    dynamics = Tagged("type", {
+        "kinematic_bicycle": table(KinematicBicycle, overrides={"lf": Number(gt=0), "lr": Number(gt=0)}),
+        "linear": table(LinearModel, overrides={"A": Array(2, min_len=1), "B": Array(2, min_len=1)}),
+    })
+    cost = table(QuadraticCost, overrides={k: Array(1, Number(ge=0)) for k in ("Q_ref", "R", "Q", "Qf_ref", "Qf")})
+    agent = table(Agent, overrides={
+        "dynamics": dynamics, "cost": cost, "lead_index": _INDEX,
+        **{k: _BOUND for k in ("u_min", "u_max", "x_min", "x_max")}},
+        extra={"u_init": FieldSpec(Array(2), required=False, nullable=True)})
+    collision = table(Collision, overrides={"min_distance": _DISTANCE, "form": String(choices=("distance", "squared")),
+                                            "pos_x": _INDEX, "pos_y": _INDEX})
+    obstacle = table(Obstacle, overrides={"positions": Array(2), "min_distance": _DISTANCE})
+    return table(GameProblem, overrides={
+        "dt": Number(gt=0), "horizon": Number(integer=True, ge=1, le=fileio.schema.INT32_MAX),
+        "agents": ListOf(agent, min_len=1), "collision": collision, "obstacles": ListOf(obstacle)},
+        nullable=("obstacles",),  # "obstacles": null has always meant none
+        extra={"solver": FieldSpec(_solver_table(), required=False, nullable=True)})
+
+
+PROBLEM_SCHEMA = _schema()
+
+
+def problem_from_dict(data, source: str = "<problem>") -> tuple[GameProblem, dict, WarmStart | None]:
     """Returns (problem, solver settings overrides, initial guess or None)."""
-    if not isinstance(data, dict):
-        raise ProblemFileError("the problem file must contain a JSON object")
-    dt = _get(data, "dt", "")
-    horizon = _get(data, "horizon", "")
-    if not isinstance(dt, (int, float)) or isinstance(dt, bool) or not math.isfinite(dt) or dt <= 0:
-        raise ProblemFileError(f"dt must be a positive number, got {dt!r}")
-    if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
-        raise ProblemFileError(f"horizon must be a positive integer, got {horizon!r}")
-    agents_raw = _get(data, "agents", "")
-    if not isinstance(agents_raw, list) or not agents_raw:
-        raise ProblemFileError("agents must be a non-empty list")
+    d = fileio.validate(data, PROBLEM_SCHEMA, source, ProblemFileError)
     agents, u_init = [], []
-    for i, a in enumerate(agents_raw):
-        w = f"agents[{i}]"
-        dyn = _get(a, "dynamics", w)
-        typ = _get(dyn, "type", f"{w}.dynamics")
-        if typ == "kinematic_bicycle":
-            model = KinematicBicycle(lf=_get(dyn, "lf", f"{w}.dynamics"), lr=_get(dyn, "lr", f"{w}.dynamics"))
-        elif typ == "linear":
-            model = LinearModel(A=_numbers(_get(dyn, "A", f"{w}.dynamics"), f"{w}.dynamics.A"),
-                                B=_numbers(_get(dyn, "B", f"{w}.dynamics"), f"{w}.dynamics.B"))
-        else:
-            raise ProblemFileError(f"{w}.dynamics.type must be one of {DYNAMICS_TYPES}, got {typ!r}")
-        c = _get(a, "cost", w)
-        cost = QuadraticCost(x_ref=_get(c, "x_ref", f"{w}.cost"), Q_ref=_get(c, "Q_ref", f"{w}.cost"),
-                             R=_get(c, "R", f"{w}.cost"), Q=_get(c, "Q", f"{w}.cost", False),
-                             Qf_ref=_get(c, "Qf_ref", f"{w}.cost", False), Qf=_get(c, "Qf", f"{w}.cost", False))
-        agents.append(Agent(dynamics=model, x0=_get(a, "x0", w), cost=cost,
-                            u_min=_get(a, "u_min", w, False), u_max=_get(a, "u_max", w, False),
-                            x_min=_get(a, "x_min", w, False), x_max=_get(a, "x_max", w, False),
-                            lead_weight=_get(a, "lead_weight", w, False, 0.0), lead_index=_get(a, "lead_index", w, False, 0)))
-        u_init.append(_get(a, "u_init", w, False))
-    col = data.get("collision")
-    collision = None
-    if col is not None:
-        collision = Collision(min_distance=_get(col, "min_distance", "collision"), form=col.get("form", "distance"),
-                              enabled=bool(col.get("enabled", True)))
-    obstacles = []
-    for n, o in enumerate(data.get("obstacles", []) or []):
-        obstacles.append(Obstacle(positions=_numbers(_get(o, "positions", f"obstacles[{n}]"), f"obstacles[{n}].positions"),
-                                  min_distance=_get(o, "min_distance", f"obstacles[{n}]")))
-    problem = GameProblem(dt=float(dt), horizon=horizon, agents=agents, collision=collision, obstacles=obstacles)
-    problem.to_core()  # validates every field now, with names
-    settings = data.get("solver", {}) or {}
-    if not isinstance(settings, dict):
-        raise ProblemFileError("solver must be a JSON object of solver settings")
-    make_settings(**settings)  # validates names and values
+    for a in d["agents"]:
+        dyn = a.pop("dynamics")
+        kind = dyn.pop("type")
+        model = KinematicBicycle(**dyn) if kind == "kinematic_bicycle" else \
+            LinearModel(A=np.asarray(dyn["A"], float), B=np.asarray(dyn["B"], float))
+        u_init.append(a.pop("u_init", None))
+        agents.append(Agent(dynamics=model, cost=QuadraticCost(**a.pop("cost")), **a))
+    collision = Collision(**d["collision"]) if "collision" in d else None
+    obstacles = [Obstacle(positions=np.asarray(o["positions"], float), min_distance=o["min_distance"])
+                 for o in d.get("obstacles", [])]
+    horizon = d["horizon"]
+    problem = GameProblem(dt=d["dt"], horizon=horizon, agents=agents, collision=collision, obstacles=obstacles)
+    settings = d.get("solver", {})
+    try:
+        problem.to_core()  # sizes and cross-field rules, with names
+    except ValueError as exc:
+        raise ProblemFileError(f"{source}: {exc}") from None
     warm = None
     if any(u is not None for u in u_init):
         nu = agents[0].dynamics.nu
         U = np.zeros((len(agents), horizon, nu))
         for i, u in enumerate(u_init):
             if u is not None:
-                U[i] = _numbers(u, f"agents[{i}].u_init", (horizon, nu))
-                if not np.all(np.isfinite(U[i])):
-                    raise ProblemFileError(f"agents[{i}].u_init has non-finite values")
+                u = np.asarray(u, float)
+                if u.shape != (horizon, nu):
+                    raise ProblemFileError(f"{source}: agents[{i}].u_init: expected shape [{horizon}, {nu}] "
+                                           f"(horizon rows of nu controls), got {list(u.shape)}")
+                U[i] = u
         warm = WarmStart(u=U)
     return problem, settings, warm
 
 
 def load_problem(path: str | Path) -> tuple[GameProblem, dict, WarmStart | None]:
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ProblemFileError(f"cannot read {path}: {exc.strerror}") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ProblemFileError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
-    try:
-        return problem_from_dict(data)
-    except ValueError as exc:
-        raise ProblemFileError(f"{path}: {exc}") from None
+    data = fileio.load_json(path, "problem file", max_bytes=MAX_FILE_BYTES, error=ProblemFileError)
+    return problem_from_dict(data, str(path))
 
 
 def problem_to_dict(problem: GameProblem, solver: dict | None = None) -> dict:

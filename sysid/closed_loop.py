@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+import fileio
 from race.recording import load_recording
 from race.setup import RaceSpec
 from race.simulation import run_race
@@ -249,6 +250,6 @@ def plot(races: list[RaceMeasurement], summary: dict[str, VariantSummary], title
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    fileio.atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=100, format=path.suffix.lstrip(".") or "png"))
     plt.close(fig)
     return path

@@ -16,15 +16,22 @@ from typing import Callable
 
 import numpy as np
 
+import fileio
+
 REQUIRED_COLUMNS = ("t", "car", "x", "y", "heading", "throttle", "steering")
 OPTIONAL_COLUMNS = ("speed",)
 # Plausibility bounds: values outside are logging errors, not driving.
 MAX_ABS_STEERING_RAD = 1.2
 MAX_ABS_POSITION_M = 1000.0
 MAX_SPEED_MPS = 50.0
+MAX_CAR_ID = 2**31 - 1
+CAR_ID_RULE = f"must be an integer id in 0..{MAX_CAR_ID}"
+# A row of 8 numbers is under 200 characters; anything far longer is not a drive log.
+MAX_LINE = 4096
+MAX_FILE_BYTES = 1024 * 2**20
 
 
-class LogFormatError(ValueError):
+class LogFormatError(fileio.InputFileError):
     """The log is malformed; the message names the file, row (1-based line number) and column."""
 
 
@@ -71,19 +78,17 @@ class DriveLog:
 
 def _read_csv(path: Path) -> DriveLog:
     source = str(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise LogFormatError(f"{source}: log file not found") from None
-    except UnicodeDecodeError as exc:
-        raise LogFormatError(f"{source}: not a UTF-8 text file ({exc})") from None
+    text = fileio.read_text(path, "log file", max_bytes=MAX_FILE_BYTES, max_line=MAX_LINE, error=LogFormatError)
     lines = text.splitlines()
     # Comment lines (#...) and blank lines are skipped but keep their line numbers.
     numbered = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
     if not numbered:
         raise LogFormatError(f"{source}: empty log (no header row)")
     reader = csv.reader([ln for _, ln in numbered])
-    rows = list(reader)
+    try:
+        rows = list(reader)
+    except csv.Error as exc:  # e.g. a NUL byte; lines are split before csv sees them, so line_num is the row
+        raise LogFormatError(f"{source}: row {numbered[reader.line_num - 1][0]}: not CSV: {exc}") from None
     header_line, header = numbered[0][0], [h.strip() for h in rows[0]]
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
@@ -115,9 +120,13 @@ def _read_csv(path: Path) -> DriveLog:
             if not math.isfinite(v):
                 raise LogFormatError(f"{source}: row {line}, column {c}: must be finite, got {raw!r}")
             values[c][k] = v
+    car = values["car"]
+    bad = _first_bad((car != np.round(car)) | (car < 0) | (car > MAX_CAR_ID))
+    if bad is not None:  # before the cast to int, which would turn 1e300 into garbage
+        raise LogFormatError(f"{source}: row {line_numbers[bad]}, column car: {CAR_ID_RULE}, got {float(car[bad])!r}")
     log = DriveLog(
         source=source,
-        t=values["t"], car=values["car"].astype(int), x=values["x"], y=values["y"], heading=values["heading"],
+        t=values["t"], car=car.astype(int), x=values["x"], y=values["y"], heading=values["heading"],
         throttle=values["throttle"], steering=values["steering"], speed=values.get("speed"), row=line_numbers,
     )
     check_values(log, values["car"])
@@ -132,7 +141,7 @@ def _first_bad(mask: np.ndarray) -> int | None:
 def check_values(log: DriveLog, car_raw: np.ndarray) -> None:
     """Range checks (vectorised); the first offending row and column are reported."""
     checks: list[tuple[str, np.ndarray, str]] = [
-        ("car", (car_raw != np.round(car_raw)) | (car_raw < 0), "must be a non-negative integer id"),
+        ("car", (car_raw != np.round(car_raw)) | (car_raw < 0) | (car_raw > MAX_CAR_ID), CAR_ID_RULE),
         ("x", np.abs(log.x) > MAX_ABS_POSITION_M, f"|x| must be <= {MAX_ABS_POSITION_M} m"),
         ("y", np.abs(log.y) > MAX_ABS_POSITION_M, f"|y| must be <= {MAX_ABS_POSITION_M} m"),
         ("heading", np.abs(log.heading) > 100.0, "heading must be in radians (|heading| <= 100)"),
@@ -184,9 +193,10 @@ def write_log_csv(path: str | Path, log: DriveLog) -> Path:
     data = [log.t, log.car, log.x, log.y, log.heading, log.throttle, log.steering]
     if log.speed is not None:
         data.append(log.speed)
-    with path.open("w", encoding="utf-8", newline="") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(columns)
-        for row in zip(*(np.asarray(d).tolist() for d in data)):
-            w.writerow([f"{v:.6f}" if isinstance(v, float) else str(v) for v in row])
-    return path
+    def write(tmp: Path) -> None:
+        with tmp.open("w", encoding="utf-8", newline="") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(columns)
+            for row in zip(*(np.asarray(d).tolist() for d in data)):
+                w.writerow([f"{v:.6f}" if isinstance(v, float) else str(v) for v in row])
+    return fileio.atomic_write_with(path, write)

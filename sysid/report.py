@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+import fileio
+
 from sysid.diagnose import EFFECT_NAMES, ErrorSummary, Fit, SysidResult
 
 # Per effect: (label of the explaining variable, label of the residual it drives).
@@ -83,7 +85,7 @@ def plot_residual(result: SysidResult, effect: str, before: Fit, after: Fit, pat
     ax.set_title(f"held-out residual vs explaining variable: {effect}")
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
+    fileio.atomic_write_with(path, lambda tmp: fig.savefig(tmp, format="png"))
     plt.close(fig)
     return path
 
@@ -130,7 +132,7 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
 
 
 def write_json(result: SysidResult, path: Path, car_params_out: str) -> Path:
-    path.write_text(json.dumps(result_json(result, car_params_out), indent=2) + "\n", encoding="utf-8")
+    fileio.atomic_write_text(path, json.dumps(result_json(result, car_params_out), indent=2) + "\n")
     return path
 
 

@@ -6,7 +6,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("app", "race", "solver_cpp", "vehicles", "tracks", "sim", "tracking", "planning", "sysid", "bench", "recording")
+PACKAGES = ("app", "race", "fileio", "solver_cpp", "vehicles", "tracks", "sim", "tracking", "planning", "sysid", "bench", "recording")
 
 
 def _imports(path: Path) -> list[tuple[str, int]]:

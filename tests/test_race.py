@@ -29,8 +29,9 @@ def test_short_race_finishes_without_collision(race, track):
     assert o.trace_progress[-1].max() - o.trace_progress[0].max() > track.length - 0.5
     assert set(o.summary()) == {"winner", "clean_winner", "lap_times_s", "min_gap_m", "collisions", "rd3g_at_fault",
                                 "off_track", "fallbacks", "solve_ms_p50", "solve_ms_p99", "prestart_ms",
-                                "control_period_ms", "planner_errors"}
+                                "control_period_ms", "planner_errors", "interrupted", "race_time_s"}
     assert o.planner_errors == [] and o.summary()["planner_errors"] == 0
+    assert o.summary()["interrupted"] is False and o.summary()["race_time_s"] == o.race_time_s
 
 
 def test_race_is_deterministic(race):

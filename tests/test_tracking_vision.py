@@ -259,7 +259,7 @@ def test_intrinsics_size_mismatch_is_rejected(scene, camera, fixed):
     ({"markers": {"x40": {"x": 1, "y": 2, "size": 0.1}}}, r"markers\['x40'\]: key must be an integer"),
     ({"markers": {"99": {"x": 1, "y": 2, "size": 0.1}}}, r"markers\['99'\]: id outside DICT_4X4_50"),
     ({"markers": {"4": {"x": "a", "y": 2, "size": 0.1}}}, r"markers\['4'\]\.x: must be a finite number"),
-    ({"markers": {"4": {"x": 1, "y": 2, "size": 0.1, "yaw": 3}}}, r"markers\['4'\]: unknown field"),
+    ({"markers": {"4": {"x": 1, "y": 2, "size": 0.1, "yaw": 3}}}, r"markers\['4'\]\.yaw: unknown key 'yaw'"),
     ({"dictionary": "DICT_9X9", "markers": {"4": {"x": 1, "y": 2, "size": 0.1}}}, "unknown ArUco dictionary"),
     ({"markers": {}}, "markers: must be a non-empty object"),
 ])

@@ -609,8 +609,9 @@ def test_load_track_by_path_and_errors(tmp_path):
     assert load_track(str(path)).length == track.length
     with pytest.raises(tracks.UnknownTrackError, match="oval"):
         load_track("no_such_track")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(TrackFormatError, match="missing.json: <file>: track file not found") as info:
         load_track(tmp_path / "missing.json")
+    assert info.value.field == "<file>"
     bad = tmp_path / "bad.json"
     bad.write_text('{"name": "x",\n "closed": tru}')
     with pytest.raises(TrackFormatError, match="line 2") as info:

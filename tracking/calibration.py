@@ -11,8 +11,10 @@ File formats (documented in docs/tracking.md):
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable
 from pathlib import Path
@@ -20,12 +22,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+import fileio
+from fileio import unknown_key_message
+
 from tracking.geometry import PinholeCamera
 
 CALIBRATION_FORMAT_VERSION = 1
 
 
-class CalibrationError(ValueError):
+MAX_FILE_BYTES = 4 * 2**20
+
+
+class CalibrationError(fileio.InputFileError):
     """Calibration input is invalid or the frame does not allow a calibration."""
 
 
@@ -78,7 +86,7 @@ def aruco_dictionary_id(name: str, field_name: str = "dictionary") -> int:
 
 
 def _number(value, where: str, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or abs(value) > 1e300 or not math.isfinite(value):
         raise CalibrationError(f"{where}: must be a finite number, got {value!r}")
     if positive and value <= 0:
         raise CalibrationError(f"{where}: must be positive, got {value!r}")
@@ -88,9 +96,9 @@ def _number(value, where: str, positive: bool = False) -> float:
 def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
     if not isinstance(data, dict):
         raise CalibrationError(f"{source}: top level must be a JSON object")
-    unknown = set(data) - {"dictionary", "markers", "description"}
-    if unknown:
-        raise CalibrationError(f"{source}: unknown field(s) {sorted(unknown)}")
+    for key in data:
+        if key not in ("dictionary", "markers", "description"):
+            raise CalibrationError(f"{source}: {key}: {unknown_key_message(key, ('dictionary', 'markers', 'description'))}")
     dictionary = data.get("dictionary", "DICT_4X4_50")
     dict_id = aruco_dictionary_id(dictionary, f"{source}: dictionary")
     n_ids = cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0]
@@ -100,17 +108,16 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
     markers: dict[int, FixedMarker] = {}
     for key, entry in raw.items():
         where = f"{source}: markers[{key!r}]"
-        try:
-            marker_id = int(key)
-        except ValueError:
-            raise CalibrationError(f"{where}: key must be an integer marker id") from None
+        if not key.isdigit() or len(key) > 9:  # int() would also take " 4", "+4", "4_0" and "٤"
+            raise CalibrationError(f"{where}: key must be an integer marker id")
+        marker_id = int(key)
         if not 0 <= marker_id < n_ids:
             raise CalibrationError(f"{where}: id outside {dictionary} (0..{n_ids - 1})")
         if not isinstance(entry, dict):
             raise CalibrationError(f"{where}: must be an object with x, y, size")
-        extra = set(entry) - {"x", "y", "size", "heading_deg", "z"}
-        if extra:
-            raise CalibrationError(f"{where}: unknown field(s) {sorted(extra)}")
+        for key in entry:
+            if key not in ("x", "y", "size", "heading_deg", "z"):
+                raise CalibrationError(f"{where}.{key}: {unknown_key_message(key, ('x', 'y', 'size', 'heading_deg', 'z'))}")
         for name in ("x", "y", "size"):
             if name not in entry:
                 raise CalibrationError(f"{where}.{name}: missing")
@@ -126,15 +133,12 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
     return FixedMarkerSet(dictionary=dictionary, markers=markers)
 
 
+def _load_json(path, what: str):
+    return fileio.load_json(path, what, max_bytes=MAX_FILE_BYTES, error=CalibrationError)
+
+
 def load_fixed_markers(path) -> FixedMarkerSet:
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CalibrationError(f"{path}: fixed-marker file not found") from None
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
-    return parse_fixed_markers(data, str(path))
+    return parse_fixed_markers(_load_json(path, "fixed-marker file"), str(path))
 
 
 # --------------------------------------------------------------------------- intrinsics
@@ -146,15 +150,26 @@ class Intrinsics:
 
 
 def _matrix(value, shape, where) -> np.ndarray:
+    if not _numeric_nest(value):
+        raise CalibrationError(f"{where}: must be numbers (nested lists of numbers), got {fileio.schema.show(value)}")
     try:
         arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{where}: must be numeric") from None
+    except (TypeError, ValueError, OverflowError):
+        raise CalibrationError(f"{where}: must be a rectangular array of numbers") from None
     if shape is not None and arr.shape != shape:
         raise CalibrationError(f"{where}: expected shape {shape}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise CalibrationError(f"{where}: contains non-finite values")
     return arr
+
+
+def _numeric_nest(value) -> bool:
+    """Numbers or nested lists of numbers; not booleans or strings (which numpy would convert)."""
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "fiu"
+    if isinstance(value, list):
+        return all(_numeric_nest(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _validate_intrinsics(k: np.ndarray, dist: np.ndarray, size, source: str) -> Intrinsics:
@@ -167,17 +182,19 @@ def _validate_intrinsics(k: np.ndarray, dist: np.ndarray, size, source: str) -> 
         raise CalibrationError(f"{source}: dist_coeffs: OpenCV needs 4, 5, 8, 12 or 14 values, got {dist.size}")
     width, height = size
     for name, value in (("image_width", width), ("image_height", height)):
-        if int(value) != value or value <= 0:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 2**31 or int(value) != value:
             raise CalibrationError(f"{source}: {name}: must be a positive integer, got {value!r}")
     return Intrinsics(k, dist if dist.size else np.zeros(5), (int(width), int(height)))
 
 
 def load_intrinsics(path) -> Intrinsics:
     path = Path(path)
-    if not path.exists():
-        raise CalibrationError(f"{path}: intrinsics file not found")
     if path.suffix.lower() in (".yaml", ".yml", ".xml"):
-        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        text = fileio.read_text(path, "intrinsics file", max_bytes=MAX_FILE_BYTES, error=CalibrationError)
+        try:
+            storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+        except cv2.error:
+            raise CalibrationError(f"{path}: OpenCV could not parse this FileStorage file") from None
         if not storage.isOpened():
             raise CalibrationError(f"{path}: OpenCV could not read this FileStorage file")
         try:
@@ -192,12 +209,13 @@ def load_intrinsics(path) -> Intrinsics:
         k = _matrix(fields["camera_matrix"], (3, 3), f"{path}: camera_matrix")
         dist = _matrix(fields["distortion_coefficients"], None, f"{path}: distortion_coefficients")
         return _validate_intrinsics(k, dist, (fields["image_width"], fields["image_height"]), str(path))
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    data = _load_json(path, "intrinsics file")
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: top level must be a JSON object")
+    extra = [k for k in data if k not in INTRINSICS_KEYS]
+    if extra:  # intrinsics often come from other tools, which add their own keys: named, not fatal
+        warnings.warn(f"{path}: ignoring {', '.join(unknown_key_message(k, INTRINSICS_KEYS) for k in extra)}",
+                      stacklevel=2)
     for name in ("camera_matrix", "dist_coeffs", "image_width", "image_height"):
         if name not in data:
             raise CalibrationError(f"{path}: {name}: missing")
@@ -206,8 +224,17 @@ def load_intrinsics(path) -> Intrinsics:
     return _validate_intrinsics(k, dist, (data["image_width"], data["image_height"]), str(path))
 
 
+INTRINSICS_KEYS = ("image_width", "image_height", "camera_matrix", "dist_coeffs")
+
+
+def _check_keys(data: dict, allowed, source: str) -> None:
+    for key in data:
+        if key not in allowed:
+            raise CalibrationError(f"{source}: {key}: {unknown_key_message(key, allowed)}")
+
+
 def save_intrinsics(path, intrinsics: Intrinsics) -> None:
-    Path(path).write_text(json.dumps({
+    fileio.atomic_write_text(path, json.dumps({
         "image_width": intrinsics.image_size[0],
         "image_height": intrinsics.image_size[1],
         "camera_matrix": intrinsics.camera_matrix.tolist(),
@@ -418,6 +445,11 @@ def calibrate_image(image: np.ndarray, marker_set: FixedMarkerSet, intrinsics: I
 
 
 def save_calibration(path, calibration: CameraCalibration) -> None:
+    fileio.atomic_write_text(path, json.dumps(calibration_to_json(calibration), indent=2))
+
+
+def calibration_to_json(calibration: CameraCalibration) -> dict:
+    """The calibration file's contents; its keys are the format's key list (the loader derives it)."""
     cam = calibration.camera
     rvec, _ = cv2.Rodrigues(cam.rotation)
     data = {
@@ -440,19 +472,21 @@ def save_calibration(path, calibration: CameraCalibration) -> None:
         "marker_errors_px": {str(k): v for k, v in calibration.marker_errors_px.items()},
         "markers_missing": calibration.markers_missing,
     }
-    Path(path).write_text(json.dumps(data, indent=2))
+    return data
+
+
+@functools.cache
+def _calibration_keys() -> tuple[str, ...]:
+    probe = CameraCalibration(PinholeCamera(np.eye(3), np.zeros(5), np.eye(3), np.array([0.0, 0.0, 1.0]), (1, 1)))
+    return tuple(calibration_to_json(probe))
 
 
 def load_calibration(path) -> CameraCalibration:
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CalibrationError(f"{path}: calibration file not found (run `python -m app calibrate`)") from None
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    data = _load_json(path, "calibration file (run `python -m app calibrate`)")
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: top level must be a JSON object")
+    _check_keys(data, _calibration_keys(), str(path))
     version = data.get("format_version")
     if version != CALIBRATION_FORMAT_VERSION:
         raise CalibrationError(f"{path}: format_version: expected {CALIBRATION_FORMAT_VERSION}, got {version!r}")
@@ -465,16 +499,36 @@ def load_calibration(path) -> CameraCalibration:
     rvec = _matrix(data["rvec"], (3,), f"{path}: rvec")
     tvec = _matrix(data["tvec"], (3,), f"{path}: tvec")
     rot, _ = cv2.Rodrigues(rvec)
+    src = str(path)
+    dictionary = data.get("dictionary", "DICT_4X4_50")
+    aruco_dictionary_id(dictionary, f"{src}: dictionary")
+    source = data.get("intrinsics_source", "file")
+    if source not in ("file", "estimated"):
+        raise CalibrationError(f"{src}: intrinsics_source: expected 'file' or 'estimated', got {fileio.schema.show(source)}")
+    focal_std = data.get("focal_std_px")
     errors = data.get("marker_errors_px", {})
+    if not isinstance(errors, dict) or not all(k.isdigit() for k in errors):
+        raise CalibrationError(f"{src}: marker_errors_px: expected an object mapping marker id -> pixels")
+    missing = data.get("markers_missing", [])
+    if not isinstance(missing, list) or not all(isinstance(m, int) and not isinstance(m, bool) for m in missing):
+        raise CalibrationError(f"{src}: markers_missing: expected a list of marker ids")
+
+    def number(value, where):  # the stored quality figures may be NaN (no estimate)
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return float("nan")
+        return _number(value, f"{src}: {where}")
+
     return CameraCalibration(
         camera=PinholeCamera(intr.camera_matrix, intr.dist_coeffs, rot, tvec, intr.image_size),
-        dictionary=str(data.get("dictionary", "DICT_4X4_50")),
-        intrinsics_source=str(data.get("intrinsics_source", "file")),
-        focal_std_px=data.get("focal_std_px"),
-        focal_std_markers_px=data.get("focal_std_markers_px"),
-        focal_std_principal_point_px=data.get("focal_std_principal_point_px"),
-        reprojection_rms_px=float(data.get("reprojection_rms_px", float("nan"))),
-        reprojection_max_px=float(data.get("reprojection_max_px", float("nan"))),
-        marker_errors_px={int(key): float(v) for key, v in errors.items()},
-        markers_missing=[int(m) for m in data.get("markers_missing", [])],
+        dictionary=dictionary,
+        intrinsics_source=source,
+        focal_std_px=None if focal_std is None else number(focal_std, "focal_std_px"),
+        focal_std_markers_px=(None if data.get("focal_std_markers_px") is None
+                              else number(data["focal_std_markers_px"], "focal_std_markers_px")),
+        focal_std_principal_point_px=(None if data.get("focal_std_principal_point_px") is None
+                                      else number(data["focal_std_principal_point_px"], "focal_std_principal_point_px")),
+        reprojection_rms_px=number(data.get("reprojection_rms_px"), "reprojection_rms_px"),
+        reprojection_max_px=number(data.get("reprojection_max_px"), "reprojection_max_px"),
+        marker_errors_px={int(key): number(v, f"marker_errors_px[{key!r}]") for key, v in errors.items()},
+        markers_missing=missing,
     )

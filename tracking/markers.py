@@ -305,6 +305,12 @@ class ArucoTracker:
             raise ValueError(f"max_side_error: must be positive, got {max_side_error}")
         if dictionary is None:
             dictionary = getattr(cv2.aruco, calibration.dictionary)
+        n_ids = cv2.aruco.getPredefinedDictionary(dictionary).bytesList.shape[0]
+        for what, ids in (("car_ids", car_ids or ()), ("fixed_ids", fixed_ids)):
+            bad = [i for i in ids if not 0 <= int(i) < n_ids]
+            if bad:  # an id the dictionary does not have is never seen: the car would be "lost" forever
+                raise ValueError(f"{what}: marker id {bad[0]} is not in the ArUco dictionary "
+                                 f"in use (ids 0..{n_ids - 1})")
         self.calibration = calibration
         self.marker_size_m = float(marker_size_m)
         self.marker_height_m = float(marker_height_m)

@@ -11,8 +11,10 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from fileio import InputFileError, unknown_key_message
 
-class TrackFormatError(ValueError):
+
+class TrackFormatError(InputFileError):
     """A track file or definition is invalid. ``field`` names the part at fault (e.g. ``width``)."""
 
     def __init__(self, field: str, message: str, source: str = "<track>"):
@@ -91,6 +93,10 @@ class TrackDefinition:
 
 _TOP_LEVEL_KEYS = {"name", "description", "closed", "width", "centerline", "start", "segments", "lanes", "arena"}
 
+# Every number in a track file (m or degrees) lies within +-MAX_ABS_NUMBER; widths, lengths and radii
+# are at least MIN_LENGTH_M: beyond either the geometry overflows or divides by ~0.
+MAX_ABS_NUMBER = 1e6
+MIN_LENGTH_M = 1e-3
 # Consecutive centre-line points closer than this are treated as duplicates (m).
 _DUPLICATE_POINT_TOLERANCE = 1e-6
 # Closed tracks: first and last point this close mean the loop was written out explicitly (m).
@@ -101,16 +107,20 @@ def _number(value: Any, field: str, source: str) -> float:
     # bool is an int subclass in Python, but `true` is never a valid length.
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise TrackFormatError(field, f"expected a number, got {value!r}", source)
+    if isinstance(value, int) and abs(value) > MAX_ABS_NUMBER:  # (float() of a huge int overflows)
+        raise TrackFormatError(field, f"must be within +-{MAX_ABS_NUMBER:g}, got an integer of {len(str(abs(value)))} digits", source)
     value = float(value)
     if not math.isfinite(value):
         raise TrackFormatError(field, f"must be finite, got {value!r}", source)
+    if abs(value) > MAX_ABS_NUMBER:  # the geometry would overflow to inf/NaN
+        raise TrackFormatError(field, f"must be within +-{MAX_ABS_NUMBER:g} (m or degrees), got {value!r}", source)
     return value
 
 
 def _positive(value: Any, field: str, source: str) -> float:
     value = _number(value, field, source)
-    if value <= 0.0:
-        raise TrackFormatError(field, f"must be > 0, got {value!r}", source)
+    if value < MIN_LENGTH_M:  # 1e-320 is positive, but its curvature is infinite
+        raise TrackFormatError(field, f"must be >= {MIN_LENGTH_M:g} m, got {value!r}", source)
     return value
 
 
@@ -123,7 +133,7 @@ def _require(data: Mapping[str, Any], key: str, source: str, prefix: str = "") -
 def _check_keys(data: Mapping[str, Any], allowed: set[str], prefix: str, source: str) -> None:
     for key in data:
         if key not in allowed:
-            raise TrackFormatError(f"{prefix}{key}", f"unknown field (allowed: {', '.join(sorted(allowed))})", source)
+            raise TrackFormatError(f"{prefix}{key}", unknown_key_message(key, allowed), source)
 
 
 def parse_definition(data: Any, source: str = "<track>") -> TrackDefinition:

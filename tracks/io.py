@@ -1,15 +1,17 @@
 """Loading track files: ``load_track("oval")`` or ``load_track("path/to/file.json")``."""
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any, Mapping
+
+import fileio
 
 from .definition import TrackFormatError, parse_definition
 from .track import Track
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
+MAX_FILE_BYTES = 16 * 2**20
 
 
 class UnknownTrackError(ValueError):
@@ -31,8 +33,9 @@ def load_track(name_or_path: str | os.PathLike) -> Track:
 
     A bare name without a directory or ``.json`` suffix (e.g. ``"oval"``) loads the shipped
     ``tracks/data/<name>.json``; anything else is a file path. Raises :class:`UnknownTrackError`
-    for an unknown bare name, FileNotFoundError for a missing path and :class:`TrackFormatError`
-    (a ValueError naming the field at fault) for invalid contents.
+    for an unknown bare name and :class:`TrackFormatError` (a ValueError naming the field at fault)
+    for anything else: field ``<file>`` for a path that is missing, unreadable, not a regular file,
+    too large or not UTF-8, ``<json>`` for invalid or too deeply nested JSON.
     """
     text = os.fspath(name_or_path)
     is_bare_name = not isinstance(name_or_path, Path) and os.sep not in text and "/" not in text and not text.endswith(".json")
@@ -43,9 +46,12 @@ def load_track(name_or_path: str | os.PathLike) -> Track:
     else:
         path = Path(text)
     source = path.name
-    with open(path, encoding="utf-8") as f:
-        try:
-            data = json.load(f)
-        except json.JSONDecodeError as exc:
-            raise TrackFormatError("<json>", f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", source) from exc
+    try:
+        text = fileio.read_text(path, "track file", max_bytes=MAX_FILE_BYTES)
+    except fileio.InputFileError as exc:
+        raise TrackFormatError("<file>", str(exc).removeprefix(f"{path}: "), source) from None
+    try:
+        data = fileio.parse_json(text, str(path))
+    except fileio.InputFileError as exc:
+        raise TrackFormatError("<json>", str(exc).removeprefix(f"{path}: "), source) from None
     return track_from_dict(data, source)

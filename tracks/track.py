@@ -26,6 +26,8 @@ _CLOSURE_HEADING_TOLERANCE = math.radians(0.1)
 # Newton projection onto the centre line stops when the arc-length update is below this (m).
 _PROJECTION_TOLERANCE = 1e-11
 _PROJECTION_MAX_ITERATIONS = 30
+# The nearest-sample lookup table of to_frenet holds this many points at most (~50 MB with its tree).
+MAX_LOOKUP_SAMPLES = 2_000_000
 
 
 class Track:
@@ -69,6 +71,9 @@ class Track:
         # Dense lookup table: the nearest sample seeds the Newton projection in to_frenet.
         spacing = min(self._length / 256.0, self.min_width / 20.0)
         n = int(np.ceil(self._length / spacing))
+        if n > MAX_LOOKUP_SAMPLES:  # a resource limit: the table would not fit in memory
+            raise TrackFormatError("width", f"the track is {self._length:.6g} m long and {self.min_width:.6g} m wide: "
+                                            f"{n} lookup samples, more than {MAX_LOOKUP_SAMPLES}", source)
         self._lookup_s = np.linspace(0.0, self._length, n, endpoint=not self.closed)
         self._lookup_tree = cKDTree(self.position(self._lookup_s))
 

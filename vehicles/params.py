@@ -1,25 +1,28 @@
 """Typed car parameters, loaded from and written back to TOML.
 
-A car file (e.g. ``vehicles/buzzracer.toml``) has one table per dataclass below; every
-field is optional and falls back to the BuzzRacer 1/28-scale defaults documented in
-docs/vehicles.md. Unknown tables or keys, wrong types and out-of-range values raise
-:class:`CarParamsError` naming the file and the field (``geometry.lf_m``).
+A car file (e.g. ``vehicles/buzzracer.toml``) has a ``name`` and one table per dataclass below;
+a key missing inside a table falls back to the BuzzRacer 1/28-scale defaults documented in
+docs/vehicles.md. A missing ``name`` or table (an empty or truncated file), unknown tables or keys
+(with a "did you mean"), wrong types and out-of-range values raise :class:`CarParamsError` naming
+the file and the field (``geometry.lf_m``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
+
+import fileio
+from fileio import unknown_key_message
 
 VEHICLES_DIR = Path(__file__).resolve().parent
 GRAVITY_MPS2 = 9.81
 
 
-class CarParamsError(ValueError):
+class CarParamsError(fileio.InputFileError):
     """A car parameter file or value is invalid; the message names the field at fault."""
 
 
@@ -197,7 +200,8 @@ class CarParams:
     model: ModelParams = field(default_factory=ModelParams)
     marker: MarkerParams = field(default_factory=MarkerParams)
     corrections: Corrections = field(default_factory=Corrections)
-    other_terms: OtherTermsParams = field(default_factory=OtherTermsParams)  # model identification
+    # model identification; optional in a car file (added after the first car files were written)
+    other_terms: OtherTermsParams = field(default_factory=OtherTermsParams, metadata={"optional_in_file": True})
 
     def __post_init__(self) -> None:
         _check_cross_fields(self, source="CarParams")
@@ -241,7 +245,7 @@ def _validate_value(source: str, key: str, f: dataclasses.Field, value: Any) -> 
         raise CarParamsError(f"{source}: {key}: must be {kind}, got {value!r}")
     if is_int and not isinstance(value, int):
         raise CarParamsError(f"{source}: {key}: must be an integer, got {value!r}")
-    if not math.isfinite(value):
+    if abs(value) > 1e300 or not math.isfinite(value):  # (math.isfinite overflows on a huge int)
         raise CarParamsError(f"{source}: {key}: must be finite, got {value!r}")
     problem = f.metadata["check"](value)
     if problem:
@@ -251,11 +255,11 @@ def _validate_value(source: str, key: str, f: dataclasses.Field, value: Any) -> 
 
 def car_params_from_dict(data: dict[str, Any], source: str = "<dict>") -> CarParams:
     """Build CarParams from a parsed TOML mapping; missing fields take the defaults."""
-    unknown = set(data) - set(_SECTION_TYPES) - {"name"}
-    if unknown:
-        raise CarParamsError(
-            f"{source}: unknown key(s) {sorted(unknown)}; expected 'name' or tables {sorted(_SECTION_TYPES)}"
-        )
+    if not isinstance(data, dict):
+        raise CarParamsError(f"{source}: expected a table of car parameters, got {type(data).__name__}")
+    for key in data:
+        if key not in _SECTION_TYPES and key != "name":
+            raise CarParamsError(f"{source}: {key}: {unknown_key_message(key, ['name', *_SECTION_TYPES])}")
     name = data.get("name", CarParams.name)
     if not isinstance(name, str) or not name:
         raise CarParamsError(f"{source}: name: must be a non-empty string, got {name!r}")
@@ -266,9 +270,9 @@ def car_params_from_dict(data: dict[str, Any], source: str = "<dict>") -> CarPar
         if not isinstance(raw, dict):
             raise CarParamsError(f"{source}: {sec}: must be a table, got {raw!r}")
         known = {f.name: f for f in fields(cls)}
-        bad = set(raw) - set(known)
-        if bad:
-            raise CarParamsError(f"{source}: {sec}: unknown key(s) {sorted(bad)}; expected {sorted(known)}")
+        for key in raw:
+            if key not in known:
+                raise CarParamsError(f"{source}: {sec}.{key}: {unknown_key_message(key, known)}")
         values = {k: _validate_value(source, f"{sec}.{k}", known[k], v) for k, v in raw.items()}
         sections[sec] = dataclasses.replace(getattr(defaults, sec), **values)
     try:
@@ -285,17 +289,31 @@ def resolve_car_path(path_or_name: str | Path) -> Path:
     return Path(text)
 
 
+MAX_FILE_BYTES = 2**20
+MAX_LINE = 4096
+
+
 def load_car_params(path_or_name: str | Path) -> CarParams:
+    """A car file must name the car and have every table (keys inside a table may be left out): an
+    empty file, or one cut short, is an error rather than a car on default parameters."""
     path = resolve_car_path(path_or_name)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise CarParamsError(f"{path}: car parameter file not found") from None
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise CarParamsError(f"{path}: not valid TOML: {exc}") from None
-    return car_params_from_dict(data, source=str(path))
+    data = fileio.load_toml(path, "car parameter file", max_bytes=MAX_FILE_BYTES, max_line=MAX_LINE,
+                            error=CarParamsError)
+    if not data:
+        raise CarParamsError(f"{path}: empty car parameter file (expected name and tables {', '.join(_SECTION_TYPES)})")
+    params = car_params_from_dict(data, source=str(path))
+    missing = [k for k in ("name", *_SECTION_TYPES) if k not in data and not _optional_in_file(k)]
+    if missing:
+        raise CarParamsError(f"{path}: {missing[0]}: missing (a car file has name and every table: "
+                             f"{', '.join(_SECTION_TYPES)}; is the file cut short?)")
+    return params
+
+
+def _optional_in_file(key: str) -> bool:
+    """Tables added after car files were first written carry metadata {"optional_in_file": True}, so
+    older files stay valid."""
+    f = next((f for f in fields(CarParams) if f.name == key), None)
+    return f is not None and f.metadata.get("optional_in_file", False)
 
 
 def _toml_value(v: Any) -> str:
@@ -325,6 +343,4 @@ def dump_car_params(params: CarParams) -> str:
 
 
 def save_car_params(params: CarParams, path: str | Path) -> Path:
-    path = Path(path)
-    path.write_text(dump_car_params(params), encoding="utf-8")
-    return path
+    return fileio.atomic_write_text(path, dump_car_params(params))

@@ -274,8 +274,8 @@ def run(args) -> int:
           f"slow {slow} m/s (ratio {slow / fast:.2f}); win rate ours / paper")
     print(table(cells))
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n")
+        from fileio import atomic_write_text
+        atomic_write_text(args.json, json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n")
     if keep:
         from app.race_plots import plot_examples
         for path in plot_examples(records, args, Path(args.figures)):

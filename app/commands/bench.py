@@ -53,6 +53,20 @@ def register(sub) -> None:
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     m.set_defaults(func=run_merge)
 
+    z = kinds.add_parser("size", help="measured memory and time per iteration vs the problem-size estimate")
+    z.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
+    z.set_defaults(func=run_size)
+
+    f = kinds.add_parser("fuzz", help="property-based fuzzing of a loader, the frame decoder or the solver API")
+    f.add_argument("--target", required=True, help="problem, car, track, fixed_markers, intrinsics, calibration, "
+                                                   "sysid_csv, rd3g_decoder, solver_api")
+    f.add_argument("--examples", type=int, default=100_000, help="generated inputs (default 100000)")
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--out", default="runs/fuzz", help="folder for reproducer files of failures")
+    f.add_argument("--replay", metavar="FILE", help="run the target on one reproducer file instead")
+    f.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
+    f.set_defaults(func=run_fuzz)
+
 
 def run_solver(args) -> int:
     from bench import solver_bench
@@ -112,6 +126,54 @@ def run_merge(args) -> int:
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('merge-bench-' + '-'.join(solvers), md)}")
+    return 0
+
+
+def run_fuzz(args) -> int:
+    from pathlib import Path
+
+    try:
+        from bench import fuzz
+    except ImportError as exc:
+        raise UserError(f"bench fuzz needs hypothesis (pip install -e '.[test]'): {exc}") from None
+    from bench.report import machine_description, write_section
+
+    names = [*fuzz.TARGETS, "solver_api"]
+    if args.target not in names:
+        raise UserError(f"--target: unknown target {args.target!r} (choose from {', '.join(names)})")
+    if args.replay:
+        try:
+            print(fuzz.replay(args.target, Path(args.replay)))
+        except fuzz.FuzzFailure as exc:
+            print(f"failure: {exc}")
+            return 1
+        return 0
+    if args.examples < 1:
+        raise UserError("--examples must be at least 1")
+    report = fuzz.campaign(args.target, args.examples, args.seed, Path(args.out))
+    command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else \
+        f"python -m app bench fuzz --target {args.target} --examples {args.examples} --seed {args.seed}"
+    md = fuzz.markdown(report, command, machine_description())
+    print(md)
+    for failure in report["failures"]:
+        print(f"failure (reproduce: python -m app bench fuzz --target {args.target} --replay FILE): {failure}")
+    if not args.no_docs:
+        print(f"recorded in {write_section('fuzz-' + args.target, md)}")
+    return 1 if report["failures"] else 0
+
+
+def run_size(args) -> int:
+    import os
+
+    from bench import problem_size
+    from bench.report import machine_description, write_section
+
+    load = os.getloadavg()
+    rows = problem_size.run()
+    md = problem_size.markdown(rows, "python -m app bench size", machine_description(), load)
+    print(md)
+    if not args.no_docs:
+        print(f"recorded in {write_section('problem-size', md)}")
     return 0
 
 

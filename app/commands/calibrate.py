@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from fileio import check_output_path
+
 
 def register(sub):
     p = sub.add_parser(
@@ -45,12 +47,20 @@ def run(args) -> int:
     from app.cli import UserError
     from tracking.calibration import calibrate_image, load_fixed_markers, load_intrinsics, save_calibration
 
+    check_output_path(args.out)  # before a camera is opened
     marker_set = load_fixed_markers(args.fixed_markers)
     intrinsics = load_intrinsics(args.intrinsics) if args.intrinsics else None
     if args.image:
-        image = cv2.imread(args.image, cv2.IMREAD_GRAYSCALE)
+        import numpy as np
+
+        from fileio import InputFileError, read_bytes
+        try:  # read through fileio: cv2.imread blocks on a FIFO and reads devices
+            data = read_bytes(args.image, "image", max_bytes=256 * 2**20)
+        except InputFileError as exc:
+            raise UserError(f"--image: {exc}") from None
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
         if image is None:
-            raise UserError(f"--image: cannot read {args.image!r} (missing or not an image)")
+            raise UserError(f"--image: cannot read {args.image!r} (not an image OpenCV can decode)")
     else:
         image = _grab(args.camera, args.warmup_frames)
     cal = calibrate_image(image, marker_set, intrinsics)

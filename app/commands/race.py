@@ -7,6 +7,7 @@ from pathlib import Path
 
 from app.cli import UserError
 from app.realtime.run import add_realtime_arguments, run_realtime, wants_realtime
+from fileio import atomic_write_text, check_output_path
 from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
 
@@ -93,7 +94,9 @@ def run(args) -> int:
     out = Path(args.out)
     if out.suffix != ".rrd":
         raise UserError(f"--out must be a .rrd file, got {args.out!r}")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    check_output_path(out)
+    if args.json:
+        check_output_path(args.json)
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     o = run_race(setup, telemetry_path=out)
     s = o.summary()
@@ -119,6 +122,8 @@ def run(args) -> int:
               f"first: {first.car} at {first.time_s:.2f} s: {first.message}")
     print(f"telemetry: {out}")
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(s, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(s, indent=2) + "\n")
+    if o.interrupted:
+        print(f"interrupted (Ctrl-C) after {o.race_time_s:.2f} s of race time; the summary covers the race so far")
+        return 130
     return 0

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from app.cli import UserError
+from fileio import atomic_write_text, check_output_path
 
 
 def register(sub) -> None:
@@ -45,13 +46,16 @@ def run(args) -> int:
         raise UserError(str(exc)) from None
     summary = summarize(data)
     print(format_summary(summary, data))
+    if args.json:
+        check_output_path(args.json)
+    folder = Path(args.plots) if args.plots else path.with_name(path.stem + "_review")
+    if not args.no_plots and folder.exists() and not folder.is_dir():
+        raise UserError(f"--plots: {folder} is a file, not a folder for the plots")
     if not args.no_plots:
-        folder = Path(args.plots) if args.plots else path.with_name(path.stem + "_review")
         written = save_plots(data, folder)
         print("plots: " + ", ".join(str(p) for p in written))
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(summary, indent=2) + "\n")
         print(f"summary: {args.json}")
     if args.viewer:
         cmd = viewer_command(path)

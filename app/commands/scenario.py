@@ -18,8 +18,9 @@ def run_merge(args) -> int:
     from bench.merging import merging_problem
     from solver_cpp.problem_file import problem_to_dict
 
+    from fileio import atomic_write_text
+
     problem = merging_problem(args.cars, args.seed)
-    with open(args.out, "w") as f:
-        json.dump(problem_to_dict(problem, solver={"tol": 5e-4, "max_iter": 100}), f, indent=1)
+    atomic_write_text(args.out, json.dumps(problem_to_dict(problem, solver={"tol": 5e-4, "max_iter": 100}), indent=1))
     print(f"wrote merging instance (cars {args.cars}, seed {args.seed}) to {args.out}")
     return 0

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from app.cli import UserError
+from fileio import atomic_write_text, check_output_path
 
 
 def register(sub) -> None:
@@ -82,6 +83,9 @@ def run(args) -> int:
     if args.fit_windows < 20:
         raise UserError(f"--fit-windows must be >= 20, got {args.fit_windows}")
     started = time.perf_counter()
+    for out in (args.report, args.params_out or Path(args.report).with_suffix(".toml"), args.json):
+        if out:
+            check_output_path(out)  # before the identification, not after it
     car = load_car_params(args.car_params)
     log = read_log(args.log)
     if args.car is None:
@@ -100,9 +104,7 @@ def run(args) -> int:
     result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed, fit_max_starts=args.fit_windows))
 
     report = Path(args.report)
-    report.parent.mkdir(parents=True, exist_ok=True)
     params_out = Path(args.params_out) if args.params_out else report.with_suffix(".toml")
-    params_out.parent.mkdir(parents=True, exist_ok=True)
     out_car = dataclasses.replace(result.car_out, name=f"{car.name}-identified")
     save_car_params(out_car, params_out)
     figures = Path(args.figures) if args.figures else report.parent
@@ -110,13 +112,11 @@ def run(args) -> int:
     json_path = None
     if args.json:
         json_path = Path(args.json)
-        json_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(result, json_path, str(params_out))
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["sysid"] else None
-    report.write_text(markdown_report(result, args.log, str(resolve_car_path(args.car_params)), str(params_out),
-                                      str(json_path) if json_path else None, plots, report.parent, command,
-                                      log_note),
-                      encoding="utf-8")
+    atomic_write_text(report, markdown_report(result, args.log, str(resolve_car_path(args.car_params)), str(params_out),
+                                              str(json_path) if json_path else None, plots, report.parent, command,
+                                              log_note))
     elapsed = time.perf_counter() - started
     if result.selected:
         summary = ", ".join(f"{e.effect} ({100 * e.reduction_vs_nominal:.0f} %)" for e in result.selected)
@@ -144,6 +144,7 @@ def run_generate(args) -> int:
         raise UserError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
     effects = parse_effects(args.effects)
     car = load_car_params(args.car_params)
+    check_output_path(args.out)
     pos = CAMERA_POSITION_NOISE_M if args.position_noise is None else args.position_noise
     head = CAMERA_HEADING_NOISE_RAD if args.heading_noise is None else args.heading_noise
     started = time.perf_counter()
@@ -151,7 +152,6 @@ def run_generate(args) -> int:
                        track=args.track, excitation=ExcitationSettings(control_rate_hz=args.rate),
                        driver=args.driver)
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_log_csv(out, log)
     print(f"wrote {out}: {log.t.size} rows, {log.t[-1] - log.t[0]:.1f} s, in {time.perf_counter() - started:.1f} s")
     return 0
@@ -217,6 +217,8 @@ def run_closed_loop_command(args) -> int:
         raise UserError(f"--seeds: expected integers like 0,1,2, got {args.seeds!r}") from None
     if not seeds:
         raise UserError("--seeds: give at least one seed")
+    if args.json:
+        check_output_path(args.json)
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
     try:
@@ -256,7 +258,6 @@ def run_closed_loop_command(args) -> int:
             return float(np.sqrt(np.mean(a ** 2))) if a.size else None
 
         out = Path(args.json)
-        out.parent.mkdir(parents=True, exist_ok=True)
         record = {
             "effects": args.effects, "corrected": args.corrected, "car_params": args.car_params, "seeds": seeds,
             "race": dataclasses.asdict(race), "planner_car": PLANNER_CAR,
@@ -268,7 +269,7 @@ def run_closed_loop_command(args) -> int:
                        "one_step_rmse_m": rms(m.one_step_errors_m), "horizon_rmse_m": rms(m.horizon_errors_m)}
                       for m in races],
         }
-        out.write_text(json.dumps(record, indent=2) + "\n")
+        atomic_write_text(out, json.dumps(record, indent=2) + "\n")
         print(f"wrote {out}")
     if args.plot:
         print(f"wrote {plot(races, summary, f'{args.effects}: nominal vs corrected ({Path(args.corrected).name})', Path(args.plot), cfg.plan_dt_s)}")
