@@ -95,6 +95,10 @@ class FhssParserStats:
     def corrupt(self) -> int:
         return self.bad_crc
 
+    @property
+    def truncated(self) -> int:
+        return 0  # the firmware has no inter-byte timeout: a cut frame is completed by later bytes
+
     def copy(self) -> "FhssParserStats":
         return FhssParserStats(self.frames_ok, self.bad_crc, self.bytes_discarded)
 
