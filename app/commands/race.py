@@ -108,6 +108,8 @@ def run(args) -> int:
         if args.sim_car_params or args.sim_effects.strip():
             raise UserError("--sim-car-params and --sim-effects apply to the pure simulation only (not --hil or hardware)")
         return run_realtime(args)
+    if args.link_capture or args.link_protocol or args.car_files:
+        raise UserError("--link-capture, --link-protocol and --car-files need a serial link: --hil or hardware mode")
     # --- end real-time race stack
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
