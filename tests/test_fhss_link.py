@@ -128,3 +128,28 @@ def test_link_decode_counts_bad_frames(tmp_path, capsys):
     path.write_text("not a capture\n")
     assert main(["link-decode", str(path)]) == 2
     assert "line 1 (byte offset 0)" in capsys.readouterr().err
+
+
+def test_unplugged_box_is_neutral_within_its_100_ms():
+    """The USB device vanishes (the HIL relay closes): the link faults, and the box, which sees only
+    silence, commands 1500 us no later than 100 ms after the unplug."""
+    from app.realtime.hil import SerialRelay
+
+    with VirtualCarBox(protocol="buzzracer-fhss") as box:
+        relay = SerialRelay(box.path, frame_len=fhss.FRAME_LEN)
+        link = SerialCarLink(relay.path, rate_hz=100, car_ids=[0], encoder=FhssEncoder(cars()[:1]),
+                             handle_signals=False)
+        try:
+            with link:
+                link.set_commands({0: CarCommand(0.0, 0.5)})
+                assert wait_until(lambda: pulses(box, 0) == (1500, 1700))
+                t_unplug = time.monotonic()
+                relay.close()
+                assert link.wait_fault(2.0)
+                assert wait_until(lambda: box.failsafe_active, timeout=2.0)
+        finally:
+            relay.close()
+        event = box.failsafe_log()[-1]
+        assert event.reason == "timeout" and event.last_valid_t <= t_unplug
+        assert box.commands_at(t_unplug + 0.1)[0] == CarCommand(0.0, 0.0)
+        assert box.commands_at(event.last_valid_t + 0.099)[0].throttle == pytest.approx(fhss.pulse_to_unit(1700))
