@@ -61,6 +61,7 @@ def test_pulse_limits(tmp_path, capsys, nothing_opens, radio, field):
     assert "--car-files:" in err and "red.toml" in err and field in err
 
 
-def test_link_flags_need_a_link(capsys):
-    assert main(["race", "--link-capture", "x.txt"]) == 2
-    assert "need a serial link" in capsys.readouterr().err
+def test_pure_simulation_checks_the_link_too(tmp_path, capsys):
+    assert main(["race", "--link-capture", str(tmp_path / "x.txt"), "--link-protocol", "sbus"]) == 2
+    assert "unknown protocol 'sbus'" in capsys.readouterr().err
+    assert not (tmp_path / "x.txt").exists()

@@ -46,10 +46,11 @@ class LinkCapture:
         self._file = self.path.open("w", encoding="ascii")
         self.lines = 0
 
-    def record(self, direction: Direction, data: bytes) -> None:
+    def record(self, direction: Direction, data: bytes, t: float | None = None) -> None:
+        """One line; ``t`` (s since the origin) defaults to the clock's now."""
         if not data:
             return
-        t = self._clock() - self.origin
+        t = self._clock() - self.origin if t is None else t
         with self._lock:
             if self._file.closed:
                 return
@@ -70,6 +71,36 @@ class LinkCapture:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+class SimulatedLink:
+    """The frames a transmitter would have been sent in a pure simulation (no serial port): each control
+    step's commands ((throttle, steering rad) per car), encoded as the link would, recorded as ``tx`` at
+    the simulated time. ``radio_ids`` per car index; ``steering_full_scale_rad`` is a steering command
+    of 1 (the link's normalisation)."""
+
+    def __init__(self, capture: LinkCapture, encoder, radio_ids, steering_full_scale_rad: float):
+        self.capture, self.encoder = capture, encoder
+        self.radio_ids = list(radio_ids)
+        self.full_scale = float(steering_full_scale_rad)
+        self.frames = 0
+
+    def send(self, t: float, commands) -> None:
+        from vehicles.protocol import CarCommand, ProtocolError
+
+        cars = {}
+        for radio_id, (throttle, steering) in zip(self.radio_ids, commands):
+            command = CarCommand(max(-1.0, min(1.0, float(steering) / self.full_scale)), max(-1.0, min(1.0, float(throttle))))
+            cars[radio_id] = self.encoder.limit(radio_id, command)[0]
+        try:
+            frame = self.encoder.encode(self.frames % (1 << 16), cars)
+        except ProtocolError:  # a non-finite command: the real link would not send it either
+            return
+        self.capture.record("tx", frame, t=t)
+        self.frames += 1
+
+    def neutral(self, t: float) -> None:
+        self.send(t, [(0.0, 0.0)] * len(self.radio_ids))
 
 
 def read_capture(path: str | Path) -> list[CaptureRecord]:
