@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 import sys
+import time
 
 from app.cli import UserError
 
@@ -119,7 +120,7 @@ def run(args) -> int:
                          encoder=link_plan.encoder, capture=capture)
     check = PreRaceCheck(feed=feed, tracker=tracker, track=setup.track, cars=cars, link=link, marker_set=marker_set,
                          expected_fps=args.fps, timing=CheckTiming(throttle=args.throttle),
-                         on_go=(lambda: world.go(__import__("time").monotonic())) if world is not None else None)
+                         on_go=(lambda: world.go(time.monotonic())) if world is not None else None)
     try:
         items = check.run()
     finally:
