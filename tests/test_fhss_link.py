@@ -121,6 +121,7 @@ def test_link_decode_counts_bad_frames(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "m5 1500/1900" in out and "0.031000" in out and "box: box" in out
     assert "2 good frames, 1 bad (bad_crc 1)" in out
+    assert "0.020000  BAD frame starting at tx byte offset 27" in out
     path.write_text(f"0.010000 tx {good}\n")
     assert main(["link-decode", str(path), "--protocol", "buzzracer-fhss"]) == 0
     assert main(["link-decode", str(path), "--protocol", "sbus"]) == 2

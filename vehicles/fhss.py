@@ -111,21 +111,28 @@ class FhssParser:
     waiting for 0x55, anything else starts over), collect 24 payload bytes and the CRC byte, return
     the 12 pulse widths of a frame whose CRC matches; a bad CRC is dropped silently (counted).
 
-    ``offsets`` (feed's second return value) give, per frame, the stream offset of its first sync
-    byte, so a capture reader can name where a frame started."""
+    ``feed_with_offsets`` also gives, per frame, the stream offset of its first sync byte, and with
+    ``keep_bad_offsets`` the offsets of the frames dropped for a bad CRC are kept in ``bad_offsets``, so
+    a capture reader can name where a frame started."""
 
-    def __init__(self) -> None:
+    def __init__(self, keep_bad_offsets: bool = False) -> None:
         self.stats = FhssParserStats()
         self._state = _WAIT_AA
         self._buf = bytearray()
         self._offset = 0  # bytes fed so far
         self._frame_start = 0
-        self.last_bad_offsets: list[int] = []  # stream offsets of frames dropped for a bad CRC
+        self.keep_bad_offsets = keep_bad_offsets
+        self.bad_offsets: list[int] = []
 
     @property
     def in_frame(self) -> bool:
         """A frame has started (sync seen) but is not complete."""
         return self._state != _WAIT_AA
+
+    @property
+    def frame_offset(self) -> int | None:
+        """Stream offset of the first sync byte of the frame being read (None between frames)."""
+        return self._frame_start if self.in_frame else None
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[tuple[int, ...]]:
         frames, _ = self.feed_with_offsets(data)
@@ -164,7 +171,8 @@ class FhssParser:
                     offsets.append(self._frame_start)
                 else:
                     self.stats.bad_crc += 1
-                    self.last_bad_offsets.append(self._frame_start)
+                    if self.keep_bad_offsets:
+                        self.bad_offsets.append(self._frame_start)
             self._offset += 1
         return frames, offsets
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import re
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -147,6 +147,7 @@ class CaptureDecode:
     frames: list[CapturedFrame]
     bad: dict[str, int]              # rejected frames and bytes by reason
     box_text: list[tuple[float, str]]  # (t, line) of what the box sent back
+    bad_at: list[tuple[float, int]] = field(default_factory=list)  # (t, tx byte offset) of bad frames, where known
     tx_bytes: int = 0
     rx_bytes: int = 0
 
@@ -167,19 +168,24 @@ def decode_capture(records: list[CaptureRecord], protocol: str) -> CaptureDecode
     pending = b""
     tx = rx = 0
     if protocol == "buzzracer-fhss":
-        parser = fhss.FhssParser()
+        parser = fhss.FhssParser(keep_bad_offsets=True)
+        bad_at: list[tuple[float, int]] = []
         for rec in records:
             if rec.direction == "rx":
                 rx += len(rec.data)
                 pending = _text_lines(pending + rec.data, rec.t, text)
                 continue
             tx += len(rec.data)
+            seen_bad = len(parser.bad_offsets)
             pulses_list, offsets = parser.feed_with_offsets(rec.data)
+            bad_at += [(rec.t, offset) for offset in parser.bad_offsets[seen_bad:]]
             for pulses, offset in zip(pulses_list, offsets):
                 cars = {m: (pulses[fhss.steering_slot(m)], pulses[fhss.throttle_slot(m)]) for m in range(fhss.MAX_CARS)}
                 frames.append(CapturedFrame(rec.t, offset, cars))
         bad = {"bad_crc": parser.stats.bad_crc, "incomplete_at_end": int(parser.in_frame),
                "bytes_discarded": parser.stats.bytes_discarded}
+        if parser.in_frame:
+            bad_at.append((records[-1].t, parser.frame_offset))
     else:
         decoder = FrameDecoder(gap_timeout=1e9)  # a capture has no inter-byte timing to trust
         for rec in records:
@@ -200,7 +206,7 @@ def decode_capture(records: list[CaptureRecord], protocol: str) -> CaptureDecode
                "out_of_order": st.out_of_order, "bytes_discarded": st.bytes_discarded}
     if pending.strip():
         text.append((records[-1].t, pending.decode("ascii", "replace").strip()))
-    return CaptureDecode(protocol, frames, bad, text, tx, rx)
+    return CaptureDecode(protocol, frames, bad, text, bad_at if protocol == "buzzracer-fhss" else [], tx, rx)
 
 
 def _text_lines(buf: bytes, t: float, out: list[tuple[float, str]]) -> bytes:

@@ -37,6 +37,8 @@ def run(args) -> int:
     shown = report.frames[-1:] if args.quiet else report.frames
     for frame in shown:
         print(f"{frame.t:12.6f}  {_values(frame, args.protocol)}  crc ok")
+    for t, offset in report.bad_at:
+        print(f"{t:12.6f}  BAD frame starting at tx byte offset {offset}")
     for t, line in ([] if args.quiet else report.box_text):
         print(f"{t:12.6f}  box: {line}")
     bad = ", ".join(f"{k} {v}" for k, v in report.bad.items() if v)
