@@ -6,10 +6,10 @@ import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from dataclasses import dataclass
 
 from app.cli import UserError
 
