@@ -25,7 +25,7 @@ def item(lines, name):
 
 def test_correct_setup_passes(capsys):
     code, lines = run_check(capsys)
-    assert code == 0, lines
+    assert code == 0, "\n".join(lines)
     for name in ("camera", "fixed markers", "marker rd3g", "marker opponent", "serial", "steering rd3g",
                  "radio rd3g", "steering opponent", "radio opponent", "failsafe"):
         assert item(lines, name).startswith("[PASS]")

@@ -35,7 +35,8 @@ class CheckTiming:
     sweep_step_s: float = 0.2        # each of full left, full right, straight
     throttle: float = 0.15           # the pulse's throttle (low: a few cm)
     pulse_s: float = 0.2
-    settle_s: float = 0.8            # after neutral, until the car has rolled out (HIL: 0.13 m/s, 0.65 s)
+    settle_s: float = 0.5            # after neutral, before looking for the cars to stand still
+    still_timeout_s: float = 3.0     # ... for at most this long (HIL: rolled out 0.65 s after the pulse)
     failsafe_window_s: float = 1.0   # sending stopped this long
 
 
@@ -85,6 +86,19 @@ class PreRaceCheck:
                 heading = math.atan2(np.median(np.sin(a[:, 2])), np.median(np.cos(a[:, 2])))
                 poses[c.name] = (float(np.median(a[:, 0])), float(np.median(a[:, 1])), heading)
         return poses
+
+    def _still_poses(self) -> dict[str, tuple[float, float, float]]:
+        """Poses once no visible car moves by more than a millimetre between two measurements (a car
+        still rolling out after a pulse, or a slow host that held a pulse longer), or after
+        ``still_timeout_s`` (the last poses then)."""
+        end = time.monotonic() + self.timing.still_timeout_s
+        previous = self._poses(3)
+        while True:
+            poses = self._poses(3)
+            moving = [n for n in poses if n in previous and displacement(previous[n], poses[n]).distance_m > 0.001]
+            if not moving or time.monotonic() > end:
+                return poses
+            previous = poses
 
     def _hold(self, commands: dict[int, CarCommand], seconds: float) -> None:
         self.link.set_commands(commands)
@@ -178,7 +192,7 @@ class PreRaceCheck:
 
     def _car_radio(self, car) -> bool:
         t = self.timing
-        before = self._poses()
+        before = self._still_poses()
         for steering in (1.0, -1.0, 0.0):
             self._hold({car.radio_id: CarCommand(steering, 0.0)}, t.sweep_step_s)
         after = self._poses()
@@ -192,7 +206,7 @@ class PreRaceCheck:
                   + ("" if sweep_ok else f" (limit {1e3 * STILL_M:.0f} mm): a car rolled at zero throttle"))
         self._hold({car.radio_id: CarCommand(0.0, t.throttle)}, t.pulse_s)
         self._hold({car.radio_id: NEUTRAL}, t.settle_s)
-        end = self._poses()
+        end = self._still_poses()
         if car.name not in end:
             return self._add(f"radio {car.name}", False, f"car {car.name}: marker lost after the throttle pulse")
         moves = {name: displacement(after[name], end[name]) for name in end if name in after}
@@ -205,7 +219,7 @@ class PreRaceCheck:
             self._add("failsafe", False, "not checked: no car passed its radio check")
             return
         t = self.timing
-        before = self._poses()
+        before = self._still_poses()
         # A frame of a low throttle, then silence: the box must go neutral within its 100 ms. Two frames
         # counted after the command: the first may have been encoded before it.
         sent = self.link.stats.frames_sent
