@@ -12,6 +12,9 @@ transmitter box in another, running in real time.
   of it (:class:`BoxMirror`).
 * The simulator advances in 1 ms steps to each camera capture time with the commands the box had
   in effect at that moment (``commands_at``), so the loop's real latencies act on the cars.
+* With ``link_protocol="buzzracer-fhss"`` the box is the BuzzRacer firmware's emulation: its output is
+  pulse widths per modem id, which each simulated car's receiver (``WorldSpec.receivers``) turns into
+  wheel angle and throttle; its debug text goes back through the relay to the link.
 * Frames are rendered by ``tracking.SyntheticCamera`` at the camera rate and written to a shared
   memory ring; a small message per frame carries its slot, capture time, the true states (for
   telemetry and tracking error only), simulator/box events and render time.
