@@ -101,10 +101,20 @@ class PreRaceCheck:
             previous = poses
 
     def _hold(self, commands: dict[int, CarCommand], seconds: float) -> None:
+        """Send ``commands`` for ``seconds``, and for at least that many frames' worth: on a starved host
+        the link's sender may not run for a while, and a pulse it never sent tests nothing. The sender
+        skips missed ticks instead of bursting, so n frames span at least n - 1 periods at the box."""
+        sent = self.link.stats.frames_sent
         self.link.set_commands(commands)
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.feed.poll(min(0.05, max(0.0, end - time.monotonic())))  # keep the frame queue drained
+        start = time.monotonic()
+        # +1: the first frame after set_commands may have been encoded before it
+        frames = 0 if seconds <= 0 else sent + 1 + math.ceil(seconds * self.link.rate_hz)
+        while True:
+            now = time.monotonic()
+            if now >= start + seconds and (self.link.stats.frames_sent >= frames or not self.link.running
+                                           or now > start + seconds + 2.0):
+                return
+            self.feed.poll(0.005 if now >= start + seconds else min(0.05, start + seconds - now))  # drain frames
 
     # ------------------------------------------------------------------ steps
     def run(self) -> list[CheckItem]:
