@@ -72,7 +72,7 @@ def solve_ilqgames(problem: GameProblem, warm_start: WarmStart | None = None, **
     """Feedback Nash equilibrium by iLQGames. residual_norm is the last iteration's largest state/control
     change; mu holds the penalty multipliers (one per constraint); lam is empty."""
     s = _core.ILQGamesSolver()
-    s.setup(problem.to_core(), ilqgames_settings(**settings))
+    s.setup(problem.to_core(validate=False), ilqgames_settings(**settings))
     return _result(s.solve(_warm(problem, warm_start)), s.constraints())
 
 
@@ -80,7 +80,7 @@ def solve_algames(problem: GameProblem, warm_start: WarmStart | None = None, **s
     """Open-loop Nash equilibrium by ALGames. residual_norm is ||G||_2 of the augmented-Lagrangian KKT
     system; lam holds the dynamics multipliers (N, T, nx), mu the inequality multipliers."""
     s = _core.ALGamesSolver()
-    s.setup(problem.to_core(), algames_settings(**settings))
+    s.setup(problem.to_core(validate=False), algames_settings(**settings))
     return _result(s.solve(_warm(problem, warm_start)), s.constraints())
 
 

@@ -4,13 +4,13 @@ Every solver gets the same instances and time limit; success is decided here, by
 the returned trajectories (bench/verify.py), not by the solvers' own status."""
 from __future__ import annotations
 
-import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 
 import numpy as np
 from tqdm import tqdm
 
+from bench.families import family_problem
 from bench.merging import merging_problem
 
 PAPER_MS = {  # Table I of the paper (mean ms over converged runs, i7-7700K)
@@ -25,19 +25,31 @@ DYNAMICS_TOL = 1e-6  # state units
 COLLISION_TOL_M = 1e-3  # m
 STATIONARITY_REL_TOL = 1e-3  # per-player KKT residual / cost-gradient scale (bench/verify.py)
 ACTIVE_GAP_M = 1e-2  # a collision constraint counts as active when the gap is within this of d_min
+# Single-agent solves of the iterated-best-response guess: a short budget, one restart (a guess, not an answer).
+BEST_RESPONSE_SETTINGS = dict(max_iter=100, restarts=1)
+SECOND_ORDER_TOL = 1e-6  # smallest reduced-Hessian eigenvalue accepted (the solver's own test is relative to scale)
 
 
-def run_solver(name: str, problem, time_limit_s: float):
+def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: int = 0):
+    """The solver's result and the wall time of any initial-guess work before it (s)."""
     if name == "rd3g":
-        from solver_cpp import solve
+        import time
 
-        return solve(problem, time_limit=time_limit_s)
+        from solver_cpp import solve
+        from solver_cpp.best_response import best_response_guess
+
+        if best_response_rounds <= 0:
+            return solve(problem, time_limit=time_limit_s), 0.0
+        t0 = time.perf_counter()
+        guess = best_response_guess(problem, best_response_rounds, **BEST_RESPONSE_SETTINGS)
+        setup_s = time.perf_counter() - t0
+        return solve(problem, time_limit=max(time_limit_s - setup_s, 1e-6), warm_start=guess), setup_s
     from bench import baselines
 
     if name == "ilqgames":
-        return baselines.solve_ilqgames(problem, time_limit=time_limit_s)
+        return baselines.solve_ilqgames(problem, time_limit=time_limit_s), 0.0
     if name == "algames":
-        return baselines.solve_algames(problem, time_limit=time_limit_s)
+        return baselines.solve_algames(problem, time_limit=time_limit_s), 0.0
     raise ValueError(f"unknown solver {name!r}; choose from {SOLVERS}")
 
 
@@ -53,14 +65,20 @@ class RunRecord:
     failure: str
     active_collision: bool
     min_slack_m: float  # smallest distance - d_min over all pairs and steps
+    family: str = "authors"
+    # RD3G's second-order test (Info::second_order): every agent's reduced Hessian is positive definite there.
+    # None for solvers that do not report it.
+    second_order_ok: bool | None = None
 
 
-def one_run(job: tuple[str, int, int, float]) -> RunRecord:
+def one_run(job: tuple) -> RunRecord:
     from bench import verify
 
-    name, cars, seed, time_limit = job
-    problem = merging_problem(cars, seed)
-    r = run_solver(name, problem, time_limit)
+    name, cars, seed, time_limit = job[:4]
+    family = job[4] if len(job) > 4 else "authors"
+    rounds = job[5] if len(job) > 5 else 0
+    problem = family_problem(family, cars, seed)
+    r, setup_s = run_solver(name, problem, time_limit, rounds)
     x, u = np.asarray(r.x), np.asarray(r.u)
     failure = ""
     defect = verify.dynamics_defect(problem, x, u)
@@ -78,12 +96,18 @@ def one_run(job: tuple[str, int, int, float]) -> RunRecord:
             failure = f"stationarity {stat.max():.1e}"
     # collision_gaps_m is h in metres (d_min - distance, positive = violated): slack = -h.
     min_slack = float(-np.max(gaps)) if np.size(gaps) else float("inf")
-    return RunRecord(name, cars, seed, r.status, 1e3 * r.solve_time_s, int(r.iterations), failure == "",
-                     failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack)
+    so = getattr(r, "second_order", None)
+    second_order_ok = None if so is None else bool(r.status != "saddle" and np.all(np.asarray(so) >= -SECOND_ORDER_TOL))
+    return RunRecord(name, cars, seed, r.status, 1e3 * (r.solve_time_s + setup_s), int(r.iterations), failure == "",
+                     failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack, family, second_order_ok)
 
 
-def run(solvers: list[str], cars: list[int], instances: int, workers: int, time_limit_s: float) -> list[RunRecord]:
-    jobs = [(s, n, seed, time_limit_s) for n in cars for s in solvers for seed in range(instances)]
+def run(solvers: list[str], cars: list[int], instances: int, workers: int, time_limit_s: float,
+        families: tuple[str, ...] = ("authors",), best_response_rounds: int = 0) -> list[RunRecord]:
+    """best_response_rounds > 0: RD3G starts from solver_cpp.best_response_guess (its time counts, within the
+    time limit)."""
+    jobs = [(s, n, seed, time_limit_s, f, best_response_rounds)
+            for f in families for n in cars for s in solvers for seed in range(instances)]
     records: list[RunRecord] = []
     with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:
         if workers <= 1:
@@ -114,6 +138,61 @@ def summarize(records: list[RunRecord]) -> list[dict]:
             "active_fraction": float(np.mean([r.active_collision for r in ok])) if ok else nan,
         })
     return out
+
+
+def summarize_families(records: list[RunRecord]) -> list[dict]:
+    """Per family, solver and size: success by the common test, the share of successes the second-order test
+    confirms, statuses, and median / p90 / max time (ms) and iterations over all runs (failures included: they
+    cost time too)."""
+    out = []
+    for f, s, n in sorted({(r.family, r.solver, r.cars) for r in records}, key=lambda k: (k[0], k[1], k[2])):
+        rs = [r for r in records if (r.family, r.solver, r.cars) == (f, s, n)]
+        ok = [r for r in rs if r.success]
+        t = np.array([r.solve_ms for r in rs])
+        it = np.array([r.iterations for r in rs])
+        so = [r.second_order_ok for r in ok if r.second_order_ok is not None]
+        statuses: dict[str, int] = {}
+        for r in rs:
+            statuses[r.status] = statuses.get(r.status, 0) + 1
+        out.append({
+            "family": f, "solver": s, "cars": n, "instances": len(rs), "solved": len(ok),
+            "second_order_confirmed": int(sum(so)) if so else None,
+            "converged_but_rejected": sum(r.status == "converged" and r.second_order_ok is False for r in rs),
+            "statuses": statuses,
+            "median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "max_ms": float(t.max()),
+            "median_iterations": float(np.median(it)), "p90_iterations": float(np.percentile(it, 90)),
+            "max_iterations": int(it.max()),
+            "failures": [f"seed {r.seed}: {r.status}, {r.failure}" for r in rs if not r.success][:5],
+        })
+    return out
+
+
+def family_markdown(summary: list[dict], command: str, machine: str, seconds: float, best_response_rounds: int = 0) -> str:
+    guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
+             if best_response_rounds else "")
+    lines = [
+        "## Game families: RD3G beyond the authors' merging benchmark" + guess,
+        "",
+        f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
+        "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "
+        f"collision violation <= {COLLISION_TOL_M:g} m, per-player stationarity <= {STATIONARITY_REL_TOL:g}); "
+        "2nd order = share of the solved results whose every player passes the solver's second-order test; "
+        "'conv. rejected' = results reported converged at a point the test rejects (must be 0). Times and "
+        "iterations over all instances, failures included.",
+        "",
+        "| family | cars | solved | 2nd order | conv. rejected | statuses | time median / p90 / max ms | "
+        "iterations median / p90 / max |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in summary:
+        so = "—" if r["second_order_confirmed"] is None or not r["solved"] else \
+            f"{100 * r['second_order_confirmed'] / r['solved']:.0f}%"
+        st = ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items()))
+        lines.append(f"| {r['family']} ({r['solver']}) | {r['cars']} | {r['solved']}/{r['instances']} "
+                     f"({100 * r['solved'] / r['instances']:.0f}%) | {so} | {r['converged_but_rejected']} | {st} | "
+                     f"{r['median_ms']:.1f} / {r['p90_ms']:.1f} / {r['max_ms']:.0f} | "
+                     f"{r['median_iterations']:.0f} / {r['p90_iterations']:.0f} / {r['max_iterations']} |")
+    return "\n".join(lines)
 
 
 def _fmt(v, spec=".1f"):
@@ -228,8 +307,4 @@ def records_json(summary: list[dict]) -> dict:
     return {"results": summary}
 
 
-def default_workers() -> int:
-    return max(1, min(2, os.cpu_count() or 1))
-
-
-__all__ = ["run", "summarize", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]
+__all__ = ["run", "summarize", "summarize_families", "family_markdown", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]

@@ -27,18 +27,20 @@ def lane_counts(num_cars: int) -> tuple[int, int]:
     return n_main, num_cars - n_main
 
 
-def initial_states(num_cars: int, seed: int) -> np.ndarray:
-    """(N, 4) initial states [x, y, v, theta]; main-lane cars first, then merging-lane cars."""
+def initial_states(num_cars: int, seed: int, spacing: float = CAR_SPACING, main_lane_y: float = MAIN_LANE_Y,
+                   merge_lane_y: float = MERGE_LANE_Y) -> np.ndarray:
+    """(N, 4) initial states [x, y, v, theta]; main-lane cars first, then merging-lane cars (the other families
+    in bench/families.py draw theirs here too, with their own spacing and lanes)."""
     n_main, n_merge = lane_counts(num_cars)
     rng = np.random.RandomState(seed)  # numpy's legacy generator, draws in the documented order
-    x_main = np.linspace(0.0, CAR_SPACING * (n_main - 1), n_main) + rng.rand(n_main)
+    x_main = np.linspace(0.0, spacing * (n_main - 1), n_main) + rng.rand(n_main)
     offset = rng.rand()
-    x_merge = 2.7 + 5.0 * (offset - 0.5) + np.linspace(0.0, CAR_SPACING * (n_merge - 1), n_merge) + rng.rand(n_merge)
+    x_merge = spacing / 2 + 5.0 * (offset - 0.5) + np.linspace(0.0, spacing * (n_merge - 1), n_merge) + rng.rand(n_merge)
     v_main = 2.0 + rng.rand(n_main)
     v_merge = 2.0 + rng.rand(n_merge)
     x0 = np.zeros((num_cars, 4))
-    x0[:n_main, 0], x0[:n_main, 1], x0[:n_main, 2] = x_main, MAIN_LANE_Y, v_main
-    x0[n_main:, 0], x0[n_main:, 1], x0[n_main:, 2] = x_merge, MERGE_LANE_Y, v_merge
+    x0[:n_main, 0], x0[:n_main, 1], x0[:n_main, 2] = x_main, main_lane_y, v_main
+    x0[n_main:, 0], x0[n_main:, 1], x0[n_main:, 2] = x_merge, merge_lane_y, v_merge
     return x0
 
 

@@ -1,7 +1,7 @@
 """Simulated races under the control-path imperfections of the real-time loop, to see which of them
 change who wins (docs/benchmarks.md, HIL loop bench notes): ``python -m bench.race_perturbations``.
 
-Each option perturbs the pure simulation (``app.race_runner.run_race``) in one way; without options
+Each option perturbs the pure simulation (``race.simulation.run_race``) in one way; without options
 the races are the default simulated races. Prints each seed's winner and RD3G's win count.
 
 * ``--late-ms LO HI``: each control period's new command reaches both cars a uniform random LO..HI ms
@@ -10,7 +10,7 @@ the races are the default simulated races. Prints each seed's winner and RD3G's 
   tick).
 * ``--neutral P MS``: with probability P per control period both cars get neutral (zero throttle and
   steering) for MS ms first (a deadline miss of the loop).
-* ``--max-iterations N``: RD3G's and the MPC's Newton iteration cap (planner default 15).
+* ``--max-iterations N``: RD3G's and the MPC's Newton iteration cap per warm-started plan (``max_iter`` in ``PlannerConfig.solver``, default 15).
 * ``--car-params FILE``: e.g. a car file with actuation delays, which the planners compensate.
 """
 from __future__ import annotations
@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
+from race.simulation import run_race
 from sim import Simulator
 
 
@@ -58,14 +60,18 @@ def perturbed_simulator(late_ms=(0.0, 0.0), tail=(0.0, 0.0, 0.0), neutral=(0.0, 
 
 
 def main(argv=None) -> int:
-    from app.commands import race
-    from app.race_runner import run_race
-
     parser = argparse.ArgumentParser(prog="python -m bench.race_perturbations", description=__doc__.split("\n\n")[0])
-    race.add_race_arguments(parser)
+    parser.add_argument("--track", default=RaceSpec.track, help=f"track name or file (default: {RaceSpec.track})")
+    parser.add_argument("--car-params", default=RaceSpec.car_params, help=f"car file (default: {RaceSpec.car_params})")
+    parser.add_argument("--opponent", choices=OPPONENTS, default=RaceSpec.opponent)
+    parser.add_argument("--rd3g-speed", type=float, default=RaceSpec.rd3g_top_speed_mps, help="RD3G car's top speed (m/s)")
+    parser.add_argument("--opponent-speed", type=float, default=RaceSpec.opponent_top_speed_mps, help="opponent's top speed (m/s)")
+    parser.add_argument("--control-hz", type=float, default=RaceSpec.control_hz, help="control rate (Hz)")
+    parser.add_argument("--raceline-ey", type=float, default=RaceSpec.raceline_ey_m, metavar="M",
+                        help="lateral reference of both cars' racing cost (m, left positive)")
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--start", choices=("front", "rear"), default=None, help="RD3G's start (default: as `race`)")
+    parser.add_argument("--start", choices=STARTS, default=RaceSpec.start, help="RD3G's start (default: as `race`)")
     parser.add_argument("--late-ms", type=float, nargs=2, default=(0.0, 0.0), metavar=("LO", "HI"))
     parser.add_argument("--tail", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("P", "A_MS", "B_MS"))
     parser.add_argument("--neutral", type=float, nargs=2, default=(0.0, 0.0), metavar=("P", "MS"))
@@ -79,15 +85,19 @@ def main(argv=None) -> int:
     for name, p in (("--tail", args.tail[0]), ("--neutral", args.neutral[0])):
         if not 0 <= p <= 1:
             parser.error(f"{name}: the probability must be in [0, 1], got {p}")
-    # The race command's own defaults for what this script does not set.
-    defaults = race_defaults()
     sim_cls = perturbed_simulator(args.late_ms, args.tail, args.neutral, seed_offset=args.rng_seed)
     winners = {}
     for seed in range(args.first_seed, args.first_seed + args.seeds):
-        setup = race.make_setup(args, seed, args.start or defaults.start, args.rd3g_speed, args.opponent_speed,
-                                defaults.laps, defaults.max_time)
+        spec = RaceSpec(track=args.track, car_params=args.car_params, seed=seed, opponent=args.opponent,
+                        start=args.start, rd3g_top_speed_mps=args.rd3g_speed, opponent_top_speed_mps=args.opponent_speed,
+                        control_hz=args.control_hz, raceline_ey_m=args.raceline_ey)
+        try:
+            setup = spec.load()
+        except RaceSetupError as exc:
+            parser.error(str(exc))
         if args.max_iterations is not None:
-            setup = dataclasses.replace(setup, planner=dataclasses.replace(setup.planner, max_iterations=args.max_iterations))
+            solver = {**setup.planner.solver, "max_iter": args.max_iterations}
+            setup = dataclasses.replace(setup, planner=dataclasses.replace(setup.planner, solver=solver))
         winners[seed] = run_race(setup, simulator_cls=sim_cls).winner
         print(f"seed {seed}: {winners[seed]}", flush=True)
     wins = [s for s, w in winners.items() if w == "rd3g"]
@@ -95,15 +105,6 @@ def main(argv=None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n")
     return 0
-
-
-def race_defaults():
-    from app.commands import race
-
-    p = argparse.ArgumentParser()
-    sub = p.add_subparsers()
-    race.register(sub)
-    return p.parse_args(["race"])
 
 
 if __name__ == "__main__":

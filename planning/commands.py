@@ -8,6 +8,11 @@
   the wheel angles reachable with |command| <= max_steering_rad.
 * Delay: commands take effect corrections.*_delay_s later, so the state the plan starts from is
   the measured state predicted over the delay with the commands already in flight.
+* Identified linkage and motor effects (docs/sysid.md): a left/right gain asymmetry is inverted per
+  side; steering play (backlash) is compensated by overshooting the wanted linkage angle by half the
+  play in the direction it has to move (the play model then puts the linkage exactly there); a motor
+  force drift scales the motor force with the time since the mapper started (one control period
+  per issued command). The `[other_terms]` of an unnamed effect are not applied here.
 """
 from __future__ import annotations
 
@@ -16,8 +21,11 @@ from collections import deque
 
 import numpy as np
 
+import dataclasses
+
 from vehicles.dynamic_bicycle import ModelCoefficients, drive_force
-from vehicles.params import CarParams
+from vehicles.linkage import inverse_asymmetric, play
+from vehicles.params import CarParams, motor_force_scale
 
 
 class CommandMapper:
@@ -30,14 +38,17 @@ class CommandMapper:
         self.car = car
         self.period = float(control_period_s)
         self.coeffs = ModelCoefficients.from_params(car)
+        self._nominal_coeffs = self.coeffs
         self.max_brake = float(max_brake_mps2)
         corr = car.corrections
         # Both channels are predicted over the longer delay (the plan starts when steering and
         # throttle both act); with different delays the faster channel acts slightly early.
         self.delay_s = max(corr.steering_delay_s, corr.throttle_delay_s)
         reach = steering_margin * car.actuators.max_steering_rad * corr.steering_gain
-        self.delta_min = corr.steering_offset_rad - reach
-        self.delta_max = corr.steering_offset_rad + reach
+        self.delta_min = corr.steering_offset_rad - reach * (1.0 - corr.steering_gain_asymmetry)
+        self.delta_max = corr.steering_offset_rad + reach * (1.0 + corr.steering_gain_asymmetry)
+        self._steps_issued = 0
+        self._linkage = 0.0  # estimated linkage angle behind the play (servo angle units)
         self.n_in_flight = math.ceil(self.delay_s / self.period - 1e-9) if self.delay_s > 0 else 0
         self._issued: deque = deque(maxlen=max(self.n_in_flight, 1))
 
@@ -79,9 +90,12 @@ class CommandMapper:
 
     # ------------------------------------------------------------- steering
     def steering_command(self, delta):
-        """Servo command (rad) for wheel angle delta, inverting the [corrections] gain/offset."""
+        """Servo command (rad) for wheel angle delta, inverting the [corrections] gain/offset and the
+        left/right asymmetry (stateless; the play is compensated in :meth:`commands`)."""
         corr = self.car.corrections
         cmd = (np.asarray(delta, dtype=float) - corr.steering_offset_rad) / corr.steering_gain
+        if corr.steering_gain_asymmetry != 0.0:
+            cmd = inverse_asymmetric(cmd, corr.steering_gain_asymmetry)
         m = self.car.actuators.max_steering_rad
         cmd = np.clip(cmd, -m, m)
         return cmd if cmd.ndim else float(cmd)
@@ -95,7 +109,24 @@ class CommandMapper:
         """(throttle, steering command) for the planned control at the speed the plan starts from;
         records the planned control as in flight."""
         self._issued.append((float(accel), float(delta)))
-        return float(self.throttle_for_acceleration(accel, speed)), float(self.steering_command(delta))
+        corr = self.car.corrections
+        if corr.motor_force_drift_per_s != 0.0:
+            scale = motor_force_scale(corr.motor_force_drift_per_s, self._steps_issued * self.period)
+            self.coeffs = dataclasses.replace(self._nominal_coeffs,
+                                              motor_force=self._nominal_coeffs.motor_force * scale)
+        self._steps_issued += 1
+        steering = float(self.steering_command(delta))
+        backlash = corr.steering_backlash_rad
+        if backlash > 0.0:
+            # Push the linkage to the wanted angle from the side it has to move to (it then ends there).
+            if steering > self._linkage:
+                steering = steering + 0.5 * backlash
+            elif steering < self._linkage:
+                steering = steering - 0.5 * backlash
+            m = self.car.actuators.max_steering_rad
+            steering = min(max(steering, -m), m)
+            self._linkage = float(play(self._linkage, steering, backlash))
+        return float(self.throttle_for_acceleration(accel, speed)), steering
 
     # ------------------------------------------------------------- delay
     def predict(self, frenet_model, x) -> np.ndarray:
@@ -113,6 +144,7 @@ class CommandMapper:
 
     def reset(self) -> None:
         self._issued.clear()
+        self._linkage = 0.0
 
 
 def rollout_controls(frenet_model, x, segments) -> np.ndarray:

@@ -2,11 +2,25 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+
+from solver_cpp import make_settings
 
 
 class PlannerConfigError(ValueError):
     """A planner parameter is invalid; the message names the field."""
+
+
+def solver_settings(*layers: Mapping):
+    """The solver's Settings from overrides under its own names (a later layer overrides an earlier one);
+    a None value means the solver's default (solver_cpp.make_settings names any unknown key or bad value)."""
+    merged: dict = {}
+    for layer in layers:
+        if not isinstance(layer, Mapping):
+            raise ValueError(f"must be a mapping of solver settings, got {type(layer).__name__}")
+        merged.update(layer)
+    return make_settings(**{k: v for k, v in merged.items() if v is not None})
 
 
 @dataclass(frozen=True)
@@ -53,20 +67,21 @@ class PlannerConfig:
     max_brake_mps2: float = 4.0       # planner's braking bound (tyre-limited; the motor could brake harder)
     steering_margin: float = 0.95     # fraction of the steering range the planner may use
     curvature_table_ds_m: float = 0.02
-    # Solver: deterministic iteration cap rather than a wall-clock limit (reproducible races); the
-    # barrier weight is only reduced once its subproblem is nearly solved (rho_progress), restarts
-    # are off (a restart's result can be worse than the first attempt's).
-    max_iterations: int = 15
-    solver_tol: float = 5e-4
-    rho_progress: float = 1.0
-    solver_restarts: int = 0
-    solver_time_limit_s: float = 0.0  # 0 = none; > 0 makes races depend on machine speed
-    line_search_steps: int = 8        # backtracking steps before the line search fails
-    lm_tries: int = 0                 # Levenberg-Marquardt fallback steps per failed Newton step
-    # Warm-started solves start at a smaller barrier weight than a cold solve (0.01): with 0.01 most
-    # of the 15 iterations went into the three barrier reductions; 1e-4 and below stalled (the
-    # barrier duals start at zero).
-    warm_rho_init: float = 0.001
+    # Solver settings of the warm-started plans, under the solver's own names (solver_cpp Settings; any
+    # key not given keeps the solver's default from solver_cpp/include/rd3g/problem.hpp). A deterministic
+    # iteration cap rather than a wall-clock limit (time_limit 0: races do not depend on machine speed); the
+    # barrier weight is only reduced once its subproblem is nearly solved (rho_progress); no restarts (a
+    # restart's result can be worse than the first attempt's), no Levenberg-Marquardt steps, 8 line-search
+    # steps; warm starts begin at a smaller barrier weight than a cold solve (with the default 0.01 most of
+    # the 15 iterations went into the three barrier reductions; 1e-4 and below stalled: the barrier duals
+    # start at zero).
+    solver: dict = field(default_factory=lambda: dict(
+        max_iter=15, rho_progress=1.0, restarts=0, ls_max_steps=8, lm_tries=0, rho_init=0.001))
+    # The first (cold) plan, computed before the start outside the real-time budget: `solver` with these
+    # overrides; None = the solver's own default (here its full globalisation: restarts, Levenberg-Marquardt
+    # steps, line-search steps, rho_init).
+    cold_start_solver: dict = field(default_factory=lambda: dict(
+        max_iter=200, restarts=3, lm_tries=None, ls_max_steps=None, rho_init=None))
     # A non-converged solve is still used if its constraint violation is at most this (m), otherwise
     # the car tracks the previous plan in closed loop (fallback_* gains below).
     accept_violation_m: float = 0.01
@@ -76,9 +91,20 @@ class PlannerConfig:
     fallback_speed_gain: float = 2.0
 
     def __post_init__(self) -> None:
-        positive = {"plan_dt_s", "top_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "solver_tol", "steering_margin", "warm_rho_init"}
-        ints = {"horizon": 1, "max_iterations": 1, "solver_restarts": 0, "line_search_steps": 1, "lm_tries": 0}
+        positive = {"plan_dt_s", "top_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "steering_margin"}
+        ints = {"horizon": 1}
+        for name in ("solver", "cold_start_solver"):
+            try:
+                solver_settings(getattr(self, name))
+            except (TypeError, ValueError) as exc:
+                raise PlannerConfigError(f"planner.{name}: {exc}") from None
+        try:
+            solver_settings(self.solver, self.cold_start_solver)
+        except ValueError as exc:
+            raise PlannerConfigError(f"planner.cold_start_solver: {exc}") from None
         for f in fields(self):
+            if f.name in ("solver", "cold_start_solver"):
+                continue
             v = getattr(self, f.name)
             if f.name in ints:
                 if isinstance(v, bool) or not isinstance(v, int) or v < ints[f.name]:

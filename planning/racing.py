@@ -23,11 +23,10 @@ import numpy as np
 from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, QuadraticCost, Solver, WarmStart
 
 from .commands import CommandMapper
-from .config import PlannerConfig
+from .config import PlannerConfig, solver_settings
 from .frenet import EPSI, EY, S, V, FrenetTrackModel
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
-_COLD_START_SETTINGS = dict(max_iter=200, restarts=3, lm_tries=4, ls_max_steps=30, rho_init=0.01)
 # Smallest collision distance a relaxed problem gets (m). The solver rejects d_min <= 0, which the
 # relaxation below produced when the cars were within 1 cm (they pass through each other in the
 # simulator after a contact); below the floor the k = 1 constraint may be infeasible, and then the
@@ -72,11 +71,12 @@ class _RecedingHorizon:
         self.config = config
         self.control_period_s = float(control_period_s)
         self._prev: GameResult | None = None
-        self._settings = dict(max_iter=config.max_iterations, tol=config.solver_tol,
-                              rho_progress=config.rho_progress, restarts=config.solver_restarts,
-                              time_limit=config.solver_time_limit_s,
-                              ls_max_steps=config.line_search_steps, lm_tries=config.lm_tries,
-                              rho_init=config.warm_rho_init)
+        # Set up at the first plan, then updated every plan (same structure all race long).
+        self._solver: Solver | None = None
+        self._warm_settings = solver_settings(config.solver)
+        self._cold_settings = solver_settings(config.solver, config.cold_start_solver)
+        # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
+        self._retry_settings = solver_settings(config.solver, {"rho_init": None})
 
     def reset(self) -> None:
         self._prev = None
@@ -230,6 +230,17 @@ class _RecedingHorizon:
         return Plan(x=np.stack([own, other]), u=np.asarray(u), status="error", iterations=0, solve_time_s=0.0,
                     max_violation=math.nan, used="fallback", d_min=math.nan, ey_bound=ey_bound, error=error)
 
+    def _solver_for(self, problem: GameProblem, settings) -> Solver:
+        """The planner's solver with this plan's problem and settings: set up at the first plan, updated
+        (no new set-up) at every later one."""
+        if self._solver is None:
+            self._solver = Solver(problem, settings)
+        else:
+            self._solver.update(problem)
+            if self._solver.settings is not settings:
+                self._solver.update_settings(settings)
+        return self._solver
+
     def _rollout(self, problem: GameProblem, u: np.ndarray) -> np.ndarray:
         model = self.tm.rollout_model(self.config.plan_dt_s)
         return np.stack([np.asarray(model.rollout(np.asarray(a.x0, dtype=float), u[i]))
@@ -265,14 +276,15 @@ class _RecedingHorizon:
         loop (tracking_control) for this step."""
         warm = self._warm_start()
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
-        # its full globalisation (more iterations, restarts, Levenberg-Marquardt steps).
-        settings = self._settings if warm is not None else {**self._settings, **_COLD_START_SETTINGS}
-        result = Solver(problem, **settings).solve(warm)
+        # its full globalisation (config.cold_start_solver).
+        solver = self._solver_for(problem, self._warm_settings if warm is not None else self._cold_settings)
+        result = solver.solve(warm)
         if warm is not None and not result.converged and result.iterations == 0:
             # The warm start itself was unusable (line search failed at once, e.g. a stale fallback
             # plan that now violates a constraint): without a retry every later step starts from the
             # same stale plan and falls back too. One retry from the solver's own initial guess.
-            result = Solver(problem, **{**self._settings, "rho_init": _COLD_START_SETTINGS["rho_init"]}).solve(None)
+            solver.update_settings(self._retry_settings)
+            result = solver.solve(None)
         finite = bool(np.all(np.isfinite(result.u)))
         if result.converged and finite and np.all(np.isfinite(result.x)):
             used, u_all = "converged", result.u

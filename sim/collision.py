@@ -46,3 +46,47 @@ def rectangles_overlap(center_a, heading_a, half_a, center_b, heading_b, half_b)
     radius_a = np.einsum("...kj,...j->...k", np.abs(np.einsum("...kj,...mj->...km", axes, axes_a)), half_a)
     radius_b = np.einsum("...kj,...j->...k", np.abs(np.einsum("...kj,...mj->...km", axes, axes_b)), half_b)
     return np.all(dist <= radius_a + radius_b, axis=-1)
+
+
+def rectangle_poses(corners) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(n, 4, 2) corners in footprint order (front-left, front-right, rear-right, rear-left) ->
+    centres (n, 2), headings (n,) rad, half extents (n, 2) = (half length, half width)."""
+    corners = np.asarray(corners, float)
+    centre = corners.mean(axis=1)
+    front = 0.5 * (corners[:, 0] + corners[:, 1])
+    rear = 0.5 * (corners[:, 2] + corners[:, 3])
+    heading = np.arctan2(front[:, 1] - rear[:, 1], front[:, 0] - rear[:, 0])
+    half = np.column_stack([0.5 * np.linalg.norm(front - rear, axis=1),
+                            0.5 * np.linalg.norm(corners[:, 0] - corners[:, 1], axis=1)])
+    return centre, heading, half
+
+
+def rectangle_gap(a, b) -> np.ndarray:
+    """Distance (m) between pairs of rectangles a[i], b[i] ((n, 4, 2) corners in footprint order), 0
+    where they overlap. Overlap: no separating axis among the four edge directions (separating-axis
+    theorem); distance: the closest corner-to-edge distance either way round (for disjoint convex
+    polygons the closest points include a corner of one of them)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    axes = np.stack([a[:, 1] - a[:, 0], a[:, 3] - a[:, 0], b[:, 1] - b[:, 0], b[:, 3] - b[:, 0]], axis=1)  # (n, 4, 2)
+    pa = np.einsum("nkd,ncd->nkc", axes, a)                   # corners projected on each axis (n, 4, 4)
+    pb = np.einsum("nkd,ncd->nkc", axes, b)
+    separated = (pa.max(axis=2) < pb.min(axis=2)) | (pb.max(axis=2) < pa.min(axis=2))
+    overlap = ~separated.any(axis=1)
+    best = np.full(len(a), np.inf)
+    for p, q in ((a, b), (b, a)):
+        q0, q1 = q, np.roll(q, -1, axis=1)                    # edges of q: (n, 4, 2)
+        e = q1 - q0
+        d = p[:, :, None, :] - q0[:, None, :, :]              # (n, 4 corners, 4 edges, 2)
+        u = np.clip(np.einsum("nced,ned->nce", d, e) / np.einsum("ned,ned->ne", e, e)[:, None, :], 0.0, 1.0)
+        closest = q0[:, None, :, :] + u[..., None] * e[:, None, :, :]
+        best = np.minimum(best, np.linalg.norm(p[:, :, None, :] - closest, axis=-1).min(axis=(1, 2)))
+    return np.where(overlap, 0.0, best)
+
+
+def footprint_gap(states, geometry) -> float:
+    """Smallest distance (m) between the footprints of two cars (0 when they overlap). states: (2, >=3)
+    rows [x, y, heading, ...]; geometry: vehicles.params.GeometryParams (footprint size and offset)."""
+    states = np.asarray(states, float)
+    corners = footprint_corners(states[:, 0], states[:, 1], states[:, 2], geometry.footprint_length_m,
+                                geometry.footprint_width_m, geometry.footprint_offset_m)
+    return float(rectangle_gap(corners[:1], corners[1:2])[0])

@@ -39,10 +39,6 @@ class RaceStatus:
     off_track_count: tuple[int, ...]  # times each car left the drivable area
     min_center_distance_m: float  # closest approach of any two cars' centres of gravity
 
-    @property
-    def race_over(self) -> bool:
-        return self.winner is not None
-
 
 @dataclass
 class LapBookkeeper:

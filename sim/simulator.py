@@ -7,6 +7,7 @@ events and measurements. Details and conventions: docs/simulator.md.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -17,8 +18,11 @@ import numpy as np
 from sim.collision import rectangles_overlap
 from sim.effects import SimEffects
 from sim.race import LapBookkeeper, RaceStatus, SimEvent
+from tracks.geometry import wrap_angle
 from vehicles.dynamic_bicycle import STATE_DIM, ModelCoefficients, derivative, derivative_one
-from vehicles.params import CarParams
+from vehicles.extra_terms import car_extra_terms, extra_rates
+from vehicles.linkage import asymmetric, play
+from vehicles.params import CarParams, motor_force_scale
 
 
 @dataclass(frozen=True)
@@ -28,12 +32,8 @@ class PoseMeasurement:
     car: int
     x: float
     y: float
-    heading: float  # wrapped to [-pi, pi)
+    heading: float  # wrapped to (-pi, pi]
     t: float
-
-
-def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class Simulator:
@@ -108,6 +108,16 @@ class Simulator:
         self._throttle_delay_steps = [
             round((p.corrections.throttle_delay_s + e.throttle_delay_s) / self.physics_dt) for p, e in zip(cars, effects)
         ]
+        # Steering linkage beyond gain/offset and motor drift: car's corrections + hidden effects.
+        self._backlash = [p.corrections.steering_backlash_rad + e.steering_backlash_rad for p, e in zip(cars, effects)]
+        self._asymmetry = [(p.corrections.steering_gain_asymmetry, e.steering_gain_asymmetry)
+                           for p, e in zip(cars, effects)]
+        self._drift = [(p.corrections.motor_force_drift_per_s + e.motor_force_drift_per_s, e.drift_start_s)
+                       for p, e in zip(cars, effects)]
+        self._drifting = any(rate != 0.0 for rate, _ in self._drift)
+        self._base_coeffs, self._base_coeffs_batch = list(self._coeffs), self._coeffs_batch
+        self._extra = [car_extra_terms(p) for p in cars]
+        self._has_extra = any(self._extra)
         self._half_extents = np.array(
             [[p.geometry.footprint_length_m / 2, p.geometry.footprint_width_m / 2] for p in cars]
         )
@@ -141,6 +151,8 @@ class Simulator:
         self._x = states.tolist()
         self._target = [self._limit(i, row) for i, row in enumerate(inputs.tolist())]
         self._applied = [list(t) for t in self._target]
+        self._linkage = [a[1] for a in self._applied]  # linkage angle after the play, per car
+        self._effective = [self._linkage_output(i) for i in range(self.n_cars)]
         self._steer_fifo: list[deque] = [deque() for _ in range(self.n_cars)]
         self._throttle_fifo: list[deque] = [deque() for _ in range(self.n_cars)]
         self._steps = 0
@@ -155,6 +167,7 @@ class Simulator:
         self._off_track_count = [0] * self.n_cars
         self._min_distance = math.inf
         self._ready = True
+        self._apply_drift()
         self._check_contacts()
 
     # ------------------------------------------------------------------ stepping
@@ -182,6 +195,7 @@ class Simulator:
             self._throttle_fifo[i].append((self._steps + self._throttle_delay_steps[i], throttle))
             self._steer_fifo[i].append((self._steps + self._steer_delay_steps[i], steering))
         first_event = len(self._events)
+        self._apply_drift()
         for _ in range(n_sub):
             self._update_actuators()
             self._integrate()
@@ -213,27 +227,70 @@ class Simulator:
             max_ds = a.steering_rate_limit_radps * dt
             applied[0] += min(max(target[0] - applied[0], -max_du), max_du)
             applied[1] += min(max(target[1] - applied[1], -max_ds), max_ds)
+            if self._backlash[i] > 0.0:
+                self._linkage[i] = play(self._linkage[i], applied[1], self._backlash[i])
+            else:
+                self._linkage[i] = applied[1]
+            self._effective[i] = self._linkage_output(i)
+
+    def _linkage_output(self, i: int) -> list[float]:
+        """[throttle, linkage angle] the physics sees: play, then the left/right asymmetry (the
+        gain and offset are applied by the model)."""
+        a_car, a_hidden = self._asymmetry[i]
+        return [self._applied[i][0], asymmetric(asymmetric(float(self._linkage[i]), a_car), a_hidden)]
+
+    def _apply_drift(self) -> None:
+        """Motor force at the current time (updated once per control step; the drift is slow)."""
+        if not self._drifting:
+            return
+        scales = [motor_force_scale(rate, self.time + start) for rate, start in self._drift]
+        self._coeffs = [dataclasses.replace(k, motor_force=k.motor_force * sc)
+                        for k, sc in zip(self._base_coeffs, scales)]
+        b = self._base_coeffs_batch
+        self._coeffs_batch = dataclasses.replace(b, motor_force=b.motor_force * np.asarray(scales))
 
     def _integrate(self) -> None:
         h = self.physics_dt
         if self._batch:
             x = np.array(self._x)
-            u = np.array(self._applied)
+            u = np.array(self._effective)
             k = self._coeffs_batch
-            k1 = derivative(x, u, k)
-            k2 = derivative(x + 0.5 * h * k1, u, k)
-            k3 = derivative(x + 0.5 * h * k2, u, k)
-            k4 = derivative(x + h * k3, u, k)
+            f = self._derivative_batch
+            k1 = f(x, u, k)
+            k2 = f(x + 0.5 * h * k1, u, k)
+            k3 = f(x + 0.5 * h * k2, u, k)
+            k4 = f(x + h * k3, u, k)
             self._x = (x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)).tolist()
             return
         hh = 0.5 * h
         for i in range(self.n_cars):
-            x, u, k = self._x[i], self._applied[i], self._coeffs[i]
-            k1 = derivative_one(x, u, k)
-            k2 = derivative_one([a + hh * b for a, b in zip(x, k1)], u, k)
-            k3 = derivative_one([a + hh * b for a, b in zip(x, k2)], u, k)
-            k4 = derivative_one([a + h * b for a, b in zip(x, k3)], u, k)
+            x, u, k = self._x[i], self._effective[i], self._coeffs[i]
+            if self._extra[i]:
+                extra = self._extra[i]
+
+                def f(x_, u_, k_):
+                    xdot = list(derivative_one(x_, u_, k_))
+                    dv, dth = extra_rates(x_[3], u_[0], k_.steering_gain * u_[1] + k_.steering_offset, extra)
+                    xdot[2] += dth
+                    xdot[3] += dv
+                    return xdot
+            else:
+                f = derivative_one
+            k1 = f(x, u, k)
+            k2 = f([a + hh * b for a, b in zip(x, k1)], u, k)
+            k3 = f([a + hh * b for a, b in zip(x, k2)], u, k)
+            k4 = f([a + h * b for a, b in zip(x, k3)], u, k)
             self._x[i] = [a + h / 6.0 * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(x, k1, k2, k3, k4)]
+
+    def _derivative_batch(self, x: np.ndarray, u: np.ndarray, k: ModelCoefficients) -> np.ndarray:
+        xdot = derivative(x, u, k)
+        if self._has_extra:
+            for i, extra in enumerate(self._extra):
+                if extra:
+                    dv, dth = extra_rates(x[i, 3], u[i, 0], k.steering_gain[i] * u[i, 1] + k.steering_offset[i], extra)
+                    xdot[i, 2] += dth
+                    xdot[i, 3] += dv
+        return xdot
 
     # ------------------------------------------------------------------ checks
     def _arc_lengths(self) -> np.ndarray:
@@ -317,9 +374,14 @@ class Simulator:
             car=i,
             x=x + e.position_noise_m * float(noise[0]),
             y=y + e.position_noise_m * float(noise[1]),
-            heading=wrap_angle(heading + e.heading_noise_rad * float(noise[2])),
+            heading=float(wrap_angle(heading + e.heading_noise_rad * float(noise[2]))),
             t=self.time,
         )
+
+    def linkage_inputs(self, i: int) -> np.ndarray:
+        """[throttle, linkage angle] the physics uses for car i now: the servo angle after the steering
+        play and the left/right asymmetry (the wheel angle is gain * this + offset)."""
+        return np.array(self._effective[self._car_index(i)])
 
     @property
     def events(self) -> list[SimEvent]:

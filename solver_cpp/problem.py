@@ -1,8 +1,9 @@
 """Game description: agents (dynamics, initial state, cost, bounds), pairwise collision avoidance,
-moving obstacles. Validation happens here and names the field at fault; `to_core()` builds the C++
-structs."""
+moving obstacles. `to_core()` converts the types into the C++ structs; the one validation routine is
+C++ (solver_cpp/src/validate.cpp), shared by RD3G and the baselines, and names the field at fault."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -12,26 +13,37 @@ from . import _core
 from .models import Model
 
 
-def _vector(where: str, value, n: int, allow_inf: bool = False) -> np.ndarray:
+def _floats(where: str, value, ndim: int = 1) -> np.ndarray:
+    """Type conversion only: an array of floats with ndim dimensions. Sizes and values (finite,
+    non-negative, within bounds) are checked once, by the C++ validation (solver_cpp/src/validate.cpp)."""
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"{where} must be a list of {n} numbers") from None
-    if arr.shape != (n,):
-        raise ValueError(f"{where} must have {n} values, got shape {arr.shape}")
-    bad = np.isnan(arr) if allow_inf else ~np.isfinite(arr)
-    if bad.any():
-        raise ValueError(f"{where}[{int(np.flatnonzero(bad)[0])}] is not a finite number")
+        raise ValueError(f"{where} must be {'a list' if ndim == 1 else 'a table'} of numbers, got {value!r:.80}") from None
+    if arr.ndim != ndim:
+        raise ValueError(f"{where} must be {'a list' if ndim == 1 else 'a table'} of numbers, got shape {arr.shape}")
     return arr
 
 
-def _bounds(where: str, name: str, lower, upper, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Optional box bounds (None = unbounded; +-inf entries allowed), lower strictly below upper."""
-    lo = _vector(f"{where}.{name}_min", lower, n, True) if lower is not None else np.full(n, -np.inf)
-    hi = _vector(f"{where}.{name}_max", upper, n, True) if upper is not None else np.full(n, np.inf)
-    if not (lo < hi).all():
-        raise ValueError(f"{where}.{name}_min must be below {where}.{name}_max in every component")
-    return lo, hi
+def _integer(where: str, value) -> int:
+    """An integer that fits the C++ int (indices, horizon)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{where} must be an integer, got {value!r:.80}")
+    if not -2**31 < int(value) < 2**31:
+        raise ValueError(f"{where} is out of range, got {value!r}")
+    return int(value)
+
+
+def _float(where: str, value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where} must be a number, got {value!r:.80}") from None
+
+
+def _optional_floats(where: str, value) -> np.ndarray:
+    """None = not given (empty: the C++ default, e.g. unbounded)."""
+    return np.zeros(0) if value is None else _floats(where, value)
 
 
 @dataclass
@@ -46,18 +58,14 @@ class QuadraticCost:
     Qf_ref: Sequence[float] | None = None
     Qf: Sequence[float] | None = None
 
-    def to_core(self, nx: int, nu: int, where: str) -> _core.QuadraticCost:
+    def to_core(self, where: str) -> _core.QuadraticCost:
         c = _core.QuadraticCost()
-        c.x_ref = _vector(f"{where}.x_ref", self.x_ref, nx)
-        c.Q_ref = _vector(f"{where}.Q_ref", self.Q_ref, nx)
-        c.Q = _vector(f"{where}.Q", self.Q if self.Q is not None else np.zeros(nx), nx)
-        c.R = _vector(f"{where}.R", self.R, nu)
-        c.Qf_ref = _vector(f"{where}.Qf_ref", self.Qf_ref if self.Qf_ref is not None else c.Q_ref, nx)
-        c.Qf = _vector(f"{where}.Qf", self.Qf if self.Qf is not None else c.Q, nx)
-        for name in ("Q_ref", "Q", "R", "Qf_ref", "Qf"):
-            arr = getattr(c, name)
-            if (arr < 0).any():
-                raise ValueError(f"{where}.{name} must be non-negative")
+        c.x_ref = _floats(f"{where}.x_ref", self.x_ref)
+        c.Q_ref = _floats(f"{where}.Q_ref", self.Q_ref)
+        c.Q = _floats(f"{where}.Q", self.Q) if self.Q is not None else np.zeros(c.Q_ref.shape)
+        c.R = _floats(f"{where}.R", self.R)
+        c.Qf_ref = _floats(f"{where}.Qf_ref", self.Qf_ref) if self.Qf_ref is not None else c.Q_ref
+        c.Qf = _floats(f"{where}.Qf", self.Qf) if self.Qf is not None else c.Q
         return c
 
 
@@ -74,19 +82,18 @@ class Agent:
     lead_index: int = 0
 
 
-def _min_distance(where: str, value, T: int) -> tuple[float, np.ndarray]:
-    """d_min (m) as (scalar, per-step array for k = 1..T or empty): a positive number, or T positive
-    numbers (one per step k = 1..T, e.g. a separation to recover over the horizon)."""
-    arr = np.asarray(value, dtype=float)
+def _min_distance(where: str, value) -> tuple[float, np.ndarray]:
+    """d_min (m) as (scalar, per-step array for k = 1..T or empty): one number, or one number per step
+    k = 1..T (e.g. a separation to recover over the horizon); the values are checked in C++."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where} must be a positive number or one positive number per step, got {value!r:.80}") from None
     if arr.ndim == 0:
-        d = float(arr)
-        if not np.isfinite(d) or d <= 0:
-            raise ValueError(f"{where} must be positive, got {value!r}")
-        return d, np.zeros(0)
-    if arr.shape != (T,) or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        raise ValueError(f"{where} must be a positive number or {T} positive numbers (one per step k = 1..T), "
-                         f"got shape {arr.shape} with min {np.min(arr) if arr.size else None!r}")
-    return float(np.max(arr)), arr
+        return float(arr), np.zeros(0)
+    if arr.ndim != 1:
+        raise ValueError(f"{where} must be a positive number or one positive number per step, got shape {arr.shape}")
+    return (float(np.max(arr)) if arr.size else math.nan), arr
 
 
 @dataclass
@@ -122,75 +129,68 @@ class GameProblem:
     def num_agents(self) -> int:
         return len(self.agents)
 
-    def to_core(self) -> _core.Problem:
-        if isinstance(self.horizon, bool) or not isinstance(self.horizon, (int, np.integer)) or self.horizon < 1:
-            raise ValueError(f"horizon must be a positive integer, got {self.horizon!r}")
-        try:
-            dt = float(self.dt)
-        except (TypeError, ValueError):
-            raise ValueError(f"dt must be a positive number, got {self.dt!r}") from None
-        if not np.isfinite(dt) or dt <= 0:
-            raise ValueError(f"dt must be a positive finite number, got {self.dt!r}")
-        if not self.agents:
-            raise ValueError("agents must contain at least one agent")
-        T = int(self.horizon)
+    def to_core(self, validate: bool = True, models: bool = True) -> _core.Problem:
+        """The C++ problem. validate: run the C++ validation now (Solver.setup runs it anyway);
+        models=False leaves the dynamics list empty (Solver.update keeps the set-up's models)."""
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, (int, np.integer)):
+            raise ValueError(f"horizon must be a positive integer, got {self.horizon!r:.80}")
+        if not 0 < int(self.horizon) < 2**31:
+            raise ValueError(f"horizon must be a positive integer below 2^31, got {self.horizon!r}")
+        dt = _float("dt", self.dt)
+        if not isinstance(self.agents, (list, tuple)):
+            raise ValueError(f"agents must be a list of agents, got {type(self.agents).__name__}")
         p = _core.Problem()
-        p.horizon = T
+        p.horizon = int(self.horizon)
         p.dt = dt
         dyn, x0, costs, lead, umin, umax, xmin, xmax = [], [], [], [], [], [], [], []
-        nx = nu = None
         for i, a in enumerate(self.agents):
             w = f"agents[{i}]"
-            if not hasattr(a.dynamics, "build"):
-                raise ValueError(f"{w}.dynamics is not a model description")
-            d = a.dynamics.build(dt, where=f"{w}.dynamics")
-            if nx is None:
-                nx, nu = d.nx, d.nu
-            elif (d.nx, d.nu) != (nx, nu):
-                raise ValueError(f"{w}.dynamics: every agent must have nx={nx}, nu={nu} (got {d.nx}, {d.nu})")
-            dyn.append(d)
-            x0.append(_vector(f"{w}.x0", a.x0, nx))
-            costs.append(a.cost.to_core(nx, nu, f"{w}.cost"))
+            if not isinstance(a, Agent):
+                raise ValueError(f"{w} must be an Agent, got {type(a).__name__}")
+            if models:
+                if not hasattr(a.dynamics, "build"):
+                    raise ValueError(f"{w}.dynamics is not a model description")
+                dyn.append(a.dynamics.build(dt, where=f"{w}.dynamics"))
+            x0.append(_floats(f"{w}.x0", a.x0))
+            if not isinstance(a.cost, QuadraticCost):
+                raise ValueError(f"{w}.cost must be a QuadraticCost, got {type(a.cost).__name__}")
+            costs.append(a.cost.to_core(f"{w}.cost"))
             lc = _core.LeadCost()
-            lc.weight = float(a.lead_weight)
-            if not np.isfinite(lc.weight):
-                raise ValueError(f"{w}.lead_weight must be finite")
-            if not 0 <= int(a.lead_index) < nx:
-                raise ValueError(f"{w}.lead_index must be a state index in [0, {nx})")
-            lc.index = int(a.lead_index)
+            lc.weight = _float(f"{w}.lead_weight", a.lead_weight)
+            lc.index = _integer(f"{w}.lead_index", a.lead_index)
             lead.append(lc)
-            lo, hi = _bounds(w, "u", a.u_min, a.u_max, nu)
-            umin.append(lo)
-            umax.append(hi)
-            lo, hi = _bounds(w, "x", a.x_min, a.x_max, nx)
-            xmin.append(lo)
-            xmax.append(hi)
+            umin.append(_optional_floats(f"{w}.u_min", a.u_min))
+            umax.append(_optional_floats(f"{w}.u_max", a.u_max))
+            xmin.append(_optional_floats(f"{w}.x_min", a.x_min))
+            xmax.append(_optional_floats(f"{w}.x_max", a.x_max))
         p.dynamics, p.x0, p.costs, p.lead = dyn, x0, costs, lead
         p.u_min, p.u_max, p.x_min, p.x_max = umin, umax, xmin, xmax
         cs = _core.CollisionSpec()
         col = self.collision
         cs.enabled = False
         if col is not None:
-            # The form also applies to obstacles, so it is read even for a single agent.
+            if not isinstance(col, Collision):
+                raise ValueError(f"collision must be a Collision, got {type(col).__name__}")
+            # The form and the position indices also apply to obstacles, so they are read even for one agent.
             if col.form not in ("distance", "squared"):
                 raise ValueError(f"collision.form must be 'distance' or 'squared', got {col.form!r}")
             cs.form = getattr(_core.CollisionForm, col.form)
-            for name in ("pos_x", "pos_y"):
-                if not 0 <= int(getattr(col, name)) < nx:
-                    raise ValueError(f"collision.{name} must be a state index in [0, {nx})")
-            cs.pos_x, cs.pos_y = int(col.pos_x), int(col.pos_y)
+            cs.pos_x, cs.pos_y = _integer("collision.pos_x", col.pos_x), _integer("collision.pos_y", col.pos_y)
             if col.enabled and len(self.agents) >= 2:
-                cs.min_distance, cs.min_distance_steps = _min_distance("collision.min_distance", col.min_distance, T)
+                cs.min_distance, cs.min_distance_steps = _min_distance("collision.min_distance", col.min_distance)
                 cs.enabled = True
         p.collision = cs
+        if not isinstance(self.obstacles, (list, tuple)):
+            raise ValueError(f"obstacles must be a list of obstacles, got {type(self.obstacles).__name__}")
         obs = []
         for n, o in enumerate(self.obstacles):
-            pos = np.asarray(o.positions, dtype=float)
-            if pos.shape != (T + 1, 2) or not np.all(np.isfinite(pos)):
-                raise ValueError(f"obstacles[{n}].positions must be finite with shape ({T + 1}, 2), got {pos.shape}")
+            if not isinstance(o, Obstacle):
+                raise ValueError(f"obstacles[{n}] must be an Obstacle, got {type(o).__name__}")
             co = _core.Obstacle()
-            co.positions = pos
-            co.min_distance, co.min_distance_steps = _min_distance(f"obstacles[{n}].min_distance", o.min_distance, T)
+            co.positions = _floats(f"obstacles[{n}].positions", o.positions, ndim=2)
+            co.min_distance, co.min_distance_steps = _min_distance(f"obstacles[{n}].min_distance", o.min_distance)
             obs.append(co)
         p.obstacles = obs
+        if validate:
+            _core.validate_problem(p)
         return p

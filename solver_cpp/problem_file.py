@@ -158,11 +158,14 @@ def result_to_dict(result: GameResult) -> dict:
         "residual_norm": float(result.residual_norm),
         "max_violation": float(result.max_violation),
         "solve_time_s": float(result.solve_time_s),
+        # per agent, smallest reduced-Hessian eigenvalue; null = no free direction (inf)
+        "second_order": [float(v) if np.isfinite(v) else None for v in result.second_order],
         "x": result.x.tolist(),
         "u": result.u.tolist(),
         "residual_history": result.residual_history.tolist(),
         "timings_s": {"assembly": result.assembly_time_s, "linear_solve": result.linear_solve_time_s,
-                      "line_search": result.line_search_time_s},
+                      "line_search": result.line_search_time_s, "setup": result.setup_time_s,
+                      "update": result.update_time_s},
     }
 
 

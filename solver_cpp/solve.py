@@ -2,6 +2,7 @@
 C++ Settings struct (defaults live only there, in solver_cpp/include/rd3g/problem.hpp)."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,7 +13,8 @@ from .problem import GameProblem
 
 
 def make_settings(**overrides) -> _core.Settings:
-    """C++ defaults, with keyword overrides; unknown names or bad values raise ValueError naming them."""
+    """C++ defaults, with keyword overrides; unknown names, bad types or values out of range raise
+    ValueError naming them."""
     s = _core.Settings()
     for name, value in overrides.items():
         if name.startswith("_") or not hasattr(s, name):
@@ -39,6 +41,7 @@ def make_settings(**overrides) -> _core.Settings:
             if str(exc).startswith(f"solver.{name}"):
                 raise
             raise ValueError(f"solver.{name}: invalid value {value!r}") from None
+    _core.validate_settings(s)  # ranges, with the C++ set-up's messages
     return s
 
 
@@ -77,7 +80,13 @@ class GameResult:
     active_constraints: int
     symbolic_factorizations: int
     attempts: int = 1  # 1 + restarts used
+    # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
+    # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
+    second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
     constraints: list = field(repr=False, default_factory=list)
+    setup_time_s: float = 0.0   # the solver's last set-up (validation, constraint list, allocation), maybe older
+    update_time_s: float = 0.0  # update calls since the previous solve
+    setups: int = 0             # set-ups since the previous solve (1 after Solver(), or a bound made (in)finite)
 
     @property
     def converged(self) -> bool:
@@ -111,24 +120,55 @@ class WarmStart:
 
 
 class Solver:
-    """Set up once (validation + allocation), solve many times (e.g. with warm starts)."""
+    """Set up once (validation, constraint list, allocation), then update and solve many times (OSQP style):
+
+        solver = Solver(problem, tol=1e-4)
+        result = solver.solve()
+        solver.update(new_problem)             # same structure, new x0, costs, bounds, distances, obstacles
+        solver.update_settings(max_iter=20)    # overrides of the current settings
+        result = solver.solve(WarmStart.shifted(result))
+    """
 
     def __init__(self, problem: GameProblem, settings: _core.Settings | None = None, **overrides):
         self.problem = problem
         self.settings = settings if settings is not None else make_settings(**overrides)
-        self._core_problem = problem.to_core()
         self._solver = _core.Solver()
-        self._solver.setup(self._core_problem, self.settings)
+        core = problem.to_core(validate=False)  # setup validates
+        self._solver.setup(core, self.settings)
+        self._sizes = (len(core.x0), int(core.horizon), core.dynamics[0].nx, core.dynamics[0].nu)
         self._constraints = list(self._solver.constraints())
+        self._structure = self._solver.structure_version()
 
     @property
     def constraints(self):
+        if self._structure != self._solver.structure_version():
+            self._constraints = list(self._solver.constraints())
+            self._structure = self._solver.structure_version()
         return self._constraints
+
+    def update(self, problem: GameProblem) -> None:
+        """New data without a new set-up: problem must have the set-up's agents, horizon, models,
+        collision form and position indices and number of obstacles; everything else (x0, costs, lead
+        terms, bounds, collision distances, obstacle positions and distances) may change. ValueError
+        names the field at fault, and the solver keeps its previous problem."""
+        for i, (new, old) in enumerate(zip(problem.agents, self.problem.agents)):
+            if new.dynamics is not old.dynamics and not _same_model(new.dynamics, old.dynamics):
+                raise ValueError(f"agents[{i}].dynamics: update keeps the set-up's models; set up a new Solver "
+                                 "for another model")
+        self._solver.update(problem.to_core(validate=False, models=False))
+        self.problem = problem
+
+    def update_settings(self, settings: _core.Settings | None = None, **overrides) -> None:
+        """New settings: a complete Settings, or keyword overrides of the current ones."""
+        if settings is None:
+            settings = make_settings(**{**settings_dict(self.settings), **overrides})
+        self._solver.update_settings(settings)
+        self.settings = settings
 
     def solve(self, warm_start: WarmStart | None = None) -> GameResult:
         ws = None
         if warm_start is not None:
-            ws = _to_core_warm(warm_start, self.problem, len(self._constraints))
+            ws = _to_core_warm(warm_start, self._sizes, len(self.constraints))
         r = self._solver.solve(ws)
         i = r.info
         return GameResult(
@@ -138,13 +178,21 @@ class Solver:
             residual_history=np.asarray(i.residual_history), solve_time_s=i.timings.total,
             assembly_time_s=i.timings.assembly, linear_solve_time_s=i.timings.linear_solve,
             line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
-            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, constraints=self._constraints)
+            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, constraints=self.constraints,
+            setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups,
+            second_order=np.asarray(i.second_order, dtype=float))
 
 
-def _to_core_warm(w: WarmStart, problem: GameProblem, n_constraints: int) -> _core.WarmStart:
-    N, T = problem.num_agents, int(problem.horizon)
-    nu = problem.agents[0].dynamics.nu
-    nx = problem.agents[0].dynamics.nx
+def _same_model(a, b) -> bool:
+    """Model descriptions with equal fields (arrays compared by value)."""
+    if type(a) is not type(b) or not dataclasses.is_dataclass(a):
+        return False
+    return all(np.array_equal(np.asarray(getattr(a, f.name)), np.asarray(getattr(b, f.name)))
+               for f in dataclasses.fields(a))
+
+
+def _to_core_warm(w: WarmStart, sizes: tuple[int, int, int, int], n_constraints: int) -> _core.WarmStart:
+    N, T, nx, nu = sizes
     ws = _core.WarmStart()
     u = np.asarray(w.u, dtype=float)
     if u.shape != (N, T, nu) or not np.all(np.isfinite(u)):

@@ -3,7 +3,7 @@
 The simulator carries hidden effects (``sim.SimEffects``) on the nominal car; the same seeded races are
 run with the planners using (a) the nominal car file and (b) the corrected one (written by ``sysid``),
 plus (c) the clean reference: nominal planners on a car without the effects. Each race is recorded
-(``app.race_runner.run_race``) and measured from its recording with the race stack's reader:
+(``race.simulation.run_race``) and measured from its recording with the race stack's reader:
 
 * lap time of the RD3G car (a race ends when the first car finishes, so a losing RD3G has none) and its
   mean progress speed along the track over the race (always defined; a car off the track may cut the
@@ -25,6 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from race.recording import load_recording
+from race.setup import RaceSpec
+from race.simulation import run_race
 from sim import SimEffects
 from vehicles.params import CarParams
 
@@ -35,20 +38,6 @@ VARIANT_TEXT = {
     "nominal": "effect, nominal parameters",
     "corrected": "effect, corrected parameters",
 }
-
-
-@dataclass(frozen=True)
-class RaceSettings:
-    """The race every variant runs (defaults of `python -m app race`, one lap)."""
-
-    track: str = "oval"
-    laps: int = 1
-    opponent: str = "mpc"
-    start: str = "rear"
-    rd3g_top_speed_mps: float = 2.0
-    opponent_top_speed_mps: float = 1.8
-    control_hz: float = 30.0
-    max_time_s: float | None = None     # None: the race command's default, 30 s per lap + 30 s
 
 
 @dataclass(frozen=True)
@@ -118,8 +107,6 @@ def plan_tracking_errors(data, car: str, start_delay_s: float, plan_dt_s: float)
 
 
 def measure_race(variant: str, seed: int, outcome, recording: Path, planner_car: CarParams, plan_dt_s: float) -> RaceMeasurement:
-    from app.telemetry import load_recording
-
     delay = max(planner_car.corrections.steering_delay_s, planner_car.corrections.throttle_delay_s)
     by_step = plan_errors_by_step(load_recording(recording), PLANNER_CAR, delay, plan_dt_s)
     one, horizon = by_step[1], by_step[-1]
@@ -135,29 +122,21 @@ def measure_race(variant: str, seed: int, outcome, recording: Path, planner_car:
         one_step_errors_m=one, horizon_errors_m=horizon, errors_by_step_m=tuple(by_step), rd3g_plan_start_s=delay)
 
 
-def race_setups(nominal: CarParams, corrected: CarParams, effects: SimEffects, seed: int, race: RaceSettings):
-    """{variant: RaceSetup} for one seed: the planners' car file and what the simulator runs."""
-    from app.race_runner import RaceSetup
-    from tracks import load_track
-
-    track = load_track(race.track)
-    common = dict(track=track, seed=seed, laps=race.laps, opponent=race.opponent, start=race.start,
-                  rd3g_top_speed_mps=race.rd3g_top_speed_mps, opponent_top_speed_mps=race.opponent_top_speed_mps,
-                  control_period_s=1.0 / race.control_hz, max_time_s=race.max_time_s or 30.0 * race.laps + 30.0,
-                  sim_car=nominal)
+def race_setups(nominal: CarParams, corrected: CarParams, effects: SimEffects, seed: int, race: RaceSpec):
+    """{variant: RaceSetup} for one seed: the planners' car file and what the simulator runs (``race``
+    names the track, laps, opponent, start and speeds; its car files and effects are replaced)."""
+    base = dataclasses.replace(race, seed=seed, sim_car_params=None, sim_effects="").load()
     return {
-        "clean": RaceSetup(car=nominal, sim_effects=SimEffects(), **common),
-        "nominal": RaceSetup(car=nominal, sim_effects=effects, **common),
-        "corrected": RaceSetup(car=corrected, sim_effects=effects, **common),
+        "clean": dataclasses.replace(base, car=nominal, sim_car=nominal, sim_effects=SimEffects()),
+        "nominal": dataclasses.replace(base, car=nominal, sim_car=nominal, sim_effects=effects),
+        "corrected": dataclasses.replace(base, car=corrected, sim_car=nominal, sim_effects=effects),
     }
 
 
 def run_closed_loop(nominal: CarParams, corrected: CarParams, effects: SimEffects, seeds: list[int],
-                    race: RaceSettings = RaceSettings(), recordings_dir: Path | None = None,
+                    race: RaceSpec = RaceSpec(), recordings_dir: Path | None = None,
                     progress=None) -> list[RaceMeasurement]:
     """Every variant for every seed; recordings go to ``recordings_dir`` (kept) or a temporary folder."""
-    from app.race_runner import run_race
-
     out = []
     with tempfile.TemporaryDirectory(prefix="sysid_closed_loop_") as tmp:
         folder = Path(recordings_dir) if recordings_dir is not None else Path(tmp)

@@ -22,12 +22,13 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sysid.data import Trajectory
-from sysid.model import (LIBRARY_TERMS, WARMUP_S, ExtraTerms, ModelSetup, PredictionErrors, inputs_at, predict,
-                         prediction_errors)
+from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, predict, prediction_errors, substeps
 from sysid.sparse import coefficient_std, stlsq
-from vehicles.params import CarParams
+from vehicles.extra_terms import LIBRARY, terms_from_coefficients
+from vehicles.params import CarParams, OtherTermsParams
 
-EFFECT_NAMES = ("actuation_delay", "steering_offset", "steering_gain", "tire_slip", "longitudinal_drag", "other")
+EFFECT_NAMES = ("actuation_delay", "steering_offset", "steering_gain", "tire_slip", "longitudinal_drag",
+                "steering_backlash", "steering_asymmetry", "motor_drift", "other")
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,12 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("steering_gain", ("steering_gain",), (0.2,), (5.0,), (0.05,)),
     Candidate("tire_slip", ("tire_grip_scale",), (0.05,), (5.0,), (0.1,), dynamic=True),
     Candidate("longitudinal_drag", ("extra_drag_n_per_mps2",), (-1.0,), (10.0,), (0.01,)),
+    Candidate("steering_backlash", ("steering_backlash_rad",), (0.0,), (0.3,), (0.01,)),
+    Candidate("steering_asymmetry", ("steering_gain_asymmetry",), (-0.5,), (0.5,), (0.02,)),
+    Candidate("motor_drift", ("motor_force_drift_per_s",), (-0.01,), (0.01,), (1e-4,)),
 )
+# Parameters whose cost is not convex from the neutral value: the fit starts from the best of these.
+_START_GRID = {"steering_backlash_rad": (0.01, 0.02, 0.04, 0.08)}
 
 # Scales of the fit residual: errors are divided by these so position, heading and speed weigh alike.
 POSITION_SCALE_M = 0.01
@@ -165,6 +171,9 @@ class CandidateResult:
     heldout_error_reduction: float  # 1 - RMSE_after / RMSE_before of the held-out horizon position error
     confidence: float  # bootstrap probability that the held-out MSE reduction is > 0
     significant: bool
+    # Claimed effects: (RMSE of the final model refitted without it - RMSE final) / RMSE of the nominal
+    # dynamic model, held-out horizon position error (docs/sysid.md, "Outputs").
+    reduction_vs_nominal: float | None = None
 
 
 @dataclass
@@ -184,10 +193,16 @@ class SysidResult:
     selected: list[CandidateResult]  # claimed effects in the order chosen; reductions are marginal
     final: Fit
     planner_after: Fit  # the planner's (kinematic) model with the new corrections
-    other_terms: ExtraTerms | None = None
     effect_steps: list[tuple[Fit, Fit]] = field(default_factory=list)  # (before, after) per selected effect
     switched_after: list[str] | None = None  # effects chosen before the switch to the dynamic model
     families_compared: bool = False  # forward selection ran on both the kinematic and the dynamic model
+    unnamed_effect_remains: bool = False  # `other` is significant: an effect the library cannot name
+    dropped_after_other: list[str] = field(default_factory=list)  # named effects dropped once `other` was in
+
+    @property
+    def heldout_error_reduction(self) -> float:
+        """Headline: 1 - RMSE_final / RMSE_nominal-dynamic of the held-out horizon position error."""
+        return 1.0 - self.final.heldout.horizon_pos_rmse_m / self.dynamic_nominal.heldout.horizon_pos_rmse_m
 
     @property
     def significant(self) -> bool:
@@ -252,24 +267,53 @@ def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetu
     starts = split.fit
 
     def setup_for(theta: np.ndarray) -> ModelSetup:
-        return ModelSetup(with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic, base.extra)
+        return ModelSetup(with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic)
 
-    def resid(theta: np.ndarray) -> np.ndarray:
-        return _residual(traj, starts, predict(traj, starts, horizon, setup_for(theta)), steps)
+    def resid_many(thetas: list[np.ndarray]) -> np.ndarray:
+        """Residuals of several parameter vectors, predicted in one batch: shape (len(thetas), M)."""
+        preds = predict(traj, starts, horizon, [setup_for(t) for t in thetas])
+        return np.stack([_residual(traj, starts, p, steps) for p in preds])
 
-    # Delays make the cost non-convex over whole samples: start from the best of a coarse grid.
+    # Delays and the play make the cost non-convex from the neutral value: start from the best of a
+    # coarse grid per such parameter (all trials in one batch).
+    trials = [x0]
     delay_idx = [i for i, n in enumerate(names) if n.endswith("_delay_s")]
     if delay_idx:
-        best, best_cost = x0, float(np.sum(resid(x0) ** 2))
         for d in np.arange(1, 6) * traj.dt * 1.5:
             trial = x0.copy()
             trial[delay_idx] = np.clip(x0[delay_idx] + d, lower[delay_idx], upper[delay_idx])
-            cost = float(np.sum(resid(trial) ** 2))
-            if cost < best_cost:
-                best, best_cost = trial, cost
-        x0 = best
-    res = least_squares(resid, x0, bounds=(lower, upper), x_scale=scale, diff_step=1e-3, max_nfev=30,
-                        xtol=1e-6, ftol=1e-8)
+            trials.append(trial)
+    for i, n in enumerate(names):
+        for v in _START_GRID.get(n, ()):
+            trial = x0.copy()
+            trial[i] = np.clip(v, lower[i], upper[i])
+            trials.append(trial)
+    if len(trials) > 1:
+        costs = np.sum(resid_many(trials) ** 2, axis=1)
+        x0 = trials[int(np.argmin(costs))]
+    # Forward differences of all parameters in one batch with the point itself.
+    step = 0.05 * scale
+    last: dict[str, np.ndarray] = {}
+
+    def evaluate_with_jacobian(theta: np.ndarray) -> None:
+        h = np.where(theta + step <= upper, step, -step)
+        thetas = [theta] + [theta + h[i] * np.eye(theta.size)[i] for i in range(theta.size)]
+        r = resid_many(thetas)
+        last["x"], last["f"] = theta.copy(), r[0]
+        last["jac"] = ((r[1:] - r[0]) / h[:, None]).T
+
+    def fun(theta: np.ndarray) -> np.ndarray:
+        if "x" not in last or not np.array_equal(last["x"], theta):
+            evaluate_with_jacobian(theta)
+        return last["f"]
+
+    def jac(theta: np.ndarray) -> np.ndarray:
+        if "x" not in last or not np.array_equal(last["x"], theta):
+            evaluate_with_jacobian(theta)
+        return last["jac"]
+
+    res = least_squares(fun, x0, jac=jac, bounds=(lower, upper), x_scale=scale, max_nfev=30, xtol=1e-6,
+                        ftol=1e-8)
     n_per = steps.size * 4
     std = _sandwich_std(res.jac, res.fun, _clusters(traj, starts, n_per, s.bootstrap_block_s))
     # Back to physical units: residuals were scaled, parameters were not.
@@ -306,20 +350,28 @@ def _judge(traj, split, before: Fit, after: Fit, effect: str, s: SysidSettings, 
 
 
 # ----------------------------------------------------------------------------- sparse fallback
+def without_other_terms(setup: ModelSetup) -> ModelSetup:
+    return dataclasses.replace(setup, car=dataclasses.replace(setup.car, other_terms=OtherTermsParams()))
+
+
 def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidSettings) -> tuple[Fit, dict, dict]:
-    """STLSQ on the short-term rate residuals of speed and heading against the library terms."""
+    """STLSQ on the short-term rate residuals of speed and heading against the library terms
+    (vehicles.extra_terms.LIBRARY); the terms go into the car's ``[other_terms]``."""
     lag = max(1, int(round(0.1 / traj.dt)))
     starts = split.train[split.train + lag < traj.seg_end[split.train]]
-    pred = predict(traj, starts, lag, dataclasses.replace(base.setup, extra=None))
+    plain = without_other_terms(base.setup)
+    pred = predict(traj, starts, lag, plain)
     end = starts + lag
     r_v = (traj.speed[end] - pred[:, -1, 3]) / (lag * traj.dt)
     r_th = (traj.headings[end] - pred[:, -1, 2]) / (lag * traj.dt)
-    car = base.setup.car
-    throttle, steering = inputs_at(traj, starts, car)
-    delta = car.corrections.steering_gain * steering + car.corrections.steering_offset_rad
-    v = traj.speed[starts]
-    names = tuple(LIBRARY_TERMS)
-    theta = np.stack([LIBRARY_TERMS[n](v, throttle, delta) for n in names], axis=1)
+    car = plain.car
+    # Terms at the mean inputs and speed over the 0.1 s the residual accumulates over.
+    acts = actuation(traj, starts, lag, car, substeps(plain, traj.dt))
+    throttle = acts.throttle.mean(axis=(1, 2))
+    delta = car.corrections.steering_gain * acts.steering.mean(axis=(1, 2)) + car.corrections.steering_offset_rad
+    v = traj.speed[starts[:, None] + np.arange(lag + 1)[None, :]].mean(axis=1)
+    names = tuple(LIBRARY)
+    theta = np.stack([LIBRARY[n][1](v, throttle, delta) for n in names], axis=1)
     clusters = np.floor((traj.t[starts] - traj.t[0]) / s.bootstrap_block_s).astype(int)
 
     def sparse_fit(target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -338,8 +390,33 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
 
     ca, sa = sparse_fit(r_v)
     cy, sy = sparse_fit(r_th)
-    extra = ExtraTerms(names, ca, cy)
-    setup = dataclasses.replace(base.setup, extra=extra)
+    steps = _fit_steps(horizon, s.fit_steps)
+
+    def with_terms(a: np.ndarray, y: np.ndarray) -> ModelSetup:
+        terms = terms_from_coefficients({n: c for n, c in zip(names, a) if c != 0.0},
+                                        {n: c for n, c in zip(names, y) if c != 0.0})
+        return dataclasses.replace(plain, car=dataclasses.replace(car, other_terms=terms))
+
+    def training_cost(setup: ModelSetup) -> float:
+        r = _residual(traj, split.fit, predict(traj, split.fit, horizon, setup), steps)
+        return float(r @ r)
+
+    # The 0.1 s regression can pick up terms that do not help over the whole horizon (e.g. where the
+    # smoothed speed misses fast throttle changes): drop, one at a time, any term whose removal lowers
+    # the multi-step cost on the training windows.
+    cost = training_cost(with_terms(ca, cy))
+    while np.count_nonzero(ca) + np.count_nonzero(cy) > 0:
+        trials = []
+        for coef in (ca, cy):
+            for i in np.flatnonzero(coef):
+                saved, coef[i] = coef[i], 0.0
+                trials.append((training_cost(with_terms(ca, cy)), coef, i, saved))
+                coef[i] = saved
+        best_cost, coef, i, _ = min(trials, key=lambda t: t[0])
+        if best_cost >= cost:
+            break
+        coef[i], cost = 0.0, best_cost
+    setup = with_terms(ca, cy)
     fit = evaluate(traj, split, horizon, setup, base.effects + ("other",), base.values, base.std)
     params = {f"accel[{n}]": float(c) for n, c in zip(names, ca) if c != 0.0}
     params |= {f"yaw_rate[{n}]": float(c) for n, c in zip(names, cy) if c != 0.0}
@@ -361,6 +438,56 @@ class _Selection:
     switched_after: list[str] | None
 
 
+_SCORE_TOP = 2  # candidates the score test adds to a forward-selection round
+_SCORE_MIN = 0.01  # smallest predicted relative drop of the training cost that counts
+
+
+def _score_test(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, cands: list[Candidate],
+                s: SysidSettings) -> dict[str, float]:
+    """Predicted relative drop of the training cost per candidate: one Gauss-Newton step from the current
+    values (secants over each parameter's typical size, all in one batch; bounds respected)."""
+    steps = _fit_steps(horizon, s.fit_steps)
+    corr = base.car.corrections
+    setups, cols = [base], []
+    for c in cands:
+        for p, lo, hi, size in zip(c.params, c.lower, c.upper, c.scale):
+            v = getattr(corr, p)
+            h = size if v + size <= hi else -size
+            setups.append(ModelSetup(with_corrections(base.car, {p: v + h}), base.dynamic, base.substeps))
+            cols.append((c.effect, v, h, lo, hi))
+    preds = predict(traj, split.fit, horizon, setups)
+    r0 = _residual(traj, split.fit, preds[0], steps)
+    jac = np.stack([(_residual(traj, split.fit, pr, steps) - r0) / h
+                    for pr, (_, _, h, _, _) in zip(preds[1:], cols)], axis=1)
+    cost0 = float(r0 @ r0)
+    out = {}
+    for c in cands:
+        idx = [i for i, col in enumerate(cols) if col[0] == c.effect]
+        step = np.linalg.lstsq(jac[:, idx], -r0, rcond=None)[0]
+        step = np.clip(step, [cols[i][3] - cols[i][1] for i in idx], [cols[i][4] - cols[i][1] for i in idx])
+        r1 = r0 + jac[:, idx] @ step
+        out[c.effect] = 1.0 - float(r1 @ r1) / cost0 if cost0 > 0 else 0.0
+    return out
+
+
+def _leave_one_out(traj: Trajectory, split: Split, horizon: int, chosen: list[Candidate], named: Fit, full: Fit,
+                   reference: Fit, s: SysidSettings, with_other: bool) -> list[tuple[CandidateResult, int, Fit, Fit]]:
+    """Each chosen effect judged against ``full`` refitted without it: (verdict, index, model without it,
+    named effects without it). ``named`` holds the named effects' fit; with_other: `other` refitted on top."""
+    out = []
+    for i, cand in enumerate(chosen):
+        rest = chosen[:i] + chosen[i + 1:]
+        neutral = {p: getattr(reference.setup.car.corrections, p) for p in cand.params}
+        base = dataclasses.replace(named.setup, car=with_corrections(named.setup.car, neutral))
+        if with_other:
+            base = without_other_terms(base)
+        named_rest = (fit_candidates(traj, split, horizon, base, rest, s, tuple(c.effect for c in rest)) if rest
+                      else evaluate(traj, split, horizon, base))
+        without = fit_other(traj, split, horizon, named_rest, s)[0] if with_other else named_rest
+        out.append((_judge(traj, split, without, full, cand.effect, s), i, without, named_rest))
+    return out
+
+
 def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit, s: SysidSettings) -> _Selection:
     """Candidates alone on top of ``reference``, then forward selection (docs/sysid.md)."""
     candidates: list[CandidateResult] = []
@@ -379,10 +506,16 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
     selected: list[CandidateResult] = []
     by_name = {c.effect: c for c in CANDIDATES}
     while len(chosen) < s.max_effects:
-        # Later rounds only revisit candidates that helped at all on their own (keeps the joint refits
-        # few); an effect masked by a larger one still helps a little alone.
+        # Later rounds refit jointly only the candidates that helped on their own and the ones a score
+        # test on top of the current model ranks highest: an effect masked by a larger one (a play
+        # hidden behind an offset) may not help alone, but it does once the larger one is in.
         pool = [by_name[c.effect] for c in candidates if by_name[c.effect] not in chosen
                 and c.heldout_error_reduction > 0]
+        if chosen:
+            rest = [c for c in CANDIDATES if c not in chosen and (current.setup.dynamic or not c.dynamic)]
+            scores = _score_test(traj, split, horizon, current.setup, rest, s)
+            ranked = sorted(scores, key=scores.get, reverse=True)
+            pool += [by_name[e] for e in ranked[:_SCORE_TOP] if scores[e] > _SCORE_MIN and by_name[e] not in pool]
         if not pool:
             break
         trials = []
@@ -421,14 +554,8 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
     # (e.g. grip and steering gain both change the yaw response). Each effect is judged against the
     # final model refitted without it; the weakest insignificant one goes, until all are significant.
     while len(chosen) >= 2:
-        loo = []
-        for i, cand in enumerate(chosen):
-            rest = chosen[:i] + chosen[i + 1:]
-            neutral = {p: getattr(reference.setup.car.corrections, p) for p in cand.params}
-            base = dataclasses.replace(current.setup, car=with_corrections(current.setup.car, neutral))
-            effects = tuple(c.effect for c in rest)
-            without = fit_candidates(traj, split, horizon, base, rest, s, effects)
-            loo.append((_judge(traj, split, without, current, cand.effect, s), i, without))
+        loo = [(v, i, without) for v, i, without, _ in
+               _leave_one_out(traj, split, horizon, chosen, current, current, reference, s, with_other=False)]
         weakest = min(loo, key=lambda t: t[0].heldout_error_reduction)
         if weakest[0].significant:
             selected = [v for v, _, _ in loo]
@@ -482,30 +609,82 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
     by_name = {c.effect: c for c in CANDIDATES}
 
-    other_terms = None
-    other_fit, other_params, other_std = fit_other(traj, split, horizon, current, s)
-    other_verdict = _judge(traj, split, current, other_fit, "other", s, other_params, other_std)
+    # `other` on top of the named effects. When it earns its place, every named effect is re-tested with
+    # it in the model (the terms can take over part of what a named effect explained, or show that the
+    # named effect was a stand-in for something the library cannot name): leave-one-out against the
+    # model refitted without the effect, `other` refitted too; the weakest insignificant one goes.
+    chosen = list(sel.chosen)
+    named, named_selected, named_steps = current, selected, effect_steps
+    other_fit, other_params, other_std = fit_other(traj, split, horizon, named, s)
+    other_verdict = _judge(traj, split, named, other_fit, "other", s, other_params, other_std)
+    dropped_after_other: list[str] = []
     if other_verdict.significant:
-        selected.append(other_verdict)
-        other_terms = other_fit.setup.extra
-        effect_steps.append((current, other_fit))
-        current = other_fit
+        while chosen:
+            loo = _leave_one_out(traj, split, horizon, chosen, named, other_fit, reference, s, with_other=True)
+            weakest = min(loo, key=lambda t: t[0].heldout_error_reduction)
+            if weakest[0].significant:
+                named_selected = [v for v, _, _, _ in loo]
+                named_steps = [(without, other_fit) for _, _, without, _ in loo]
+                break
+            _, i, _, named_rest = weakest
+            new_other, new_params, new_std = fit_other(traj, split, horizon, named_rest, s)
+            new_verdict = _judge(traj, split, named_rest, new_other, "other", s, new_params, new_std)
+            if not new_verdict.significant:
+                # The named effect and the terms explain the same thing: the named effect stays.
+                other_verdict = dataclasses.replace(other_verdict, significant=False)
+                loo = _leave_one_out(traj, split, horizon, chosen, named, named, reference, s, with_other=False)
+                named_selected = [v for v, _, _, _ in loo]
+                named_steps = [(without, named) for _, _, without, _ in loo]
+                break
+            dropped_after_other.append(chosen[i].effect)
+            del chosen[i]
+            named, other_fit, other_verdict = named_rest, new_other, new_verdict
+        else:
+            named_selected, named_steps = [], []
     candidates.append(other_verdict)
+    selected, effect_steps, current = named_selected, named_steps, named
+    if other_verdict.significant:
+        if chosen:
+            # One more pass over the named parameters with the terms in place (they were fitted without).
+            refit = fit_candidates(traj, split, horizon, other_fit.setup, chosen, s, other_fit.effects)
+            if _training_mse(traj, split, horizon, refit.setup) < _training_mse(traj, split, horizon,
+                                                                               other_fit.setup):
+                other_fit = dataclasses.replace(refit, effects=other_fit.effects)
+        selected = selected + [other_verdict]
+        effect_steps = effect_steps + [(named, other_fit)]
+        current = other_fit
+    unnamed_remains = any(e.effect == "other" for e in selected)
 
     # Reported parameters of each claimed physical effect come from the final joint fit.
     final_values = dict(current.values)
     final_std = dict(current.std)
-    for i, sel in enumerate(selected):
-        if sel.effect != "other":
-            keys = by_name[sel.effect].params
-            selected[i] = dataclasses.replace(sel, params={k: final_values[k] for k in keys},
+    for i, sel_i in enumerate(selected):
+        if sel_i.effect != "other":
+            keys = by_name[sel_i.effect].params
+            selected[i] = dataclasses.replace(sel_i, params={k: final_values[k] for k in keys},
                                               params_std={k: final_std[k] for k in keys})
-    car_out = with_corrections(car, final_values)
-    planner_after = evaluate(traj, split, horizon, ModelSetup(car_out), tuple(final_values), final_values, final_std)
+    # Against the nominal dynamic model: the part of its held-out error each effect removes (the model
+    # without the effect minus the final model, in units of the nominal dynamic model's error).
+    nominal_rmse = dynamic_nominal.heldout.horizon_pos_rmse_m
+    final_rmse = current.heldout.horizon_pos_rmse_m
+    for i, (before, _) in enumerate(effect_steps):
+        selected[i] = dataclasses.replace(
+            selected[i], reduction_vs_nominal=(before.heldout.horizon_pos_rmse_m - final_rmse) / nominal_rmse)
+    # Named effects best first, `other` (the remainder) last.
+    order = sorted(range(len(selected)), key=lambda i: (selected[i].effect == "other",
+                                                        -selected[i].reduction_vs_nominal))
+    selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
+    car_out = dataclasses.replace(with_corrections(car, {k: v for k, v in final_values.items()}),
+                                  other_terms=current.setup.car.other_terms)
+    # What a planner gets from the new file: its command mapping inverts the named effects; it has no
+    # [other_terms] (docs/sysid.md, "Fallback `other`").
+    planner_after = evaluate(traj, split, horizon, without_other_terms(ModelSetup(car_out)), tuple(final_values),
+                             final_values, final_std)
     return SysidResult(
         settings=s, horizon_steps=horizon, traj=traj, split=split, car_in=car, car_out=car_out,
         planner=planner, dynamic_nominal=dynamic_nominal, reference=reference,
         reference_is_dynamic=reference_is_dynamic, structure=structure, candidates=candidates,
-        selected=selected, final=current, planner_after=planner_after, other_terms=other_terms,
-        effect_steps=effect_steps, switched_after=switched_after, families_compared=len(references) == 2,
+        selected=selected, final=current, planner_after=planner_after, effect_steps=effect_steps,
+        switched_after=switched_after, families_compared=len(references) == 2,
+        unnamed_effect_remains=unnamed_remains, dropped_after_other=dropped_after_other,
     )

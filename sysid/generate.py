@@ -10,62 +10,22 @@ time, pose measurements and the commands sent; the generating effects are not wr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 
-from sim import PurePursuitController, SimEffects, Simulator
+from planning import PurePursuitController
+from sim import SimEffects, Simulator
+from sim.effects import GENERATOR_EFFECTS, parse_effects, sim_effects  # noqa: F401 - re-exported for sysid callers
 from sysid.log import DriveLog
 from tracks import load_track
 from vehicles.params import CarParams
 
-# Generator effect names (docs/sysid.md) -> SimEffects fields they set.
-GENERATOR_EFFECTS: dict[str, tuple[str, ...]] = {
-    "actuation_delay": ("steering_delay_s", "throttle_delay_s"),
-    "steering_delay": ("steering_delay_s",),
-    "throttle_delay": ("throttle_delay_s",),
-    "steering_offset": ("steering_offset_rad",),
-    "steering_gain": ("steering_gain",),
-    "longitudinal_drag": ("extra_drag_n_per_mps2",),
-    "tire_slip": ("grip_scale",),
-}
 CAMERA_POSITION_NOISE_M = 0.002
 CAMERA_HEADING_NOISE_RAD = 0.01
-
-
-def parse_effects(text: str, flag: str = "--effects") -> dict[str, float]:
-    """'steering_offset=0.03,actuation_delay=0.08' -> {name: value}; names from GENERATOR_EFFECTS.
-    ``flag`` names the option in error messages."""
-    out: dict[str, float] = {}
-    for part in (p.strip() for p in text.split(",")):
-        if not part:
-            continue
-        name, sep, value = part.partition("=")
-        name = name.strip()
-        if not sep:
-            raise ValueError(f"{flag}: {part!r} must look like name=value")
-        if name not in GENERATOR_EFFECTS:
-            raise ValueError(f"{flag}: unknown effect {name!r}; known: {sorted(GENERATOR_EFFECTS)}")
-        try:
-            v = float(value)
-        except ValueError:
-            raise ValueError(f"{flag}: {name}: not a number: {value.strip()!r}") from None
-        if not math.isfinite(v):
-            raise ValueError(f"{flag}: {name}: must be finite, got {value.strip()!r}")
-        if name in out:
-            raise ValueError(f"{flag}: {name} given twice")
-        out[name] = v
-    return out
-
-
-def sim_effects(effects: dict[str, float], position_noise_m: float, heading_noise_rad: float) -> SimEffects:
-    values: dict[str, float] = {"position_noise_m": position_noise_m, "heading_noise_rad": heading_noise_rad}
-    for name, v in effects.items():
-        for f in GENERATOR_EFFECTS[name]:
-            values[f] = v
-    return SimEffects(**values)
 
 
 class ReversedTrack:
@@ -94,6 +54,34 @@ class ReversedTrack:
     def is_inside_frenet(self, s, ey, margin=0.0):
         """Same surface as the base track: s and ey are mirrored back to the base's coordinates."""
         return self.base.is_inside_frenet(np.mod(self.length - np.asarray(s), self.length), -np.asarray(ey), margin)
+
+
+class StanleyDriver(PurePursuitController):
+    """A second driver for generated logs: Stanley steering (heading error + atan(k e / (v + v0)) at the
+    front axle, plus the curvature's feed-forward wheel angle) and a proportional speed loop; the
+    speed reference and feed-forward throttle are the pure-pursuit driver's."""
+
+    gain = 2.5  # 1/s: cross-track gain k
+    softening_mps = 0.3  # v0
+
+    def command(self, state, dt: float) -> tuple[float, float]:
+        x, y, heading, vx = (float(v) for v in state[:4])
+        geo, act = self.params.geometry, self.params.actuators
+        fx, fy = x + geo.lf_m * math.cos(heading), y + geo.lf_m * math.sin(heading)
+        s, ey, epsi = self.track.to_frenet(np.array([fx]), np.array([fy]), np.array([heading]))
+        s, ey, epsi = (float(np.asarray(v).reshape(-1)[0]) for v in (s, ey, epsi))
+        kappa = float(np.asarray(self.track.curvature(np.array([s]))).reshape(-1)[0])
+        steering = (math.atan(geo.wheelbase_m * kappa) - epsi
+                    - math.atan2(self.gain * (ey - self.lateral_offset_m), max(vx, 0.0) + self.softening_mps))
+        corr = self.params.corrections
+        steering = (steering - corr.steering_offset_rad) / corr.steering_gain
+        steering = min(max(steering, -act.max_steering_rad), act.max_steering_rad)
+        v_ref = self.speed_reference(s)
+        throttle = self.feedforward_throttle(v_ref) + 1.2 * self.speed_kp * (v_ref - vx)
+        return min(max(throttle, act.throttle_min), act.throttle_max), steering
+
+
+DRIVERS = {"pursuit": PurePursuitController, "stanley": StanleyDriver}
 
 
 @dataclass(frozen=True)
@@ -141,8 +129,13 @@ def generate_log(
     excitation: ExcitationSettings = ExcitationSettings(),
     track: str | Any = "oval",
     physics_dt: float = 0.001,
+    driver: str = "pursuit",
 ) -> DriveLog:
-    """A log of ``minutes`` of driving on ``track`` (a tracks/ name or a Track object)."""
+    """A log of ``minutes`` of driving on ``track`` (a tracks/ name or a Track object) by ``driver``
+    (a name of DRIVERS). ``car`` is the simulated car (its ``[corrections]`` and ``[other_terms]``
+    included); the effects are added on top."""
+    if driver not in DRIVERS:
+        raise ValueError(f"driver: unknown {driver!r}; known: {sorted(DRIVERS)}")
     if not (math.isfinite(minutes) and minutes > 0):
         raise ValueError(f"minutes: must be > 0, got {minutes!r}")
     if isinstance(track, str):
@@ -154,11 +147,13 @@ def generate_log(
     rows: list[tuple[float, float, float, float, float, float]] = []
     t_offset = 0.0
     for stint, path in enumerate((track, ReversedTrack(track))):
-        sim = Simulator(path, [car], effects=eff, seed=int(rng.integers(2**31)) + stint, physics_dt=physics_dt,
+        # The battery keeps discharging over the pause: the second stint starts with the drift so far.
+        stint_eff = dataclasses.replace(eff, drift_start_s=t_offset)
+        sim = Simulator(path, [car], effects=stint_eff, seed=int(rng.integers(2**31)) + stint, physics_dt=physics_dt,
                         check_dt=0.01)
         sim.reset([_start_state(path, float(rng.uniform(0, path.length)))])
-        ctrl = PurePursuitController(path, car, target_speed_mps=excitation.speed_min_mps,
-                                     max_lateral_accel_mps2=excitation.max_lateral_accel_mps2)
+        ctrl = DRIVERS[driver](path, car, target_speed_mps=excitation.speed_min_mps,
+                               max_lateral_accel_mps2=excitation.max_lateral_accel_mps2)
         steer_dither = _dither(rng, stint_steps, excitation.steering_dither_rad, excitation.dither_corner_hz,
                                excitation.control_rate_hz)
         throttle_dither = _dither(rng, stint_steps, excitation.throttle_dither, excitation.dither_corner_hz,
@@ -194,6 +189,8 @@ def effects_as_corrections(effects: dict[str, float]) -> dict[str, float]:
     """The [corrections] values that describe generator effects (for comparisons in tests/docs)."""
     mapping = {"steering_delay_s": "steering_delay_s", "throttle_delay_s": "throttle_delay_s",
                "steering_offset_rad": "steering_offset_rad", "steering_gain": "steering_gain",
-               "extra_drag_n_per_mps2": "extra_drag_n_per_mps2", "grip_scale": "tire_grip_scale"}
+               "extra_drag_n_per_mps2": "extra_drag_n_per_mps2", "grip_scale": "tire_grip_scale",
+               "steering_backlash_rad": "steering_backlash_rad", "steering_gain_asymmetry": "steering_gain_asymmetry",
+               "motor_force_drift_per_s": "motor_force_drift_per_s"}
     eff = sim_effects(effects, 0.0, 0.0)
     return {mapping[f.name]: getattr(eff, f.name) for f in fields(eff) if f.name in mapping}

@@ -19,6 +19,11 @@ EXPLAINING_VARIABLES = {
     "steering_gain": ("mean speed x steering command over the window [rad·m/s]", "heading error at horizon [rad]"),
     "tire_slip": ("mean lateral acceleration v·r over the window [m/s²]", "lateral position error at horizon [m]"),
     "longitudinal_drag": ("mean v·|v| over the window [m²/s²]", "speed error at horizon [m/s]"),
+    "steering_backlash": ("mean speed x steering reversal over the window v·(δ_end − 2δ_mid + δ_start) [rad·m/s]",
+                          "heading error at horizon [rad]"),
+    "steering_asymmetry": ("mean speed x |steering command| over the window [rad·m/s]",
+                           "heading error at horizon [rad]"),
+    "motor_drift": ("time since the log start [s]", "speed error at horizon [m/s]"),
     "other": ("mean speed over the window [m/s]", "heading error at horizon [rad]"),
 }
 
@@ -32,6 +37,13 @@ def explaining_variable(result: SysidResult, effect: str) -> np.ndarray:
         return np.mean(v, axis=1) * (traj.steering[starts + h - 1] - traj.steering[starts])
     if effect == "steering_gain":
         return np.mean(v * traj.steering[window], axis=1)
+    if effect == "steering_backlash":
+        mid = starts + h // 2
+        return np.mean(v, axis=1) * (traj.steering[starts + h - 1] - 2 * traj.steering[mid] + traj.steering[starts])
+    if effect == "steering_asymmetry":
+        return np.mean(v * np.abs(traj.steering[window]), axis=1)
+    if effect == "motor_drift":
+        return traj.t[starts] - traj.t[0]
     if effect == "tire_slip":
         return np.mean(v * traj.yaw_rate[window], axis=1)
     if effect == "longitudinal_drag":
@@ -43,7 +55,7 @@ def residual_for(fit: Fit, effect: str) -> np.ndarray:
     e = fit.heldout_errors
     if effect == "tire_slip":
         return e.lateral[:, -1]
-    if effect == "longitudinal_drag":
+    if effect in ("longitudinal_drag", "motor_drift"):
         return e.speed[:, -1]
     return e.heading[:, -1]
 
@@ -93,6 +105,7 @@ def make_plots(result: SysidResult, figure_dir: Path, stem: str) -> list[tuple[s
 
 
 def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
+    """The JSON summary (keys documented in docs/sysid.md, "Outputs")."""
     return {
         "significant": result.significant,
         "effects": [
@@ -100,12 +113,18 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
                 "effect": e.effect,
                 "params": {k: float(v) for k, v in e.params.items()},
                 "params_std": {k: float(v) for k, v in e.params_std.items()},
-                "heldout_error_reduction": float(e.heldout_error_reduction),
+                "heldout_error_reduction": float(e.reduction_vs_nominal),
+                "heldout_error_reduction_vs_without": float(e.heldout_error_reduction),
             }
             for e in result.selected
         ],
         "before": result.planner.heldout.json_dict(),
         "after": result.final.heldout.json_dict(),
+        "dynamic_nominal": result.dynamic_nominal.heldout.json_dict(),
+        "planner_new_corrections": result.planner_after.heldout.json_dict(),
+        "heldout_error_reduction": float(result.heldout_error_reduction),
+        "unnamed_effect_remains": result.unnamed_effect_remains,
+        "dropped_after_other": list(result.dropped_after_other),
         "car_params_out": car_params_out,
     }
 
@@ -151,8 +170,17 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
     if result.selected:
         names = ", ".join(f"**{e.effect}**" for e in result.selected)
         lines.append(f"Significant effect(s), best first: {names}. Held-out horizon position RMSE "
-                     f"{100 * result.reference.heldout.horizon_pos_rmse_m:.1f} cm → "
-                     f"{100 * result.final.heldout.horizon_pos_rmse_m:.1f} cm against the reference model.")
+                     f"{100 * result.dynamic_nominal.heldout.horizon_pos_rmse_m:.1f} cm (nominal dynamic model) → "
+                     f"{100 * result.final.heldout.horizon_pos_rmse_m:.1f} cm (final model): "
+                     f"{100 * result.heldout_error_reduction:.0f} % reduction.")
+        if result.unnamed_effect_remains:
+            lines += ["", "**An effect the tool cannot name remains.** The named candidates do not explain all of "
+                      "the error; the sparse terms of `other` (below) carry the rest. They are written to the car "
+                      "file's `[other_terms]` table (applied by the simulator and by this tool's models; the "
+                      "planner's kinematic model does not apply them, docs/sysid.md)."]
+        if result.dropped_after_other:
+            lines += ["", "Dropped once `other` was in the model (no longer significant on held-out data): "
+                      + ", ".join(f"`{e}`" for e in result.dropped_after_other) + "."]
     else:
         lines.append("**No significant effect**: no candidate reduces the held-out horizon position error by at "
                      f"least {100 * s.min_reduction:.0f} % with {100 * s.confidence:.0f} % bootstrap confidence; "
@@ -192,7 +220,7 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
         "| model | 1-step RMSE | 1-step p95 | horizon RMSE | p50 | p90 | p95 | heading RMSE | speed RMSE |",
         "|---|---|---|---|---|---|---|---|---|",
         _row("before: planner's model, current corrections", result.planner.heldout),
-        _row("dynamic model, current corrections", result.dynamic_nominal.heldout),
+        _row("nominal dynamic model, current corrections (headline baseline)", result.dynamic_nominal.heldout),
         _row("after: reference model + identified effects", result.final.heldout),
         _row("planner, new corrections", result.planner_after.heldout),
         "",
@@ -211,16 +239,18 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                      f"| {c.confidence:.2f} | {'yes' if c.significant else 'no'} |")
     lines += ["", "## Identified effects", ""]
     if result.selected:
-        lines += ["Best first. Held-out reduction of a single effect: against the reference model; of several: "
-                  "against the final model refitted without that effect (leave-one-out). Parameters from the final "
-                  "joint fit.", "",
-                  "| effect | parameters | held-out reduction |", "|---|---|---|"]
+        lines += ["Best first. Held-out reduction against the nominal dynamic model: (RMSE of the final model "
+                  "refitted without the effect − RMSE of the final model) / RMSE of the nominal dynamic model. "
+                  "Against the model without it: 1 − RMSE_final / RMSE_without (the significance test). Parameters "
+                  "from the final joint fit.", "",
+                  "| effect | parameters | held-out reduction vs nominal dynamic | vs model without it |",
+                  "|---|---|---|---|"]
         for e in result.selected:
             lines.append(f"| {e.effect} | {_fmt_params(e.params, e.params_std)} | "
-                         f"{100 * e.heldout_error_reduction:.1f} % |")
-        if any(e.effect == "other" for e in result.selected):
-            lines += ["", "The `other` terms have no field in `[corrections]`; they are reported here but not "
-                      "written to the car file."]
+                         f"{100 * e.reduction_vs_nominal:.1f} % | {100 * e.heldout_error_reduction:.1f} % |")
+        if result.unnamed_effect_remains:
+            lines += ["", "The `other` terms are written to the car file's `[other_terms]` table "
+                      "(`accel_<term>`, `yaw_rate_<term>`; vehicles/extra_terms.py)."]
     else:
         lines.append("None.")
     lines += ["", "## Corrections written", "", "| field | before | after |", "|---|---|---|"]

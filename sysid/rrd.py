@@ -1,6 +1,6 @@
 """Drive logs from race-stack Rerun recordings (`python -m app race --out RUN.rrd`, also --hil / hardware).
 
-The recording is read with the race stack's own reader (``app.telemetry.load_recording``, rerun's chunk
+The recording is read with the race stack's own reader (``race.recording.load_recording``, rerun's chunk
 reader). Per car (``cars/{car}/command/*`` present) the rows are the car's pose measurements with the
 commands in effect (docs/sysid.md, "Rerun recordings"):
 
@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from race.recording import RecordingError, load_recording
+from sim.collision import rectangle_poses
 from sysid.log import DriveLog, LogFormatError, check_values
 
 # Car ids of a pure-simulation recording (no marker ids there): the race's car order, which is also the
@@ -50,8 +52,6 @@ class CarRows:
 
 
 def read_rrd(path: Path) -> DriveLog:
-    from app.telemetry import RecordingError, load_recording
-
     try:
         data = load_recording(path)
     except RecordingError as exc:
@@ -97,8 +97,6 @@ def _one_point(data, entity: str, t: np.ndarray, pts: list[np.ndarray]) -> np.nd
 
 def _poses(data, name: str, mode: str):
     """(t, x, y, heading, speed or None, source) of one car; see the module doc for the order."""
-    from app.realtime.review import _rectangles  # footprint corners -> centre, heading, half extents
-
     det, det_heading = f"world/cars/{name}/detection", f"cars/{name}/detection_heading_rad"
     if data.has(det_heading):
         _require(data, det, "camera detections of the car")
@@ -122,7 +120,7 @@ def _poses(data, name: str, mode: str):
     if short:
         raise LogFormatError(f"{data.path}: entity {footprint!r}: row at sim_time {tf[short[0]]:.4f} s has fewer "
                              f"than 4 corners")
-    _, heading, _ = _rectangles(np.array([s[0][:4] for s in strips]))
+    _, heading, _ = rectangle_poses(np.array([s[0][:4] for s in strips]))
     speed = None
     source = f"simulator states ({position}, heading of {footprint})"
     if mode == "simulation":

@@ -63,7 +63,7 @@ def test_failing_race_on_worker_names_cell_and_seed(cluster, tmp_path):
     args, _ = batch_args(tmp_path, "bad")
     # A start the race setup rejects: passes the client but raises on the worker.
     jobs = [(args, ("middle", "fast"), 2, 2.0, 1.6, False)]
-    with pytest.raises(RaceFailed, match=r"race middle/fast seed 9 failed: ValueError: .*start"):
+    with pytest.raises(RaceFailed, match=r"race middle/fast seed 9 failed: UserError: --start: must be one of"):
         run_races(jobs, cluster=cluster.scheduler_address)
     with pytest.raises(RaceFailed, match=r"race middle/fast seed 9 failed"):
         run_races(jobs)  # the local runner reports it the same way

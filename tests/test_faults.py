@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.realtime.config import LoopConfig
+from race.config import LoopConfig
 from test_loop_support import load_json, neutral_at, neutral_within, run_cli
 
 PERIOD = 1 / 60

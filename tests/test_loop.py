@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
-from app.realtime.config import FaultSpec, LoopConfig, LoopConfigError, StageBudgets, parse_fault
-from app.realtime.loop import DeadlineMonitor
-from app.realtime.planning import controls_between
+from race.config import FaultSpec, LoopConfig, LoopConfigError, StageBudgets, parse_fault
+from race.loop import DeadlineMonitor
+from race.planning import controls_between
 from test_loop_support import load_json, run_cli
 
 
@@ -106,7 +106,7 @@ def test_mode_flags_are_checked():
 
 def test_hardware_mode_reports_missing_devices(tmp_path):
     from tracking.calibration import CameraCalibration, save_calibration
-    from tracking.camera import overhead_camera
+    from sim.camera import overhead_camera
     from vehicles.virtual_box import VirtualCarBox
 
     missing = tmp_path / "nope.json"
@@ -151,7 +151,7 @@ def test_hil_race_summary(hil_race):
 def test_hil_tracking_against_simulator_truth(hil_race):
     """Independent check: the logged detections against the logged true positions at the same capture
     times (the detector and the simulator do not share code)."""
-    from app.telemetry import load_recording
+    from race.recording import load_recording
 
     rec = load_recording(hil_race[0])
     errors = []
@@ -171,7 +171,7 @@ def test_hil_tracking_against_simulator_truth(hil_race):
 def test_hil_cars_move_with_the_commands(hil_race):
     """The commands that went through the serial protocol reached the simulated cars: they started
     from rest and moved forward along the track."""
-    from app.telemetry import load_recording
+    from race.recording import load_recording
 
     rec = load_recording(hil_race[0])
     for car in ("rd3g", "opponent"):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tracking.calibration import marker_corners_track
-from tracking.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, overhead_camera
+from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, overhead_camera
 from tracking.markers import MarkerDetector
 
 CAR = CarAppearance(roof_height_m=0.045)  # the buzzracer marker height, as the HIL world uses

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.realtime.config import LoopConfig, LoopConfigError
+from race.config import LoopConfig, LoopConfigError
 from test_loop_support import load_json, run_cli
 
 HOLD_S = 0.5
@@ -39,8 +39,8 @@ def test_race_stops_after_the_hold_limit(occluded_race):
 
 
 def test_stop_comes_hold_limit_after_the_hold_began(occluded_race):
-    from app.realtime.review import events
-    from app.telemetry import load_recording
+    from race.review import events
+    from race.recording import load_recording
 
     _, s = occluded_race
     evs = events(load_recording(s["recording"]))

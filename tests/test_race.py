@@ -4,7 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from app.race_runner import RaceSetup, fault_of, footprint_gap, run_race, start_states
+from race.referee import fault_of
+from race.setup import RaceSetup, start_states
+from race.simulation import run_race
+from sim.collision import footprint_gap
 
 
 @pytest.fixture(scope="module")
@@ -60,14 +63,14 @@ def test_fault_is_the_car_whose_front_hits(car):
 def test_footprint_gap_matches_geometry(car):
     L, W = car.geometry.footprint_length_m, car.geometry.footprint_width_m
     aligned = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [L + 0.1, 0.0, 0.0, 0, 0, 0]])
-    assert footprint_gap(aligned, car) == pytest.approx(0.1)
+    assert footprint_gap(aligned, car.geometry) == pytest.approx(0.1)
     beside = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [0.0, W + 0.05, 0.0, 0, 0, 0]])
-    assert footprint_gap(beside, car) == pytest.approx(0.05)
+    assert footprint_gap(beside, car.geometry) == pytest.approx(0.05)
     # Corner to corner at 45 degrees: the gap is the distance between the nearest corners.
     diag = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [L + 0.03, W + 0.04, 0.0, 0, 0, 0]])
-    assert footprint_gap(diag, car) == pytest.approx(0.05)
+    assert footprint_gap(diag, car.geometry) == pytest.approx(0.05)
     overlapping = np.array([[0.0, 0.0, 0.0, 0, 0, 0], [0.05, 0.0, 0.3, 0, 0, 0]])
-    assert footprint_gap(overlapping, car) == 0.0
+    assert footprint_gap(overlapping, car.geometry) == 0.0
 
 
 def test_setup_validation_names_field(track, car):
@@ -81,7 +84,7 @@ def test_off_track_win_is_not_clean_and_not_counted(track, car):
     """A win by a car that left the track is recorded but not counted: RaceOutcome.clean_winner is
     None and the batch win rate only counts RD3G wins without an excursion."""
     from app.commands.batch import summarise
-    from app.race_runner import RaceOutcome
+    from race.simulation import RaceOutcome
 
     base = dict(lap_times_s={}, min_gap_m=0.1, collisions=[], solve_ms=np.ones(3), opponent_solve_ms=np.ones(3),
                 control_period_ms=33.3, race_time_s=5.0, fallbacks=0, start_states=np.zeros((2, 6)))

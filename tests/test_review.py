@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from app.realtime.review import SUMMARY_KEYS, rectangle_gap
+from race.review import SUMMARY_KEYS
+from sim.collision import rectangle_gap
 from test_loop_support import run_cli
 
 
@@ -34,7 +35,7 @@ def test_rectangle_gap_matches_geometry():
 
 def _synthetic_recording(path, track, speed, n_ticks=200, period_ms=None):
     """A recording as the loop writes it: one car on the centre line at constant speed."""
-    from app.telemetry import RaceRecorder
+    from race.recording import RaceRecorder
 
     rec = RaceRecorder(path, recording_id="synthetic")
     rec.static_document("race/setup", json.dumps({"mode": "hil", "track": track.name, "laps": 2, "loop": {"rate_hz": 60}}))
@@ -84,7 +85,8 @@ def test_review_of_a_loop_recording(tmp_path):
 def test_review_of_a_simulated_race(tmp_path):
     """The simulated race's recording: laps, lap times and the minimum gap agree with the race's own
     outcome; loop-only fields are null."""
-    from app.race_runner import RaceSetup, run_race
+    from race.setup import RaceSetup
+    from race.simulation import run_race
     from tracks import load_track
     from vehicles.params import load_car_params
 

@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from sim.collision import footprint_corners, rectangles_overlap
-from sim.controllers import PurePursuitController
+from planning.pursuit import PurePursuitController
 from sim.effects import SimEffects, SimEffectsError
 from sim.race import LapBookkeeper
 from sim.simulator import Simulator

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from sim import PurePursuitController, SimEffects, Simulator
+from planning import PurePursuitController
+from sim import SimEffects, Simulator
 from vehicles.params import load_car_params
 
 tracks = pytest.importorskip("tracks")

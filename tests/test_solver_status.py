@@ -5,7 +5,7 @@ from bench.merging import merging_problem
 from bench.verify import dynamics_defect, max_collision_violation_m
 from solver_cpp import WarmStart, _core, solve
 
-ALL_STATUSES = {"converged", "max_iterations", "line_search_failed", "numerical_error", "time_limit", "stalled"}
+ALL_STATUSES = {"converged", "max_iterations", "line_search_failed", "numerical_error", "time_limit", "stalled", "saddle"}
 
 
 def test_status_list_is_the_tested_one():
@@ -21,6 +21,18 @@ def test_converged():
     assert result.residual_history[-1] == result.residual_norm
     assert dynamics_defect(problem, result.x, result.u) < 5e-4
     assert max_collision_violation_m(problem, result.x) <= 1e-6
+
+
+def test_saddle():
+    # The analytic saddle of tests/test_second_order.py: each player stops in front of its disc, where sliding
+    # round it lowers its cost; the first-order conditions hold there.
+    from test_second_order import _disc_game
+
+    result = solve(_disc_game(1.0, 2.0), tol=1e-9)
+    assert result.status == "saddle" and not result.converged
+    assert result.residual_norm < 1e-9
+    assert np.all(result.second_order < 0)
+    assert solve(_disc_game(1.0, 1.0), tol=1e-9).status == "converged"  # the same point is an equilibrium there
 
 
 def test_max_iterations():

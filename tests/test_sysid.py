@@ -78,6 +78,7 @@ def test_clean_log_claims_no_effect(tmp_dir):
     assert not result.significant and result.selected == []
     assert result.car_out.corrections == NOMINAL.corrections
     assert all(not c.significant for c in result.candidates)
+    assert result.heldout_error_reduction == 0.0  # against the nominal dynamic model
 
 
 def test_two_effects_through_the_command_line(tmp_dir, tmp_path):
@@ -93,15 +94,23 @@ def test_two_effects_through_the_command_line(tmp_dir, tmp_path):
     assert args.func(args) == 0
 
     data = json.loads((out / "result.json").read_text())
-    assert set(data) == {"significant", "effects", "before", "after", "car_params_out"}
-    assert data["significant"] is True
+    assert set(data) == {"significant", "effects", "before", "after", "car_params_out",  # before issue 16
+                         "dynamic_nominal", "planner_new_corrections", "heldout_error_reduction",
+                         "unnamed_effect_remains", "dropped_after_other"}
+    assert data["significant"] is True and data["unnamed_effect_remains"] is False
     assert {e["effect"] for e in data["effects"]} == {"steering_offset", "actuation_delay"}
     for e in data["effects"]:
-        assert set(e) == {"effect", "params", "params_std", "heldout_error_reduction"}
+        assert set(e) == {"effect", "params", "params_std", "heldout_error_reduction",
+                          "heldout_error_reduction_vs_without"}
         assert e["effect"] in EFFECT_NAMES and set(e["params"]) == set(e["params_std"])
     keys = {"one_step_pos_rmse_m", "horizon_pos_rmse_m", "horizon_heading_rmse_rad", "horizon_speed_rmse_mps"}
-    assert set(data["before"]) == keys and set(data["after"]) == keys
+    for baseline in ("before", "after", "dynamic_nominal", "planner_new_corrections"):
+        assert set(data[baseline]) == keys
     assert data["after"]["horizon_pos_rmse_m"] <= 0.5 * data["before"]["horizon_pos_rmse_m"]
+    # The headline is against the nominal dynamic model.
+    assert data["heldout_error_reduction"] == pytest.approx(
+        1 - data["after"]["horizon_pos_rmse_m"] / data["dynamic_nominal"]["horizon_pos_rmse_m"])
+    assert data["heldout_error_reduction"] >= 0.5
 
     # The new car file loads with the standard loader and carries the fitted corrections.
     car_out = load_car_params(data["car_params_out"])

@@ -166,7 +166,9 @@ def test_kinematic_prediction_matches_solver_cpp_kinematic_bicycle_at_fine_steps
     log.throttle[:] = np.clip(0.3 + 0.3 * rng.standard_normal(t.size), -1, 1)
     log.steering[:] = 0.2 * np.sin(t * 2.0)
     traj = build_trajectory(log)
-    car = CarParams()
+    # Actuators without rate limits: this checks the integration (the actuator chain has its own test).
+    car = CarParams(actuators=dataclasses.replace(CarParams().actuators, steering_rate_limit_radps=1e6,
+                                                  throttle_rate_limit_per_s=1e6))
     start, horizon = np.array([40]), 30
     ours = predict(traj, start, horizon, ModelSetup(car))[0]
     # Reference: solver_cpp's (Euler) kinematic bicycle at 1/100 of the sample period, acceleration

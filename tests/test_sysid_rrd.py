@@ -29,7 +29,8 @@ def wrap(a):
 def offset_race(tmp_path_factory):
     """Two laps (about 10 s) against pure pursuit; both simulated cars carry a 0.03 rad steering offset
     the planners do not know about."""
-    from app.race_runner import RaceSetup, run_race
+    from race.setup import RaceSetup
+    from race.simulation import run_race
     from tracks import load_track
 
     setup = RaceSetup(track=load_track("oval"), car=NOMINAL, seed=0, laps=2, opponent="pursuit", start="rear",
@@ -41,7 +42,7 @@ def offset_race(tmp_path_factory):
 
 def replay(setup, car, effects, throttle, steering, steps):
     """Positions of both cars after each of `steps` control periods in a fresh simulator."""
-    from app.race_runner import start_states
+    from race.setup import start_states
 
     sim = Simulator(setup.track, [car, car], effects=effects, seed=setup.seed)
     sim.reset(start_states(setup))
@@ -101,7 +102,7 @@ def test_cli_names_the_cars_of_a_recording(offset_race, tmp_path, capsys):
 def _realtime_recording(path, mode, with_heading=True, with_commands=True):
     """A HIL/hardware-style recording: detections at 60 fps capture times offset by 4 ms from the 60 Hz
     loop ticks; commands from tick 2 on; 'truth' entities 1 m away from the detections."""
-    from app.telemetry import RaceRecorder
+    from race.recording import RaceRecorder
 
     rec = RaceRecorder(path, recording_id="test")
     cars = [{"name": "rd3g", "marker_id": 7, "radio_id": 3}, {"name": "opponent", "marker_id": 9, "radio_id": 4}]
@@ -174,7 +175,7 @@ def test_realtime_recordings_without_detection_headings(tmp_path):
 def test_plan_tracking_error_on_a_known_mismatch(tmp_path):
     """The car drives along x at 1.1 m/s; each plan starts at the position predicted over a 50 ms delay
     at 1.0 m/s and continues at 1.0 m/s, so plan point j is 0.1 m/s * (0.05 s + j * 0.1 s) short."""
-    from app.telemetry import RaceRecorder, load_recording
+    from race.recording import RaceRecorder, load_recording
     from sysid.closed_loop import plan_tracking_errors
 
     path = tmp_path / "plans.rrd"
@@ -196,8 +197,9 @@ def test_race_accepts_the_sysid_car_file_and_the_simulator_keeps_the_effect(tmp_
     simulator runs the nominal car with the hidden effect."""
     from app.commands.race import make_setup
     from app.cli import build_parser
-    from app.race_runner import RacingPlanner, _make_planner
-    from app.telemetry import load_recording
+    from planning import RacingPlanner
+    from race.planning import make_planner
+    from race.recording import load_recording
 
     # Written the way `sysid` writes it (save_car_params of the identified car), with values sysid fits.
     corrected = dataclasses.replace(NOMINAL, name="buzzracer-identified", corrections=dataclasses.replace(
@@ -212,7 +214,7 @@ def test_race_accepts_the_sysid_car_file_and_the_simulator_keeps_the_effect(tmp_
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     assert setup.sim_car == NOMINAL and setup.sim_effects == EFFECT
     assert setup.car.corrections.steering_offset_rad == by_hand["steering_offset_rad"]
-    mapper = _make_planner(RacingPlanner, setup, 2.0, opponent_top_speed_mps=1.8).mapper
+    mapper = make_planner(RacingPlanner, setup, 2.0, opponent_top_speed_mps=1.8).mapper
     assert mapper.delay_s == max(by_hand["steering_delay_s"], by_hand["throttle_delay_s"])
     assert mapper.steering_command(0.2) == pytest.approx((0.2 - by_hand["steering_offset_rad"]) / by_hand["steering_gain"])
 
@@ -224,7 +226,7 @@ def test_race_accepts_the_sysid_car_file_and_the_simulator_keeps_the_effect(tmp_
     np.testing.assert_allclose(command, np.clip((delta - by_hand["steering_offset_rad"]) / by_hand["steering_gain"],
                                                 -limit, limit), atol=1e-9)
     # The simulator ran the nominal car plus the hidden offset (not the corrected file): a fresh replay agrees.
-    from app.race_runner import start_states
+    from race.setup import start_states
 
     log = read_log(out)
     rows = [log.select_car(i) for i in (0, 1)]

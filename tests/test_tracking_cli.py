@@ -8,7 +8,7 @@ import pytest
 
 import app.cli
 from tracking.calibration import load_calibration, load_fixed_markers, save_intrinsics, Intrinsics
-from tracking.camera import SyntheticCamera, overhead_camera
+from sim.camera import SyntheticCamera, overhead_camera
 
 FIXED_FILE = Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json"
 

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from tracking.estimator import CarEKF, EstimatorConfig, MultiCarEstimator
-from tracking.motion import ctrv_jacobian, ctrv_transition, slip_jacobian, slip_transition, wrap_angle
+from tracking.motion import ctrv_jacobian, ctrv_transition, slip_jacobian, slip_transition
+from tracks.geometry import wrap_angle
 
 RATE_HZ = 60.0
 

@@ -12,10 +12,10 @@ import pytest
 
 from tracking.calibration import (CalibrationError, CameraCalibration, FixedMarkerSet, Intrinsics,
                                   calibrate_image, load_fixed_markers, parse_fixed_markers)
-from tracking.camera import (CameraError, CarAppearance, CarPose, EndOfStream, OpenCVCamera, RenderEffects,
-                             SyntheticCamera, TrackDrawing, VideoFileCamera, overhead_camera)
+from tracking.camera import CameraError, EndOfStream, OpenCVCamera, VideoFileCamera
+from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
 from tracking.markers import ArucoTracker, procrustes_pose
-from tracking.motion import wrap_angle
+from tracks.geometry import wrap_angle
 
 FIXED_FILE = Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json"
 CAR = CarAppearance()

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import tracks
-from tracks import LapCounter, TrackFormatError, load_track, track_from_dict
+from sim.race import LapBookkeeper
+from tracks import TrackFormatError, load_track, track_from_dict
 
 RNG_SEED = 20240607
 
@@ -447,38 +448,35 @@ def test_lap_counter_with_jitter_and_backward_excursion(oval):
     k = np.searchsorted(progress, 2 * L + 0.1)
     noisy[k : k + 40] -= np.linspace(0, 0.4, 40)
     noisy[k + 40 : k + 80] -= np.linspace(0.4, 0, 40)
-    counter = LapCounter(oval)
-    new = sum(counter.update(ti, si) for ti, si in zip(t, np.mod(noisy, L)))
-    expected = (np.arange(1, 5) * L - s0) / v  # analytic crossing times of the unperturbed car
-    assert new == counter.crossings == 4
-    np.testing.assert_allclose(counter.crossing_times, expected, atol=0.02 / v + dt)
-    assert counter.laps == 3
-    np.testing.assert_allclose(counter.lap_times, L / v, atol=2 * (0.02 / v + dt))
-    # The batch interface gives the same answer.
-    batch = LapCounter(oval)
-    assert batch.update_many(t, np.mod(noisy, L)) == 4
-    np.testing.assert_allclose(batch.crossing_times, counter.crossing_times, atol=1e-12)
+    book = LapBookkeeper(L, laps_to_win=3, initial_s=np.array([s0]))  # s0 > L/2: on the grid behind the line
+    laps = [e for ti, si in zip(t, np.mod(noisy, L)) for e in book.update(ti, np.array([si])) if e.kind == "lap"]
+    crossings = (np.arange(1, 5) * L - s0) / v  # analytic crossing times of the unperturbed car
+    # The first crossing leaves the grid (lap 1 starts), each later one completes a lap, the back-and-forth
+    # over the line at the second crossing is not counted twice.
+    assert [e.lap for e in laps] == [1, 2, 3] and book.laps[0] == 3
+    np.testing.assert_allclose([e.time for e in laps], crossings[1:], atol=0.02 / v + dt)
+    np.testing.assert_allclose(book.lap_times[0], L / v, atol=2 * (0.02 / v + dt))
+    assert book.winner == 0 and book.finish_times[0] == pytest.approx(crossings[3], abs=0.02 / v + dt)
 
 
 def test_lap_counter_from_positions_with_start_time(oval):
     v, dt = 2.0, 0.02
     t = np.arange(0, 2.5 * oval.length / v, dt)
     x, y, _, _ = oval_reference(v * t)  # standing start on the line at t = 0
-    counter = LapCounter(oval, start_time=0.0)
-    for ti, xi, yi in zip(t, x, y):
-        counter.update_xy(ti, xi, yi)
-    assert counter.crossings == 2 and counter.laps == 2
-    np.testing.assert_allclose(counter.lap_times, oval.length / v, atol=1e-9)
-    assert counter.progress == pytest.approx(v * t[-1])
+    s = oval.to_frenet(x, y)[0]
+    book = LapBookkeeper(oval.length, laps_to_win=5, initial_s=s[:1], start_time=0.0)
+    for ti, si in zip(t[1:], s[1:]):
+        book.update(ti, np.array([si]))
+    assert book.laps[0] == 2
+    np.testing.assert_allclose(book.lap_times[0], oval.length / v, atol=1e-6)
+    assert book.progress[0] == pytest.approx(v * t[-1], abs=1e-6)
 
 
-def test_lap_counter_rejects_open_tracks_and_time_going_back(oval, merge_road):
-    with pytest.raises(ValueError, match="closed"):
-        LapCounter(merge_road)
-    counter = LapCounter(oval)
-    counter.update(1.0, 0.0)
-    with pytest.raises(ValueError, match="times"):
-        counter.update(0.5, 0.1)
+def test_lap_counter_rejects_bad_track_length_and_lap_count():
+    with pytest.raises(ValueError, match="track_length"):
+        LapBookkeeper(0.0, 1, np.zeros(1))
+    with pytest.raises(ValueError, match="laps_to_win"):
+        LapBookkeeper(10.0, 0, np.zeros(1))
 
 
 # --------------------------------------------------------------------------- validation

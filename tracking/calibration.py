@@ -137,18 +137,6 @@ def load_fixed_markers(path) -> FixedMarkerSet:
     return parse_fixed_markers(data, str(path))
 
 
-def fixed_markers_to_json(marker_set: FixedMarkerSet) -> dict:
-    out = {}
-    for m in marker_set.markers.values():
-        entry = {"x": m.x, "y": m.y, "size": m.size}
-        if m.heading_rad is not None:
-            entry["heading_deg"] = math.degrees(m.heading_rad)
-        if m.z:
-            entry["z"] = m.z
-        out[str(m.marker_id)] = entry
-    return {"dictionary": marker_set.dictionary, "markers": out}
-
-
 # --------------------------------------------------------------------------- intrinsics
 @dataclass
 class Intrinsics:
@@ -350,7 +338,7 @@ def calibrate_from_detections(detected: dict[int, np.ndarray], marker_set: Fixed
 def calibrate_image(image: np.ndarray, marker_set: FixedMarkerSet, intrinsics: Intrinsics | None = None
                     ) -> CameraCalibration:
     """Detect the fixed markers in one frame and calibrate (see :func:`calibrate_from_detections`)."""
-    from tracking.markers import MarkerDetector
+    from tracking.markers import MarkerDetector  # here: tracking.markers imports this module
 
     detector = MarkerDetector(aruco_dictionary_id(marker_set.dictionary))
     detected = detector.detect(image)

@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tracking.motion import slip_jacobian, slip_transition, wrap_angle
+from tracking.motion import slip_jacobian, slip_transition
+from tracks.geometry import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,8 @@ class EstimatorConfig:
     sideslip_noise: float = 0.3
     initial_sideslip_std: float = 0.05  # rad
     gate_chi2: float = 16.27  # chi2(3 dof).ppf(0.999)
-    lost_after_s: float = 0.5
+    # Also the race loop's safety rule: a lost car holds every car neutral (docs/race-stack.md).
+    lost_after_s: float = 0.25
     # Gated measurements in a row that re-initialise the filter when they agree with one another:
     # consecutive ones imply at most ``max_speed_mps`` and ``max_yaw_rate_rps``. A lone outlier
     # (a misread marker) does not agree with the next measurement and stays rejected.
@@ -248,6 +250,10 @@ class MultiCarEstimator:
             ekf = self.filters.setdefault(int(marker_id), CarEKF(self.config))
             results[int(marker_id)] = ekf.update(t_s, x, y, heading)
         return results
+
+    def forget(self, marker_id: int) -> None:
+        """Drop the filter of ``marker_id`` (e.g. after a non-finite state); its next measurement starts a new one."""
+        self.filters.pop(int(marker_id), None)
 
     def states_at(self, t_s: float, include_lost: bool = False) -> dict[int, CarState]:
         """Every tracked car predicted to ``t_s`` (lost cars left out unless ``include_lost``)."""

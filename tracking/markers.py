@@ -20,6 +20,7 @@ import numpy as np
 
 from tracking.calibration import CameraCalibration
 from tracking.camera import Frame
+from vehicles.params import MarkerParams
 
 
 def default_detector_parameters() -> cv2.aruco.DetectorParameters:
@@ -233,8 +234,8 @@ class ArucoTracker:
     to pick up new cars.
     """
 
-    def __init__(self, calibration: CameraCalibration, marker_size_m: float = 0.055,
-                 marker_height_m: float = 0.045, marker_offset_m: float = 0.0, car_ids=None,
+    def __init__(self, calibration: CameraCalibration, marker_size_m: float,
+                 marker_height_m: float = MarkerParams.height_m, marker_offset_m: float = 0.0, car_ids=None,
                  fixed_ids=(), correct_height: bool = True, dictionary: int | None = None,
                  downscale: float = 1.0, refine: str = "ecc", roi_radius_m: float = 0.2, full_search_every: int = 30,
                  parameters: cv2.aruco.DetectorParameters | None = None):

@@ -81,8 +81,3 @@ def slip_jacobian(state: np.ndarray, dt: float) -> np.ndarray:
     jac[:2, 5] = ctrv[:2, 2]
     jac[2, 4] = dt
     return jac
-
-
-def wrap_angle(angle):
-    """Wrap radians to [-pi, pi)."""
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi

@@ -9,7 +9,6 @@ Format and conventions: docs/tracks.md. Units: m, rad, s.
 from .definition import Arena, ArcSegment, Lane, StraightSegment, TrackDefinition, TrackFormatError
 from .geometry import wrap_angle
 from .io import UnknownTrackError, available_tracks, load_track, track_from_dict
-from .laps import LapCounter
 from .track import Track
 
 
@@ -24,7 +23,6 @@ __all__ = [
     "Arena",
     "ArcSegment",
     "Lane",
-    "LapCounter",
     "StraightSegment",
     "Track",
     "TrackDefinition",

@@ -114,6 +114,7 @@ class ModelParams:
 class MarkerParams:
     aruco_id: int = _int(0, _between(0, 999))
     height_m: float = _num(0.045, _non_negative, doc="marker plane above the ground")
+    size_m: float = _num(0.055, doc="side of the printed ArUco marker (outer black border)")
 
 
 @dataclass(frozen=True)
@@ -129,6 +130,59 @@ class Corrections:
     steering_gain: float = _num(1.0, _between(0.2, 5.0))
     extra_drag_n_per_mps2: float = _num(0.0, _between(-1.0, 10.0), doc="added to Cd")
     tire_grip_scale: float = _num(1.0, _between(0.05, 5.0), doc="multiplies D of both axles")
+    # ---- model identification, beyond the nominal model (docs/sysid.md, "Candidates") ----
+    steering_backlash_rad: float = _num(
+        0.0, _between(0.0, 0.3), doc="play of the steering linkage: servo travel lost when the command reverses")
+    steering_gain_asymmetry: float = _num(
+        0.0, _between(-0.5, 0.5), doc="a: gain * (1 + a) for left (positive) servo angles, * (1 - a) for right")
+    motor_force_drift_per_s: float = _num(
+        0.0, _between(-0.01, 0.01), doc="motor force scale 1 - rate * t (t: s since the log/race start)")
+    # ---- end of model identification fields ----
+
+
+# ---- model identification: fitted terms of an effect without a name (docs/sysid.md, "other") ----
+# Added to d(speed)/dt (accel_*, m/s^2 per unit of the term) and d(heading)/dt (yaw_rate_*, rad/s per
+# unit) as functions of speed v, throttle u and wheel angle d; vehicles.extra_terms evaluates them.
+def _coef(doc: str) -> Any:
+    return _num(0.0, _any, doc=doc)
+
+
+@dataclass(frozen=True)
+class OtherTermsParams:
+    accel_1: float = _coef("constant")
+    accel_v: float = _coef("v")
+    accel_v_absv: float = _coef("v|v|")
+    accel_u: float = _coef("u")
+    accel_u_v: float = _coef("u*v")
+    accel_d: float = _coef("d")
+    accel_d_v: float = _coef("d*v")
+    accel_d_v2: float = _coef("d*v^2")
+    accel_d_absd_v: float = _coef("d|d|*v")
+    accel_d2_v2: float = _coef("d^2*v^2")
+    yaw_rate_1: float = _coef("constant")
+    yaw_rate_v: float = _coef("v")
+    yaw_rate_v_absv: float = _coef("v|v|")
+    yaw_rate_u: float = _coef("u")
+    yaw_rate_u_v: float = _coef("u*v")
+    yaw_rate_d: float = _coef("d")
+    yaw_rate_d_v: float = _coef("d*v")
+    yaw_rate_d_v2: float = _coef("d*v^2")
+    yaw_rate_d_absd_v: float = _coef("d|d|*v")
+    yaw_rate_d2_v2: float = _coef("d^2*v^2")
+
+    @property
+    def active(self) -> bool:
+        return any(getattr(self, f.name) != 0.0 for f in fields(self))
+
+
+MIN_MOTOR_FORCE_SCALE = 0.2  # a drifting motor never drops below this fraction of its force
+
+
+def motor_force_scale(drift_per_s: float, elapsed_s):
+    """Motor force factor after ``elapsed_s`` of a battery drifting at ``drift_per_s`` (float or array)."""
+    scale = 1.0 - drift_per_s * elapsed_s
+    return max(MIN_MOTOR_FORCE_SCALE, scale) if isinstance(scale, float) else scale.clip(MIN_MOTOR_FORCE_SCALE, None)
+# ---- end of model identification terms ----
 
 
 # ---- radio link calibration (BuzzRacer FHSS box, vehicles/fhss.py; docs/vehicles.md "Radio calibration")
@@ -182,6 +236,7 @@ class CarParams:
     marker: MarkerParams = field(default_factory=MarkerParams)
     corrections: Corrections = field(default_factory=Corrections)
     radio: RadioParams = field(default_factory=RadioParams)
+    other_terms: OtherTermsParams = field(default_factory=OtherTermsParams)  # model identification
 
     def __post_init__(self) -> None:
         _check_cross_fields(self, source="CarParams")
@@ -198,6 +253,7 @@ _SECTION_TYPES = {
     "marker": MarkerParams,
     "corrections": Corrections,
     "radio": RadioParams,
+    "other_terms": OtherTermsParams,  # model identification
 }
 
 

@@ -67,10 +67,6 @@ class CarCommand:
     steering: float = 0.0
     throttle: float = 0.0
 
-    @classmethod
-    def neutral(cls) -> "CarCommand":
-        return cls(0.0, 0.0)
-
     @property
     def is_neutral(self) -> bool:
         return self.steering == 0.0 and self.throttle == 0.0

@@ -54,7 +54,7 @@ def _one(job):
     """Worker: one race -> small picklable record (and the trace if asked for figures)."""
     args, cell, r, fast, slow, keep_trace = job
     from app.commands.race import make_setup
-    from app.race_runner import run_race
+    from race.simulation import run_race
 
     start, speed = cell
     rd3g, opp = (fast, slow) if speed == "fast" else (slow, fast)

@@ -39,9 +39,15 @@ def register(sub) -> None:
     m = kinds.add_parser("merge", help="RD3G vs iLQGames vs ALGames on the paper's merging games (Table I)")
     m.add_argument("--cars", default="2-8")
     m.add_argument("--instances", type=int, default=100)
-    m.add_argument("--solvers", default="rd3g,ilqgames,algames")
+    m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
+    m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "
+                                    "from bench/families.py (docs/merging.md) or 'all'; reports success, second-order "
+                                    "confirmation, time and iteration tails per family and size")
     m.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
     m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver)")
+    m.add_argument("--best-response-rounds", type=int, default=0,
+                   help="with --family: start RD3G from this many rounds of iterated best response "
+                        "(solver_cpp/best_response.py; its time counts)")
     m.add_argument("--json", help="write the per-solver, per-size figures here")
     m.add_argument("--figures", default="docs/figures", help="folder for the PNG figures")
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
@@ -78,7 +84,9 @@ def run_merge(args) -> int:
     from bench.report import machine_description, write_section
 
     cars = parse_range(args.cars)
-    solvers = [x.strip() for x in args.solvers.split(",") if x.strip()]
+    if args.family:
+        return _run_families(args, cars)
+    solvers = [x.strip() for x in (args.solvers or "rd3g,ilqgames,algames").split(",") if x.strip()]
     for s in solvers:
         if s not in merge_bench.SOLVERS:
             raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
@@ -104,4 +112,44 @@ def run_merge(args) -> int:
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('merge-bench-' + '-'.join(solvers), md)}")
+    return 0
+
+
+def _run_families(args, cars: list[int]) -> int:
+    import json
+    from pathlib import Path
+
+    from bench import merge_bench
+    from bench.families import FAMILIES
+    from bench.report import machine_description, write_section
+
+    names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
+    for n in names:
+        if n not in FAMILIES:
+            raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
+    solvers = [x.strip() for x in (args.solvers or "rd3g").split(",") if x.strip()]
+    for s in solvers:
+        if s not in merge_bench.SOLVERS:
+            raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
+    if args.instances < 1 or args.workers < 1:
+        raise UserError("--instances and --workers must be at least 1")
+    import os
+
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    if args.best_response_rounds < 0:
+        raise UserError("--best-response-rounds must be >= 0")
+    records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit, tuple(names),
+                              args.best_response_rounds)
+    summary = merge_bench.summarize_families(records)
+    command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
+    md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0, args.best_response_rounds)
+    print(md)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"results": summary}, indent=1))
+        print(f"wrote {args.json}")
+    if not args.no_docs:
+        section = "merge-families" + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")
+        print(f"recorded in {write_section(section, md)}")
     return 0

@@ -81,7 +81,7 @@ def _world_options(args, link_plan, cars, fixed_ids) -> dict:
 def run(args) -> int:
     from app.commands.race import make_setup
     from app.realtime.check import CheckTiming, PreRaceCheck
-    from app.realtime.config import LoopConfig
+    from race.config import LoopConfig
     from app.realtime.hil import FIXED_MARKERS
     from app.realtime.run import _check_mode, _open_hardware, _open_hil, open_capture, plan_link
     from tracking.calibration import CalibrationError, load_fixed_markers

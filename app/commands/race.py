@@ -3,22 +3,34 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 
 from app.cli import UserError
+from app.realtime.run import add_realtime_arguments, run_realtime, wants_realtime
+from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
+from race.simulation import run_race
 
 DEFAULT_OUT = "runs/race.rrd"
 
 
+# The flag of each RaceSpec field, for error messages.
+FLAGS = {"track": "--track", "car_params": "--car-params", "seed": "--seed", "laps": "--laps", "opponent": "--opponent",
+         "start": "--start", "rd3g_top_speed_mps": "--rd3g-speed", "opponent_top_speed_mps": "--opponent-speed",
+         "control_hz": "--control-hz", "control_period_s": "--control-hz", "raceline_ey_m": "--raceline-ey",
+         "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects"}
+
+
 def add_race_arguments(p) -> None:
-    p.add_argument("--track", default="oval", help="track name or file (default: oval)")
-    p.add_argument("--car-params", default="buzzracer", help="car parameter file for both cars (default: buzzracer)")
-    p.add_argument("--opponent", choices=("mpc", "pursuit"), default="mpc")
-    p.add_argument("--rd3g-speed", type=float, default=2.0, help="RD3G car's top speed (m/s)")
-    p.add_argument("--opponent-speed", type=float, default=1.8, help="opponent's top speed (m/s)")
-    p.add_argument("--control-hz", type=float, default=30.0, help="control rate (default 30 Hz)")
-    p.add_argument("--raceline-ey", type=float, default=0.0, metavar="M",
+    """The race options `race`, `batch` and the benches share; defaults from race.setup.RaceSpec."""
+    p.add_argument("--track", default=RaceSpec.track, help=f"track name or file (default: {RaceSpec.track})")
+    p.add_argument("--car-params", default=RaceSpec.car_params,
+                   help=f"car parameter file for both cars (default: {RaceSpec.car_params})")
+    p.add_argument("--opponent", choices=OPPONENTS, default=RaceSpec.opponent)
+    p.add_argument("--rd3g-speed", type=float, default=RaceSpec.rd3g_top_speed_mps, help="RD3G car's top speed (m/s)")
+    p.add_argument("--opponent-speed", type=float, default=RaceSpec.opponent_top_speed_mps, help="opponent's top speed (m/s)")
+    p.add_argument("--control-hz", type=float, default=RaceSpec.control_hz,
+                   help=f"control rate (default {RaceSpec.control_hz:g} Hz)")
+    p.add_argument("--raceline-ey", type=float, default=RaceSpec.raceline_ey_m, metavar="M",
                    help="lateral reference of both cars' racing cost (m, left positive; default 0, the centre line); "
                         "on the oval 0.05 (inside) won more slow-car races but had one RD3G-at-fault contact in "
                         "400 batch races (docs/racing.md)")
@@ -26,12 +38,13 @@ def add_race_arguments(p) -> None:
 
 def register(sub) -> None:
     p = sub.add_parser("race", help="simulate one race RD3G vs MPC and record telemetry (rerun .rrd)")
-    p.add_argument("--laps", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--start", choices=("front", "rear"), default="rear", help="where the RD3G car starts")
+    p.add_argument("--laps", type=int, default=RaceSpec.laps)
+    p.add_argument("--seed", type=int, default=RaceSpec.seed)
+    p.add_argument("--start", choices=STARTS, default=RaceSpec.start, help="where the RD3G car starts")
     p.add_argument("--out", default=DEFAULT_OUT, help=f"rerun recording (default {DEFAULT_OUT})")
     p.add_argument("--json", help="also write the race summary as JSON here")
-    p.add_argument("--max-time", type=float, default=None, help="give up after this many seconds of race time")
+    p.add_argument("--max-time", type=float, default=None,
+                   help="give up after this many seconds of race time (default 30 s per lap + 30 s)")
     add_race_arguments(p)
     # --- closing the model-identification loop (docs/sysid.md): the planners use --car-params (e.g. a
     # file written by `sysid`), the simulator runs the physical car below
@@ -41,62 +54,28 @@ def register(sub) -> None:
                    help='hidden effects the simulator adds to both cars, e.g. "steering_offset=0.03,actuation_delay=0.08" '
                         "(names as in sysid-generate, docs/sysid.md); pure simulation only")
     # --- end closing the loop
-    # --- real-time race stack (app/realtime, docs/race-stack.md): --hil / --camera --serial --calibration
-    from app.realtime.run import add_realtime_arguments
+    # --- real-time race stack (race/, app/realtime, docs/race-stack.md): --hil / --camera --serial --calibration
     add_realtime_arguments(p)
     # --- end real-time race stack
     p.set_defaults(func=run)
 
 
+def race_spec(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1,
+              max_time=None) -> RaceSpec:
+    """The RaceSpec of parsed race options (batch's arguments have no --raceline-ey/--sim-* of their own)."""
+    return RaceSpec(track=args.track, car_params=args.car_params, seed=seed, laps=laps, opponent=args.opponent,
+                    start=start, rd3g_top_speed_mps=rd3g_speed, opponent_top_speed_mps=opponent_speed,
+                    control_hz=args.control_hz, raceline_ey_m=getattr(args, "raceline_ey", RaceSpec.raceline_ey_m),
+                    max_time_s=max_time or None, sim_car_params=getattr(args, "sim_car_params", None),
+                    sim_effects=getattr(args, "sim_effects", "") or "")
+
+
 def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1, max_time=None):
-    from app.race_runner import RaceSetup
-    from planning import PlannerConfig
-    from tracks import load_track
-    from tracks.io import UnknownTrackError
-    from vehicles.params import CarParamsError, load_car_params
-
+    """The RaceSetup of parsed race options; a bad value is a UserError naming its flag."""
     try:
-        track = load_track(args.track)
-    except (UnknownTrackError, FileNotFoundError) as exc:
-        raise UserError(f"--track: {exc}") from None
-    try:
-        car = load_car_params(args.car_params)
-    except CarParamsError as exc:
-        raise UserError(f"--car-params: {exc}") from None
-    if not args.control_hz > 0:
-        raise UserError(f"--control-hz must be positive, got {args.control_hz}")
-    sim_car, sim_effects = _simulated_car(args)
-    period = 1.0 / args.control_hz
-    raceline = getattr(args, "raceline_ey", 0.0)
-    if not math.isfinite(raceline) or abs(raceline) >= track.min_width / 2:
-        raise UserError(f"--raceline-ey must be a finite offset inside the track "
-                        f"(|M| < {track.min_width / 2:g} m), got {raceline}")
-    # The simulator needs a whole number of 1 ms physics steps per control period on average; it keeps
-    # the control clock exactly, so any rate works.
-    return RaceSetup(track=track, car=car, seed=seed, laps=laps, opponent=args.opponent, start=start,
-                     rd3g_top_speed_mps=rd3g_speed, opponent_top_speed_mps=opponent_speed,
-                     control_period_s=period, max_time_s=max_time or 30.0 * laps + 30.0,
-                     sim_car=sim_car, sim_effects=sim_effects, planner=PlannerConfig(raceline_ey_m=raceline))
-
-
-def _simulated_car(args):
-    """(sim_car or None, SimEffects) from --sim-car-params / --sim-effects (absent in batch's arguments)."""
-    from sim import SimEffects, SimEffectsError
-    from sysid.generate import parse_effects, sim_effects
-    from vehicles.params import CarParamsError, load_car_params
-
-    sim_car = None
-    if getattr(args, "sim_car_params", None):
-        try:
-            sim_car = load_car_params(args.sim_car_params)
-        except CarParamsError as exc:
-            raise UserError(f"--sim-car-params: {exc}") from None
-    text = getattr(args, "sim_effects", "") or ""
-    try:
-        effects = sim_effects(parse_effects(text, flag="--sim-effects"), 0.0, 0.0) if text.strip() else SimEffects()
-    except SimEffectsError as exc:
-        raise UserError(f"--sim-effects: {exc}") from None
-    return sim_car, effects
+        return race_spec(args, seed, start, rd3g_speed, opponent_speed, laps, max_time).load()
+    except RaceSetupError as exc:
+        raise UserError(f"{FLAGS.get(exc.field, exc.field)}: {exc.message}") from None
 
 
 def _simulated_link(args, setup):
@@ -121,10 +100,7 @@ def _simulated_link(args, setup):
 
 
 def run(args) -> int:
-    from app.race_runner import run_race
-
     # --- real-time race stack: --hil or hardware mode runs the loop in app/realtime instead
-    from app.realtime.run import run_realtime, wants_realtime
     if wants_realtime(args):
         if args.sim_car_params or args.sim_effects.strip():
             raise UserError("--sim-car-params and --sim-effects apply to the pure simulation only (not --hil or hardware)")

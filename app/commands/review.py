@@ -35,8 +35,8 @@ def viewer_command(path: Path) -> list[str]:
 
 
 def run(args) -> int:
-    from app.realtime.review import format_summary, save_plots, summarize
-    from app.telemetry import RecordingError, load_recording
+    from race.review import format_summary, save_plots, summarize
+    from race.recording import RecordingError, load_recording
 
     path = Path(args.recording)
     try:

@@ -38,7 +38,19 @@ def register(sub) -> None:
     g.add_argument("--track", default="oval", help="track name or file for tracks.load_track (default oval)")
     g.add_argument("--position-noise", type=float, default=None, help="camera position noise std [m] (default 0.002)")
     g.add_argument("--heading-noise", type=float, default=None, help="camera heading noise std [rad] (default 0.01)")
+    g.add_argument("--rate", type=float, default=30.0, help="command and camera rate [Hz] (default 30)")
+    g.add_argument("--driver", choices=("pursuit", "stanley"), default="pursuit",
+                   help="the generator's driver: pure pursuit + PI speed (default) or Stanley + P speed")
     g.set_defaults(func=run_generate)
+
+    b = sub.add_parser("sysid-bench", help="the generated identification cases of docs/sysid.md: verdicts, goals, timing")
+    b.add_argument("--out", default="runs/sysid/bench", help="folder for the logs (reused when present), "
+                                                             "bench.md and bench.json (default runs/sysid/bench)")
+    b.add_argument("--cases", default="", help="case numbers, comma-separated (default all; list in docs/sysid.md)")
+    b.add_argument("--minutes", type=float, default=5.0)
+    b.add_argument("--rate", type=float, default=60.0, help="command and camera rate [Hz] (default 60)")
+    b.add_argument("--car-params", default="buzzracer")
+    b.set_defaults(func=run_bench)
 
     c = sub.add_parser("sysid-closed-loop",
                        help="race with nominal vs corrected car parameters while the simulator carries the effects")
@@ -107,34 +119,85 @@ def run(args) -> int:
                       encoding="utf-8")
     elapsed = time.perf_counter() - started
     if result.selected:
-        summary = ", ".join(f"{e.effect} ({100 * e.heldout_error_reduction:.0f} %)" for e in result.selected)
+        summary = ", ".join(f"{e.effect} ({100 * e.reduction_vs_nominal:.0f} %)" for e in result.selected)
+        if result.unnamed_effect_remains:
+            summary += " -- an effect the tool cannot name remains (`other`)"
     else:
         summary = "no significant effect"
     print(f"{summary}; held-out horizon position RMSE {100 * result.planner.heldout.horizon_pos_rmse_m:.1f} cm "
-          f"(planner) -> {100 * result.final.heldout.horizon_pos_rmse_m:.1f} cm; wrote {report}, {params_out}"
+          f"(planner) / {100 * result.dynamic_nominal.heldout.horizon_pos_rmse_m:.1f} cm (nominal dynamic) -> "
+          f"{100 * result.final.heldout.horizon_pos_rmse_m:.1f} cm ({100 * result.heldout_error_reduction:.0f} % "
+          f"vs nominal dynamic); wrote {report}, {params_out}"
           + (f", {json_path}" if json_path else "") + f" in {elapsed:.1f} s")
     return 0
 
 
 def run_generate(args) -> int:
-    from sysid.generate import CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, generate_log, parse_effects
+    from sysid.generate import (CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, ExcitationSettings, generate_log,
+                                parse_effects)
     from sysid.log import write_log_csv
     from vehicles.params import load_car_params
 
     if not args.minutes > 0:
         raise UserError(f"--minutes must be > 0, got {args.minutes}")
+    if not 1.0 <= args.rate <= 1000.0:
+        raise UserError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
     effects = parse_effects(args.effects)
     car = load_car_params(args.car_params)
     pos = CAMERA_POSITION_NOISE_M if args.position_noise is None else args.position_noise
     head = CAMERA_HEADING_NOISE_RAD if args.heading_noise is None else args.heading_noise
     started = time.perf_counter()
     log = generate_log(car, effects, args.minutes, args.seed, position_noise_m=pos, heading_noise_rad=head,
-                       track=args.track)
+                       track=args.track, excitation=ExcitationSettings(control_rate_hz=args.rate),
+                       driver=args.driver)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_log_csv(out, log)
     print(f"wrote {out}: {log.t.size} rows, {log.t[-1] - log.t[0]:.1f} s, in {time.perf_counter() - started:.1f} s")
     return 0
+
+
+def run_bench(args) -> int:
+    import json
+
+    from sysid.benchmark import CASES, markdown_table, run_benchmark
+    from sysid.diagnose import SysidSettings
+    from vehicles.params import load_car_params
+
+    try:
+        picked = [int(v) for v in args.cases.split(",") if v.strip()] or list(range(1, len(CASES) + 1))
+    except ValueError:
+        raise UserError(f"--cases: expected case numbers like 1,3, got {args.cases!r}") from None
+    bad = [i for i in picked if not 1 <= i <= len(CASES)]
+    if bad:
+        raise UserError(f"--cases: no case {bad[0]} (cases 1..{len(CASES)})")
+    if not args.minutes > 0:
+        raise UserError(f"--minutes must be > 0, got {args.minutes}")
+    if not 1.0 <= args.rate <= 1000.0:
+        raise UserError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
+    car = load_car_params(args.car_params)
+    out = Path(args.out)
+
+    def progress(o) -> None:
+        verdict = ", ".join(e.effect for e in o.result.selected) or "no significant effect"
+        print(f"case {CASES.index(o.case) + 1} ({o.case.name}): {verdict}; "
+              f"{100 * o.result.heldout_error_reduction:.0f} % vs nominal dynamic; sysid {o.wall_s:.1f} s wall, "
+              f"{o.cpu_s:.1f} s CPU (load {o.load:.1f}); {'goals met' if o.passed else 'FAILED: ' + '; '.join(o.failures)}",
+              flush=True)
+
+    outcomes = run_benchmark([CASES[i - 1] for i in picked], out, args.minutes, args.rate, car, SysidSettings(),
+                             progress)
+    table = markdown_table(outcomes)
+    (out / "bench.md").write_text(table, encoding="utf-8")
+    (out / "bench.json").write_text(json.dumps([
+        {"case": CASES.index(o.case) + 1, "name": o.case.name, "effects": o.case.effects,
+         "other_terms": o.case.other_terms, "verdict": [e.effect for e in o.result.selected],
+         "params": {k: v for e in o.result.selected for k, v in e.params.items()},
+         "heldout_error_reduction": o.result.heldout_error_reduction, "wall_s": o.wall_s, "cpu_s": o.cpu_s,
+         "load": o.load, "failures": o.failures} for o in outcomes], indent=2) + "\n", encoding="utf-8")
+    print(table)
+    print(f"wrote {out / 'bench.md'}, {out / 'bench.json'}")
+    return 0 if all(o.passed for o in outcomes) else 1
 
 
 def run_closed_loop_command(args) -> int:
@@ -143,7 +206,8 @@ def run_closed_loop_command(args) -> int:
     import numpy as np
 
     from sim import SimEffectsError
-    from sysid.closed_loop import PLANNER_CAR, RaceSettings, format_table, plot, run_closed_loop, summarize
+    from race.setup import RaceSpec
+    from sysid.closed_loop import PLANNER_CAR, format_table, plot, run_closed_loop, summarize
     from sysid.generate import parse_effects, sim_effects
     from vehicles.params import CarParamsError, load_car_params
 
@@ -167,7 +231,7 @@ def run_closed_loop_command(args) -> int:
             raise UserError(f"{flag}: {exc}") from None
     if args.max_time is not None and not args.max_time > 0:
         raise UserError(f"--max-time must be positive, got {args.max_time}")
-    race = RaceSettings(track=args.track, laps=args.laps, opponent=args.opponent, max_time_s=args.max_time)
+    race = RaceSpec(track=args.track, laps=args.laps, opponent=args.opponent, max_time_s=args.max_time)
     started = time.perf_counter()
 
     def progress(m) -> None:

@@ -1,8 +1,3 @@
-"""The real-time race stack (docs/race-stack.md): a fixed-rate loop frame -> detect -> estimate ->
-plan -> command -> telemetry with a deadline monitor and safety holds, run against the
-hardware-in-the-loop world (``--hil``) or real hardware (``--camera/--serial/--calibration``)."""
-from .config import FaultSpec, LoopConfig, StageBudgets, parse_fault
-from .loop import CarBinding, DeadlineMonitor, LoopError, LoopOutcome, RaceLoop
-
-__all__ = ["CarBinding", "DeadlineMonitor", "FaultSpec", "LoopConfig", "LoopError", "LoopOutcome", "RaceLoop",
-           "StageBudgets", "parse_fault"]
+"""Wiring of the real-time race modes (docs/race-stack.md): the `race --hil` / hardware options and
+their start-up (``run``), the hardware-in-the-loop world (``hil``), the hardware camera feed
+(``hardware``) and the loop bench (``bench``). The loop itself is ``race.loop``."""

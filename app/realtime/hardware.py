@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 
-from app.realtime.hil import WorldPacket
+from race.world import WorldPacket
 
 
 class CameraFeed:

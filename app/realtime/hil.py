@@ -30,16 +30,20 @@ import select
 import threading
 import time
 import tty
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from app.realtime.config import FaultSpec
+from race.commands import physical_command
+from race.config import FaultSpec
+from race.referee import fault_of
+from race.setup import CAR_NAMES
+from race.world import WorldPacket
+from sim.collision import footprint_gap
 from vehicles import fhss
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN
 
-CAR_NAMES = ("rd3g", "opponent")
 FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[2] / "tracking" / "data" / "oval_fixed_markers.json"}
 
 
@@ -168,7 +172,7 @@ def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float,
     ("vanish",), ("stop",). Times are time.monotonic() (shared by the processes of one machine)."""
     import signal
 
-    from app.realtime.config import lower_realtime_priority
+    from race.config import lower_realtime_priority
     from vehicles.virtual_box import VirtualCarBox
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us
@@ -278,7 +282,7 @@ def make_camera(spec: WorldSpec):
     """The synthetic overhead camera of the track's arena (and its fixed markers, if the track has a
     fixed-marker file)."""
     from tracking.calibration import load_fixed_markers
-    from tracking.camera import CarAppearance, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
+    from sim.camera import CarAppearance, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
 
     track = spec.track
     arena = track.arena
@@ -288,7 +292,7 @@ def make_camera(spec: WorldSpec):
     fixed_path = FIXED_MARKERS.get(track.name)
     fixed = [m for m in (load_fixed_markers(fixed_path).markers.values() if fixed_path else [])
              if m.marker_id not in spec.covered_fixed_markers]
-    appearance = CarAppearance(roof_height_m=spec.car.marker.height_m)
+    appearance = CarAppearance(roof_height_m=spec.car.marker.height_m, marker_size_m=spec.car.marker.size_m)
     synth = SyntheticCamera(camera, TrackDrawing(left, right, arena_bounds=bounds), fixed, car=appearance,
                             effects=RenderEffects(seed=spec.seed), fps=spec.fps)
     return synth, camera, fixed_path, appearance
@@ -301,7 +305,7 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
     from multiprocessing import shared_memory
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us; Ctrl-C goes to the parent
-    from app.realtime.config import lower_realtime_priority
+    from race.config import lower_realtime_priority
 
     lower_realtime_priority(5)  # --rt-priority: the world (camera, cars) just below the loop
     import sys
@@ -322,9 +326,8 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
 
 class _World:
     def __init__(self, spec: WorldSpec, conn, shm, box_conn) -> None:
-        from app.race_runner import fault_of, footprint_gap
         from sim import Simulator
-        from tracking.camera import CarPose
+        from sim.camera import CarPose
         self.spec, self.conn, self.shm = spec, conn, shm
         self.CarPose, self.fault_of, self.footprint_gap = CarPose, fault_of, footprint_gap
         w, h = spec.image_size
@@ -338,7 +341,6 @@ class _World:
                 raise RuntimeError("the virtual box process did not start")
             self.box.pump()
         self.synth, self.camera, self.fixed_path, self.appearance = make_camera(spec)
-        self.max_steer = spec.car.actuators.max_steering_rad
         self.events: list[tuple] = []      # (race time, kind, text) not yet sent
         self.collisions: list[dict] = []
         self.min_gap = math.inf
@@ -378,7 +380,7 @@ class _World:
         for i, rid in enumerate(self.spec.radio_ids):
             c = cmds.get(rid)
             if c is not None:
-                out[i] = (c.throttle, c.steering * self.max_steer)
+                out[i] = physical_command(self.spec.car, c)
         return out
 
     def _poses(self, states: np.ndarray, t_race: float | None) -> list:
@@ -542,7 +544,7 @@ class _World:
                     self.conn.send(("box", {"box_corrupt": self.box.line_errors}))
             self._advance(t_go, sim_target)
             self._box_events(self.sim.time)
-            self.min_gap = min(self.min_gap, self.footprint_gap(self.sim.states, spec.car))
+            self.min_gap = min(self.min_gap, self.footprint_gap(self.sim.states, spec.car.geometry))
             self._snapshot(index, t_go + self.sim.time, self.sim.time)
             index += 1
             k += 1
@@ -572,22 +574,6 @@ class _World:
 
 
 # --------------------------------------------------------------------------- parent side
-@dataclass
-class WorldPacket:
-    """What the loop gets per poll: the newest frame (copied out of shared memory) and everything
-    the world reported since the last poll."""
-
-    frame: object | None = None              # tracking.camera.Frame
-    truth: np.ndarray | None = None          # (2, 6) true states at the frame's capture time
-    t_race: float | None = None
-    render_ms: list[float] = field(default_factory=list)
-    events: list[tuple] = field(default_factory=list)
-    winner: str | None = None
-    box_corrupt: int = 0
-    box_failsafe_events: int = 0
-    dropped: int = 0
-
-
 class HilWorld:
     """Starts the world process and reads its frames (parent side)."""
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -12,6 +13,24 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import UserError
+from app.realtime.hardware import CameraFeed
+from app.realtime.hil import HilWorld, WorldSpec
+from race.config import LoopConfig, LoopConfigError, parse_fault
+from race.loop import CarBinding, LoopError, RaceLoop, setup_document
+from race.planning import RacePlanners
+from race.recording import RaceRecorder
+from race.setup import start_states
+from tracking.calibration import (CalibrationError, CameraCalibration, Intrinsics, calibrate_image, load_calibration,
+                                  load_fixed_markers)
+from tracking.camera import CameraError, OpenCVCamera
+from tracking.estimator import MultiCarEstimator
+from tracking.markers import ArucoTracker
+from vehicles.fhss import servo_calibration
+from vehicles.link_capture import LinkCapture
+from vehicles.link_protocols import HARDWARE_DEFAULT, HIL_DEFAULT, PROTOCOLS, check_protocol, make_encoder
+from vehicles.params import CarParamsError, load_car_params
+from vehicles.protocol import ProtocolError
+from vehicles.serial_link import SerialCarLink, SerialLinkError
 
 
 def add_realtime_arguments(p) -> None:
@@ -50,8 +69,6 @@ def add_realtime_arguments(p) -> None:
 
 def add_link_arguments(g) -> None:
     """The transmitter link's flags (race and check)."""
-    from vehicles.link_protocols import HARDWARE_DEFAULT, HIL_DEFAULT, PROTOCOLS
-
     g.add_argument("--link-protocol", default=None, metavar="|".join(PROTOCOLS),
                    help=f"frame the transmitter box reads (docs/serial-protocol.md); default {HARDWARE_DEFAULT} on "
                         f"hardware, {HIL_DEFAULT} with --hil")
@@ -103,8 +120,6 @@ def _set_scheduling(rt_priority: int | None) -> str:
     SCHED_FIFO at AUTO_RT_PRIORITY when permitted, else normal scheduling with a warning: a real-time
     loop is the default because time-sharing on this 2-core machine misses 25-45 % of the HIL
     loop's deadlines (docs/race-stack.md, "Scheduling"). Returns a description for the recording."""
-    import os
-
     if rt_priority == 0:
         return "normal time-sharing (--rt-priority 0)"
     if rt_priority is not None and not 1 <= rt_priority <= 99:
@@ -124,8 +139,6 @@ def _set_scheduling(rt_priority: int | None) -> str:
 
 
 def run_realtime(args) -> int:
-    import os
-
     mode = _check_mode(args)
     policy = (os.sched_getscheduler(0), os.sched_getparam(0)) if hasattr(os, "sched_getscheduler") else None
     try:
@@ -139,11 +152,7 @@ def run_realtime(args) -> int:
 
 
 def _run_realtime(args, mode: str) -> int:
-    from app.commands.race import DEFAULT_OUT, make_setup
-    from app.realtime.config import LoopConfig, LoopConfigError, parse_fault
-    from app.realtime.loop import CarBinding, LoopError, RaceLoop, setup_document
-    from app.realtime.planning import RacePlanners
-    from app.telemetry import RaceRecorder
+    from app.commands.race import DEFAULT_OUT, make_setup  # here: app.commands.race imports this module
 
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
@@ -180,16 +189,12 @@ def _run_realtime(args, mode: str) -> int:
     world, feed, tracker, estimator, link_port, note = parts
     recorder = loop = capture = None
     try:
-        from vehicles.serial_link import SerialCarLink, SerialLinkError
-
         planners = RacePlanners(setup, opponent)
         out.parent.mkdir(parents=True, exist_ok=True)
         recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}")
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
-        for name, rgb in (("rd3g", (230, 60, 40)), ("opponent", (40, 110, 230))):
-            for entity, kind in (("position", "points"), ("footprint", "strips"), ("plan", "strips")):
-                recorder.static_color(f"world/cars/{name}/{entity}", kind, rgb)
+        recorder.static_car_colors()
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
                         planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
         commanded = [c.radio_id for c in cars if c.name in planners.commanded]
@@ -232,7 +237,7 @@ class LinkPlan:
     """The transmitter link as configured from the command line, validated before anything opens."""
 
     protocol: str
-    cars: list                 # app.realtime.loop.CarBinding, radio_id = modem id for buzzracer-fhss
+    cars: list                 # race.loop.CarBinding, radio_id = modem id for buzzracer-fhss
     calibrations: tuple        # vehicles.fhss.ServoCalibration per car (buzzracer-fhss), else ()
     encoder: object            # vehicles.link_protocols.FrameEncoder
     rate_hz: float             # frames per second (the loop's link rate, capped by the receiver)
@@ -241,12 +246,6 @@ class LinkPlan:
 def plan_link(args, mode: str, setup, link_hz: float) -> LinkPlan:
     """Protocol, car bindings and encoder from --link-protocol, --marker-ids, --radio-ids, --car-files
     (UserError naming the flag or the car file's field on any fault)."""
-    from app.realtime.loop import CarBinding
-    from vehicles.fhss import servo_calibration
-    from vehicles.link_protocols import HARDWARE_DEFAULT, HIL_DEFAULT, check_protocol, make_encoder
-    from vehicles.params import CarParamsError, load_car_params
-    from vehicles.protocol import ProtocolError
-
     protocol = args.link_protocol or (HARDWARE_DEFAULT if mode == "hardware" else HIL_DEFAULT)
     try:
         check_protocol(protocol)
@@ -291,8 +290,6 @@ def open_capture(args):
     """The --link-capture file (None without the flag); its time origin is now, the race's start."""
     if not getattr(args, "link_capture", None):
         return None
-    from vehicles.link_capture import LinkCapture
-
     path = Path(args.link_capture)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -302,11 +299,6 @@ def open_capture(args):
 
 
 def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
-    from app.race_runner import start_states
-    from app.realtime.hil import HilWorld, WorldSpec
-    from tracking.calibration import CameraCalibration, Intrinsics, calibrate_image, load_fixed_markers
-    from tracking.estimator import MultiCarEstimator
-    from tracking.markers import ArucoTracker
 
     fields = dict(track=setup.track, car=setup.car, start_states=start_states(setup),
                   marker_ids=(cars[0].marker_id, cars[1].marker_id), radio_ids=(cars[0].radio_id, cars[1].radio_id),
@@ -343,11 +335,6 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
 
 
 def _open_hardware(args, setup, cars, config):
-    from tracking.calibration import CalibrationError, load_calibration
-    from tracking.camera import CameraError, OpenCVCamera
-    from tracking.estimator import MultiCarEstimator
-    from tracking.markers import ArucoTracker
-    from app.realtime.hardware import CameraFeed
 
     try:
         calibration = load_calibration(args.calibration)
@@ -362,7 +349,7 @@ def _open_hardware(args, setup, cars, config):
         camera = OpenCVCamera(source, latency_s=args.camera_latency_ms / 1e3)
     except CameraError as exc:
         raise UserError(f"--camera: {exc}") from None
-    tracker = ArucoTracker(calibration, 0.055, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
+    tracker = ArucoTracker(calibration, setup.car.marker.size_m, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
                            full_search_every=10 ** 9)
     return None, CameraFeed(camera), tracker, MultiCarEstimator(), args.serial, None
 

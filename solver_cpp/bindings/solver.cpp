@@ -3,6 +3,7 @@
 
 #include "bindings.hpp"
 #include "rd3g/solver.hpp"
+#include "rd3g/validate.hpp"
 
 using namespace rd3g;
 
@@ -13,13 +14,19 @@ void bind_solver(py::module_& m) {
       .value("line_search_failed", Status::LineSearchFailed)
       .value("numerical_error", Status::NumericalError)
       .value("time_limit", Status::TimeLimit)
-      .value("stalled", Status::Stalled);
+      .value("stalled", Status::Stalled)
+      .value("saddle", Status::Saddle);
   m.def("status_name", &status_name);
+  m.def("validate_problem", &validate_problem, py::arg("problem"),
+        "Checks every field of a problem (the validation Solver.setup and the baselines run); ValueError names the field.");
+  m.def("validate_settings", &validate_settings, py::arg("settings"));
   py::class_<Timings>(m, "Timings")
       .def_readonly("total", &Timings::total)
       .def_readonly("assembly", &Timings::assembly)
       .def_readonly("linear_solve", &Timings::linear_solve)
-      .def_readonly("line_search", &Timings::line_search);
+      .def_readonly("line_search", &Timings::line_search)
+      .def_readonly("setup", &Timings::setup)
+      .def_readonly("update", &Timings::update);
   py::class_<Info>(m, "Info")
       .def_readonly("status", &Info::status)
       .def_readonly("iterations", &Info::iterations)
@@ -32,6 +39,8 @@ void bind_solver(py::module_& m) {
       .def_readonly("riccati_solves", &Info::riccati_solves)
       .def_readonly("lm_steps", &Info::lm_steps)
       .def_readonly("attempts", &Info::attempts)
+      .def_readonly("setups", &Info::setups)
+      .def_readonly("second_order", &Info::second_order)
       .def_readonly("residual_history", &Info::residual_history)
       .def_readonly("step_history", &Info::step_history)
       .def_readonly("timings", &Info::timings);
@@ -63,10 +72,21 @@ void bind_solver(py::module_& m) {
   py::class_<Solver>(m, "Solver")
       .def(py::init<>())
       .def("setup", &Solver::setup, py::arg("problem"), py::arg("settings"))
+      .def("update", &Solver::update, py::arg("problem"))
+      .def("update_settings", &Solver::update_settings, py::arg("settings"))
+      .def("update_initial_state", &Solver::update_initial_state, py::arg("agent"), py::arg("x0"))
+      .def("update_cost", &Solver::update_cost, py::arg("agent"), py::arg("cost"))
+      .def("update_lead", &Solver::update_lead, py::arg("agent"), py::arg("lead"))
+      .def("update_bounds", &Solver::update_bounds, py::arg("agent"), py::arg("u_min"), py::arg("u_max"), py::arg("x_min"),
+           py::arg("x_max"))
+      .def("update_collision_distance", &Solver::update_collision_distance, py::arg("min_distance"), py::arg("steps"))
+      .def("update_obstacle", &Solver::update_obstacle, py::arg("index"), py::arg("positions"), py::arg("min_distance"),
+           py::arg("steps"))
       .def(
           "solve", [](Solver& s, const WarmStart* w) { return s.solve(w); }, py::arg("warm_start") = nullptr,
           py::call_guard<py::gil_scoped_release>())
       .def("constraints", &Solver::constraints)
+      .def("structure_version", &Solver::structure_version)
       .def("column_of", &Solver::column_of, py::arg("i"), py::arg("k"), py::arg("kind"))
       .def("debug_residual", [](Solver& s, const std::vector<Mat>& x, const std::vector<Mat>& u,
                                 const std::vector<Mat>& lam, const Vec& mu, double rho) {

@@ -6,6 +6,8 @@
 #include <cstdio>
 #include <stdexcept>
 
+#include "rd3g/validate.hpp"
+
 namespace rd3g {
 
 namespace {
@@ -14,7 +16,8 @@ double seconds_since(Clock::time_point t0) { return std::chrono::duration<double
 }  // namespace
 
 void ALGamesSolver::setup(const Problem& problem, const ALGamesSettings& s) {
-  prob_ = baseline::validated_problem(problem);
+  validate_problem(problem);
+  prob_ = with_defaults(problem);
   if (!(s.tol > 0 && s.max_iter >= 0 && s.time_limit >= 0 && s.violation_tol >= 0 && s.dynamics_tol > 0 && s.rho_init > 0 &&
         s.rho_growth >= 1 && s.rho_max >= s.rho_init && s.inner_max_iter >= 1 && s.ls_alpha > 0 && s.ls_alpha < 1 &&
         s.ls_beta > 0 && s.ls_beta < 1 && s.ls_max_steps >= 0))
@@ -24,8 +27,9 @@ void ALGamesSolver::setup(const Problem& problem, const ALGamesSettings& s) {
   T_ = prob_.horizon;
   nx_ = prob_.dynamics[0]->nx();
   nu_ = prob_.dynamics[0]->nu();
+  layout_ = StageLayout{N_, nx_, nu_};
   n_vars_ = N_ * T_ * stage_size();
-  cons_ = baseline::list_constraints(prob_, s.bounds);
+  cons_ = list_constraints(prob_, s.bounds);
   const int C = static_cast<int>(cons_.size());
   lambda_ = Vec::Zero(C);
   h_ = Vec::Zero(C);
@@ -39,8 +43,8 @@ void ALGamesSolver::setup(const Problem& problem, const ALGamesSettings& s) {
   U_.assign(N_, Mat::Zero(nu_, T_));
   A_ = Mat::Zero(nx_, nx_);
   B_ = Mat::Zero(nx_, nu_);
-  Hl_ = Mat::Zero(nx_ + nu_, nx_ + nu_);
   fx_ = Vec::Zero(nx_);
+  stage_.resize(nx_, nu_);
   const size_t ss = static_cast<size_t>(nx_ + nu_);
   trip_.reserve(static_cast<size_t>(N_) * T_ * (ss * ss + 4 * nx_ * (nx_ + nu_) + 3 * nx_) + 16 * C);
   J_.resize(n_vars_, n_vars_);
@@ -57,7 +61,8 @@ void ALGamesSolver::unpack(const Vec& y) {
   }
 }
 
-// G = [dL^i/du^i_k; f(x^i_k, u^i_k) - x^i_{k+1}; dL^i/dx^i_{k+1}] for every player i and step k, with
+// G = [dL^i/du^i_k; f(x^i_k, u^i_k) - x^i_{k+1}; dL^i/dx^i_{k+1}] for every player i and step k (cost and
+// dynamics terms: rd3g::add_stage_terms, shared with RD3G), with
 // L^i = J^i + sum_k nu^i_k'(f(x^i_k, u^i_k) - x^i_{k+1}) + sum_c (1/(2 rho)) (max(0, lambda_c + rho h_c)^2 - lambda_c^2)
 // over the constraints c involving player i. The Jacobian is exact (dynamics curvature via lambda_hessian,
 // constraint curvature included) and always has the same sparsity pattern (zeros where a penalty is off),
@@ -66,56 +71,16 @@ bool ALGamesSolver::evaluate(const Vec& y, bool jac, Vec& G, Vec& h) {
   unpack(y);
   G.setZero();
   if (jac) trip_.clear();
-  auto add_block = [&](int r0, int c0, const auto& M) {
-    for (int a = 0; a < M.rows(); ++a)
-      for (int b = 0; b < M.cols(); ++b) trip_.emplace_back(r0 + a, c0 + b, M(a, b));
-  };
-  auto add_diag = [&](int r0, int c0, int n, double v) {
-    for (int a = 0; a < n; ++a) trip_.emplace_back(r0 + a, c0 + a, v);
-  };
-  for (int i = 0; i < N_; ++i) {
-    const Dynamics& f = *prob_.dynamics[i];
-    const QuadraticCost& cost = prob_.costs[i];
-    const LeadCost& lead = prob_.lead[i];
-    for (int k = 0; k < T_; ++k) {
-      const int ru = col_u(i, k), rn = col_nu(i, k), rx1 = col_x(i, k + 1);
-      f.eval(X_[i].col(k), U_[i].col(k), fx_, A_, B_);
-      const auto nuk = y.segment(rn, nx_);
-      G.segment(ru, nu_) += 2.0 * cost.R.cwiseProduct(U_[i].col(k)) + B_.transpose() * nuk;
-      G.segment(rn, nx_) = fx_ - X_[i].col(k + 1);
-      const bool terminal = k + 1 == T_;
-      const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
-      const Vec& q = terminal ? cost.Qf : cost.Q;
-      const auto x1 = X_[i].col(k + 1);
-      G.segment(rx1, nx_) += 2.0 * (qr.cwiseProduct(x1 - cost.x_ref) + q.cwiseProduct(x1)) - nuk;
-      if (lead.weight != 0.0 && N_ > 1) G[rx1 + lead.index] -= lead.weight * (N_ - 1);
-      if (k >= 1) G.segment(col_x(i, k), nx_) += A_.transpose() * nuk;
-      if (!jac) continue;
-      f.lambda_hessian(X_[i].col(k), U_[i].col(k), nuk, Hl_);
-      Mat Huu = Hl_.bottomRightCorner(nu_, nu_);
-      Huu.diagonal() += 2.0 * cost.R;
-      add_block(ru, ru, Huu);
-      add_block(ru, rn, B_.transpose());
-      add_block(rn, ru, B_);
-      add_diag(rn, rx1, nx_, -1.0);
-      add_diag(rx1, rn, nx_, -1.0);
-      for (int a = 0; a < nx_; ++a) trip_.emplace_back(rx1 + a, rx1 + a, 2.0 * (qr[a] + q[a]));
-      if (k >= 1) {
-        const int rxk = col_x(i, k);
-        add_block(ru, rxk, Hl_.bottomLeftCorner(nu_, nx_));
-        add_block(rxk, ru, Hl_.topRightCorner(nx_, nu_));
-        add_block(rxk, rxk, Hl_.topLeftCorner(nx_, nx_));
-        add_block(rxk, rn, A_.transpose());
-        add_block(rn, rxk, A_);
-      }
-    }
-  }
+  for (int i = 0; i < N_; ++i)
+    for (int k = 0; k < T_; ++k)
+      add_stage_terms(layout_, i, k, T_, *prob_.dynamics[i], prob_.costs[i], prob_.lead[i], X_[i], U_[i],
+                      y.segment(col_nu(i, k), nx_), G, jac ? &trip_ : nullptr, stage_);
   // Constraints: each involved player's stationarity gets w grad h, w = max(0, lambda + rho h). A variable
   // belongs to exactly one player, so the rows of a constraint's variables are those players' rows.
-  baseline::ConstraintValue cv;
+  ConstraintValue cv;
   const double rho = rho_;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    baseline::eval_constraint(prob_, cons_[c], X_, U_, cv);
+    eval_constraint(prob_, cons_[c], X_, U_, cv);
     h[c] = cv.h;
     const double w = std::max(0.0, lambda_[c] + rho * cv.h);
     const int k = cons_[c].k;

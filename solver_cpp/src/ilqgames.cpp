@@ -6,101 +6,14 @@
 #include <cstdio>
 #include <stdexcept>
 
+#include "rd3g/validate.hpp"
+
 namespace rd3g {
 
 namespace {
 using Clock = std::chrono::steady_clock;
 double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 }  // namespace
-
-// -------------------------------------------------------------------------------------------------
-namespace baseline {
-
-Problem validated_problem(const Problem& p) {
-  // RD3G's setup already validates every field and fills the defaults; reuse it rather than repeat it.
-  Solver s;
-  s.setup(p, Settings());
-  return s.problem();
-}
-
-std::vector<Constraint> list_constraints(const Problem& p, bool with_bounds) {
-  Solver s;
-  s.setup(p, Settings());
-  std::vector<Constraint> out;
-  for (const Constraint& c : s.constraints())
-    if (with_bounds || c.kind == Constraint::Kind::Pair || c.kind == Constraint::Kind::Obstacle) out.push_back(c);
-  return out;
-}
-
-void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Mat>& x, const std::vector<Mat>& u,
-                     ConstraintValue& out) {
-  using K = Constraint::Kind;
-  out.H.setZero();
-  out.on_u = false;
-  const int px = p.collision.pos_x, py = p.collision.pos_y;
-  // h = dmin - |d| or dmin^2 - |d|^2 with d = p_i - (p_j or o_k): gradient gd and Hessian Hd w.r.t. d.
-  auto distance_like = [&](const Eigen::Vector2d& d, double dmin, Eigen::Vector2d& gd, Eigen::Matrix2d& Hd) {
-    if (p.collision.form == CollisionForm::Squared) {
-      out.h = dmin * dmin - d.squaredNorm();
-      gd = -2.0 * d;
-      Hd = -2.0 * Eigen::Matrix2d::Identity();
-    } else {
-      const double nd = std::max(d.norm(), 1e-12);
-      const Eigen::Vector2d e = d / nd;
-      out.h = dmin - nd;
-      gd = -e;
-      Hd = -(Eigen::Matrix2d::Identity() - e * e.transpose()) / nd;
-    }
-  };
-  Eigen::Vector2d gd;
-  Eigen::Matrix2d Hd;
-  switch (c.kind) {
-    case K::Pair: {
-      const Eigen::Vector2d d(x[c.i](px, c.k) - x[c.j](px, c.k), x[c.i](py, c.k) - x[c.j](py, c.k));
-      distance_like(d, p.collision.at(c.k), gd, Hd);
-      out.n = 4;
-      const int ag[4] = {c.i, c.i, c.j, c.j}, cp[4] = {px, py, px, py};
-      const double gg[4] = {gd[0], gd[1], -gd[0], -gd[1]};
-      for (int a = 0; a < 4; ++a) { out.agent[a] = ag[a]; out.comp[a] = cp[a]; out.g[a] = gg[a]; }
-      out.H.topLeftCorner<2, 2>() = Hd;
-      out.H.bottomRightCorner<2, 2>() = Hd;
-      out.H.topRightCorner<2, 2>() = -Hd;
-      out.H.bottomLeftCorner<2, 2>() = -Hd;
-      break;
-    }
-    case K::Obstacle: {
-      const Obstacle& o = p.obstacles[c.j];
-      const Eigen::Vector2d d(x[c.i](px, c.k) - o.positions(c.k, 0), x[c.i](py, c.k) - o.positions(c.k, 1));
-      distance_like(d, o.at(c.k), gd, Hd);
-      out.n = 2;
-      out.agent[0] = out.agent[1] = c.i;
-      out.comp[0] = px;
-      out.comp[1] = py;
-      out.g[0] = gd[0];
-      out.g[1] = gd[1];
-      out.H.topLeftCorner<2, 2>() = Hd;
-      break;
-    }
-    case K::StateMax:
-    case K::StateMin:
-    case K::ControlMax:
-    case K::ControlMin: {
-      const bool upper = c.kind == K::StateMax || c.kind == K::ControlMax;
-      out.on_u = c.kind == K::ControlMax || c.kind == K::ControlMin;
-      const double v = out.on_u ? u[c.i](c.idx, c.k) : x[c.i](c.idx, c.k);
-      const double b = out.on_u ? (upper ? p.u_max[c.i][c.idx] : p.u_min[c.i][c.idx])
-                                : (upper ? p.x_max[c.i][c.idx] : p.x_min[c.i][c.idx]);
-      out.h = upper ? v - b : b - v;
-      out.n = 1;
-      out.agent[0] = c.i;
-      out.comp[0] = c.idx;
-      out.g[0] = upper ? 1.0 : -1.0;
-      break;
-    }
-  }
-}
-
-}  // namespace baseline
 
 // -------------------------------------------------------------------------------------------------
 void LQGameSolver::setup(int n, const std::vector<int>& control_dims, int T) {
@@ -183,7 +96,8 @@ bool LQGameSolver::solve(const LQGame& g) {
 
 // -------------------------------------------------------------------------------------------------
 void ILQGamesSolver::setup(const Problem& problem, const ILQGamesSettings& s) {
-  prob_ = baseline::validated_problem(problem);
+  validate_problem(problem);
+  prob_ = with_defaults(problem);
   if (!(s.tol > 0 && s.max_iter >= 0 && s.time_limit >= 0 && s.max_state_change > 0 && s.ls_beta > 0 && s.ls_beta < 1 &&
         s.ls_max_steps >= 0 && s.violation_tol >= 0 && s.rho_init > 0 && s.rho_growth >= 1 && s.rho_max >= s.rho_init &&
         s.round_max_iter >= 1))
@@ -195,7 +109,7 @@ void ILQGamesSolver::setup(const Problem& problem, const ILQGamesSettings& s) {
   nu_ = prob_.dynamics[0]->nu();
   n_ = N_ * nx_;
   m_ = N_ * nu_;
-  cons_ = baseline::list_constraints(prob_, s.bounds);
+  cons_ = list_constraints(prob_, s.bounds);
   cons_at_.assign(T_ + 1, {});
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) cons_at_[cons_[c].k].push_back(c);
   const int C = static_cast<int>(cons_.size());
@@ -224,10 +138,10 @@ void ILQGamesSolver::setup(const Problem& problem, const ILQGamesSettings& s) {
 }
 
 double ILQGamesSolver::max_violation(const std::vector<Mat>& x, const std::vector<Mat>& u, Vec& h) {
-  baseline::ConstraintValue cv;
+  ConstraintValue cv;
   double v = 0.0;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    baseline::eval_constraint(prob_, cons_[c], x, u, cv);
+    eval_constraint(prob_, cons_[c], x, u, cv);
     h[c] = cv.h;
     v = std::max(v, cv.h);
   }
@@ -240,7 +154,7 @@ double ILQGamesSolver::max_violation(const std::vector<Mat>& x, const std::vecto
 // max(0, lambda + rho h) grad h is exact, so fixed points are unaffected.
 void ILQGamesSolver::linearize_and_quadratize() {
   const double rho = rho_;
-  baseline::ConstraintValue cv;
+  ConstraintValue cv;
   for (int k = 0; k <= T_; ++k) {
     const bool terminal = k == T_;
     std::vector<Mat>& Q = terminal ? lq_.QT : lq_.Q[k];
@@ -279,7 +193,7 @@ void ILQGamesSolver::linearize_and_quadratize() {
       }
     }
     for (int c : cons_at_[k]) {
-      baseline::eval_constraint(prob_, cons_[c], x_, u_, cv);
+      eval_constraint(prob_, cons_[c], x_, u_, cv);
       const double w = lambda_[c] + rho * cv.h;
       if (w <= 0) continue;
       // The penalty lambda h + rho/2 h^2 (PHR form) is part of the cost of every player the constraint involves.

@@ -1,5 +1,7 @@
 #include "rd3g/solver.hpp"
 
+#include "rd3g/second_order.hpp"
+
 #include <Eigen/IterativeLinearSolvers>
 #include <algorithm>
 #include <chrono>
@@ -9,6 +11,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "rd3g/validate.hpp"
+
 namespace rd3g {
 
 namespace {
@@ -16,10 +20,8 @@ using Clock = std::chrono::steady_clock;
 inline double seconds_since(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
 }
-void require(bool ok, const std::string& what) {
-  if (!ok) throw std::invalid_argument(what);
-}
-bool finite(const Vec& v) { return v.allFinite(); }
+// LSCG iterations between deadline checks when a time limit is set.
+constexpr int kLscgChunk = 50;
 }  // namespace
 
 std::string status_name(Status s) {
@@ -30,120 +32,46 @@ std::string status_name(Status s) {
     case Status::NumericalError: return "numerical_error";
     case Status::TimeLimit: return "time_limit";
     case Status::Stalled: return "stalled";
+    case Status::Saddle: return "saddle";
   }
   return "unknown";
 }
 
 // -------------------------------------------------------------------------------------------------
 void Solver::setup(const Problem& p, const Settings& s) {
-  N_ = p.num_agents();
-  T_ = p.horizon;
-  require(N_ >= 1, "problem needs at least one agent");
-  require(T_ >= 1, "horizon must be >= 1");
-  require(p.dt > 0 && std::isfinite(p.dt), "dt must be positive and finite");
-  for (int i = 0; i < N_; ++i)
-    require(p.dynamics[i] != nullptr, "agents[" + std::to_string(i) + "].dynamics is missing");
-  require(static_cast<int>(p.x0.size()) == N_, "x0 must have one entry per agent");
-  require(static_cast<int>(p.costs.size()) == N_, "costs must have one entry per agent");
-  require(p.lead.empty() || static_cast<int>(p.lead.size()) == N_, "lead must be empty or have one entry per agent");
-  nx_ = p.dynamics[0]->nx();
-  nu_ = p.dynamics[0]->nu();
-  for (int i = 0; i < N_; ++i) {
-    const std::string a = "agents[" + std::to_string(i) + "]";
-    require(p.dynamics[i] != nullptr, a + ".dynamics is missing");
-    require(p.dynamics[i]->nx() == nx_ && p.dynamics[i]->nu() == nu_, a + ".dynamics: all agents must share state/control sizes");
-    require(static_cast<int>(p.x0.size()) == N_ && p.x0[i].size() == nx_ && finite(p.x0[i]), a + ".x0 must have nx finite values");
-    const QuadraticCost& c = p.costs.at(i);
-    for (auto* v : {&c.x_ref, &c.Q_ref, &c.Q, &c.Qf_ref, &c.Qf})
-      require(v->size() == nx_ && finite(*v), a + ".cost: state-sized weights must have nx finite values");
-    require(c.R.size() == nu_ && finite(c.R), a + ".cost.R must have nu finite values");
-    require((c.R.array() >= 0).all() && (c.Q.array() >= 0).all() && (c.Q_ref.array() >= 0).all(),
-            a + ".cost: weights must be non-negative");
-  }
-  require(s.tol > 0, "solver.tol must be positive");
-  require(s.max_iter >= 0, "solver.max_iter must be >= 0");
-  require(s.time_limit >= 0, "solver.time_limit must be >= 0 (0 = none)");
-  require(s.rho_init > 0, "solver.rho_init must be positive");
-  require(s.rho_kappa > 0 && s.rho_kappa < 1, "solver.rho_kappa must be in (0, 1)");
-  require(s.rho_beta > 1, "solver.rho_beta must be > 1");
-  require(s.rho_progress >= 0, "solver.rho_progress must be >= 0");
-  require(s.rho_floor_factor > 0 && s.rho_floor_factor <= 1, "solver.rho_floor_factor must be in (0, 1]");
-  require(s.ls_alpha > 0 && s.ls_alpha < 1, "solver.ls_alpha must be in (0, 1)");
-  require(s.ls_beta > 0 && s.ls_beta < 1, "solver.ls_beta must be in (0, 1)");
-  require(s.ls_max_steps >= 1, "solver.ls_max_steps must be >= 1");
-  require(s.violation_tol >= 0, "solver.violation_tol must be >= 0");
-  require(s.dynamics_tol > 0, "solver.dynamics_tol must be positive");
-  require(s.multiplier_tol >= 0, "solver.multiplier_tol must be >= 0");
-  require(s.barrier_margin >= 0, "solver.barrier_margin must be >= 0");
-  require(s.fraction_to_boundary > 0 && s.fraction_to_boundary < 1, "solver.fraction_to_boundary must be in (0, 1)");
-  require(s.lm_tries >= 0 && s.lm_nu_init > 0, "solver.lm_tries must be >= 0 and solver.lm_nu_init positive");
-  require(s.restarts >= 0, "solver.restarts must be >= 0");
-  require(s.stall_window >= 0, "solver.stall_window must be >= 0 (0 = never)");
-  require(s.restart_u_std >= 0, "solver.restart_u_std must be >= 0");
-  require(s.polish_gap >= 0, "solver.polish_gap must be >= 0 (0 = off)");
-  require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
-  prob_ = p;
-  if (prob_.lead.empty()) prob_.lead.assign(N_, LeadCost{});
-  auto fill_bounds = [&](std::vector<Vec>& b, int n, double val, const char* name) {
-    if (b.empty()) b.assign(N_, Vec::Constant(n, val));
-    require(static_cast<int>(b.size()) == N_, std::string(name) + " must have one entry per agent");
-    for (int i = 0; i < N_; ++i) {
-      require(b[i].size() == n, std::string(name) + " has the wrong length");
-      for (int q = 0; q < n; ++q) require(!std::isnan(b[i][q]), std::string(name) + " has NaN");
-    }
-  };
-  fill_bounds(prob_.u_min, nu_, -kInf, "u_min");
-  fill_bounds(prob_.u_max, nu_, kInf, "u_max");
-  fill_bounds(prob_.x_min, nx_, -kInf, "x_min");
-  fill_bounds(prob_.x_max, nx_, kInf, "x_max");
-  for (int i = 0; i < N_; ++i)
-    for (int q = 0; q < nu_; ++q) require(prob_.u_min[i][q] < prob_.u_max[i][q], "u_min must be below u_max");
-  for (const auto& o : prob_.obstacles) {
-    require(o.positions.rows() == T_ + 1 && o.positions.cols() == 2 && o.positions.allFinite() && o.min_distance > 0,
-            "obstacle positions must be (T+1) x 2 finite with min_distance > 0");
-    require(o.min_distance_steps.size() == 0 ||
-                (o.min_distance_steps.size() == T_ && o.min_distance_steps.allFinite() && o.min_distance_steps.minCoeff() > 0),
-            "obstacle min_distance_steps must be empty or T positive values");
-  }
-  if (prob_.collision.enabled && N_ > 1)
-    require(prob_.collision.min_distance > 0 && prob_.collision.pos_x >= 0 && prob_.collision.pos_x < nx_ &&
-                prob_.collision.pos_y >= 0 && prob_.collision.pos_y < nx_,
-            "collision.min_distance must be positive and position indices valid");
-  if (prob_.collision.enabled && N_ > 1)
-    require(prob_.collision.min_distance_steps.size() == 0 ||
-                (prob_.collision.min_distance_steps.size() == T_ && prob_.collision.min_distance_steps.allFinite() &&
-                 prob_.collision.min_distance_steps.minCoeff() > 0),
-            "collision.min_distance_steps must be empty or T positive values");
+  const auto t0 = Clock::now();
+  validate_settings(s);
+  validate_problem(p);
+  prob_ = with_defaults(p);
   settings_ = s;
+  N_ = prob_.num_agents();
+  T_ = prob_.horizon;
+  nx_ = prob_.dynamics[0]->nx();
+  nu_ = prob_.dynamics[0]->nu();
   per_agent_multipliers_ = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
-
-  // Constraint list, in time order (keeps the multiplier numbering close to the stage ordering).
-  cons_.clear();
-  using K = Constraint::Kind;
-  for (int k = 0; k <= T_; ++k) {
-    if (k >= 1) {
-      if (prob_.collision.enabled)
-        for (int i = 0; i < N_; ++i)
-          for (int j = i + 1; j < N_; ++j) cons_.push_back({K::Pair, i, j, k, -1});
-      for (int i = 0; i < N_; ++i) {
-        for (int o = 0; o < static_cast<int>(prob_.obstacles.size()); ++o) cons_.push_back({K::Obstacle, i, o, k, -1});
-        for (int q = 0; q < nx_; ++q) {
-          if (std::isfinite(prob_.x_max[i][q])) cons_.push_back({K::StateMax, i, -1, k, q});
-          if (std::isfinite(prob_.x_min[i][q])) cons_.push_back({K::StateMin, i, -1, k, q});
-        }
-      }
-    }
-    if (k < T_)
-      for (int i = 0; i < N_; ++i)
-        for (int q = 0; q < nu_; ++q) {
-          if (std::isfinite(prob_.u_max[i][q])) cons_.push_back({K::ControlMax, i, -1, k, q});
-          if (std::isfinite(prob_.u_min[i][q])) cons_.push_back({K::ControlMin, i, -1, k, q});
-        }
-  }
-  const int C = static_cast<int>(cons_.size());
+  layout_ = StageLayout{N_, nx_, nu_};
   n_primal_ = N_ * T_ * stage_size();
 
-  for (Iterate* it : {&y_, &trial_, &best_}) {
+  // Buffers that depend only on the sizes.
+  stage_.resize(nx_, nu_);
+  fx_ = Mat::Zero(nx_, 1);
+  Atmp_ = Mat::Zero(nx_, nx_);
+  Btmp_ = Mat::Zero(nx_, nu_);
+  u_init_.assign(N_, Mat::Zero(nu_, T_));
+  lam_init_.assign(N_, Mat::Zero(nx_, T_));
+  riccati_.setup(N_, T_, nx_, nu_);
+  if (!second_order_) second_order_ = std::make_shared<SecondOrderCheck>();
+  second_order_->setup(N_, T_, nx_, nu_);
+  list_and_allocate();
+  setups_ = 1;
+  setup_time_ = seconds_since(t0);
+  update_time_ = 0;
+}
+
+void Solver::list_and_allocate() {
+  cons_ = list_constraints(prob_);
+  const int C = static_cast<int>(cons_.size());
+  for (Iterate* it : {&y_, &trial_, &best_, &best_seen_}) {
     it->x.assign(N_, Mat::Zero(nx_, T_ + 1));
     it->u.assign(N_, Mat::Zero(nu_, T_));
     it->lam.assign(N_, Mat::Zero(nx_, T_));
@@ -151,12 +79,6 @@ void Solver::setup(const Problem& p, const Settings& s) {
     it->mu2 = Vec::Zero(C);
     it->z = Vec::Zero(C);
   }
-  A_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nx_)));
-  B_.assign(N_, std::vector<Mat>(T_, Mat::Zero(nx_, nu_)));
-  fx_ = Mat::Zero(nx_, 1);
-  Hl_ = Mat::Zero(nx_ + nu_, nx_ + nu_);
-  Atmp_ = Mat::Zero(nx_, nx_);
-  Btmp_ = Mat::Zero(nx_, nu_);
   h_ = Vec::Zero(C);
   h_trial_ = Vec::Zero(C);
   rc_ = Vec::Zero(C);
@@ -171,43 +93,163 @@ void Solver::setup(const Problem& p, const Settings& s) {
   r_trial_ = Vec::Zero(max_vars);
   rhs_ = Vec::Zero(max_vars);
   dy_ = Vec::Zero(max_vars);
+  neg_rhs_ = Vec::Zero(max_vars);
+  lin_res_ = Vec::Zero(max_vars);
   // Per stage and agent: dense (nx+nu)^2 Hessian, A, B, identities; per constraint up to ~20 entries.
+  trip_.clear();
   trip_.reserve(static_cast<size_t>(N_) * T_ * (3 * (nx_ + nu_) * (nx_ + nu_) + 4 * nx_) + 24 * C);
+  merits_.reserve(static_cast<size_t>(settings_.max_iter) + 2);
   lu_analyzed_ = false;
-  riccati_.setup(N_, T_, nx_, nu_);
+  ++structure_version_;
+}
+
+// ---- updates --------------------------------------------------------------------------------------
+namespace {
+std::string agent_path(int i) { return "agents[" + std::to_string(i) + "]"; }
+/// True if the bounds admit the same finite components (the constraint list depends only on that).
+bool same_finite_pattern(const Vec& a, const Vec& b) {
+  for (int q = 0; q < a.size(); ++q)
+    if (std::isfinite(a[q]) != std::isfinite(b[q])) return false;
+  return true;
+}
+}  // namespace
+
+void Solver::finish_update(Clock::time_point t0) { update_time_ += seconds_since(t0); }
+
+void Solver::update_settings(const Settings& s) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update_settings()");
+  const auto t0 = Clock::now();
+  validate_settings(s);
+  const bool per_agent = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
+  if (per_agent != per_agent_multipliers_) lu_analyzed_ = false;  // another multiplier layout
+  per_agent_multipliers_ = per_agent;
+  settings_ = s;
+  merits_.reserve(static_cast<size_t>(s.max_iter) + 2);
+  finish_update(t0);
+}
+
+void Solver::update_initial_state(int agent, const Vec& x0) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update_initial_state()");
+  const auto t0 = Clock::now();
+  require(agent >= 0 && agent < N_, "agent index " + std::to_string(agent) + " is not in [0, " + std::to_string(N_) + ")");
+  validate_initial_state(x0, nx_, agent_path(agent) + ".x0");
+  prob_.x0[agent] = x0;
+  finish_update(t0);
+}
+
+void Solver::update_cost(int agent, const QuadraticCost& cost) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update_cost()");
+  const auto t0 = Clock::now();
+  require(agent >= 0 && agent < N_, "agent index " + std::to_string(agent) + " is not in [0, " + std::to_string(N_) + ")");
+  validate_cost(cost, nx_, nu_, agent_path(agent) + ".cost");
+  prob_.costs[agent] = cost;
+  finish_update(t0);
+}
+
+void Solver::update_lead(int agent, const LeadCost& lead) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update_lead()");
+  const auto t0 = Clock::now();
+  require(agent >= 0 && agent < N_, "agent index " + std::to_string(agent) + " is not in [0, " + std::to_string(N_) + ")");
+  validate_lead(lead, nx_, agent_path(agent));
+  prob_.lead[agent] = lead;
+  finish_update(t0);
+}
+
+void Solver::update_bounds(int agent, const Vec& u_min, const Vec& u_max, const Vec& x_min, const Vec& x_max) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update_bounds()");
+  const auto t0 = Clock::now();
+  require(agent >= 0 && agent < N_, "agent index " + std::to_string(agent) + " is not in [0, " + std::to_string(N_) + ")");
+  const std::string a = agent_path(agent);
+  validate_bounds(u_min, u_max, nu_, a, "u");
+  validate_bounds(x_min, x_max, nx_, a, "x");
+  auto filled = [](const Vec& v, int n, double value) { return v.size() ? v : Vec(Vec::Constant(n, value)); };
+  const Vec umin = filled(u_min, nu_, -kInf), umax = filled(u_max, nu_, kInf);
+  const Vec xmin = filled(x_min, nx_, -kInf), xmax = filled(x_max, nx_, kInf);
+  const bool same = same_finite_pattern(umin, prob_.u_min[agent]) && same_finite_pattern(umax, prob_.u_max[agent]) &&
+                    same_finite_pattern(xmin, prob_.x_min[agent]) && same_finite_pattern(xmax, prob_.x_max[agent]);
+  prob_.u_min[agent] = umin;
+  prob_.u_max[agent] = umax;
+  prob_.x_min[agent] = xmin;
+  prob_.x_max[agent] = xmax;
+  if (!same) {
+    list_and_allocate();
+    ++setups_;
+    setup_time_ = seconds_since(t0);
+  }
+  finish_update(t0);
+}
+
+void Solver::update_collision_distance(double min_distance, const Vec& steps) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update_collision_distance()");
+  const auto t0 = Clock::now();
+  if (prob_.collision.enabled && N_ > 1) validate_min_distance(min_distance, steps, T_, "collision.min_distance");
+  prob_.collision.min_distance = min_distance;
+  prob_.collision.min_distance_steps = steps;
+  finish_update(t0);
+}
+
+void Solver::update_obstacle(int index, const Eigen::MatrixXd& positions, double min_distance, const Vec& steps) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update_obstacle()");
+  const auto t0 = Clock::now();
+  const int n = static_cast<int>(prob_.obstacles.size());
+  require(index >= 0 && index < n, "obstacle index " + std::to_string(index) + " is not in [0, " + std::to_string(n) + ")");
+  Obstacle o;
+  o.positions = positions;
+  o.min_distance = min_distance;
+  o.min_distance_steps = steps;
+  validate_obstacle(o, T_, "obstacles[" + std::to_string(index) + "]");
+  prob_.obstacles[index] = std::move(o);
+  finish_update(t0);
+}
+
+void Solver::update(const Problem& p) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before update()");
+  const auto t0 = Clock::now();
+  const int agents = static_cast<int>(p.dynamics.empty() ? p.x0.size() : p.dynamics.size());
+  require(agents == N_, "update: agents must have the set-up's " + std::to_string(N_) + " agents, got " + std::to_string(agents));
+  Problem q = p;
+  if (q.dynamics.empty()) q.dynamics = prob_.dynamics;
+  require(q.horizon == T_, "update: horizon must be the set-up's " + std::to_string(T_) + ", got " + std::to_string(q.horizon));
+  validate_problem(q);
+  require(q.dynamics[0]->nx() == nx_ && q.dynamics[0]->nu() == nu_, "update: agents[0].dynamics must keep nx and nu");
+  require(q.obstacles.size() == prob_.obstacles.size(),
+          "update: obstacles must keep the set-up's number (" + std::to_string(prob_.obstacles.size()) + ")");
+  require(q.collision.enabled == prob_.collision.enabled && q.collision.form == prob_.collision.form &&
+              q.collision.pos_x == prob_.collision.pos_x && q.collision.pos_y == prob_.collision.pos_y,
+          "update: collision.enabled, form, pos_x and pos_y must stay as set up");
+  q = with_defaults(q);
+  bool same = true;
+  for (int i = 0; i < N_; ++i)
+    same = same && same_finite_pattern(q.u_min[i], prob_.u_min[i]) && same_finite_pattern(q.u_max[i], prob_.u_max[i]) &&
+           same_finite_pattern(q.x_min[i], prob_.x_min[i]) && same_finite_pattern(q.x_max[i], prob_.x_max[i]);
+  prob_ = std::move(q);
+  if (!same) {
+    list_and_allocate();
+    ++setups_;
+    setup_time_ = seconds_since(t0);
+  }
+  finish_update(t0);
 }
 
 // -------------------------------------------------------------------------------------------------
 void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const {
+  // The 2-variable form of rd3g::eval_constraint (g, H with respect to agent i's own position or component;
+  // for pairs dh/dp_j = -g), without its 4 x 4 Hessian: this runs for every constraint at every evaluation.
   const Constraint& cn = cons_[c];
   using K = Constraint::Kind;
   g.setZero();
   H.setZero();
-  auto distance_like = [&](const Eigen::Vector2d& d, double dmin) {
-    // h = dmin - |d| (Distance) or dmin^2 - |d|^2 (Squared); g = dh/dd, H = d2h/dd2.
-    if (prob_.collision.form == CollisionForm::Squared) {
-      h = dmin * dmin - d.squaredNorm();
-      g = -2.0 * d;
-      H = -2.0 * Eigen::Matrix2d::Identity();
-    } else {
-      const double n = std::max(d.norm(), 1e-12);
-      const Eigen::Vector2d e = d / n;
-      h = dmin - n;
-      g = -e;
-      H = -(Eigen::Matrix2d::Identity() - e * e.transpose()) / n;
-    }
-  };
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   switch (cn.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
-      distance_like(d, prob_.collision.at(cn.k));
+      distance_constraint(prob_.collision.form, d, prob_.collision.at(cn.k), h, g, H);
       break;
     }
     case K::Obstacle: {
       const Obstacle& o = prob_.obstacles[cn.j];
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y.x[cn.i](py, cn.k) - o.positions(cn.k, 1));
-      distance_like(d, o.at(cn.k));
+      distance_constraint(prob_.collision.form, d, o.at(cn.k), h, g, H);
       break;
     }
     case K::StateMax: h = y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx]; g[0] = 1; break;
@@ -276,70 +318,15 @@ void Solver::number_multipliers() {
 bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc) {
   const bool pd = barrier_ == BarrierMode::PrimalDual;
   rc.setZero();
-  const int ss = stage_size();
   r.head(n_vars_).setZero();
   if (jac) {
     trip_.clear();
     rhs_.head(n_vars_).setZero();
   }
-  auto add_block = [&](int r0, int c0, const Mat& M) {
-    for (int a = 0; a < M.rows(); ++a)
-      for (int b = 0; b < M.cols(); ++b) trip_.emplace_back(r0 + a, c0 + b, M(a, b));
-  };
-  auto add_neg_identity = [&](int r0, int c0, int n) {
-    for (int a = 0; a < n; ++a) trip_.emplace_back(r0 + a, c0 + a, -1.0);
-  };
-  (void)ss;
-
-  for (int i = 0; i < N_; ++i) {
-    const Dynamics& f = *prob_.dynamics[i];
-    const QuadraticCost& cost = prob_.costs[i];
-    const LeadCost& lead = prob_.lead[i];
-    for (int k = 0; k < T_; ++k) {
-      const int ru = col_u(i, k), rf = col_lam(i, k), rx1 = col_x(i, k + 1);
-      Mat& A = A_[i][k];
-      Mat& B = B_[i][k];
-      f.eval(y.x[i].col(k), y.u[i].col(k), fx_.col(0), A, B);
-      const auto lk = y.lam[i].col(k);
-      // dL/du_k = 2 R u_k + B' lambda_k
-      r.segment(ru, nu_) = 2.0 * cost.R.cwiseProduct(y.u[i].col(k)) + B.transpose() * lk;
-      // F_k = f(x_k, u_k) - x_{k+1}
-      r.segment(rf, nx_) = fx_.col(0) - y.x[i].col(k + 1);
-      // dL/dx_{k+1}: cost gradient - lambda_k (+ A_{k+1}' lambda_{k+1}, added at stage k+1)
-      const bool terminal = (k + 1 == T_);
-      const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
-      const Vec& q = terminal ? cost.Qf : cost.Q;
-      const auto x1 = y.x[i].col(k + 1);
-      r.segment(rx1, nx_) += 2.0 * (qr.cwiseProduct(x1 - cost.x_ref) + q.cwiseProduct(x1)) - lk;
-      if (lead.weight != 0.0 && N_ > 1) r[rx1 + lead.index] += -lead.weight * (N_ - 1);
-      if (k >= 1) r.segment(col_x(i, k), nx_) += A.transpose() * lk;
-
-      if (jac) {
-        f.lambda_hessian(y.x[i].col(k), y.u[i].col(k), lk, Hl_);
-        // rows dL/du_k
-        Mat Huu = Hl_.bottomRightCorner(nu_, nu_);
-        Huu.diagonal() += 2.0 * cost.R;
-        add_block(ru, ru, Huu);
-        add_block(ru, rf, B.transpose());
-        // rows F_k
-        add_block(rf, ru, B);
-        add_neg_identity(rf, rx1, nx_);
-        // rows dL/dx_{k+1}
-        add_neg_identity(rx1, rf, nx_);
-        Mat Hc = Mat::Zero(nx_, nx_);
-        Hc.diagonal() = 2.0 * (qr + q);
-        add_block(rx1, rx1, Hc);
-        if (k >= 1) {
-          const int rxk = col_x(i, k);
-          add_block(ru, rxk, Hl_.bottomLeftCorner(nu_, nx_));
-          add_block(rxk, ru, Hl_.topRightCorner(nx_, nu_));
-          add_block(rxk, rxk, Hl_.topLeftCorner(nx_, nx_));
-          add_block(rxk, rf, A.transpose());
-          add_block(rf, rxk, A);
-        }
-      }
-    }
-  }
+  for (int i = 0; i < N_; ++i)
+    for (int k = 0; k < T_; ++k)
+      add_stage_terms(layout_, i, k, T_, *prob_.dynamics[i], prob_.costs[i], prob_.lead[i], y.x[i], y.u[i],
+                      y.lam[i].col(k), r, jac ? &trip_ : nullptr, stage_);
 
   // Constraints: equality rows + multiplier columns (Active), barrier terms (Barrier), nothing (Free).
   using Kd = Constraint::Kind;
@@ -471,29 +458,40 @@ void Solver::build_J() {
   J_built_ = true;
 }
 
-bool Solver::solve_linear(Vec& dy) {
+bool Solver::solve_linear(Vec& dy, Info& info) {
   J_built_ = false;
-  if (settings_.linear_solver == LinearSolver::Riccati && n_vars_ == n_primal_) {
+  const int n = n_vars_;
+  if (settings_.linear_solver == LinearSolver::Riccati && n == n_primal_) {
     if (riccati_.solve(trip_, rhs_, dy)) {
       // Check the step against the assembled system (O(nnz)); a poorly conditioned recursion falls back to LU.
-      Vec res = rhs_.head(n_vars_);
-      for (const auto& t : trip_) res[t.row()] += t.value() * dy[t.col()];
-      if (res.norm() <= 1e-9 * std::max(1.0, rhs_.head(n_vars_).norm())) {
-        info_->riccati_solves++;
+      lin_res_.head(n) = rhs_.head(n);
+      for (const auto& t : trip_) lin_res_[t.row()] += t.value() * dy[t.col()];
+      if (lin_res_.head(n).norm() <= 1e-9 * std::max(1.0, rhs_.head(n).norm())) {
+        info.riccati_solves++;
         return true;
       }
-      if (settings_.verbose) std::printf("   Riccati residual %.2e: falling back to sparse LU\n", res.norm());
+      if (settings_.verbose) std::printf("   Riccati residual %.2e: falling back to sparse LU\n", lin_res_.head(n).norm());
     }
   }
   build_J();
-  const Vec rhs = -rhs_.head(n_vars_);
+  neg_rhs_.head(n) = -rhs_.head(n);
+  const auto rhs = neg_rhs_.head(n);
   auto qr_solve = [&]() -> bool {
+    // SparseQR cannot be interrupted: with a time limit it is not started once the deadline has passed,
+    // nor when the previous factorisation of this solver would not fit into the time left.
+    if (past_deadline() ||
+        (settings_.time_limit > 0 && seconds_since(t_start_) + last_qr_seconds_ > settings_.time_limit)) {
+      timed_out_ = true;
+      return false;
+    }
+    const auto t_qr = Clock::now();
     Eigen::SparseQR<SpMat, Eigen::COLAMDOrdering<int>> qr;
     qr.compute(J_);
+    last_qr_seconds_ = seconds_since(t_qr);
     if (qr.info() != Eigen::Success) return false;
-    dy.head(n_vars_) = qr.solve(rhs);
-    info_->qr_fallbacks++;
-    return qr.info() == Eigen::Success && dy.head(n_vars_).allFinite();
+    dy.head(n) = qr.solve(rhs);
+    info.qr_fallbacks++;
+    return qr.info() == Eigen::Success && dy.head(n).allFinite();
   };
   switch (settings_.linear_solver) {
     case LinearSolver::Riccati:
@@ -503,20 +501,21 @@ bool Solver::solve_linear(Vec& dy) {
         lu_.analyzePattern(J_);
         pattern_state_ = state_;
         lu_analyzed_ = true;
-        info_->symbolic_factorizations++;
+        info.symbolic_factorizations++;
       }
       lu_.factorize(J_);
       if (lu_.info() == Eigen::Success) {
-        dy.head(n_vars_) = lu_.solve(rhs);
+        dy.head(n) = lu_.solve(rhs);
         // Iterative refinement with the same factors: the Newton matrix can be badly scaled (barrier
         // curvature z/(-h) next to O(1) entries), and an inaccurate step is not a descent direction.
         for (int ref = 0; ref < settings_.refinement_steps; ++ref) {
-          const Vec res = rhs - J_ * dy.head(n_vars_);
-          if (settings_.verbose) std::printf("   linear residual %.2e (rhs %.2e)\n", res.norm(), rhs.norm());
-          if (res.norm() <= 1e-12 * rhs.norm()) break;
-          dy.head(n_vars_) += lu_.solve(res);
+          lin_res_.head(n) = rhs - J_ * dy.head(n);
+          const double res_norm = lin_res_.head(n).norm();
+          if (settings_.verbose) std::printf("   linear residual %.2e (rhs %.2e)\n", res_norm, rhs.norm());
+          if (res_norm <= 1e-12 * rhs.norm()) break;
+          dy.head(n) += lu_.solve(lin_res_.head(n));
         }
-        if (lu_.info() == Eigen::Success && dy.head(n_vars_).allFinite()) return true;
+        if (lu_.info() == Eigen::Success && dy.head(n).allFinite()) return true;
       }
       lu_analyzed_ = false;  // a failed factorisation may leave the symbolic data unusable
       return qr_solve();
@@ -524,19 +523,39 @@ bool Solver::solve_linear(Vec& dy) {
     case LinearSolver::LSCG: {
       Eigen::LeastSquaresConjugateGradient<SpMat> cg;
       cg.setTolerance(settings_.lscg_tol);
-      cg.setMaxIterations(settings_.lscg_max_iter);
       cg.compute(J_);
-      dy.head(n_vars_) = cg.solve(rhs);
-      if (cg.info() == Eigen::Success && dy.head(n_vars_).allFinite()) return true;
+      if (settings_.time_limit <= 0) {
+        cg.setMaxIterations(settings_.lscg_max_iter);
+        dy.head(n) = cg.solve(rhs);
+      } else {
+        // In chunks, so that the deadline is checked inside a long solve (each chunk restarts from the last
+        // iterate, which changes the iterates slightly compared with one run).
+        dy.head(n).setZero();
+        for (int done = 0; done < settings_.lscg_max_iter; done += kLscgChunk) {
+          cg.setMaxIterations(std::min(kLscgChunk, settings_.lscg_max_iter - done));
+          dy.head(n) = cg.solveWithGuess(rhs, dy.head(n));
+          if (cg.info() == Eigen::Success) break;
+          if (past_deadline()) {
+            timed_out_ = true;
+            return false;
+          }
+        }
+      }
+      if (cg.info() == Eigen::Success && dy.head(n).allFinite()) return true;
       return qr_solve();
     }
     case LinearSolver::SparseQR: {
+      const int fallbacks = info.qr_fallbacks;
       const bool ok = qr_solve();
-      info_->qr_fallbacks--;  // not a fallback when QR is the chosen method
+      info.qr_fallbacks = fallbacks;  // not a fallback when QR is the chosen method
       return ok;
     }
   }
   return false;
+}
+
+bool Solver::past_deadline() const {
+  return settings_.time_limit > 0 && seconds_since(t_start_) > settings_.time_limit;
 }
 
 void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const {
@@ -624,10 +643,7 @@ std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::ve
   eval_all_constraints(y_, h_);
   classify(h_, true);
   number_multipliers();
-  Info info;
-  info_ = &info;
   evaluate(y_, h_, true, r_, rc_);
-  info_ = nullptr;
   r = r_.head(n_vars_);
   SpMat Js(n_vars_, n_vars_);
   Js.setFromTriplets(trip_.begin(), trip_.end());
@@ -652,160 +668,216 @@ bool Solver::polish(const Vec& h) {
 // -------------------------------------------------------------------------------------------------
 Result Solver::solve(const WarmStart* warm) {
   if (N_ == 0) throw std::logic_error("setup() must be called before solve()");
-  const auto t_start = Clock::now();
+  t_start_ = Clock::now();
   Result res;
   Info& info = res.info;
-  info_ = &info;
-  const int C = static_cast<int>(cons_.size());
-
-  // Initial guess: given (or zero) controls, rolled out so that the dynamics hold exactly.
-  std::vector<Mat> u_init(N_), lam_init(N_);
-  for (int i = 0; i < N_; ++i) {
-    if (warm && static_cast<int>(warm->u.size()) == N_) {
-      require(warm->u[i].rows() == T_ && warm->u[i].cols() == nu_ && warm->u[i].allFinite(), "warm start u has the wrong shape or non-finite values");
-      u_init[i] = warm->u[i].transpose();
-    } else {
-      u_init[i] = Mat::Zero(nu_, T_);
-    }
-    if (warm && static_cast<int>(warm->lambda.size()) == N_) {
-      require(warm->lambda[i].rows() == T_ && warm->lambda[i].cols() == nx_ && warm->lambda[i].allFinite(), "warm start lambda has the wrong shape or non-finite values");
-      lam_init[i] = warm->lambda[i].transpose();
-    } else {
-      lam_init[i] = Mat::Zero(nx_, T_);
-    }
-  }
-  const bool have_mu = warm && warm->mu.size() == C;
-  if (have_mu) require(warm->mu.allFinite(), "warm start mu has non-finite values");
-  const double rho_floor = settings_.tol * settings_.rho_floor_factor;
-  std::mt19937 rng(12345);
-  std::normal_distribution<double> noise(0.0, 1.0);
+  info.timings.setup = setup_time_;
+  info.timings.update = update_time_;
+  info.setups = setups_;
+  update_time_ = 0;
+  setups_ = 0;
+  load_initial_guess(warm);
+  rng_.seed(12345);
+  noise_.reset();
+  timed_out_ = false;
+  best_merit_ = kInf;
   int total_iter = 0;
-
   for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
     info.attempts = attempt + 1;
-    for (int i = 0; i < N_; ++i) {
-      y_.x[i].col(0) = prob_.x0[i];
-      y_.u[i] = u_init[i];
-      if (attempt >= 4)
-        // A constant offset per agent and control component (not white noise, which averages out):
-        // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
-        for (int q = 0; q < nu_; ++q) {
-          const double offset = settings_.restart_u_std * noise(rng);
-          y_.u[i].row(q).array() += offset;
-        }
-      y_.lam[i] = attempt == 0 ? lam_init[i] : Mat::Zero(nx_, T_);
-      for (int k = 0; k < T_; ++k) {
-        prob_.dynamics[i]->eval(y_.x[i].col(k), y_.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
-        y_.x[i].col(k + 1) = fx_.col(0);
-      }
-    }
-    y_.mu.setZero();
-    y_.mu2.setZero();
-    y_.z.setZero();
-    if (have_mu && attempt == 0) { y_.mu = warm->mu; y_.mu2 = warm->mu; }
-    // Restart schedule (measured on the merging games, each variant rescues different instances):
-    // attempt 1: 10x rho_init; 2: the other barrier form; 3: both; >= 4: the same four with perturbed controls.
-    const int variant = attempt % 4;
-    rho_ = settings_.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
-    barrier_ = settings_.barrier;
-    if (variant >= 2)
-      barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
-    lu_analyzed_ = false;
-    std::vector<double> merits;
-    bool first = true, stalled = false, polished = false;
-    info.status = Status::MaxIterations;
-    for (;; ++total_iter) {
-      auto t0 = Clock::now();
-      eval_all_constraints(y_, h_);
-      classify(h_, first);
-      first = false;
-      number_multipliers();
-      const bool ok = evaluate(y_, h_, true, r_, rc_);
-      info.timings.assembly += seconds_since(t0);
-      if (!ok) { info.status = Status::NumericalError; break; }
-      const double rnorm = merit(r_, rc_);
-      info.residual_history.push_back(rnorm);
-      merits.push_back(rnorm);
-      info.residual_norm = rnorm;
-      info.iterations = total_iter;
-      bool signs_ok = true;
-      for (int c = 0; c < C; ++c)
-        if (state_[c] == ConstraintState::Active &&
-            (y_.mu[c] < -settings_.multiplier_tol || (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol)))
-          signs_ok = false;
-      const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
-      if (settings_.verbose)
-        std::printf("it %3d  |r| %.3e  rho %.2e  viol %.2e  active %d\n", total_iter, rnorm, rho_, maxviol, n_vars_ - n_primal_);
-      double max_defect = 0;
-      for (int i = 0; i < N_; ++i)
-        for (int k = 0; k < T_; ++k) max_defect = std::max(max_defect, r_.segment(col_lam(i, k), nx_).cwiseAbs().maxCoeff());
-      if (rnorm < settings_.tol && maxviol <= settings_.violation_tol && max_defect <= settings_.dynamics_tol && signs_ok &&
-          (C == 0 || rho_ <= rho_floor * (1 + 1e-9))) {
-        info.status = Status::Converged;
-        break;
-      }
-      if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
-      if (settings_.time_limit > 0 && seconds_since(t_start) > settings_.time_limit) { info.status = Status::TimeLimit; break; }
-      const int w = settings_.stall_window;
-      if (w > 0 && static_cast<int>(merits.size()) > w && rnorm > 0.99 * merits[merits.size() - 1 - w]) {
-        // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per
-        // attempt). A stall with rho at its floor is often the barrier's ill-conditioning around a contact
-        // that the equilibrium needs; the equality form has no such curvature.
-        if (polished || settings_.polish_gap <= 0 || !polish(h_)) { stalled = true; break; }
-        polished = true;
-        number_multipliers();
-        evaluate(y_, h_, true, r_, rc_);
-        merits.assign(1, merit(r_, rc_));
-        if (settings_.verbose) std::printf("stall: %d nearly active constraints held as equalities\n", n_vars_ - n_primal_);
-      }
-
-      t0 = Clock::now();
-      const bool solved = solve_linear(dy_);
-      info.timings.linear_solve += seconds_since(t0);
-      if (!solved) { info.status = Status::NumericalError; break; }
-
-      t0 = Clock::now();
-      double t = line_search(rnorm);
-      if (t > 0 && t < settings_.lm_below_step) {
-        // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
-        // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it.
-        best_ = trial_;
-        double best_m = merit(r_trial_, rc_trial_);
-        bool lm_won = false;
-        for (int q = 0; q < settings_.lm_tries; ++q) {
-          if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
-          const double tl = line_search(rnorm);
-          if (tl > 0) {
-            const double m = merit(r_trial_, rc_trial_);
-            if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
-          }
-        }
-        std::swap(trial_, best_);
-        if (lm_won) info.lm_steps++;
-      }
-      for (int q = 0; t == 0.0 && q < settings_.lm_tries; ++q) {
-        if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
-        t = line_search(rnorm);
-        if (t > 0) info.lm_steps++;
-      }
-      info.timings.line_search += seconds_since(t0);
-      if (t == 0.0) { info.status = Status::LineSearchFailed; break; }
-      std::swap(y_, trial_);
-      info.step_history.push_back(t);
-      if (settings_.rho_progress <= 0 || rnorm <= settings_.rho_progress * rho_)
-        rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
-    }
-    if (info.status == Status::Converged || info.status == Status::TimeLimit || info.status == Status::NumericalError ||
-        total_iter >= settings_.max_iter)
-      break;
-    if (polished && info.status == Status::LineSearchFailed) stalled = true;  // the polish was the stall's last resort
-    if (stalled) info.status = Status::Stalled;  // reported if no attempt is left
-    if (settings_.verbose) std::printf("attempt %d ended (%s), restarting\n", attempt, stalled ? "stalled" : status_name(info.status).c_str());
+    start_attempt(attempt, warm);
+    if (run_attempt(info, total_iter) == AttemptEnd::Finished) break;
     ++total_iter;
   }
+  write_result(res, info);
+  return res;
+}
 
+void Solver::load_initial_guess(const WarmStart* warm) {
+  // Given (or zero) controls and dynamics multipliers; the states are their rollout (start_attempt).
+  const bool warm_u = warm && static_cast<int>(warm->u.size()) == N_;
+  const bool warm_lam = warm && static_cast<int>(warm->lambda.size()) == N_;
+  for (int i = 0; i < N_; ++i) {
+    if (warm_u)
+      require(warm->u[i].rows() == T_ && warm->u[i].cols() == nu_ && warm->u[i].allFinite(),
+              "warm start u has the wrong shape or non-finite values");
+    if (warm_lam)
+      require(warm->lambda[i].rows() == T_ && warm->lambda[i].cols() == nx_ && warm->lambda[i].allFinite(),
+              "warm start lambda has the wrong shape or non-finite values");
+  }
+  for (int i = 0; i < N_; ++i) {
+    if (warm_u) u_init_[i] = warm->u[i].transpose();
+    else u_init_[i].setZero();
+    if (warm_lam) lam_init_[i] = warm->lambda[i].transpose();
+    else lam_init_[i].setZero();
+  }
+  have_mu_ = warm && warm->mu.size() == static_cast<int>(cons_.size());
+  if (have_mu_) require(warm->mu.allFinite(), "warm start mu has non-finite values");
+}
+
+void Solver::start_attempt(int attempt, const WarmStart* warm) {
+  for (int i = 0; i < N_; ++i) {
+    y_.x[i].col(0) = prob_.x0[i];
+    y_.u[i] = u_init_[i];
+    if (attempt >= 4)
+      // A constant offset per agent and control component (not white noise, which averages out):
+      // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
+      for (int q = 0; q < nu_; ++q) {
+        const double offset = settings_.restart_u_std * noise_(rng_);
+        y_.u[i].row(q).array() += offset;
+      }
+    if (attempt == 0) y_.lam[i] = lam_init_[i];
+    else y_.lam[i].setZero();
+    for (int k = 0; k < T_; ++k) {
+      prob_.dynamics[i]->eval(y_.x[i].col(k), y_.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
+      y_.x[i].col(k + 1) = fx_.col(0);
+    }
+  }
+  y_.mu.setZero();
+  y_.mu2.setZero();
+  y_.z.setZero();
+  if (have_mu_ && attempt == 0) { y_.mu = warm->mu; y_.mu2 = warm->mu; }
+  // Restart schedule (measured on the merging games, each variant rescues different instances):
+  // attempt 1: 10x rho_init; 2: the other barrier form; 3: both; >= 4: the same four with perturbed controls.
+  const int variant = attempt % 4;
+  rho_ = settings_.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
+  barrier_ = settings_.barrier;
+  if (variant >= 2)
+    barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
+  // The LU's symbolic analysis is kept across attempts and solves: it depends only on the sparsity pattern,
+  // i.e. on the partition (pattern_state_) and the constraint list, and is redone when either changes.
+}
+
+bool Solver::assemble(bool first, Info& info) {
+  const auto t0 = Clock::now();
+  eval_all_constraints(y_, h_);
+  classify(h_, first);
+  number_multipliers();
+  const bool ok = evaluate(y_, h_, true, r_, rc_);
+  info.timings.assembly += seconds_since(t0);
+  return ok;
+}
+
+bool Solver::converged(double rnorm) const {
+  const int C = static_cast<int>(cons_.size());
+  for (int c = 0; c < C; ++c)
+    if (state_[c] == ConstraintState::Active &&
+        (y_.mu[c] < -settings_.multiplier_tol || (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol)))
+      return false;  // an active constraint pushes the wrong way: not an equilibrium
+  const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
+  double max_defect = 0;
+  for (int i = 0; i < N_; ++i)
+    for (int k = 0; k < T_; ++k) max_defect = std::max(max_defect, r_.segment(col_lam(i, k), nx_).cwiseAbs().maxCoeff());
+  const double rho_floor = settings_.tol * settings_.rho_floor_factor;
+  return rnorm < settings_.tol && maxviol <= settings_.violation_tol && max_defect <= settings_.dynamics_tol &&
+         (C == 0 || rho_ <= rho_floor * (1 + 1e-9));
+}
+
+Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
+  merits_.clear();
+  bool first = true, stalled = false, polished = false;
+  info.status = Status::MaxIterations;
+  for (;; ++total_iter) {
+    const bool ok = assemble(first, info);
+    first = false;
+    if (!ok) { info.status = Status::NumericalError; break; }
+    const double rnorm = merit(r_, rc_);
+    info.residual_history.push_back(rnorm);
+    merits_.push_back(rnorm);
+    info.residual_norm = rnorm;
+    info.iterations = total_iter;
+    if (settings_.time_limit > 0 && rnorm < best_merit_) {
+      best_merit_ = rnorm;
+      best_seen_ = y_;
+    }
+    if (settings_.verbose)
+      std::printf("it %3d  |r| %.3e  rho %.2e  viol %.2e  active %d\n", total_iter, rnorm, rho_,
+                  cons_.empty() ? 0.0 : std::max(0.0, h_.maxCoeff()), n_vars_ - n_primal_);
+    if (converged(rnorm)) { info.status = Status::Converged; break; }
+    if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
+    if (past_deadline()) { info.status = Status::TimeLimit; break; }
+    const int w = settings_.stall_window;
+    if (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]) {
+      // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per
+      // attempt). A stall with rho at its floor is often the barrier's ill-conditioning around a contact
+      // that the equilibrium needs; the equality form has no such curvature.
+      if (polished || settings_.polish_gap <= 0 || !polish(h_)) { stalled = true; break; }
+      polished = true;
+      number_multipliers();
+      evaluate(y_, h_, true, r_, rc_);
+      merits_.assign(1, merit(r_, rc_));
+      if (settings_.verbose) std::printf("stall: %d nearly active constraints held as equalities\n", n_vars_ - n_primal_);
+    }
+    const double t = take_step(rnorm, info);
+    if (timed_out_) { info.status = Status::TimeLimit; break; }
+    if (t < 0) { info.status = Status::NumericalError; break; }
+    if (t == 0.0) { info.status = Status::LineSearchFailed; break; }
+    info.step_history.push_back(t);
+    if (settings_.rho_progress <= 0 || rnorm <= settings_.rho_progress * rho_) {
+      const double rho_floor = settings_.tol * settings_.rho_floor_factor;
+      rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
+    }
+  }
+  if (info.status == Status::Converged || info.status == Status::TimeLimit || info.status == Status::NumericalError ||
+      total_iter >= settings_.max_iter)
+    return AttemptEnd::Finished;
+  if (polished && info.status == Status::LineSearchFailed) stalled = true;  // the polish was the stall's last resort
+  if (stalled) info.status = Status::Stalled;  // reported if no attempt is left
+  if (settings_.verbose)
+    std::printf("attempt ended (%s), restarting\n", stalled ? "stalled" : status_name(info.status).c_str());
+  return AttemptEnd::Restart;
+}
+
+double Solver::take_step(double rnorm, Info& info) {
+  auto t0 = Clock::now();
+  const bool solved = solve_linear(dy_, info);
+  info.timings.linear_solve += seconds_since(t0);
+  if (!solved) return timed_out_ ? 0.0 : -1.0;
+
+  t0 = Clock::now();
+  double t = line_search(rnorm);
+  if (t > 0 && t < settings_.lm_below_step) {
+    // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
+    // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it.
+    best_ = trial_;
+    double best_m = merit(r_trial_, rc_trial_);
+    bool lm_won = false;
+    for (int q = 0; q < settings_.lm_tries && !past_deadline(); ++q) {
+      if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+      const double tl = line_search(rnorm);
+      if (tl > 0) {
+        const double m = merit(r_trial_, rc_trial_);
+        if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
+      }
+    }
+    std::swap(trial_, best_);
+    if (lm_won) info.lm_steps++;
+  }
+  for (int q = 0; t == 0.0 && q < settings_.lm_tries; ++q) {
+    if (past_deadline()) { timed_out_ = true; break; }
+    if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+    t = line_search(rnorm);
+    if (t > 0) info.lm_steps++;
+  }
+  info.timings.line_search += seconds_since(t0);
+  if (t > 0) {
+    timed_out_ = false;  // a step was found after all: take it
+    std::swap(y_, trial_);
+  }
+  return t;
+}
+
+void Solver::write_result(Result& res, Info& info) {
+  // With a time limit, the iterate with the lowest merit seen (a later restart attempt may be worse).
+  if (info.status == Status::TimeLimit && best_merit_ < info.residual_norm) {
+    std::swap(y_, best_seen_);
+    info.residual_norm = best_merit_;
+  }
+  const int C = static_cast<int>(cons_.size());
   // Result: trajectories, multipliers (barrier-implied -rho/h for inactive constraints).
   eval_all_constraints(y_, h_);
+  if (settings_.second_order_gap >= 0 && info.status != Status::NumericalError && !check_second_order(info) &&
+      info.status == Status::Converged)
+    info.status = Status::Saddle;
   res.x.resize(N_);
   res.u.resize(N_);
   res.lambda.resize(N_);
@@ -828,9 +900,7 @@ Result Solver::solve(const WarmStart* warm) {
   info.active_constraints = nact;
   info.max_violation = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
   info.rho = rho_;
-  info.timings.total = seconds_since(t_start);
-  info_ = nullptr;
-  return res;
+  info.timings.total = seconds_since(t_start_);
 }
 
 }  // namespace rd3g

@@ -8,9 +8,10 @@
 #include <Eigen/SparseLU>
 #include <vector>
 
-#include "rd3g/ilqgames.hpp"  // baseline:: helpers shared with iLQGames
+#include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/solver.hpp"
+#include "rd3g/stage_terms.hpp"
 
 namespace rd3g {
 
@@ -50,10 +51,10 @@ class ALGamesSolver {
 
  private:
   using SpMat = Eigen::SparseMatrix<double>;
-  int stage_size() const { return nu_ + 2 * nx_; }
-  int col_u(int i, int k) const { return (k * N_ + i) * stage_size(); }
-  int col_nu(int i, int k) const { return col_u(i, k) + nu_; }
-  int col_x(int i, int k) const { return col_u(i, k - 1) + nu_ + nx_; }  // k = 1..T
+  int stage_size() const { return layout_.stage_size(); }
+  int col_u(int i, int k) const { return layout_.col_u(i, k); }
+  int col_nu(int i, int k) const { return layout_.col_lam(i, k); }
+  int col_x(int i, int k) const { return layout_.col_x(i, k); }  // k = 1..T
   void unpack(const Vec& y);                                           // y -> X_, U_
   /// G(y) (and the Jacobian's values in trip_ if jac) with the current lambda and rho; fills h.
   bool evaluate(const Vec& y, bool jac, Vec& G, Vec& h);
@@ -66,7 +67,9 @@ class ALGamesSolver {
   double rho_ = 0;
   Vec y_, y_trial_, G_, G_trial_, dy_;
   std::vector<Mat> X_, U_;
-  Mat A_, B_, Hl_;
+  StageLayout layout_;
+  StageWorkspace stage_;
+  Mat A_, B_;
   Vec fx_;
   std::vector<Eigen::Triplet<double>> trip_;
   SpMat J_;

@@ -3,44 +3,17 @@
 // with the coupled Riccati recursion; inequality constraints (collisions, bounds) enter every involved
 // player's cost as an augmented-Lagrangian penalty whose weight grows between rounds.
 //
-// Also holds the pieces both baselines (iLQGames, ALGames in algames.hpp) share: problem validation and
-// the constraint list/evaluation in the joint (agent, component) coordinates.
+// Validation (rd3g/validate.hpp) and the constraints (rd3g/constraints.hpp) are RD3G's.
 #pragma once
 #include <Eigen/Dense>
 #include <vector>
 
+#include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
-#include "rd3g/solver.hpp"  // Constraint (the constraint list is the same as RD3G's), Result, status_name
+#include "rd3g/solver.hpp"  // Result, WarmStart, status_name
 
 namespace rd3g {
 
-namespace baseline {
-
-/// Checks the problem like Solver::setup does (std::invalid_argument naming the field) and fills empty
-/// bounds/lead lists with their defaults. Returns the completed copy.
-Problem validated_problem(const Problem& p);
-
-/// Inequality constraints h <= 0 of the game in RD3G's order (pairs, obstacles, state bounds at k = 1..T;
-/// control bounds at k = 0..T-1). Bounds are listed only if with_bounds.
-std::vector<Constraint> list_constraints(const Problem& p, bool with_bounds);
-
-/// A constraint's value and derivatives with respect to the (at most 4) scalar variables it touches:
-/// variable a is component comp[a] of agent agent[a]'s state x_k (or control u_k if on_u).
-struct ConstraintValue {
-  double h = 0;
-  int n = 0;
-  bool on_u = false;
-  int agent[4] = {0, 0, 0, 0};
-  int comp[4] = {0, 0, 0, 0};
-  double g[4] = {0, 0, 0, 0};
-  Eigen::Matrix4d H = Eigen::Matrix4d::Zero();
-};
-
-/// x: per agent nx x (T+1) (column k = x_k), u: per agent nu x T.
-void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Mat>& x, const std::vector<Mat>& u,
-                     ConstraintValue& out);
-
-}  // namespace baseline
 
 // -------------------------------------------------------------------------------------------------
 /// A finite-horizon LQ game in joint coordinates: x_{k+1} = A_k x_k + B_k u_k with u the stacked controls

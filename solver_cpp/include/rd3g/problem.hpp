@@ -90,7 +90,12 @@ enum class LinearSolver {
 struct Settings {
   double tol = 5e-4;             ///< stop when ||r||_2 < tol (and the other conditions hold)
   int max_iter = 1000;           ///< Newton iterations, all restart attempts together (hard instances need several attempts)
-  double time_limit = 0.0;       ///< (s), 0 = none
+  /// (s), 0 = none. Checked every iteration, between Levenberg-Marquardt tries, inside LSCG (in chunks of 50
+  /// iterations) and before a SparseQR factorisation (not started if this solver's previous one would not
+  /// fit into the time left); the overshoot is at most one line search, one LSCG chunk or one SparseQR
+  /// factorisation (the first of a solver, which is not predicted). On time_limit the result is the
+  /// iterate with the lowest merit seen.
+  double time_limit = 0.0;
   double rho_init = 0.01;        ///< initial barrier weight rho
   /// rho never goes below tol * rho_floor_factor (paper: 0.1; 0.01 was measured to pass the benchmark's
   /// stationarity check on 2-3 car merges that the paper's floor failed). The barrier leaves a force of about
@@ -130,16 +135,28 @@ struct Settings {
   /// equalities (once per attempt); the usual partition rules release them again. 0 = off.
   double polish_gap = 1e-3;
   double restart_u_std = 0.2;  ///< (control units)
+  /// Second-order test after convergence (rd3g/second_order.hpp): each agent's constraints with
+  /// h >= -second_order_gap (constraint units) and a positive multiplier are held as equalities; the agent passes
+  /// if the smallest eigenvalue of its reduced Hessian is >= -second_order_tol * max(1, its largest |eigenvalue|).
+  /// A converged point that fails is reported as Status::Saddle. second_order_gap < 0 turns the test off.
+  double second_order_gap = 1e-2;
+  double second_order_tol = 1e-6;
   bool verbose = false;
 };
 
 /// stalled: every attempt (see restarts) stopped making progress before max_iter.
-enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit, Stalled };
+/// saddle: the first-order conditions hold but some agent's own problem is not at a local minimum there
+/// (Info::second_order), i.e. the point is not a local equilibrium.
+enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit, Stalled, Saddle };
 std::string status_name(Status s);
 
-/// Timings in seconds, accumulated over the whole solve.
+/// Timings in seconds. total, assembly, linear_solve and line_search are accumulated over the whole solve
+/// (total = the solve's wall time); setup is the duration of the solver's last set-up (validation,
+/// constraint list, allocation; the set-up may be older than this solve) and update the time spent in
+/// update calls since the previous solve.
 struct Timings {
   double total = 0, assembly = 0, linear_solve = 0, line_search = 0;
+  double setup = 0, update = 0;
 };
 
 struct Info {
@@ -154,6 +171,10 @@ struct Info {
   int riccati_solves = 0;      ///< Newton steps solved by the stage-wise Riccati recursion
   int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
   int attempts = 0;            ///< 1 + restarts used
+  int setups = 0;              ///< set-ups since the previous solve (setup, or an update that changed the constraint list)
+  /// Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
+  /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.
+  std::vector<double> second_order;
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
   std::vector<double> step_history;      ///< accepted line-search step t per iteration
   Timings timings;

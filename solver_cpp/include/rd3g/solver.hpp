@@ -6,22 +6,19 @@
 #include <Eigen/SparseLU>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseQR>
+#include <chrono>
+#include <memory>
+#include <random>
 #include <vector>
 
+#include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/riccati.hpp"
+#include "rd3g/stage_terms.hpp"
 
 namespace rd3g {
 
-/// One inequality constraint h <= 0 of the game, in a fixed order established at setup.
-struct Constraint {
-  enum class Kind { Pair, Obstacle, StateMax, StateMin, ControlMax, ControlMin };
-  Kind kind;
-  int i;    ///< agent
-  int j;    ///< other agent (Pair) or obstacle index (Obstacle), else -1
-  int k;    ///< time step: states k = 1..T, controls k = 0..T-1
-  int idx;  ///< state/control component for bounds, else -1
-};
+class SecondOrderCheck;
 
 /// How a constraint enters the current Newton system.
 enum class ConstraintState : char {
@@ -32,12 +29,34 @@ enum class ConstraintState : char {
 
 class Solver {
  public:
-  /// Validates the problem and allocates every buffer the solve needs.
+  /// Validates the problem and the settings (rd3g/validate.hpp), lists the constraints and allocates every
+  /// buffer the solves need. Its duration is reported in Info::timings.setup.
   void setup(const Problem& problem, const Settings& settings);
+
+  // Updates without a new set-up (OSQP/proxsuite style). Each validates what it changes (same messages as
+  // setup) and leaves the solver unchanged if it throws. Their time is reported in Info::timings.update of
+  // the next solve. Only a bound that changes between finite and infinite changes the constraint list; the
+  // list and its buffers are then rebuilt (counted in Info::setups).
+  void update_settings(const Settings& settings);
+  void update_initial_state(int agent, const Vec& x0);
+  void update_cost(int agent, const QuadraticCost& cost);
+  void update_lead(int agent, const LeadCost& lead);
+  /// Empty vectors mean unbounded, as in Problem.
+  void update_bounds(int agent, const Vec& u_min, const Vec& u_max, const Vec& x_min, const Vec& x_max);
+  /// Pairwise d_min (m) and its optional per-step values (k = 1..T; empty = min_distance at every step).
+  void update_collision_distance(double min_distance, const Vec& steps);
+  void update_obstacle(int index, const Eigen::MatrixXd& positions, double min_distance, const Vec& steps);
+  /// Everything but the structure at once: the problem must have the set-up's horizon, agents, state and
+  /// control sizes, collision form and position indices and number of obstacles; an empty dynamics list
+  /// keeps the set-up's models.
+  void update(const Problem& problem);
+
   /// Solves from zero controls or from a warm start; the initial states are the rollout of the controls.
   Result solve(const WarmStart* warm = nullptr);
 
   const std::vector<Constraint>& constraints() const { return cons_; }
+  /// Changes whenever the constraint list does (set-up, or an update that made a bound finite or infinite).
+  int structure_version() const { return structure_version_; }
 
   /// For tests: residual r and dense Newton matrix J at a given primal-dual point (x per agent (T+1) x nx,
   /// u T x nu, lambda T x nx, mu one per constraint) and barrier weight rho, with the constraints
@@ -52,6 +71,7 @@ class Solver {
  private:
   using SpMat = Eigen::SparseMatrix<double>;
   using Triplet = Eigen::Triplet<double>;
+  using Clock = std::chrono::steady_clock;
 
   struct Iterate {
     std::vector<Mat> x;    // per agent nx x (T+1), column k = x_k
@@ -62,10 +82,28 @@ class Solver {
   };
 
   // index helpers
-  int stage_size() const { return nu_ + 2 * nx_; }
-  int col_u(int i, int k) const { return (k * N_ + i) * stage_size(); }
-  int col_lam(int i, int k) const { return col_u(i, k) + nu_; }
-  int col_x(int i, int k) const { return col_u(i, k - 1) + nu_ + nx_; }  // k = 1..T
+  int stage_size() const { return layout_.stage_size(); }
+  int col_u(int i, int k) const { return layout_.col_u(i, k); }
+  int col_lam(int i, int k) const { return layout_.col_lam(i, k); }
+  int col_x(int i, int k) const { return layout_.col_x(i, k); }  // k = 1..T
+
+  /// Why an attempt (one pass of Newton iterations from the initial guess) ended.
+  enum class AttemptEnd { Finished, Restart };
+
+  // Set-up steps.
+  void list_and_allocate();  // constraint list of prob_ and every buffer sized by it
+  void finish_update(Clock::time_point t0);
+  // Solve steps, in the order solve() calls them.
+  void load_initial_guess(const WarmStart* warm);
+  void start_attempt(int attempt, const WarmStart* warm);
+  AttemptEnd run_attempt(Info& info, int& total_iter);
+  /// Partition, multiplier numbering, residual and Jacobian at y_; false if the residual is undefined.
+  bool assemble(bool first, Info& info);
+  bool converged(double rnorm) const;
+  /// Newton (or Levenberg-Marquardt) step from y_ into y_ with the line search; the accepted t, or 0.
+  double take_step(double rnorm, Info& info);
+  void write_result(Result& res, Info& info);
+  bool past_deadline() const;
 
   void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const;
   void eval_all_constraints(const Iterate& y, Vec& h) const;
@@ -79,7 +117,9 @@ class Solver {
   double merit(const Vec& r, const Vec& rc) const { return std::sqrt(r.head(n_vars_).squaredNorm() + rc.squaredNorm()); }
   /// Primal-dual: recover dz of the barrier constraints from the condensed step.
   void recover_dual_step(const Iterate& y, const Vec& h, const Vec& rc, const Vec& dy, Vec& dz) const;
-  bool solve_linear(Vec& dy);
+  /// Newton step into dy; false if every linear solver failed (or, with a time limit, the deadline passed
+  /// before the SparseQR fallback: then timed_out_ is set).
+  bool solve_linear(Vec& dy, Info& info);
   bool solve_levenberg_marquardt(double nu, Vec& dy);
   /// Backtracking line search along dy_ from y_ into trial_; returns the accepted t or 0.
   double line_search(double merit0);
@@ -100,11 +140,27 @@ class Solver {
   double rho_ = 0;
   BarrierMode barrier_ = BarrierMode::PrimalDual;  // barrier form of the current attempt
 
+  double setup_time_ = 0, update_time_ = 0;  // (s) last set-up; updates since the last solve
+  int structure_version_ = 0;
+  int setups_ = 0;                            // set-ups since the last solve (setup + structural updates)
+
+  // Solve state.
+  Clock::time_point t_start_;
+  std::vector<Mat> u_init_, lam_init_;  // initial guess (per agent nu x T, nx x T)
+  bool have_mu_ = false;
+  std::mt19937 rng_;                    // restart offsets: the same sequence in every solve
+  std::normal_distribution<double> noise_{0.0, 1.0};
+  std::vector<double> merits_;          // merit per iteration of the current attempt
+  bool timed_out_ = false;              // the deadline passed inside a step
+  double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
+  double best_merit_ = 0;               // with a time limit: lowest merit seen, its iterate in best_seen_
+
   // buffers (allocated in setup)
-  Iterate y_, trial_, best_;
-  std::vector<std::vector<Mat>> A_, B_;
-  Mat fx_, Hl_, Atmp_, Btmp_;
-  Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_;
+  Iterate y_, trial_, best_, best_seen_;
+  StageLayout layout_;
+  StageWorkspace stage_;
+  Mat fx_, Atmp_, Btmp_;
+  Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_, neg_rhs_, lin_res_;
   std::vector<Triplet> trip_;
   SpMat J_;
   Eigen::SparseLU<SpMat, Eigen::COLAMDOrdering<int>> lu_;
@@ -112,7 +168,9 @@ class Solver {
   bool J_built_ = false;  // J_ holds this iteration's matrix (the Riccati path does not need it)
   StageRiccati riccati_;
   void build_J();
-  Info* info_ = nullptr;
+  /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
+  bool check_second_order(Info& info);
+  std::shared_ptr<SecondOrderCheck> second_order_;
 };
 
 }  // namespace rd3g

@@ -15,7 +15,7 @@ only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.har
   (``held_neutral``) when holds have lasted ``stop_after_hold_s`` without a break. A serial link
   fault (device gone) ends the race: the link cannot be reopened (docs/serial-protocol.md); the
   transmitter box's failsafe keeps the cars neutral.
-* Planning is asynchronous (``app.realtime.planning.PlannerWorker``): a job every rate_hz / plan_hz
+* Planning is asynchronous (``race.planning.PlannerWorker``): a job every rate_hz / plan_hz
   ticks for the instant t_plan = its tick + ``plan_latency_s`` (plan_ticks periods + command_delay_s)
   when its command will act; the plan is applied at tick k + plan_ticks, not earlier, and its first
   control is held (zero-order hold) until the next plan is due. The commanded cars are predicted to
@@ -23,18 +23,30 @@ only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.har
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import os
 import sys
 import threading
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
-from app.realtime.config import STAGES, FaultSpec, LoopConfig
-from app.realtime.planning import CAR_NAMES, PlanJob, PlannerWorker, PlanResult, RacePlanners, controls_between
-from planning.frenet import EY, S
+from race.commands import link_command
+from race.config import STAGES, FaultSpec, LoopConfig
+from race.faults import FailingPlanners, NanStateEstimator
+from race.perception import Perception, body_state
+from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between
+from race.recording import record_car, record_plan
+from race.referee import Referee
+from race.safety import SafetyHolds
+from race.setup import CAR_NAMES
+from race.summary import percentile, race_summary
+from race.world import Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, Tracker, World
+from tracking.estimator import EstimatorConfig
 from vehicles.protocol import CarCommand, ProtocolError
 
 
@@ -51,10 +63,12 @@ class CarBinding:
 
 class DeadlineMonitor:
     """Watchdog thread: if the armed tick has not finished its command by the deadline, call
-    ``on_miss(tick, stage)`` (which sends neutral) from this thread."""
+    ``on_miss(tick, stage)`` (which sends neutral) from this thread. Real time only: the thread waits
+    on the clock's time (a simulated clock's race has no deadlines to watch)."""
 
-    def __init__(self, on_miss) -> None:
+    def __init__(self, on_miss, clock: Clock | None = None) -> None:
         self.on_miss = on_miss
+        self.clock = clock if clock is not None else MonotonicClock()
         self.stage = "-"
         self._cv = threading.Condition()
         self._deadline: float | None = None
@@ -87,7 +101,7 @@ class DeadlineMonitor:
                 if self._deadline is None:
                     self._cv.wait()
                     continue
-                remaining = self._deadline - time.monotonic()
+                remaining = self._deadline - self.clock.now()
                 if remaining > 0:
                     self._cv.wait(remaining)
                     continue
@@ -138,17 +152,14 @@ class LoopOutcome:
 
     def summary(self) -> dict:
         """The `race --hil/--camera --json` record: the simulated race's keys plus loop statistics."""
-        def pct(a, q):
-            return float(np.percentile(a, q)) if len(a) else None
-
+        pct = percentile
         solve = self.solve_ms.get("rd3g", np.zeros(0))
         kinds: dict[str, int] = {}
         for _, kind, _ in self.events:
             kinds[kind] = kinds.get(kind, 0) + 1
         return {
-            "winner": self.winner, "lap_times_s": self.lap_times_s, "min_gap_m": self.min_gap_m,
-            "collisions": len(self.collisions), "solve_ms_p50": pct(solve, 50), "solve_ms_p99": pct(solve, 99),
-            "control_period_ms": self.control_period_ms,
+            **race_summary(winner=self.winner, lap_times_s=self.lap_times_s, min_gap_m=self.min_gap_m,
+                           collisions=len(self.collisions), solve_ms=solve, control_period_ms=self.control_period_ms),
             "mode": self.mode, "end_reason": self.reason, "race_time_s": self.race_time_s, "ticks": self.ticks,
             "loop_hz_median": 1e3 / float(np.median(self.period_ms)) if len(self.period_ms) else None,
             "loop_period_p99_ms": pct(self.period_ms, 99), "deadline_misses": self.deadline_misses,
@@ -173,37 +184,47 @@ class LoopOutcome:
 
 
 class RaceLoop:
-    """One real-time race. ``feed.poll(timeout) -> WorldPacket``; ``world`` is the HilWorld (None
-    on hardware: laps are then counted from the estimated states)."""
+    """One race on the clock. The world behind ``feed`` (``poll(timeout) -> WorldPacket``) and ``link``
+    is the HIL world or the hardware; ``world`` is the HilWorld (None on hardware: laps are then counted
+    from the estimated states). ``faults`` are injected by wrapping the estimator and the planners
+    (race.faults); ``clock`` defaults to real time, ``worker_factory(planners, clock)`` to a PlannerWorker
+    thread (race.planning.SyncPlanRunner plans in the loop's thread) and ``monitor_factory(on_miss,
+    clock)`` to the DeadlineMonitor thread."""
 
-    def __init__(self, *, setup, config: LoopConfig, feed, tracker, estimator, link, planners: RacePlanners,
-                 cars: list[CarBinding], recorder=None, faults: tuple[FaultSpec, ...] = (), world=None,
-                 mode: str = "hil") -> None:
-        self.setup, self.cfg, self.feed, self.tracker, self.estimator = setup, config, feed, tracker, estimator
-        self.link, self.planners, self.cars, self.rec, self.world, self.mode = link, planners, cars, recorder, world, mode
+    def __init__(self, *, setup, config: LoopConfig, feed: Feed, tracker: Tracker, estimator, link: Link,
+                 planners: Planners, cars: list[CarBinding], recorder=None, faults: tuple[FaultSpec, ...] = (),
+                 world: World | None = None, mode: str = "hil", clock: Clock | None = None, worker_factory=None,
+                 monitor_factory=DeadlineMonitor) -> None:
+        self.setup, self.cfg, self.feed = setup, config, feed
+        self.link, self.cars, self.rec, self.world, self.mode = link, cars, recorder, world, mode
+        self.clock = clock if clock is not None else MonotonicClock()
         self.faults = tuple(faults)
+        if any(f.kind == "nan_state" for f in self.faults):
+            estimator = NanStateEstimator(estimator, self.faults, {c.name: c.marker_id for c in cars}, self.race_time,
+                                          lambda text: self._event("fault_injected", text))
+        if any(f.kind == "solver_fail" for f in self.faults):
+            planners = FailingPlanners(planners, self.faults, self.race_time)
+        self.estimator, self.planners = estimator, planners
+        self.perception = Perception(tracker, estimator, cars, config.lost_search_every)
+        self.safety = SafetyHolds(self._neutral_now, self._event, config.stop_after_hold_s)
         self.track = setup.track
-        self.max_steer = setup.car.actuators.max_steering_rad
+        self.car = setup.car
         self.by_marker = {c.marker_id: c for c in cars}
         self.commanded = [c for c in cars if c.name in planners.commanded]
-        self.worker = PlannerWorker(planners, inject_failure=self._solver_fault_active)
+        self.worker: PlanRunner = (worker_factory or PlannerWorker)(planners, self.clock)
+        self._monitor_factory = monitor_factory
         self.t_go: float | None = None
-        self.holds: dict[str, str] = {}
-        self._held_since: float | None = None  # start of the current unbroken stretch of holds
         self.events: list[tuple] = []
         self.k = 0
         self._link_fault: BaseException | None = None
-        self._nan_done: set[int] = set()
         self._active: PlanResult | None = None
         self._last_seq = 0
         self._last_corrupt = 0
         self._last_corrupt_t = -math.inf
-        self._frames_since_full = 0
-        self._last_frame_index = -1
         self._lock = threading.Lock()
         self._misses_by_monitor: set[int] = set()
         self.monitor: DeadlineMonitor | None = None
-        self._laps = None
+        self.referee: Referee | None = None  # hardware: laps from the estimated states
         # statistics
         self.period_ms: list[float] = []
         self.busy_ms: list[float] = []
@@ -217,7 +238,6 @@ class RaceLoop:
         self._controls: dict[str, list[tuple[float, float, float]]] = {}  # car -> [(t_effect, a, delta)]
         self.plans = 0
         self.plan_failures = 0
-        self.frames = 0
         self.render_ms: list[float] = []
         self.tracking_error_mm: list[float] = []
         self.detection_error_mm: list[float] = []
@@ -226,7 +246,7 @@ class RaceLoop:
 
     # ------------------------------------------------------------------ helpers
     def race_time(self, t_abs: float | None = None) -> float:
-        t_abs = time.monotonic() if t_abs is None else t_abs
+        t_abs = self.clock.now() if t_abs is None else t_abs
         return t_abs - self.t_go if self.t_go is not None else 0.0
 
     def _event(self, kind: str, text: str, t_race: float | None = None) -> None:
@@ -242,18 +262,13 @@ class RaceLoop:
         except Exception as exc:  # never let the safety action raise into the loop
             self._event("error", f"sending neutral failed: {exc}")
 
-    def _set_hold(self, key: str, active: bool, message: str = "") -> None:
-        if active and key not in self.holds:
-            self.holds[key] = message
-            self._neutral_now()
-            self._event("fault", f"{message} - all cars neutral")
-        elif not active and key in self.holds:
-            del self.holds[key]
-            self._event("recovered", f"{key} cleared" + ("" if self.holds else " - racing again"))
+    @property
+    def holds(self) -> dict[str, str]:
+        return self.safety.holds
 
-    def _solver_fault_active(self, t_plan: float) -> bool:
-        t = self.race_time(t_plan)
-        return any(f.kind == "solver_fail" and f.active(t) for f in self.faults)
+    @property
+    def frames(self) -> int:
+        return self.perception.frames
 
     def _on_link_fault(self, exc: BaseException) -> None:
         self._link_fault = exc
@@ -263,11 +278,6 @@ class RaceLoop:
         with self._lock:
             self._misses_by_monitor.add(tick)
         self._event("deadline_miss", f"tick {tick}: no command by the deadline (stage {stage} running) - neutral sent")
-
-    def _state6(self, st) -> np.ndarray:
-        """Estimator state -> simulator-style [x, y, heading, vx, vy, yaw_rate] (body-frame velocity)."""
-        return np.array([st.x, st.y, st.heading, st.speed * math.cos(st.sideslip),
-                         st.speed * math.sin(st.sideslip), st.yaw_rate])
 
     # ------------------------------------------------------------------ phases
     def run(self) -> LoopOutcome:
@@ -286,50 +296,44 @@ class RaceLoop:
             summary = self._shutdown()
         return self._outcome(reason, summary)
 
-    def _detect(self, frame, predictions):
-        det = self.tracker.process(frame, predictions)
-        return [m for m in det.cars.values() if m.marker_id in self.by_marker], det
-
     def _acquire(self) -> None:
         """Before the start: full-frame searches until every car has enough accepted measurements."""
-        deadline = time.monotonic() + self.cfg.acquire_timeout_s
+        deadline = self.clock.now() + self.cfg.acquire_timeout_s
         while True:
             packet = self.feed.poll(0.1)
             if packet.frame is not None:
-                meas, _ = self._detect(packet.frame, None)
+                meas, _ = self.perception.detect(packet.frame, None)
                 self.estimator.update(packet.frame.t_capture_s, meas)
-            missing = [c for c in self.cars if c.marker_id not in self.estimator.filters
-                       or self.estimator.filters[c.marker_id].counts["accepted"] < self.cfg.acquire_measurements]
+            missing = self.perception.acquired(self.cfg.acquire_measurements)
             if not missing:
                 return
-            if time.monotonic() > deadline:
+            if self.clock.now() > deadline:
                 names = ", ".join(f"{c.name} (marker {c.marker_id})" for c in missing)
                 raise LoopError(f"camera did not find {names} within {self.cfg.acquire_timeout_s:.0f} s; "
                                 f"check the markers, the lighting and the calibration")
 
     def _states_at(self, t_abs: float) -> dict[str, np.ndarray]:
-        return {c.name: self._state6(self.estimator.filters[c.marker_id].predict_to(t_abs)) for c in self.cars}
+        return {c.name: body_state(self.estimator.filters[c.marker_id].predict_to(t_abs)) for c in self.cars}
 
     def _cold_start(self) -> None:
         """First plan with the solver's full globalisation, before the clock starts."""
-        t = time.monotonic()
+        t = self.clock.now()
         result = self.worker.run_sync(PlanJob(-1, t, self._states_at(t)))
         if result.error:
             raise LoopError(f"cold-start planning failed: {result.error}")
         self.worker.start()
-        self.t_go = time.monotonic() + 2 * self.cfg.period_s
+        self.t_go = self.clock.now() + 2 * self.cfg.period_s
         result.job.t_plan = self.t_go  # the cold-start plan is the plan for the start
-        self._take_plan(result, time.monotonic())
+        self._take_plan(result, self.clock.now())
         for c in self.commanded:  # on the grid: at rest and neutral until tick 0's command acts
             self._log_control(c.name, t - 1.0, self.planners.executed_control(c.name, None, 0.0))
+            self.perception.accel_inputs[c.name] = self._accel_input(c.name)
         if self.world is not None:
             self.world.go(self.t_go)
         if self.mode == "hardware":
-            from sim.race import LapBookkeeper
-
-            s0 = [float(self.track.to_frenet(np.array([st[0]]), np.array([st[1]]))[0][0])
-                  for st in self._states_at(self.t_go).values()]
-            self._laps = LapBookkeeper(float(self.track.length), self.setup.laps, np.array(s0), start_time=0.0)
+            self.referee = Referee(self.track, self.setup.car, self.setup.laps)
+            at_go = self._states_at(self.t_go)
+            self.referee.observe(0.0, np.array([at_go[name] for name in CAR_NAMES]))
         self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
                     t_race=0.0)
 
@@ -359,7 +363,7 @@ class RaceLoop:
             f = self.estimator.filters.get(c.marker_id)
             if not log or f is None or f.t_s is None or not log[0][0] <= f.t_s < t_plan:
                 continue
-            state = self._state6(f.predict_to(f.t_s))
+            state = body_state(f.predict_to(f.t_s))
             if np.all(np.isfinite(state)):
                 out[c.name] = (state, controls_between(log, f.t_s, t_plan))
         return out
@@ -385,11 +389,11 @@ class RaceLoop:
         self._last_seq = result.seq
         if result.error:
             self.plan_failures += 1
-            self._set_hold("planner", True, f"planner failed: {result.error}")
+            self.safety.set("planner", True, f"planner failed: {result.error}")
             return
         self._active = result
         self.plans += 1
-        self._set_hold("planner", False)
+        self.safety.set("planner", False)
         t_race = self.race_time(result.job.t_plan) if self.t_go is not None else 0.0
         if self.t_go is not None and result.job.tick >= 0:  # not the cold plan for the start
             lag = 1e3 * (now - result.job.t_plan)
@@ -400,29 +404,23 @@ class RaceLoop:
             self.solve_ms[name].append(cp.solve_ms)
             if self.rec is None or cp.plan is None:
                 continue
-            plan, step = cp.plan, max(self.k, 0)
-            for row, entity in ((0, "plan"), (1, "predicted_other")):
-                x, y = self.track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
-                self.rec.strip(f"world/cars/{name}/{entity}", step, t_race, np.column_stack([x, y]))
-            self.rec.scalar(f"cars/{name}/planned/accel_mps2", step, t_race, plan.u[0, 0])
-            self.rec.scalar(f"cars/{name}/planned/delta_rad", step, t_race, plan.u[0, 1])
-            self.rec.scalar(f"planner/{name}/solve_ms", step, t_race, cp.solve_ms)
-            self.rec.scalar(f"planner/{name}/iterations", step, t_race, plan.iterations)
-            self.rec.scalar(f"planner/{name}/fallback", step, t_race, float(plan.used == "fallback"))
+            step = max(self.k, 0)
+            record_plan(self.rec, step, t_race, self.track, name, cp.plan, cp.solve_ms)
+            self.rec.scalar(f"planner/{name}/fallback", step, t_race, float(cp.plan.used == "fallback"))
 
     # ------------------------------------------------------------------ the race
     def _race(self) -> str:
         cfg = self.cfg
         T = cfg.period_s
-        self.monitor = DeadlineMonitor(self._on_deadline_miss)
+        self.monitor = self._monitor_factory(self._on_deadline_miss, self.clock)
         prev_start = None
         self.k = 0
         while True:
             t_k = self.t_go + self.k * T
-            now = time.monotonic()
+            now = self.clock.now()
             if now < t_k:
-                time.sleep(t_k - now)
-            start = time.monotonic()
+                self.clock.sleep(t_k - now)
+            start = self.clock.now()
             if start > t_k + T:  # more than a period late: skip the ticks that are already past
                 skipped = int((start - t_k) / T)
                 self.deadline_misses += skipped
@@ -451,7 +449,9 @@ class RaceLoop:
         return t1
 
     def _tick(self, start: float, deadline: float) -> str | None:
-        cfg, rec, k = self.cfg, self.rec, self.k
+        """One tick: frame, perception (detect + estimate), safety checks, plan, command, telemetry, end
+        of race. Returns the end reason, or None to go on."""
+        k = self.k
         t_race = start - self.t_go
         times: dict[str, float] = {}
         self.monitor.stage = "frame"
@@ -459,92 +459,79 @@ class RaceLoop:
             self._event("serial_fault", f"serial link failed ({self._link_fault}); the box failsafe holds the cars "
                                         f"neutral - race stopped")
             return "serial_fault"
-        # ---- frame
         t0 = time.perf_counter()
         try:
             packet = self.feed.poll(0.0)
         except RuntimeError as exc:
             self._event("world_error", str(exc).splitlines()[0])
             return "world_error"
-        frame = packet.frame
         for t_ev, kind, text in packet.events:
             self._event(kind, text, t_race=t_ev)
         self.render_ms.extend(packet.render_ms)
         self.dropped = max(self.dropped, packet.dropped)
         t0 = self._stage("frame", t0, times)
-        # ---- detect
-        meas, det = [], None
-        if frame is not None and frame.index != self._last_frame_index:
-            self._last_frame_index = frame.index
-            self.frames += 1
-            tracked = {c.marker_id: self.estimator.filters[c.marker_id] for c in self.cars
-                       if c.marker_id in self.estimator.filters and not self.estimator.filters[c.marker_id].is_lost(frame.t_capture_s)
-                       and np.all(np.isfinite(self.estimator.filters[c.marker_id].x))}
-            self._frames_since_full += 1
-            if len(tracked) == len(self.cars):
-                predictions = {m: tuple(f.predict_to(frame.t_capture_s).vector[:2]) for m, f in tracked.items()}
-            elif self._frames_since_full >= cfg.lost_search_every:
-                predictions, self._frames_since_full = None, 0
-            else:
-                predictions = {m: tuple(f.predict_to(frame.t_capture_s).vector[:2]) for m, f in tracked.items()}
-            if predictions is None or predictions:
-                meas, det = self._detect(frame, predictions)
-        t0 = self._stage("detect", t0, times)
-        # ---- estimate (+ safety checks on tracking and state)
-        if frame is not None and det is not None:
-            for c in self.commanded:  # the filters predict commanded cars with their known acceleration
-                f = self.estimator.filters.get(c.marker_id)
-                if f is not None and f.accel_input is None and c.name in self._controls:
-                    f.accel_input = self._accel_input(c.name)
-            results = self.estimator.update(frame.t_capture_s, meas)
-            if packet.truth is not None:
-                for m in meas:
-                    i = CAR_NAMES.index(self.by_marker[m.marker_id].name)
-                    truth = packet.truth[i]
-                    det_err = 1e3 * math.hypot(m.x - truth[0], m.y - truth[1])
-                    self.detection_error_mm.append(det_err)
-                    if rec is not None:
-                        rec.scalar(f"tracking/{self.by_marker[m.marker_id].name}/detection_error_mm", k,
-                                   self.race_time(frame.t_capture_s), det_err)
-                    f = self.estimator.filters[m.marker_id]
-                    if results[m.marker_id].accepted:
-                        err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
-                        self.tracking_error_mm.append(err)
-                        if rec is not None:
-                            rec.scalar(f"tracking/{self.by_marker[m.marker_id].name}/error_mm", k,
-                                       self.race_time(frame.t_capture_s), err)
-        for n, f in enumerate(self.faults):  # injected: the estimator's state becomes NaN
-            if f.kind == "nan_state" and t_race >= f.start_s and n not in self._nan_done:
-                self._nan_done.add(n)
-                for c in self.cars:
-                    if f.applies_to(c.name) and c.marker_id in self.estimator.filters:
-                        self.estimator.filters[c.marker_id].x[:] = np.nan
-                self._event("fault_injected", f"estimator state of {f.car or 'all cars'} set to NaN")
-        now = time.monotonic()
-        t_tick = deadline - cfg.period_s  # the tick's scheduled start: plans are timed from it, not from `now`
-        t_plan = t_tick + cfg.plan_latency_s
-        states: dict[str, np.ndarray] = {}
+        t_tick = deadline - self.cfg.period_s  # the tick's scheduled start: plans are timed from it, not from `now`
+        t_plan = t_tick + self.cfg.plan_latency_s
+        marks = [t0]
+
+        def detected() -> None:
+            marks[0] = self._stage("detect", marks[0], times)
+
+        perceived = self.perception.perceive(packet.frame, t_plan, self.clock.now(), after_detect=detected)
+        if packet.truth is not None and perceived.detections is not None:
+            self._tracking_errors(k, packet, perceived)
+        now = self.clock.now()
+        self._safety_checks(perceived, packet, now)
+        t0 = self._stage("estimate", marks[0], times)
+        commands, sent = self._plan_stage(k, now, t_tick, t_plan, perceived.states)
+        t0 = self._stage("plan", t0, times)
+        sent = self._command_stage(k, start, deadline, commands, sent)
+        t0 = self._stage("command", t0, times)
+        if self.rec is not None:
+            self._record(k, t_race, times, packet, perceived.detections, perceived.states, sent)
+        self._stage("telemetry", t0, times)
+        if self.rec is not None:
+            self.rec.scalar("loop/stage/telemetry_ms", k, t_race, times["telemetry"])
+        return self._end_of_race(t_race, now, perceived.states, packet)
+
+    def _tracking_errors(self, k: int, packet, perceived) -> None:
+        """HIL: raw detection and EKF posterior vs the simulator's truth at the frame's capture time."""
+        t_cap = self.race_time(packet.frame.t_capture_s)
+        for m in perceived.measurements:
+            name = self.by_marker[m.marker_id].name
+            truth = packet.truth[CAR_NAMES.index(name)]
+            det_err = 1e3 * math.hypot(m.x - truth[0], m.y - truth[1])
+            self.detection_error_mm.append(det_err)
+            if self.rec is not None:
+                self.rec.scalar(f"tracking/{name}/detection_error_mm", k, t_cap, det_err)
+            f = self.estimator.filters.get(m.marker_id)
+            if f is not None and perceived.results[m.marker_id].accepted:
+                err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
+                self.tracking_error_mm.append(err)
+                if self.rec is not None:
+                    self.rec.scalar(f"tracking/{name}/error_mm", k, t_cap, err)
+
+    def _safety_checks(self, perceived, packet, now: float) -> None:
+        """The tracking, state and serial-stream holds of this tick (race.safety)."""
+        lost_ms = 1e3 * self.estimator.config.lost_after_s
         for c in self.cars:
-            f = self.estimator.filters.get(c.marker_id)
-            lost = f is None or f.t_last_accepted_s is None or now - f.t_last_accepted_s > cfg.lost_after_s
-            self._set_hold(f"lost:{c.name}", lost, f"car {c.name} lost (no marker {c.marker_id} for "
-                                                   f"{1e3 * cfg.lost_after_s:.0f} ms)")
-            if lost:
+            self.safety.set(f"lost:{c.name}", perceived.lost[c.name],
+                            f"car {c.name} lost (no marker {c.marker_id} for {lost_ms:.0f} ms)")
+            if perceived.lost[c.name]:
                 continue
-            vec = self._state6(f.predict_to(t_plan))
-            if not np.all(np.isfinite(vec)):
-                self._set_hold(f"nan:{c.name}", True, f"non-finite state of car {c.name}; estimator reset")
-                del self.estimator.filters[c.marker_id]
-                continue
-            self._set_hold(f"nan:{c.name}", False)
-            states[c.name] = vec
+            nonfinite = c.name in perceived.nonfinite
+            self.safety.set(f"nan:{c.name}", nonfinite, f"non-finite state of car {c.name}; estimator reset")
         if packet.box_corrupt > self._last_corrupt:  # HIL: the box reports rejected frames
             self._last_corrupt = packet.box_corrupt
             self._last_corrupt_t = now
-        self._set_hold("serial", now - self._last_corrupt_t < cfg.serial_quiet_s,
-                       "serial stream corrupt (box rejects frames)")
-        t0 = self._stage("estimate", t0, times)
-        # ---- plan: take the newest result, check its age, submit the next job
+        self.safety.set("serial", now - self._last_corrupt_t < self.cfg.serial_quiet_s,
+                        "serial stream corrupt (box rejects frames)")
+
+    def _plan_stage(self, k: int, now: float, t_tick: float, t_plan: float, states: dict):
+        """Apply the plan due at this tick, check its age, decide this tick's commands (neutral while a
+        hold is active), log the controls the cars execute and submit the next planning job.
+        Returns ({radio id: CarCommand}, {car: (throttle, steering rad) sent})."""
+        cfg = self.cfg
         result = self.worker.latest()
         # A plan is applied at its scheduled tick, not earlier: every plan then acts plan_latency_s after
         # its job, whatever its solve time (a failure is taken at once: it is a fault).
@@ -553,17 +540,17 @@ class RaceLoop:
             self._take_plan(result, now)
         if self._active is not None:
             age = now - self._active.job.t_plan
-            self._set_hold("planner_stale", age > cfg.max_plan_age_s,
-                           f"no new plan for {1e3 * age:.0f} ms (limit {1e3 * cfg.max_plan_age_s:.0f} ms)")
+            self.safety.set("planner_stale", age > cfg.max_plan_age_s,
+                            f"no new plan for {1e3 * age:.0f} ms (limit {1e3 * cfg.max_plan_age_s:.0f} ms)")
         # This tick's commands (sent in the command stage), logged as the controls the cars execute from
         # t_tick + command_delay_s on: the next job predicts its own cars through them.
         commands: dict[int, CarCommand] = {}
         sent = {c.name: (0.0, 0.0) for c in self.commanded}
-        driving = not self.holds and self._active is not None
+        driving = not self.safety and self._active is not None
         for c in self.commanded:
             cp = self._active.cars[c.name] if driving else None
             if cp is not None:
-                commands[c.radio_id] = CarCommand(steering=cp.steering_rad / self.max_steer, throttle=cp.throttle)
+                commands[c.radio_id] = link_command(self.car, cp.throttle, cp.steering_rad)
                 sent[c.name] = (cp.throttle, cp.steering_rad)
                 if self._last_sent.get(c.name) != sent[c.name] and self._active.job.tick >= 0:
                     self._plan_commands.append((self._active.job.t_plan, CAR_NAMES.index(c.name), *sent[c.name]))
@@ -575,15 +562,17 @@ class RaceLoop:
             self._last_sent = dict(sent)
         if k % cfg.plan_every == 0 and len(states) == len(self.cars):
             self.worker.submit(PlanJob(k, t_plan, states, self._in_flight(t_plan)))
-        t0 = self._stage("plan", t0, times)
-        # ---- command
+        return commands, sent
+
+    def _command_stage(self, k: int, start: float, deadline: float, commands: dict, sent: dict) -> dict:
+        """Send the commands (an invalid one is a hold), then account for the tick's deadline."""
         try:
             self.link.set_commands(commands)
-            self._set_hold("command", False)
+            self.safety.set("command", False)
         except ProtocolError as exc:
-            self._set_hold("command", True, f"invalid command: {exc}")
+            self.safety.set("command", True, f"invalid command: {exc}")
             sent = {c.name: (0.0, 0.0) for c in self.commanded}
-        t_cmd = time.monotonic()
+        t_cmd = self.clock.now()
         fired = self.monitor.disarm()
         with self._lock:
             missed = fired or k in self._misses_by_monitor
@@ -592,34 +581,21 @@ class RaceLoop:
             if not missed:
                 self._event("deadline_miss", f"tick {k}: command {1e3 * (t_cmd - deadline):.1f} ms after the deadline")
         self.busy_ms.append(1e3 * (t_cmd - start))
-        t0 = self._stage("command", t0, times)
-        # ---- telemetry
-        if rec is not None:
-            self._record(k, t_race, times, packet, det, states, sent)
-        self._stage("telemetry", t0, times)
-        if rec is not None:
-            rec.scalar("loop/stage/telemetry_ms", k, t_race, times["telemetry"])
-        # ---- end of race
+        return sent
+
+    def _end_of_race(self, t_race: float, now: float, states: dict, packet) -> str | None:
         if packet.winner is not None and self.winner_seen is None:
             self.winner_seen = packet.winner
             return "finished"
-        if self._laps is not None and len(states) == len(self.cars):
-            s = [float(self.track.to_frenet(np.array([states[c.name][0]]), np.array([states[c.name][1]]))[0][0])
-                 for c in self.cars]
-            for ev in self._laps.update(t_race, np.array(s)):
+        if self.referee is not None and len(states) == len(self.cars):
+            for ev in self.referee.observe(t_race, np.array([states[name] for name in CAR_NAMES])):
                 self._event(ev.kind, f"{CAR_NAMES[ev.car]}" + (f" lap {ev.lap} in {ev.lap_time:.3f} s" if ev.lap_time else ""))
-            if self._laps.winner is not None:
-                self.winner_seen = CAR_NAMES[self._laps.winner]
+            if self.referee.winner is not None:
+                self.winner_seen = self.referee.winner
                 return "finished"
-        if not self.holds:
-            self._held_since = None
-        elif self._held_since is None:
-            self._held_since = now
-        elif now - self._held_since > cfg.stop_after_hold_s:
-            # Nothing will end the race by itself any more (cars lost and coasting, planner dead): stop
-            # cleanly instead of waiting for the time limit with the cars neutral.
-            self._event("stop", f"cars held neutral for {now - self._held_since:.1f} s (limit "
-                                f"{cfg.stop_after_hold_s:g} s): {'; '.join(self.holds.values())} - race stopped")
+        stop = self.safety.stop_reason(now)
+        if stop is not None:
+            self._event("stop", stop)
             return "held_neutral"
         if t_race > self.setup.max_time_s:
             self._event("stop", f"time limit {self.setup.max_time_s:.0f} s reached")
@@ -627,8 +603,6 @@ class RaceLoop:
         return None
 
     def _record(self, k, t_race, times, packet, det, states, sent) -> None:
-        from sim.collision import footprint_corners
-
         rec = self.rec
         if len(self.period_ms):
             rec.scalar("loop/period_ms", k, t_race, self.period_ms[-1])
@@ -644,7 +618,7 @@ class RaceLoop:
         rec.scalar("loop/holds", k, t_race, len(self.holds))
         frame = packet.frame
         if frame is not None and det is not None:
-            rec.scalar("camera/latency_ms", k, t_race, 1e3 * (time.monotonic() - frame.t_capture_s))
+            rec.scalar("camera/latency_ms", k, t_race, 1e3 * (self.clock.now() - frame.t_capture_s))
             rec.scalar("camera/full_search", k, t_race, float(det.full_search))
             for ms in packet.render_ms:
                 rec.scalar("camera/render_ms", k, t_race, ms)
@@ -656,8 +630,6 @@ class RaceLoop:
                     rec.scalar(f"cars/{self.by_marker[m.marker_id].name}/detection_heading_rad", k,
                                self.race_time(frame.t_capture_s), m.heading)
             if self.frames % self.cfg.image_log_every == 1:
-                import cv2
-
                 d = self.cfg.image_downscale
                 small = cv2.resize(frame.image, None, fx=1.0 / d, fy=1.0 / d, interpolation=cv2.INTER_AREA)
                 rec.image("camera/image", k, t_race, small)
@@ -673,13 +645,8 @@ class RaceLoop:
             t_truth = packet.t_race
         else:
             return
-        g = self.setup.car.geometry
         for name, st in truth_states.items():
-            corners = footprint_corners(np.array([st[0]]), np.array([st[1]]), np.array([st[2]]),
-                                        g.footprint_length_m, g.footprint_width_m, g.footprint_offset_m)[0]
-            rec.points(f"world/cars/{name}/position", k, t_truth, st[:2])
-            rec.strip(f"world/cars/{name}/footprint", k, t_truth, np.vstack([corners, corners[:1]]))
-            rec.scalar(f"cars/{name}/speed_mps", k, t_truth, math.hypot(st[3], st[4]))
+            record_car(rec, k, t_truth, name, st, self.car.geometry)
 
     # ------------------------------------------------------------------ shutdown
     def _shutdown(self) -> dict | None:
@@ -695,8 +662,8 @@ class RaceLoop:
         if self.world is not None:
             # Keep reading the world briefly: the box's failsafe (100 ms) and the cars' reaction to the
             # final neutral happen after the loop has stopped and belong in the recording.
-            t_end = time.monotonic() + self.cfg.linger_s
-            while time.monotonic() < t_end:
+            t_end = self.clock.now() + self.cfg.linger_s
+            while self.clock.now() < t_end:
                 try:
                     packet = self.world.poll(0.02)
                 except RuntimeError:
@@ -712,8 +679,6 @@ class RaceLoop:
         return summary
 
     def _outcome(self, reason: str, summary: dict | None) -> LoopOutcome:
-        import os
-
         out = LoopOutcome(reason=reason, mode=self.mode, ticks=self.k + (1 if self.t_go else 0),
                           deadline_misses=self.deadline_misses, period_ms=np.array(self.period_ms),
                           stage_ms={s: np.array(v) for s, v in self.stage_ms.items()},
@@ -737,20 +702,21 @@ class RaceLoop:
         else:
             out.winner = self.winner_seen
             out.race_time_s = self.race_time() if self.t_go else 0.0
-            if self._laps is not None:
-                out.lap_times_s = {n: list(self._laps.lap_times[i]) for i, n in enumerate(CAR_NAMES)}
+            if self.referee is not None:
+                out.lap_times_s = self.referee.lap_times_s
+                out.min_gap_m = self.referee.min_gap_m if math.isfinite(self.referee.min_gap_m) else None
         if self.rec is not None:
             out.recording = str(self.rec.path)
         return out
 
 
-def setup_document(setup, config: LoopConfig, mode: str, cars: list[CarBinding], opponent: str, faults) -> str:
-    """The race/setup TextDocument of a real-time race (JSON)."""
-    import dataclasses
-
+def setup_document(setup, config: LoopConfig, mode: str, cars: list[CarBinding], opponent: str, faults,
+                   estimator: EstimatorConfig = EstimatorConfig()) -> str:
+    """The race/setup TextDocument of a real-time race (JSON); ``loop.lost_after_s`` is the estimator's."""
     doc = {"mode": mode, "track": setup.track.name, "car": setup.car.name, "seed": setup.seed, "laps": setup.laps,
            "start": setup.start, "opponent": opponent, "rd3g_top_speed_mps": setup.rd3g_top_speed_mps,
            "opponent_top_speed_mps": setup.opponent_top_speed_mps, "max_time_s": setup.max_time_s,
-           "planning_period_s": setup.control_period_s, "loop": dataclasses.asdict(config),
+           "planning_period_s": setup.control_period_s,
+           "loop": {**dataclasses.asdict(config), "lost_after_s": estimator.lost_after_s},
            "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults]}
     return json.dumps(doc, indent=2)

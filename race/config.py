@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass, field, fields
 
@@ -49,7 +50,6 @@ class LoopConfig:
     # with 15 ms the cars got the commands 3-5 ms after t_plan (median of 20 races, two runs).
     command_delay_s: float = 0.019
     max_plan_age_s: float = 0.15     # an older plan is a planner fault (neutral)
-    lost_after_s: float = 0.25       # a car without an accepted measurement this long is lost (neutral)
     lost_search_every: int = 6       # full-frame marker search every n frames while a car is lost
     serial_quiet_s: float = 0.3      # HIL: corrupt-frame counter unchanged this long = stream healthy again
     acquire_timeout_s: float = 10.0  # pre-race: time to find every car
@@ -143,23 +143,10 @@ def parse_fault(text: str) -> FaultSpec:
 def lower_realtime_priority(by: int) -> None:
     """In a thread running under SCHED_FIFO (``--rt-priority``), drop this thread's priority by
     `by` (at least 1), so the loop thread keeps precedence over helpers; no-op otherwise."""
-    import os
-
     try:
         if os.sched_getscheduler(0) != os.SCHED_FIFO:
             return
         prio = os.sched_getparam(0).sched_priority
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, prio - by)))
-    except (AttributeError, OSError):
-        pass
-
-
-def normal_priority() -> None:
-    """Return this thread to the normal time-sharing policy (background work under --rt-priority)."""
-    import os
-
-    try:
-        if os.sched_getscheduler(0) == os.SCHED_FIFO:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except (AttributeError, OSError):
         pass

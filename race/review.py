@@ -1,19 +1,22 @@
 """Review of a race recording (simulated race or real-time loop): summary numbers and PNG plots.
 
-Everything is recomputed from the recording (app.telemetry.load_recording), independently of the
+Everything is recomputed from the recording (race.recording.load_recording), independently of the
 code that ran the race: laps from the logged car positions (sim.race.LapBookkeeper on the track
 named in race/setup), the minimum gap from the logged footprint rectangles, loop and solver
 statistics from the logged timings, deadline misses and collisions from race/events.
 """
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 
 import numpy as np
 
-from app.telemetry import EVENTS_ENTITY, RecordingData
+from race.recording import EVENTS_ENTITY, RecordingData
+from race.summary import percentile
+from sim.collision import rectangle_gap
+from sim.race import LapBookkeeper
+from tracks import draw_track, load_track
 
 SUMMARY_KEYS = ("laps", "lap_times_s", "min_gap_m", "collisions", "loop_hz_median", "loop_period_p99_ms",
                 "deadline_misses", "frames", "solve_ms_p50", "solve_ms_p99", "tracking_error_mm_median",
@@ -37,8 +40,6 @@ def events(data: RecordingData) -> list[dict]:
 
 
 def load_track_of(data: RecordingData):
-    from tracks import load_track
-
     name = data.setup().get("track")
     if not name:
         return None
@@ -53,8 +54,6 @@ def lap_times(data: RecordingData, track, laps_to_win: int) -> dict[str, list[fl
     simulator's grid rule: a car starting in the second half of the lap is behind the line).
     Crossings after the last logged position (the simulated race stops logging in the step that
     decides it) are taken from the recording's `lap` events."""
-    from sim.race import LapBookkeeper
-
     lap_events = [e for e in events(data) if e["kind"] == "lap"]
     out = {}
     for car in car_names(data):
@@ -85,36 +84,6 @@ def lap_times(data: RecordingData, track, laps_to_win: int) -> dict[str, list[fl
     return out
 
 
-def _rectangles(corners: np.ndarray):
-    """(n, 4, 2) corners in footprint order (front-left, front-right, rear-right, rear-left) ->
-    centres, headings, half extents."""
-    centre = corners.mean(axis=1)
-    front = 0.5 * (corners[:, 0] + corners[:, 1])
-    rear = 0.5 * (corners[:, 2] + corners[:, 3])
-    heading = np.arctan2(front[:, 1] - rear[:, 1], front[:, 0] - rear[:, 0])
-    half = np.column_stack([0.5 * np.linalg.norm(front - rear, axis=1),
-                            0.5 * np.linalg.norm(corners[:, 0] - corners[:, 1], axis=1)])
-    return centre, heading, half
-
-
-def rectangle_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance between pairs of convex quadrilaterals a[i], b[i] ((n, 4, 2) corners), 0 if they overlap."""
-    from sim.collision import rectangles_overlap
-
-    ca, ha, sa = _rectangles(a)
-    cb, hb, sb = _rectangles(b)
-    overlap = np.asarray(rectangles_overlap(ca, ha, sa, cb, hb, sb), dtype=bool).reshape(-1)
-    best = np.full(len(a), np.inf)
-    for p, q in ((a, b), (b, a)):
-        q0, q1 = q, np.roll(q, -1, axis=1)                    # edges of q: (n, 4, 2)
-        e = q1 - q0
-        d = p[:, :, None, :] - q0[:, None, :, :]              # (n, 4 corners, 4 edges, 2)
-        u = np.clip(np.einsum("nced,ned->nce", d, e) / np.einsum("ned,ned->ne", e, e)[:, None, :], 0.0, 1.0)
-        closest = q0[:, None, :, :] + u[..., None] * e[:, None, :, :]
-        best = np.minimum(best, np.linalg.norm(p[:, :, None, :] - closest, axis=-1).min(axis=(1, 2)))
-    return np.where(overlap, 0.0, best)
-
-
 def min_gap(data: RecordingData) -> float | None:
     names = car_names(data)
     if len(names) < 2:
@@ -129,10 +98,6 @@ def min_gap(data: RecordingData) -> float | None:
     if len(common) == 0:
         return None
     return float(np.min(rectangle_gap(ca[ia], cb[ib])))
-
-
-def _pct(values: np.ndarray, q: float):
-    return float(np.percentile(values, q)) if len(values) else None
 
 
 def summarize(data: RecordingData) -> dict:
@@ -158,13 +123,13 @@ def summarize(data: RecordingData) -> dict:
         "min_gap_m": min_gap(data),
         "collisions": sum(e["kind"] == "collision" for e in evs),
         "loop_hz_median": 1e3 / float(np.median(period)) if realtime and len(period) else None,
-        "loop_period_p99_ms": _pct(period, 99) if realtime else None,
+        "loop_period_p99_ms": percentile(period, 99) if realtime else None,
         "deadline_misses": misses if realtime else None,
         "frames": frames,
-        "solve_ms_p50": _pct(solve, 50),
-        "solve_ms_p99": _pct(solve, 99),
-        "tracking_error_mm_median": _pct(errors, 50),
-        "tracking_error_mm_p95": _pct(errors, 95),
+        "solve_ms_p50": percentile(solve, 50),
+        "solve_ms_p99": percentile(solve, 99),
+        "tracking_error_mm_median": percentile(errors, 50),
+        "tracking_error_mm_p95": percentile(errors, 95),
         "events": evs,
     }
 
@@ -182,12 +147,10 @@ def stage_table(data: RecordingData) -> list[tuple[str, float, float, float]]:
 
 # --------------------------------------------------------------------------- plots
 def save_plots(data: RecordingData, folder: Path) -> list[Path]:
-    import matplotlib
+    import matplotlib  # here, not at the top: the backend must be chosen before pyplot is imported
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from tracks import draw_track
 
     folder.mkdir(parents=True, exist_ok=True)
     colors = {"rd3g": "tab:red", "opponent": "tab:blue"}
@@ -292,18 +255,3 @@ def format_summary(s: dict, data: RecordingData) -> str:
         if e["kind"] in ("fault", "recovered", "serial_fault", "fault_injected", "box_failsafe", "collision", "finished"):
             lines.append(f"  {e['time_s']:8.3f} s  {e['kind']}: {e['text']}")
     return "\n".join(lines)
-
-
-def neutral_delays(s: dict) -> list[tuple[float, float | None]]:
-    """For each fault event: (its time, delay until the box next reported every car neutral, or None)."""
-    evs = s["events"]
-    out = []
-    for e in evs:
-        if e["kind"] in ("fault", "serial_fault", "deadline_miss"):
-            later = [x["time_s"] for x in evs if x["kind"] == "cars_neutral" and x["time_s"] >= e["time_s"] - 1e-3]
-            out.append((e["time_s"], (min(later) - e["time_s"]) if later else None))
-    return out
-
-
-def is_finite_or_none(v) -> bool:
-    return v is None or (isinstance(v, (int, float)) and math.isfinite(v))

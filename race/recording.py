@@ -1,10 +1,13 @@
 """Rerun telemetry of a race: a buffered writer for the real-time loop and a reader for reviews.
 
-Writer (:class:`RaceRecorder`): the loop thread only appends rows to a queue (about a microsecond
-per value); a background thread turns them into columns and sends them with ``send_columns``
-every ``flush_every_s`` (one call per entity instead of one ``log`` per value, which costs
-60-200 us each on this machine). Events and camera images are logged as they come (rare).
-Every row carries two timelines: ``sim_time`` (race time, s) and ``control_step`` (loop tick).
+Writer (:class:`RaceRecorder`, the one writer of every race mode): rows are collected per entity and
+sent as columns with ``send_columns`` (one call per entity instead of one ``log`` per value, which
+costs 60-200 us each on this machine). In real time (``background=True``) the loop thread only
+appends rows to a queue (about a microsecond per value) and a background thread sends them every
+``flush_every_s``; the simulated race (``background=False``) collects them in its own thread and
+sends them every ``flush_every_rows`` rows and at ``close``. Events and camera images are logged as
+they come (rare). Every row carries two timelines: ``sim_time`` (race time, s) and ``control_step``
+(loop tick or control step).
 
 Reader (:func:`load_recording`): Rerun's own chunk reader (``rerun.chunk.RrdReader``, rerun 0.41)
 streams the chunks of the first recording in the file; each entity's rows are concatenated and
@@ -12,7 +15,9 @@ sorted by ``sim_time``. Entity paths: docs/racing.md (simulated race) and docs/r
 """
 from __future__ import annotations
 
+import ast
 import json
+import math
 import queue
 import threading
 import time
@@ -22,9 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
+from planning.frenet import EY, S
+from race.config import lower_realtime_priority
+from sim.collision import footprint_corners
+
 APPLICATION_ID = "rd3g_race"
 EVENTS_ENTITY = "race/events"
 SETUP_ENTITY = "race/setup"
+CAR_COLORS = {"rd3g": (230, 60, 40), "opponent": (40, 110, 230)}
 
 
 class RecordingError(ValueError):
@@ -33,38 +43,46 @@ class RecordingError(ValueError):
 
 # --------------------------------------------------------------------------- writer
 class RaceRecorder:
-    """Buffered rerun recording of one race (one .rrd file)."""
+    """Buffered rerun recording of one race (one .rrd file); see the module doc for the two modes."""
 
-    def __init__(self, path, recording_id: str, flush_every_s: float = 0.5) -> None:
-        import rerun as rr
+    def __init__(self, path, recording_id: str, flush_every_s: float = 0.5, background: bool = True,
+                 flush_every_rows: int = 20000) -> None:
+        import rerun as rr  # here, not at the top: the reader's users (sysid) need not load the SDK's writer
 
         self.rr = rr
         self.path = Path(path)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         self.rec.save(str(self.path))
         self.flush_every_s = float(flush_every_s)
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self.flush_every_rows = int(flush_every_rows)
         self._rows: dict[tuple[str, str], list] = defaultdict(list)
+        self._pending_rows = 0
         self._closed = False
         self.rows_written = 0
-        self._thread = threading.Thread(target=self._run, name="RaceRecorder", daemon=True)
-        self._thread.start()
+        self._thread = None
+        if background:
+            self._queue: queue.SimpleQueue = queue.SimpleQueue()
+            self._put = self._queue.put
+            self._thread = threading.Thread(target=self._run, name="RaceRecorder", daemon=True)
+            self._thread.start()
+        else:
+            self._put = self._handle_now
 
-    # ---- called from the loop (cheap: queue puts)
+    # ---- called from the loop (cheap: queue puts in the background mode)
     def scalar(self, entity: str, step: int, t: float, value: float) -> None:
-        self._queue.put(("scalars", entity, step, t, float(value)))
+        self._put(("scalars", entity, step, t, float(value)))
 
     def points(self, entity: str, step: int, t: float, xy) -> None:
-        self._queue.put(("points", entity, step, t, np.asarray(xy, dtype=np.float32).reshape(-1, 2)))
+        self._put(("points", entity, step, t, np.asarray(xy, dtype=np.float32).reshape(-1, 2)))
 
     def strip(self, entity: str, step: int, t: float, xy) -> None:
-        self._queue.put(("strips", entity, step, t, np.asarray(xy, dtype=np.float32).reshape(-1, 2)))
+        self._put(("strips", entity, step, t, np.asarray(xy, dtype=np.float32).reshape(-1, 2)))
 
     def event(self, t: float, kind: str, text: str, step: int | None = None) -> None:
-        self._queue.put(("event", EVENTS_ENTITY, step, t, f"{kind}: {text}"))
+        self._put(("event", EVENTS_ENTITY, step, t, f"{kind}: {text}"))
 
     def image(self, entity: str, step: int, t: float, image: np.ndarray) -> None:
-        self._queue.put(("image", entity, step, t, image))
+        self._put(("image", entity, step, t, image))
 
     # ---- static content (called before the race, from the loop thread)
     def static_track(self, track) -> None:
@@ -82,20 +100,29 @@ class RaceRecorder:
         archetype = {"points": self.rr.Points2D, "strips": self.rr.LineStrips2D}[kind]
         self.rec.log(entity, archetype.from_fields(colors=[list(rgb)]), static=True)
 
+    def static_car_colors(self) -> None:
+        """Each car's colour on its position, footprint and plan (CAR_COLORS), the other car's predicted
+        plan in grey."""
+        for name, rgb in CAR_COLORS.items():
+            for entity, kind in (("position", "points"), ("footprint", "strips"), ("plan", "strips")):
+                self.static_color(f"world/cars/{name}/{entity}", kind, rgb)
+            self.static_color(f"world/cars/{name}/predicted_other", "strips", (150, 150, 150))
+
     def close(self) -> None:
         """Flush everything and finish the file (idempotent)."""
         if self._closed:
             return
         self._closed = True
-        self._queue.put(None)
-        self._thread.join(timeout=30.0)
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join(timeout=30.0)
+        else:
+            self._flush()
         self.rec.flush()
         self.rec.disconnect()  # finishes the file (footer/manifest)
 
     # ---- background thread
     def _run(self) -> None:
-        from app.realtime.config import lower_realtime_priority
-
         # Under --rt-priority: below the loop, but still real-time - a time-shared thread that is
         # preempted while holding the GIL would stall the loop (priority inversion).
         lower_realtime_priority(10)
@@ -109,16 +136,26 @@ class RaceRecorder:
                 self._flush()
                 return
             if item:
-                kind, entity, step, t, payload = item
-                if kind == "event":
-                    self._log_now(entity, step, t, self.rr.TextLog(payload))
-                elif kind == "image":
-                    self._log_now(entity, step, t, self.rr.Image(payload))
-                else:
-                    self._rows[(kind, entity)].append((step, t, payload))
+                self._handle(item)
             if time.monotonic() >= next_flush:
                 self._flush()
                 next_flush = time.monotonic() + self.flush_every_s
+
+    def _handle(self, item) -> None:
+        kind, entity, step, t, payload = item
+        if kind == "event":
+            self._log_now(entity, step, t, self.rr.TextLog(payload))
+        elif kind == "image":
+            self._log_now(entity, step, t, self.rr.Image(payload))
+        else:
+            self._rows[(kind, entity)].append((step, t, payload))
+            self._pending_rows += 1
+
+    def _handle_now(self, item) -> None:
+        """Synchronous mode: collect in the caller's thread, send every flush_every_rows rows."""
+        self._handle(item)
+        if self._pending_rows >= self.flush_every_rows:
+            self._flush()
 
     def _log_now(self, entity, step, t, archetype) -> None:
         rec = self.rec
@@ -130,6 +167,7 @@ class RaceRecorder:
     def _flush(self) -> None:
         rr = self.rr
         rows, self._rows = self._rows, defaultdict(list)
+        self._pending_rows = 0
         for (kind, entity), items in rows.items():
             steps = np.array([r[0] for r in items], dtype=np.int64)
             times = np.array([r[1] for r in items], dtype=float)
@@ -143,6 +181,28 @@ class RaceRecorder:
                 columns = rr.LineStrips2D.columns(strips=[r[2] for r in items]).partition([1] * len(items))
             self.rec.send_columns(entity, indexes=indexes, columns=columns)
             self.rows_written += len(items)
+
+
+def record_car(rec: RaceRecorder, step: int, t: float, name: str, state, geometry) -> None:
+    """One car's pose rows (every mode): ``world/cars/{name}/position``, ``footprint`` (closed rectangle
+    of the car file's geometry) and ``cars/{name}/speed_mps``; state [x, y, heading, vx, vy, ...]."""
+    corners = footprint_corners(state[0], state[1], state[2], geometry.footprint_length_m,
+                                geometry.footprint_width_m, geometry.footprint_offset_m)
+    rec.points(f"world/cars/{name}/position", step, t, state[:2])
+    rec.strip(f"world/cars/{name}/footprint", step, t, np.vstack([corners, corners[:1]]))
+    rec.scalar(f"cars/{name}/speed_mps", step, t, math.hypot(state[3], state[4]))
+
+
+def record_plan(rec: RaceRecorder, step: int, t: float, track, name: str, plan, solve_ms: float) -> None:
+    """One plan's rows (every mode): the car's planned trajectory and its prediction of the other car
+    (world frame), the first planned control, the planning wall time (ms) and the solver iterations."""
+    for row, entity in ((0, "plan"), (1, "predicted_other")):
+        x, y = track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
+        rec.strip(f"world/cars/{name}/{entity}", step, t, np.column_stack([x, y]))
+    rec.scalar(f"cars/{name}/planned/accel_mps2", step, t, plan.u[0, 0])
+    rec.scalar(f"cars/{name}/planned/delta_rad", step, t, plan.u[0, 1])
+    rec.scalar(f"planner/{name}/solve_ms", step, t, solve_ms)
+    rec.scalar(f"planner/{name}/iterations", step, t, plan.iterations)
 
 
 # --------------------------------------------------------------------------- reader
@@ -199,8 +259,6 @@ class RecordingData:
 
     def setup(self) -> dict:
         """The race setup document as a dict (JSON, or the Python repr the simulated race writes)."""
-        import ast
-
         text = self.document(SETUP_ENTITY)
         if text is None:
             return {}
@@ -216,7 +274,7 @@ class RecordingData:
 
 def load_recording(path) -> RecordingData:
     """Read a race recording with rerun's chunk reader. Raises RecordingError naming the file."""
-    import pyarrow as pa
+    import pyarrow as pa  # with rerun, loaded when a recording is read (see RaceRecorder.__init__)
     import rerun as rr
 
     path = Path(path)

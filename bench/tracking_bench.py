@@ -1,4 +1,4 @@
-"""Time rendering and detection on synthetic frames: ``python -m tracking.benchmark``.
+"""Time rendering and detection on synthetic frames: ``python -m bench.tracking_bench``.
 
 Prints median and 90th-percentile milliseconds per frame for the synthetic render, full-frame
 detection, ROI detection around predicted positions, and the EKF update of all cars. Pose
@@ -10,20 +10,20 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 
+from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
+from tracking.calibration import CameraCalibration, load_fixed_markers
+from tracking.estimator import MultiCarEstimator
+from tracking.markers import ArucoTracker
+from tracks import load_track
+from tracks.geometry import wrap_angle
+
 
 def main(argv=None) -> int:
-    from tracking.calibration import CameraCalibration, load_fixed_markers
-    from tracking.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
-    from tracking.estimator import MultiCarEstimator
-    from tracking.markers import ArucoTracker
-    from tracking.motion import wrap_angle
-    from tracks import load_track
-    from pathlib import Path
-
-    parser = argparse.ArgumentParser(prog="python -m tracking.benchmark")
+    parser = argparse.ArgumentParser(prog="python -m bench.tracking_bench")
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--cars", type=int, default=4)
     parser.add_argument("--width", type=int, default=1280)
@@ -33,7 +33,7 @@ def main(argv=None) -> int:
 
     track = load_track("oval")
     left, right = track.boundaries()
-    fixed = load_fixed_markers(Path(__file__).parent / "data" / "oval_fixed_markers.json")
+    fixed = load_fixed_markers(Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json")
     camera = overhead_camera(image_size=(args.width, args.height))
     car = CarAppearance()
     speed = 2.0

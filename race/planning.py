@@ -1,23 +1,34 @@
-"""Planning for the real-time loop: RD3G for our car and the opponent's planner (MPC, pure pursuit or
-none for a human-driven car), run asynchronously in a worker thread; the loop applies the latest
-plan. The C++ solver releases the GIL, so a solve does not stall the loop thread."""
+"""The planning step of every race mode: RD3G for our car and the opponent's planner (MPC, pure
+pursuit or none for a human-driven car).
+
+* :func:`make_planner` builds a planner from the race set-up; :func:`plan_step` is one planning step
+  (predict the own car over its actuation delay, plan, map the planned [a, delta] to [throttle,
+  steering angle]).
+* Planner failure, one policy: a planning call that raises (an invalid problem, a solver error) never
+  escapes :func:`plan_step`; that step gets the planner's fallback plan (closed-loop tracking of the
+  previous plan, neutral before the first one) with the exception text in ``plan.error``. The
+  simulated race applies the fallback and logs ``planner_error``; the real-time loop, where any fault
+  sends neutral first (hardware), treats a plan with an error, or a non-finite command, as a planner
+  fault (:class:`SolverFailure`) and holds every car neutral until a good plan arrives.
+* :class:`PlannerWorker` runs the steps of the real-time loop asynchronously in a worker thread; the
+  loop applies the latest plan. The C++ solver releases the GIL, so a solve does not stall the loop.
+"""
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable
-
 import numpy as np
 
-from planning import MPCOpponent, ProgressUnwrapper, RacingPlanner, frenet_state
+from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
 from planning.commands import rollout_controls
 from planning.frenet import S, V
-from sim import PurePursuitController
+from race.config import lower_realtime_priority
+from race.setup import CAR_NAMES, RaceSetup
 
-CAR_NAMES = ("rd3g", "opponent")
 OPPONENT_MODES = ("mpc", "pursuit", "human")
 # Under --rt-priority the planner thread runs this far below the loop thread: above the HIL world
 # process (5 below, the emulated camera and cars) so that on a small machine the emulation, not the
@@ -40,6 +51,38 @@ def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, floa
         if hi > lo:
             out.append((hi - lo, a, delta))
     return out
+
+
+def make_planner(cls, setup: RaceSetup, top: float, **kw):
+    """A RacingPlanner or MPCOpponent (``cls``) with the race's planner settings and top speed (m/s)."""
+    cfg = dataclasses.replace(setup.planner, top_speed_mps=top)
+    tm = FrenetTrackModel(setup.track, setup.car, cfg)
+    mapper = CommandMapper(setup.car, setup.control_period_s, cfg.max_brake_mps2, cfg.steering_margin)
+    return cls(tm, mapper, cfg, setup.control_period_s, **kw)
+
+
+def plan_step(planner, own_state, other_state) -> tuple[object, np.ndarray, float]:
+    """One planning step from Frenet states [s, ey, v, epsi]: the own state predicted over the car's
+    actuation delay, the plan (the fallback plan if planning raised, see the module doc) and its command
+    [throttle, steering angle rad]. Returns (plan, command, wall time ms)."""
+    t0 = time.perf_counter()
+    x = np.asarray(own_state, dtype=float)
+    try:
+        x = planner.mapper.predict(planner.tm, own_state)
+        plan = planner.plan(x, other_state)
+    except Exception as exc:  # noqa: BLE001 - any planner failure is one fallback step (module doc)
+        plan = planner.fallback_plan(x, other_state, f"{type(exc).__name__}: {exc}")
+    command = planner.mapper.commands(*plan.control, speed=float(x[V]) if math.isfinite(x[V]) else 0.0)
+    return plan, command, 1e3 * (time.perf_counter() - t0)
+
+
+def cold_plan(planner, own_state, other_state):
+    """The first plan, on the grid before the start (no prediction: the cars stand), with plan_step's
+    failure rule."""
+    try:
+        return planner.plan(own_state, other_state)
+    except Exception as exc:  # noqa: BLE001 - as in plan_step
+        return planner.fallback_plan(own_state, other_state, f"{type(exc).__name__}: {exc}")
 
 
 class SolverFailure(RuntimeError):
@@ -77,19 +120,17 @@ class PlanResult:
 
 
 class RacePlanners:
-    """The two cars' planners with the simulated race's settings (app.race_runner)."""
+    """The two cars' planners with the simulated race's settings (make_planner)."""
 
     def __init__(self, setup, opponent: str = "mpc") -> None:
-        from app.race_runner import _make_planner
-
         if opponent not in OPPONENT_MODES:
             raise ValueError(f"opponent: must be one of {OPPONENT_MODES}, got {opponent!r}")
         self.setup = setup
         self.track = setup.track
         self.opponent_mode = opponent
-        self.ours = _make_planner(RacingPlanner, setup, setup.rd3g_top_speed_mps,
+        self.ours = make_planner(RacingPlanner, setup, setup.rd3g_top_speed_mps,
                                   opponent_top_speed_mps=setup.opponent_top_speed_mps)
-        self.theirs = _make_planner(MPCOpponent, setup, setup.opponent_top_speed_mps) if opponent == "mpc" else None
+        self.theirs = make_planner(MPCOpponent, setup, setup.opponent_top_speed_mps) if opponent == "mpc" else None
         self.pursuit = (PurePursuitController(setup.track, setup.car, target_speed_mps=setup.opponent_top_speed_mps)
                         if opponent == "pursuit" else None)
         self.unwrap: ProgressUnwrapper | None = None
@@ -104,21 +145,17 @@ class RacePlanners:
         result = PlanResult(job=job, progress=fs[:, S].copy())
         # Both cars at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
         at_plan = [self._own_state(job, name, fs[i]) for i, name in enumerate(CAR_NAMES)]
-        t0 = time.perf_counter()
-        x_self = self.ours.mapper.predict(self.ours.tm, at_plan[0])
-        plan = self.ours.plan(x_self, at_plan[1])
-        throttle, steer = self.ours.mapper.commands(*plan.control, speed=float(x_self[V]))
-        result.cars["rd3g"] = CarPlan(throttle, steer, plan, 1e3 * (time.perf_counter() - t0))
+        plan, (throttle, steer), ms = plan_step(self.ours, at_plan[0], at_plan[1])
+        result.cars["rd3g"] = CarPlan(float(throttle), float(steer), plan, ms)
         if self.theirs is not None:
-            t0 = time.perf_counter()
-            x_opp = self.theirs.mapper.predict(self.theirs.tm, at_plan[1])
-            oplan = self.theirs.plan(x_opp, at_plan[0])
-            throttle, steer = self.theirs.mapper.commands(*oplan.control, speed=float(x_opp[V]))
-            result.cars["opponent"] = CarPlan(throttle, steer, oplan, 1e3 * (time.perf_counter() - t0))
+            oplan, (throttle, steer), ms = plan_step(self.theirs, at_plan[1], at_plan[0])
+            result.cars["opponent"] = CarPlan(float(throttle), float(steer), oplan, ms)
         elif self.pursuit is not None:
             throttle, steer = self.pursuit.command(job.states["opponent"], self.setup.control_period_s)
             result.cars["opponent"] = CarPlan(float(throttle), float(steer))
         for name, cp in result.cars.items():
+            if cp.plan is not None and cp.plan.error is not None:
+                raise SolverFailure(f"{name}: {cp.plan.error}")
             if not (math.isfinite(cp.throttle) and math.isfinite(cp.steering_rad)):
                 raise SolverFailure(f"{name}: planner produced a non-finite command "
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
@@ -153,22 +190,56 @@ class RacePlanners:
         return x
 
 
+def run_job(planners, job: PlanJob, t_done: float, seq: int) -> PlanResult:
+    """One planning job; any exception (a planner fault, race.faults' injected failure) becomes the
+    result's ``error`` (module doc)."""
+    try:
+        result = planners.plan(job)
+    except Exception as exc:  # any planner exception is a planner fault for the loop
+        result = PlanResult(job=job, error=f"{type(exc).__name__}: {exc}")
+    result.t_done = t_done
+    result.seq = seq
+    return result
+
+
+class SyncPlanRunner:
+    """Runs each planning job when it is submitted, in the caller's thread: the plan is ready at once
+    (a race on a simulated clock, tests). Same interface as PlannerWorker."""
+
+    def __init__(self, planners, clock) -> None:
+        self.planners, self.clock = planners, clock
+        self._latest: PlanResult | None = None
+        self._seq = 0
+
+    def start(self, first: PlanResult | None = None) -> None:
+        if first is not None:
+            self._latest = first
+
+    def run_sync(self, job: PlanJob) -> PlanResult:
+        self._seq += 1
+        return run_job(self.planners, job, self.clock.now(), self._seq)
+
+    def submit(self, job: PlanJob) -> None:
+        self._latest = self.run_sync(job)
+
+    def latest(self) -> PlanResult | None:
+        return self._latest
+
+    def stop(self) -> None:
+        pass
+
+
 class PlannerWorker:
-    """Runs planning jobs in a background thread; the newest pending job replaces an older one.
+    """Runs planning jobs in a background thread; the newest pending job replaces an older one."""
 
-    ``inject_failure(t_plan) -> bool``: fault injection, the job raises SolverFailure when true."""
-
-    def __init__(self, planners: RacePlanners, inject_failure: Callable[[float], bool] | None = None) -> None:
+    def __init__(self, planners, clock) -> None:
         self.planners = planners
-        self.inject_failure = inject_failure
+        self.clock = clock
         self._cv = threading.Condition()
         self._pending: PlanJob | None = None
         self._latest: PlanResult | None = None
-        self._busy = False
         self._stop = False
         self._seq = 0
-        self.jobs_done = 0
-        self.jobs_replaced = 0
         self._thread = threading.Thread(target=self._run, name="PlannerWorker", daemon=True)
 
     def start(self, first: PlanResult | None = None) -> None:
@@ -182,15 +253,8 @@ class PlannerWorker:
 
     def submit(self, job: PlanJob) -> None:
         with self._cv:
-            if self._pending is not None:
-                self.jobs_replaced += 1
             self._pending = job
             self._cv.notify()
-
-    @property
-    def busy(self) -> bool:
-        with self._cv:
-            return self._busy or self._pending is not None
 
     def latest(self) -> PlanResult | None:
         with self._cv:
@@ -204,20 +268,13 @@ class PlannerWorker:
             self._thread.join(timeout=5.0)
 
     def _execute(self, job: PlanJob) -> PlanResult:
-        try:
-            if self.inject_failure is not None and self.inject_failure(job.t_plan):
-                raise SolverFailure("injected solver failure")
-            result = self.planners.plan(job)
-        except Exception as exc:  # any planner exception is a planner fault for the loop
-            result = PlanResult(job=job, error=f"{type(exc).__name__}: {exc}")
-        result.t_done = time.monotonic()
         self._seq += 1
-        result.seq = self._seq
+        seq = self._seq
+        result = run_job(self.planners, job, 0.0, seq)
+        result.t_done = self.clock.now()
         return result
 
     def _run(self) -> None:
-        from app.realtime.config import lower_realtime_priority
-
         lower_realtime_priority(PLANNER_PRIORITY_BELOW_LOOP)
         while True:
             with self._cv:
@@ -226,9 +283,6 @@ class PlannerWorker:
                 if self._stop:
                     return
                 job, self._pending = self._pending, None
-                self._busy = True
             result = self._execute(job)
             with self._cv:
                 self._latest = result
-                self._busy = False
-                self.jobs_done += 1

@@ -1,0 +1,22 @@
+"""The race summary shared by every mode's `race --json` record (docs/racing.md, docs/race-stack.md):
+the keys every race has, computed one way. The simulated race adds its own (clean winner, off-track,
+fallbacks, ...), the real-time loop its loop statistics; `review --json` recomputes the same numbers
+from a recording (race.review.SUMMARY_KEYS)."""
+from __future__ import annotations
+
+import numpy as np
+
+RACE_KEYS = ("winner", "lap_times_s", "min_gap_m", "collisions", "solve_ms_p50", "solve_ms_p99", "control_period_ms")
+
+
+def percentile(values, q: float) -> float | None:
+    """The q-th percentile of ``values`` (None when empty)."""
+    values = np.asarray(values, dtype=float)
+    return float(np.percentile(values, q)) if values.size else None
+
+
+def race_summary(*, winner, lap_times_s, min_gap_m, collisions: int, solve_ms, control_period_ms: float) -> dict:
+    """The RACE_KEYS record; ``solve_ms``: RD3G's planning wall time per plan (ms)."""
+    return {"winner": winner, "lap_times_s": lap_times_s, "min_gap_m": min_gap_m, "collisions": collisions,
+            "solve_ms_p50": percentile(solve_ms, 50), "solve_ms_p99": percentile(solve_ms, 99),
+            "control_period_ms": control_period_ms}

@@ -1,0 +1,59 @@
+// Second-order test of a first-order point of the game: is it a local equilibrium, i.e. is every agent's own
+// problem (its dynamics and constraints, the other agents' trajectories fixed) at a strict local minimum?
+//
+// For agent a the controls U = (u_0..u_{T-1}) parametrise its dynamics' null space (x_k = x_k(U), single
+// shooting), so the reduced Hessian of its Lagrangian L^a = J^a + sum_k lambda_k'(f(x_k,u_k) - x_{k+1})
+// + sum_c w_c h_c on the dynamics' null space is
+//   H_U = sum_k [S_k; E_k]' d2L^a/d(x_k,u_k)^2 [S_k; E_k],   S_k = dx_k/dU, E_k = du_k/dU,
+// the Hessian of U -> J^a(x(U), U) + sum_c w_c h_c(x(U), U) when lambda is the adjoint (at a first-order point).
+// Constraints of agent a with h_c >= -active_gap and a positive multiplier w_c are held as equalities: the test
+// is on the null space N of their Jacobian rows dh_c/dU, with an orthonormal basis Z (control units). Every
+// constraint's multiplier-weighted curvature w_c d2h_c enters H_U (the barrier's own rho/h^2 term does not: the
+// question is about the agent's constrained problem, not the barrier's approximation of it).
+#pragma once
+#include <functional>
+#include <vector>
+
+#include "rd3g/problem.hpp"
+#include "rd3g/solver.hpp"
+
+namespace rd3g {
+
+struct SecondOrderAgent {
+  /// Smallest eigenvalue of Z' H_U Z (cost units per control unit^2); +inf if N = {0} (the active constraints
+  /// fix every control).
+  double min_eigenvalue = kInf;
+  double max_abs_eigenvalue = 0;  ///< largest |eigenvalue| of Z' H_U Z, the scale of the relative test
+  int free_directions = 0;        ///< dim N
+  int active = 0;                 ///< constraints held as equalities in the test
+  /// Unit eigenvector of min_eigenvalue as controls, nu x T (a direction of negative curvature when the test fails).
+  Mat direction;
+};
+
+/// Value h, gradient g (w.r.t. the agent's own position or bounded component) and Hessian H of constraint c at the
+/// point being checked (the solver's own evaluation, so that both agree on forms and units).
+using ConstraintEval = std::function<void(int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H)>;
+
+/// Buffers are sized in setup(); check() reuses them.
+class SecondOrderCheck {
+ public:
+  void setup(int num_agents, int horizon, int nx, int nu);
+  /// x per agent nx x (T+1) (column k = x_k), u per agent nu x T, lam per agent nx x T (dynamics multipliers, sign
+  /// as above); w_i[c] / w_j[c] is the multiplier of constraint c for its agent i / its other agent j (pairs).
+  /// Returns one entry per agent.
+  const std::vector<SecondOrderAgent>& check(const Problem& p, const std::vector<Constraint>& cons,
+                                             const ConstraintEval& eval, const std::vector<Mat>& x,
+                                             const std::vector<Mat>& u, const std::vector<Mat>& lam, const Vec& w_i,
+                                             const Vec& w_j, double active_gap);
+  /// True if every agent's min_eigenvalue >= -tol * max(1, max_abs_eigenvalue) (relative test; tol > 0).
+  bool passes(double tol) const;
+
+ private:
+  int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0;
+  std::vector<Mat> S_;  // S_k = dx_k/dU, nx x (T nu), k = 0..T
+  Mat Hr_, Hl_, A_, B_, G_, C_;
+  Vec fx_;
+  std::vector<SecondOrderAgent> out_;
+};
+
+}  // namespace rd3g

@@ -1,0 +1,38 @@
+// The cost and dynamics part of the Newton system of an open-loop game, shared by RD3G (solver.cpp) and
+// ALGames (algames.cpp). Both stack, per stage k and agent i, the variables [u_k, lambda_k, x_{k+1}] and
+// the rows [dL^i/du_k; f(x_k, u_k) - x_{k+1}; dL^i/dx_{k+1}] of L^i = J^i + sum_k lambda_k'(f(x_k, u_k) - x_{k+1});
+// each adds its constraint terms on top.
+#pragma once
+#include <Eigen/Sparse>
+#include <vector>
+
+#include "rd3g/dynamics.hpp"
+#include "rd3g/problem.hpp"
+
+namespace rd3g {
+
+/// Column (and row) offsets of the stage-wise layout: stages in time order, agents within a stage.
+struct StageLayout {
+  int N = 0, nx = 0, nu = 0;
+  int stage_size() const { return nu + 2 * nx; }
+  int col_u(int i, int k) const { return (k * N + i) * stage_size(); }
+  int col_lam(int i, int k) const { return col_u(i, k) + nu; }
+  int col_x(int i, int k) const { return col_u(i, k - 1) + nu + nx; }  // k = 1..T
+};
+
+/// Scratch space of add_stage_terms, sized once (no allocation per stage).
+struct StageWorkspace {
+  Mat A, B, Hl, Huu, Hc;
+  Vec fx;
+  void resize(int nx, int nu);
+};
+
+/// Adds agent i's terms of stage k (0..T-1) to the residual r (rows of the layout; r must be zero there
+/// before stage 0, and the stage-k terms of x_k are added at stage k) and, if trip, the Jacobian's triplets
+/// (dense blocks, explicit zeros included, so the pattern depends only on the sizes). x: nx x (T+1) with
+/// column k = x_k, u: nu x T, lam_k: the dynamics multiplier of stage k.
+void add_stage_terms(const StageLayout& layout, int i, int k, int T, const Dynamics& f, const QuadraticCost& cost,
+                     const LeadCost& lead, const Mat& x, const Mat& u, const Eigen::Ref<const Vec>& lam_k, Vec& r,
+                     std::vector<Eigen::Triplet<double>>* trip, StageWorkspace& w);
+
+}  // namespace rd3g

@@ -1,0 +1,166 @@
+#include "rd3g/second_order.hpp"
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/QR>
+#include <algorithm>
+#include <cmath>
+
+namespace rd3g {
+
+void SecondOrderCheck::setup(int num_agents, int horizon, int nx, int nu) {
+  N_ = num_agents;
+  T_ = horizon;
+  nx_ = nx;
+  nu_ = nu;
+  const int m = T_ * nu_;
+  S_.assign(T_ + 1, Mat::Zero(nx_, m));
+  Hr_ = Mat::Zero(m, m);
+  Hl_ = Mat::Zero(nx_ + nu_, nx_ + nu_);
+  A_ = Mat::Zero(nx_, nx_);
+  B_ = Mat::Zero(nx_, nu_);
+  G_ = Mat::Zero(nx_ + nu_, m);
+  C_ = Mat::Zero(0, m);
+  fx_ = Vec::Zero(nx_);
+  out_.assign(N_, SecondOrderAgent{});
+}
+
+const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, const std::vector<Constraint>& cons,
+                                                             const ConstraintEval& eval, const std::vector<Mat>& x,
+                                                             const std::vector<Mat>& u, const std::vector<Mat>& lam,
+                                                             const Vec& w_i, const Vec& w_j, double active_gap) {
+  using K = Constraint::Kind;
+  const int m = T_ * nu_;
+  const int px = p.collision.pos_x, py = p.collision.pos_y;
+  Eigen::Vector2d g;
+  Eigen::Matrix2d H;
+  double h;
+  for (int a = 0; a < N_; ++a) {
+    const Dynamics& f = *p.dynamics[a];
+    const QuadraticCost& cost = p.costs[a];
+    Hr_.setZero();
+    S_[0].setZero();
+    // Stages k = 0..T-1: d2L/d(x_k,u_k)^2 = lambda_k' d2f + cost; x_T's cost after the loop.
+    for (int k = 0; k < T_; ++k) {
+      const int n = (k + 1) * nu_;  // S_k and E_k only touch the controls u_0..u_k
+      f.eval(x[a].col(k), u[a].col(k), fx_, A_, B_);
+      f.lambda_hessian(x[a].col(k), u[a].col(k), lam[a].col(k), Hl_);
+      Hl_.bottomRightCorner(nu_, nu_).diagonal() += 2.0 * cost.R;
+      if (k >= 1) Hl_.topLeftCorner(nx_, nx_).diagonal() += 2.0 * (cost.Q_ref + cost.Q);
+      G_.topLeftCorner(nx_, n) = S_[k].leftCols(n);
+      G_.bottomLeftCorner(nu_, n).setZero();
+      G_.block(nx_, k * nu_, nu_, nu_).setIdentity();
+      Hr_.topLeftCorner(n, n).noalias() += G_.leftCols(n).transpose() * Hl_ * G_.leftCols(n);
+      S_[k + 1].setZero();
+      S_[k + 1].leftCols(n).noalias() = A_ * S_[k].leftCols(n);
+      S_[k + 1].block(0, k * nu_, nx_, nu_) += B_;
+    }
+    const Vec qT = 2.0 * (cost.Qf_ref + cost.Qf);
+    Hr_.noalias() += S_[T_].transpose() * qT.asDiagonal() * S_[T_];
+
+    // Constraints of agent a: curvature w_c d2h_c, and the Jacobian rows of the ones held as equalities.
+    int na = 0;
+    for (int c = 0; c < static_cast<int>(cons.size()); ++c) {
+      const Constraint& cn = cons[c];
+      const bool pair = cn.kind == K::Pair;
+      if (cn.i != a && !(pair && cn.j == a)) continue;
+      eval(c, h, g, H);
+      const bool own = cn.i == a;
+      const double w = own ? w_i[c] : w_j[c];
+      const bool active = h >= -active_gap && w > 0;
+      if (active && na >= C_.rows()) C_.conservativeResize(std::max<Eigen::Index>(8, 2 * C_.rows()), m);
+      switch (cn.kind) {
+        case K::Pair:
+        case K::Obstacle: {
+          // h depends on d = p_i - p_j (or p_i - o): dh/dp_j = -g, d2h/dp_j^2 = H.
+          const Mat& S = S_[cn.k];
+          const double s = own ? 1.0 : -1.0;
+          if (w != 0.0) {
+            const Mat P = (Mat(2, m) << S.row(px), S.row(py)).finished();
+            Hr_.noalias() += w * P.transpose() * H * P;
+          }
+          if (active) C_.row(na++) = s * (g[0] * S.row(px) + g[1] * S.row(py));
+          break;
+        }
+        case K::StateMax:
+        case K::StateMin:
+          if (active) C_.row(na++) = g[0] * S_[cn.k].row(cn.idx);
+          break;
+        case K::ControlMax:
+        case K::ControlMin:
+          if (active) {
+            C_.row(na).setZero();
+            C_(na++, cn.k * nu_ + cn.idx) = g[0];
+          }
+          break;
+      }
+    }
+    Hr_ = 0.5 * (Hr_ + Hr_.transpose()).eval();
+
+    // Orthonormal basis Z of the active rows' null space, then the spectrum of Z' H_U Z.
+    SecondOrderAgent& out = out_[a];
+    out.active = na;
+    Mat Z;
+    if (na == 0) {
+      Z = Mat::Identity(m, m);
+    } else {
+      Eigen::ColPivHouseholderQR<Mat> qr(C_.topRows(na).transpose());
+      qr.setThreshold(1e-9);
+      const int r = static_cast<int>(qr.rank());
+      const Mat Q = qr.householderQ();
+      Z = Q.rightCols(m - r);
+    }
+    out.free_directions = static_cast<int>(Z.cols());
+    if (Z.cols() == 0) {
+      out.min_eigenvalue = kInf;
+      out.max_abs_eigenvalue = 0;
+      out.direction = Mat::Zero(nu_, T_);
+      continue;
+    }
+    const Mat R = Z.transpose() * Hr_ * Z;
+    Eigen::SelfAdjointEigenSolver<Mat> es(R);
+    if (es.info() != Eigen::Success) {
+      out.min_eigenvalue = std::numeric_limits<double>::quiet_NaN();
+      out.max_abs_eigenvalue = 0;
+      out.direction = Mat::Zero(nu_, T_);
+      continue;
+    }
+    out.min_eigenvalue = es.eigenvalues()[0];
+    out.max_abs_eigenvalue = es.eigenvalues().cwiseAbs().maxCoeff();
+    const Vec d = Z * es.eigenvectors().col(0);
+    out.direction = Eigen::Map<const Mat>(d.data(), nu_, T_);
+  }
+  return out_;
+}
+
+bool SecondOrderCheck::passes(double tol) const {
+  for (const SecondOrderAgent& a : out_)
+    if (!(a.min_eigenvalue >= -tol * std::max(1.0, a.max_abs_eigenvalue))) return false;
+  return true;
+}
+
+}  // namespace rd3g
+
+// The solver's hook: each constraint's multiplier per agent at y_ (equality multiplier, barrier dual, or 0 if
+// released), then the test.
+namespace rd3g {
+
+bool Solver::check_second_order(Info& info) {
+  const int C = static_cast<int>(cons_.size());
+  Vec w_i = Vec::Zero(C), w_j = Vec::Zero(C);
+  for (int c = 0; c < C; ++c) {
+    if (state_[c] == ConstraintState::Active) {
+      w_i[c] = y_.mu[c];
+      w_j[c] = mu2_col_[c] >= 0 ? y_.mu2[c] : y_.mu[c];
+    } else if (state_[c] == ConstraintState::Barrier && h_[c] < 0) {
+      w_i[c] = w_j[c] = barrier_ == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h_[c];
+    }
+  }
+  const auto& agents = second_order_->check(
+      prob_, cons_, [&](int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) { eval_constraint(y_, c, h, g, H); },
+      y_.x, y_.u, y_.lam, w_i, w_j, settings_.second_order_gap);
+  info.second_order.resize(N_);
+  for (int a = 0; a < N_; ++a) info.second_order[a] = agents[a].min_eigenvalue;
+  return second_order_->passes(settings_.second_order_tol);
+}
+
+}  // namespace rd3g

@@ -1,0 +1,65 @@
+#include "rd3g/stage_terms.hpp"
+
+namespace rd3g {
+
+void StageWorkspace::resize(int nx, int nu) {
+  A = Mat::Zero(nx, nx);
+  B = Mat::Zero(nx, nu);
+  Hl = Mat::Zero(nx + nu, nx + nu);
+  Huu = Mat::Zero(nu, nu);
+  Hc = Mat::Zero(nx, nx);
+  fx = Vec::Zero(nx);
+}
+
+void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& f, const QuadraticCost& cost,
+                     const LeadCost& lead, const Mat& x, const Mat& u, const Eigen::Ref<const Vec>& lk, Vec& r,
+                     std::vector<Eigen::Triplet<double>>* trip, StageWorkspace& w) {
+  const int nx = L.nx, nu = L.nu;
+  const int ru = L.col_u(i, k), rf = L.col_lam(i, k), rx1 = L.col_x(i, k + 1);
+  f.eval(x.col(k), u.col(k), w.fx, w.A, w.B);
+  // dL/du_k = 2 R u_k + B' lambda_k
+  r.segment(ru, nu) = 2.0 * cost.R.cwiseProduct(u.col(k)) + w.B.transpose() * lk;
+  // F_k = f(x_k, u_k) - x_{k+1}
+  r.segment(rf, nx) = w.fx - x.col(k + 1);
+  // dL/dx_{k+1}: cost gradient - lambda_k (+ A_{k+1}' lambda_{k+1}, added at stage k+1)
+  const bool terminal = (k + 1 == T);
+  const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
+  const Vec& q = terminal ? cost.Qf : cost.Q;
+  const auto x1 = x.col(k + 1);
+  r.segment(rx1, nx) += 2.0 * (qr.cwiseProduct(x1 - cost.x_ref) + q.cwiseProduct(x1)) - lk;
+  if (lead.weight != 0.0 && L.N > 1) r[rx1 + lead.index] += -lead.weight * (L.N - 1);
+  if (k >= 1) r.segment(L.col_x(i, k), nx) += w.A.transpose() * lk;
+  if (!trip) return;
+
+  auto add_block = [&](int r0, int c0, const auto& M) {
+    for (int a = 0; a < M.rows(); ++a)
+      for (int b = 0; b < M.cols(); ++b) trip->emplace_back(r0 + a, c0 + b, M(a, b));
+  };
+  auto add_neg_identity = [&](int r0, int c0, int n) {
+    for (int a = 0; a < n; ++a) trip->emplace_back(r0 + a, c0 + a, -1.0);
+  };
+  f.lambda_hessian(x.col(k), u.col(k), lk, w.Hl);
+  // rows dL/du_k
+  w.Huu = w.Hl.bottomRightCorner(nu, nu);
+  w.Huu.diagonal() += 2.0 * cost.R;
+  add_block(ru, ru, w.Huu);
+  add_block(ru, rf, w.B.transpose());
+  // rows F_k
+  add_block(rf, ru, w.B);
+  add_neg_identity(rf, rx1, nx);
+  // rows dL/dx_{k+1}
+  add_neg_identity(rx1, rf, nx);
+  w.Hc.setZero();
+  w.Hc.diagonal() = 2.0 * (qr + q);
+  add_block(rx1, rx1, w.Hc);
+  if (k >= 1) {
+    const int rxk = L.col_x(i, k);
+    add_block(ru, rxk, w.Hl.bottomLeftCorner(nu, nx));
+    add_block(rxk, ru, w.Hl.topRightCorner(nx, nu));
+    add_block(rxk, rxk, w.Hl.topLeftCorner(nx, nx));
+    add_block(rxk, rf, w.A.transpose());
+    add_block(rf, rxk, w.A);
+  }
+}
+
+}  // namespace rd3g

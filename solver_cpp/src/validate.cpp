@@ -1,0 +1,185 @@
+#include "rd3g/validate.hpp"
+
+#include <cmath>
+#include <cstdio>
+#include <stdexcept>
+
+namespace rd3g {
+
+namespace {
+std::string num(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%g", v);
+  return buf;
+}
+
+/// n finite values (or, with allow_inf, no NaN); names the first bad component.
+void check_values(const Vec& v, int n, const std::string& where, bool allow_inf = false) {
+  require(v.size() == n, where + " must have " + std::to_string(n) + " values, got " + std::to_string(v.size()));
+  for (int q = 0; q < n; ++q)
+    require(allow_inf ? !std::isnan(v[q]) : std::isfinite(v[q]),
+            where + "[" + std::to_string(q) + "] is not a " + (allow_inf ? "number (NaN)" : "finite number"));
+}
+
+void check_non_negative(const Vec& v, const std::string& where) {
+  for (int q = 0; q < v.size(); ++q)
+    require(v[q] >= 0, where + " must be non-negative (" + where + "[" + std::to_string(q) + "] = " + num(v[q]) + ")");
+}
+
+void check_index(int index, int n, const std::string& where) {
+  require(index >= 0 && index < n, where + " must be a state index in [0, " + std::to_string(n) + "), got " + std::to_string(index));
+}
+}  // namespace
+
+void require(bool ok, const std::string& what) {
+  if (!ok) throw std::invalid_argument(what);
+}
+
+void validate_initial_state(const Vec& x0, int nx, const std::string& where) { check_values(x0, nx, where); }
+
+void validate_cost(const QuadraticCost& c, int nx, int nu, const std::string& where) {
+  check_values(c.x_ref, nx, where + ".x_ref");
+  const std::pair<const Vec*, const char*> weights[] = {{&c.Q_ref, "Q_ref"}, {&c.Q, "Q"}, {&c.Qf_ref, "Qf_ref"}, {&c.Qf, "Qf"}};
+  for (const auto& [v, name] : weights) {
+    check_values(*v, nx, where + "." + name);
+    check_non_negative(*v, where + "." + name);
+  }
+  check_values(c.R, nu, where + ".R");
+  check_non_negative(c.R, where + ".R");
+}
+
+void validate_lead(const LeadCost& lead, int nx, const std::string& where) {
+  require(std::isfinite(lead.weight), where + ".lead_weight must be finite, got " + num(lead.weight));
+  check_index(lead.index, nx, where + ".lead_index");
+}
+
+void validate_bounds(const Vec& lower, const Vec& upper, int n, const std::string& where, const char* name) {
+  const std::string lo = where + "." + name + "_min", hi = where + "." + name + "_max";
+  if (lower.size()) check_values(lower, n, lo, true);
+  if (upper.size()) check_values(upper, n, hi, true);
+  if (lower.size() && upper.size())
+    for (int q = 0; q < n; ++q)
+      require(lower[q] < upper[q], lo + " must be below " + hi + " in every component (component " + std::to_string(q) +
+                                       ": " + num(lower[q]) + " >= " + num(upper[q]) + ")");
+  // A single bound of +inf below or -inf above would admit nothing either.
+  if (lower.size())
+    for (int q = 0; q < n; ++q) require(lower[q] < kInf, lo + "[" + std::to_string(q) + "] must be below +inf");
+  if (upper.size())
+    for (int q = 0; q < n; ++q) require(upper[q] > -kInf, hi + "[" + std::to_string(q) + "] must be above -inf");
+}
+
+void validate_min_distance(double min_distance, const Vec& steps, int horizon, const std::string& where) {
+  if (steps.size() == 0) {
+    require(std::isfinite(min_distance) && min_distance > 0, where + " must be positive, got " + num(min_distance));
+    return;
+  }
+  require(steps.size() == horizon, where + " must be a positive number or " + std::to_string(horizon) +
+                                       " positive numbers (one per step k = 1..T), got " + std::to_string(steps.size()));
+  for (int k = 0; k < horizon; ++k)
+    require(std::isfinite(steps[k]) && steps[k] > 0,
+            where + "[" + std::to_string(k) + "] (step k = " + std::to_string(k + 1) + ") must be positive, got " + num(steps[k]));
+}
+
+void validate_obstacle(const Obstacle& o, int horizon, const std::string& where) {
+  require(o.positions.rows() == horizon + 1 && o.positions.cols() == 2,
+          where + ".positions must have shape (" + std::to_string(horizon + 1) + ", 2), got (" +
+              std::to_string(o.positions.rows()) + ", " + std::to_string(o.positions.cols()) + ")");
+  require(o.positions.allFinite(), where + ".positions must be finite");
+  validate_min_distance(o.min_distance, o.min_distance_steps, horizon, where + ".min_distance");
+}
+
+void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int nx, bool has_obstacles) {
+  const bool pairs = c.enabled && num_agents > 1;
+  // Obstacles use the same position indices, so they are checked whenever either constraint exists.
+  if (pairs || has_obstacles) {
+    try {
+      check_index(c.pos_x, nx, "collision.pos_x");
+      check_index(c.pos_y, nx, "collision.pos_y");
+    } catch (const std::invalid_argument& e) {
+      if (pairs) throw;
+      throw std::invalid_argument(std::string(e.what()) +
+                                  " (obstacles use the collision block's position indices, default 0 and 1)");
+    }
+  }
+  require(c.form == CollisionForm::Distance || c.form == CollisionForm::Squared, "collision.form is not a known form");
+  if (pairs) validate_min_distance(c.min_distance, c.min_distance_steps, horizon, "collision.min_distance");
+}
+
+void validate_problem(const Problem& p) {
+  const int N = p.num_agents();
+  require(N >= 1, "agents must contain at least one agent");
+  require(p.horizon >= 1, "horizon must be a positive integer, got " + std::to_string(p.horizon));
+  require(p.dt > 0 && std::isfinite(p.dt), "dt must be a positive finite number, got " + num(p.dt));
+  for (int i = 0; i < N; ++i)
+    require(p.dynamics[i] != nullptr, "agents[" + std::to_string(i) + "].dynamics is missing");
+  const int nx = p.dynamics[0]->nx(), nu = p.dynamics[0]->nu();
+  require(nx >= 1 && nu >= 0, "agents[0].dynamics must have at least one state");
+  auto per_agent = [&](size_t n, const char* name, bool may_be_empty) {
+    require(static_cast<int>(n) == N || (may_be_empty && n == 0),
+            std::string(name) + " must have one entry per agent (" + std::to_string(N) + "), got " + std::to_string(n));
+  };
+  per_agent(p.x0.size(), "x0", false);
+  per_agent(p.costs.size(), "costs", false);
+  per_agent(p.lead.size(), "lead", true);
+  per_agent(p.u_min.size(), "u_min", true);
+  per_agent(p.u_max.size(), "u_max", true);
+  per_agent(p.x_min.size(), "x_min", true);
+  per_agent(p.x_max.size(), "x_max", true);
+  for (int i = 0; i < N; ++i) {
+    const std::string a = "agents[" + std::to_string(i) + "]";
+    require(p.dynamics[i]->nx() == nx && p.dynamics[i]->nu() == nu,
+            a + ".dynamics: every agent must have nx=" + std::to_string(nx) + ", nu=" + std::to_string(nu) + " (got " +
+                std::to_string(p.dynamics[i]->nx()) + ", " + std::to_string(p.dynamics[i]->nu()) + ")");
+    validate_initial_state(p.x0[i], nx, a + ".x0");
+    validate_cost(p.costs[i], nx, nu, a + ".cost");
+    if (!p.lead.empty()) validate_lead(p.lead[i], nx, a);
+    validate_bounds(p.u_min.empty() ? Vec() : p.u_min[i], p.u_max.empty() ? Vec() : p.u_max[i], nu, a, "u");
+    validate_bounds(p.x_min.empty() ? Vec() : p.x_min[i], p.x_max.empty() ? Vec() : p.x_max[i], nx, a, "x");
+  }
+  validate_collision(p.collision, N, p.horizon, nx, !p.obstacles.empty());
+  for (size_t o = 0; o < p.obstacles.size(); ++o) validate_obstacle(p.obstacles[o], p.horizon, "obstacles[" + std::to_string(o) + "]");
+}
+
+Problem with_defaults(const Problem& p) {
+  Problem out = p;
+  const int N = p.num_agents(), nx = p.dynamics[0]->nx(), nu = p.dynamics[0]->nu();
+  if (out.lead.empty()) out.lead.assign(N, LeadCost{});
+  auto fill = [&](std::vector<Vec>& b, int n, double value) {
+    if (b.empty()) b.assign(N, Vec());
+    for (Vec& v : b)
+      if (v.size() == 0) v = Vec::Constant(n, value);
+  };
+  fill(out.u_min, nu, -kInf);
+  fill(out.u_max, nu, kInf);
+  fill(out.x_min, nx, -kInf);
+  fill(out.x_max, nx, kInf);
+  return out;
+}
+
+void validate_settings(const Settings& s) {
+  require(s.tol > 0, "solver.tol must be positive");
+  require(s.max_iter >= 0, "solver.max_iter must be >= 0");
+  require(s.time_limit >= 0, "solver.time_limit must be >= 0 (0 = none)");
+  require(s.rho_init > 0, "solver.rho_init must be positive");
+  require(s.rho_kappa > 0 && s.rho_kappa < 1, "solver.rho_kappa must be in (0, 1)");
+  require(s.rho_beta > 1, "solver.rho_beta must be > 1");
+  require(s.rho_progress >= 0, "solver.rho_progress must be >= 0");
+  require(s.rho_floor_factor > 0 && s.rho_floor_factor <= 1, "solver.rho_floor_factor must be in (0, 1]");
+  require(s.ls_alpha > 0 && s.ls_alpha < 1, "solver.ls_alpha must be in (0, 1)");
+  require(s.ls_beta > 0 && s.ls_beta < 1, "solver.ls_beta must be in (0, 1)");
+  require(s.ls_max_steps >= 1, "solver.ls_max_steps must be >= 1");
+  require(s.violation_tol >= 0, "solver.violation_tol must be >= 0");
+  require(s.dynamics_tol > 0, "solver.dynamics_tol must be positive");
+  require(s.multiplier_tol >= 0, "solver.multiplier_tol must be >= 0");
+  require(s.barrier_margin >= 0, "solver.barrier_margin must be >= 0");
+  require(s.fraction_to_boundary > 0 && s.fraction_to_boundary < 1, "solver.fraction_to_boundary must be in (0, 1)");
+  require(s.lm_tries >= 0 && s.lm_nu_init > 0, "solver.lm_tries must be >= 0 and solver.lm_nu_init positive");
+  require(s.restarts >= 0, "solver.restarts must be >= 0");
+  require(s.stall_window >= 0, "solver.stall_window must be >= 0 (0 = never)");
+  require(s.restart_u_std >= 0, "solver.restart_u_std must be >= 0");
+  require(s.polish_gap >= 0, "solver.polish_gap must be >= 0 (0 = off)");
+  require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
+  require(s.second_order_tol > 0, "solver.second_order_tol must be positive");
+}
+
+}  // namespace rd3g

@@ -1,0 +1,75 @@
+"""The generated game families (bench/families.py): reproducible from (family, cars, seed), documented geometry,
+feasible starts, and the authors' family equal to bench/merging.py's instances."""
+import numpy as np
+import pytest
+
+from bench.families import FAMILIES, family_problem
+from bench.merging import merging_problem
+
+
+def _x0(problem):
+    return np.array([a.x0 for a in problem.agents], dtype=float)
+
+
+def test_authors_family_is_the_merging_benchmark():
+    for cars, seed in ((2, 0), (5, 3), (8, 11)):
+        a, b = family_problem("authors", cars, seed), merging_problem(cars, seed)
+        np.testing.assert_array_equal(_x0(a), _x0(b))
+        assert (a.dt, a.horizon, a.collision.min_distance, a.collision.form) == (b.dt, b.horizon, 2.0, "squared")
+
+
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_family_instances_are_seeded_and_start_feasible(name):
+    for cars in range(2, 9):
+        p = family_problem(name, cars, 4)
+        assert p.num_agents == cars
+        np.testing.assert_array_equal(_x0(p), _x0(family_problem(name, cars, 4)))
+        assert not np.array_equal(_x0(p), _x0(family_problem(name, cars, 5)))
+        xy = _x0(p)[:, :2]
+        gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(cars, 1)]
+        assert gaps.min() >= p.collision.min_distance + 0.1 - 1e-12
+
+
+def test_crossing_and_head_on_geometry():
+    cross = _x0(family_problem("crossing", 4, 0))
+    np.testing.assert_array_equal(cross[[0, 2], 1], 0.0)           # east-bound on y = 0
+    np.testing.assert_array_equal(cross[[1, 3], 0], 0.0)           # north-bound on x = 0
+    np.testing.assert_allclose(cross[[1, 3], 3], np.pi / 2)
+    assert np.all(cross[[0, 2], 0] < -4) and np.all(cross[[1, 3], 1] < -4)  # all before the intersection
+    head = _x0(family_problem("head-on", 4, 0))
+    assert np.all(head[[0, 2], 0] < -9) and np.all(head[[1, 3], 0] > 9)
+    np.testing.assert_allclose(head[[1, 3], 3], np.pi)
+    assert np.all(np.abs(head[:, 1]) <= 0.3)
+
+
+def test_unknown_family_is_named():
+    with pytest.raises(ValueError, match="unknown family 'nope'"):
+        family_problem("nope", 3, 0)
+
+
+def test_bench_rejects_an_unknown_family():
+    from app.cli import UserError, build_parser
+
+    args = build_parser().parse_args(["bench", "merge", "--family", "merge-dense,nope", "--no-docs"])
+    with pytest.raises(UserError, match="unknown family 'nope'"):
+        args.func(args)
+
+
+def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw():
+    """The last player of the last sweep solved against the others' final plans: its controls are a KKT point of its
+    own problem with them fixed (bench/verify.py's stationarity on that one-player problem, the other car as a moving
+    disc), collision free."""
+    from bench.verify import max_collision_violation_m, stationarity_residual
+    from solver_cpp import GameProblem, Obstacle
+    from solver_cpp.best_response import best_response_guess
+
+    problem = family_problem("head-on", 2, 0)
+    guess = best_response_guess(problem, rounds=1, tol=1e-8)
+    x = np.stack([a.dynamics.build(problem.dt).rollout(np.asarray(a.x0, float), guess.u[i])
+                  for i, a in enumerate(problem.agents)])
+    assert max_collision_violation_m(problem, x) <= 1e-6
+    alone = GameProblem(dt=problem.dt, horizon=problem.horizon, agents=[problem.agents[1]],
+                        obstacles=[Obstacle(x[0, :, :2], problem.collision.min_distance)])
+    assert stationarity_residual(alone, x[1:], guess.u[1:], relative=True)[0] < 1e-5
+    with pytest.raises(ValueError, match="rounds"):
+        best_response_guess(problem, rounds=0)
