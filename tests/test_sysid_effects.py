@@ -163,6 +163,8 @@ def test_declared_rate_limits_leave_nothing_to_explain_under_hard_throttle_steps
     assert abs(result.heldout_error_reduction) < 0.02
 
 
+@pytest.mark.xfail(strict=True, reason="issue #16, open: torque steer (heading rate ~ throttle x speed) is still "
+                   "claimed as steering_offset with a wrong size, and `other` is not significant")
 def test_an_effect_outside_the_library_of_names_is_reported_as_other_and_written():
     # Torque steer: the heading rate grows with throttle x speed. No named candidate has that shape.
     result = _identified("", 47, other=(("yaw_rate_u_v", 0.5),))
