@@ -22,6 +22,8 @@ COMMAND_MODULES = [
     "app.commands.bench",
     "app.commands.calibrate",
     "app.commands.review",
+    "app.commands.link_decode",
+    "app.commands.check",
     "app.commands.sysid",
 ]
 

@@ -124,13 +124,18 @@ def test_unopenable_port_is_a_clear_error():
 
 
 # ---------------------------------------------------------------------------- loop:// transport
-def test_loop_url_frames_decode_in_sequence():
-    link = SerialCarLink("loop://", rate_hz=100, car_ids=[3], handle_signals=False)
+def test_loop_url_frames_decode_in_sequence(tmp_path):
+    from vehicles.link_capture import LinkCapture, read_capture
+
+    capture = LinkCapture(tmp_path / "link.txt")
+    link = SerialCarLink("loop://", rate_hz=100, car_ids=[3], handle_signals=False, capture=capture)
     link.set_commands({3: CarCommand(0.25, 0.5)})
     with link:
         assert wait_until(lambda: link.stats.frames_sent >= 5)
-        # loop:// echoes writes back on the same port object; read them from there.
-        echoed = link._serial.read(4096)
+    capture.close()
+    # loop:// echoes writes back on the same port: the link reads them as the box's answer (rx).
+    echoed = b"".join(r.data for r in read_capture(tmp_path / "link.txt") if r.direction == "rx")
+    assert link.stats.bytes_received == len(echoed)
     decoded = FrameDecoder().feed(echoed)
     assert len(decoded) >= 5
     assert [f.seq for f in decoded] == list(range(len(decoded)))

@@ -188,6 +188,44 @@ def motor_force_scale(drift_per_s: float, elapsed_s):
 # ---- end of model identification terms ----
 
 
+# ---- radio link calibration (BuzzRacer FHSS box, vehicles/fhss.py; docs/vehicles.md "Radio calibration")
+def _optional(check: Callable[[float], str | None], doc: str, is_int: bool = False) -> Any:
+    """A field that may be absent from the file (None): the doc says what stands in for it."""
+    return field(default=None, metadata={"check": check, "doc": doc, "int": is_int, "optional": True})
+
+
+def _pulse(default: int, doc: str) -> Any:
+    return _int(default, _between(1000, 2000), doc=doc)
+
+
+@dataclass(frozen=True)
+class RadioParams:
+    """How this car's receiver maps pulse widths (us) to steering angle and throttle, and which
+    transmitter slot drives it. Pulses at the two ends may be in either order (servo direction,
+    reversed throttle channel); each neutral pulse must lie strictly between its two ends."""
+
+    modem_id: int | None = _optional(_between(0, 5), "FHSS box radio: slots 2m (steering), 2m+1 (throttle)", True)
+    steering_left_max_rad: float | None = _optional(
+        _between(1e-3, 1.2), "full left wheel angle (absent: actuators.max_steering_rad)")
+    steering_right_max_rad: float | None = _optional(
+        _between(1e-3, 1.2), "full right wheel angle (absent: actuators.max_steering_rad)")
+    steering_left_us: int = _pulse(1100, "pulse at full left")
+    steering_neutral_us: int = _pulse(1500, "pulse at straight ahead")
+    steering_right_us: int = _pulse(2000, "pulse at full right")
+    throttle_forward_us: int = _pulse(1900, "pulse at throttle +1")
+    throttle_neutral_us: int = _pulse(1500, "pulse at throttle 0")
+    throttle_reverse_us: int = _pulse(1100, "pulse at throttle -1 (brake/reverse)")
+
+
+def _check_radio(radio: RadioParams, source: str) -> None:
+    for channel, low_end, high_end in (("steering", "left", "right"), ("throttle", "forward", "reverse")):
+        a, n, b = (getattr(radio, f"{channel}_{k}_us") for k in (low_end, "neutral", high_end))
+        if not (min(a, b) < n < max(a, b)):
+            raise CarParamsError(f"{source}: radio.{channel}_neutral_us: must lie strictly between "
+                                 f"radio.{channel}_{low_end}_us ({a}) and radio.{channel}_{high_end}_us ({b}), got {n}")
+# ---- end radio link calibration
+
+
 @dataclass(frozen=True)
 class CarParams:
     name: str = "buzzracer"
@@ -200,7 +238,9 @@ class CarParams:
     model: ModelParams = field(default_factory=ModelParams)
     marker: MarkerParams = field(default_factory=MarkerParams)
     corrections: Corrections = field(default_factory=Corrections)
-    # model identification; optional in a car file (added after the first car files were written)
+    # transmitter calibration (BuzzRacer FHSS box) and model identification; both optional in a car file
+    # (added after the first car files were written)
+    radio: RadioParams = field(default_factory=RadioParams, metadata={"optional_in_file": True})
     other_terms: OtherTermsParams = field(default_factory=OtherTermsParams, metadata={"optional_in_file": True})
 
     def __post_init__(self) -> None:
@@ -217,6 +257,7 @@ _SECTION_TYPES = {
     "model": ModelParams,
     "marker": MarkerParams,
     "corrections": Corrections,
+    "radio": RadioParams,
     "other_terms": OtherTermsParams,  # model identification
 }
 
@@ -232,6 +273,7 @@ def _check_cross_fields(p: CarParams, source: str) -> None:
     for sec, obj in _sections_of(p):
         for f in fields(obj):
             _validate_value(source, f"{sec}.{f.name}", f, getattr(obj, f.name))
+    _check_radio(p.radio, source)
 
 
 def _sections_of(p: CarParams) -> list[tuple[str, Any]]:
@@ -240,6 +282,8 @@ def _sections_of(p: CarParams) -> list[tuple[str, Any]]:
 
 def _validate_value(source: str, key: str, f: dataclasses.Field, value: Any) -> Any:
     is_int = f.metadata.get("int", False)
+    if value is None and f.metadata.get("optional"):
+        return None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         kind = "an integer" if is_int else "a number"
         raise CarParamsError(f"{source}: {key}: must be {kind}, got {value!r}")
@@ -338,6 +382,9 @@ def dump_car_params(params: CarParams) -> str:
         for f in fields(obj):
             doc = f.metadata.get("doc")
             comment = f"  # {doc}" if doc else ""
+            if getattr(obj, f.name) is None:  # an optional field left out (TOML has no null)
+                lines.append(f"# {f.name} = (not set){comment}")
+                continue
             lines.append(f"{f.name} = {_toml_value(getattr(obj, f.name))}{comment}")
     return "\n".join(lines) + "\n"
 

@@ -402,3 +402,21 @@ class FrameDecoder:
         self._last_seq = seq
         self.stats.frames_ok += 1
         return DecodedFrame(seq, commands)
+
+
+class Rd3gEncoder:
+    """Frame encoder for ``SerialCarLink`` speaking this protocol: car ids 0..255, at most MAX_CARS per frame."""
+
+    name = "rd3g"
+    max_cars = MAX_CARS
+    max_frame_len = MAX_FRAME_LEN
+    max_rate_hz: float | None = None  # only the baud rate limits it
+
+    def check_car_id(self, car_id: object) -> int:
+        return check_car_id(car_id)
+
+    def limit(self, car_id: int, command: CarCommand) -> tuple[CarCommand, int]:
+        return command, 0  # [-1, 1] is the link's own limit
+
+    def encode(self, seq: int, commands: Mapping[int, CarCommand]) -> bytes:
+        return encode_frame(seq, commands)

@@ -1,7 +1,9 @@
 """Serial link to the cars' radio transmitter box: streams command frames at a fixed rate.
 
 ``SerialCarLink`` owns the port. A background thread sends the latest commands every
-1/rate_hz seconds (frame format: vehicles/protocol.py, docs/serial-protocol.md). Neutral
+1/rate_hz seconds, encoded by a frame encoder (``vehicles.link_protocols``: this project's frame,
+vehicles/protocol.py, or the BuzzRacer FHSS box's, vehicles/fhss.py; docs/serial-protocol.md). After
+each frame it reads whatever the box sent back (ASCII debug text: logged, never waited for). Neutral
 frames go out on start, on stop, on ``neutral()``, after a write failure, at interpreter
 exit and on SIGINT/SIGTERM. A write failure (device unplugged, box gone, write timeout)
 latches ``fault``, calls ``on_fault`` and stops the sender; the transmitter box's own
@@ -21,17 +23,15 @@ from typing import Callable, Iterable, Mapping
 
 import serial
 
+from vehicles.link_capture import LinkCapture
 from vehicles.protocol import (
     COMMAND_FIELDS,
-    MAX_CARS,
-    MAX_FRAME_LEN,
     NEUTRAL,
     SEQ_MODULUS,
     CarCommand,
     ProtocolError,
-    check_car_id,
+    Rd3gEncoder,
     check_command_value,
-    encode_frame,
 )
 
 log = logging.getLogger(__name__)
@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 # 8N1 framing: 10 bits on the wire per byte.
 _BITS_PER_BYTE = 10
 _HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_READ_MAX = 4096  # bytes of box text read per frame period
 
 
 class SerialLinkError(OSError):
@@ -52,7 +53,8 @@ class LinkStats:
     write_errors: int = 0
     clamped_values: int = 0  # command values clamped to the configured limits
     overruns: int = 0  # send ticks skipped because the sender fell behind
-    last_seq: int | None = None  # sequence number of the last frame written
+    last_seq: int | None = None  # sequence number of the last frame written (frame counter mod 2^16)
+    bytes_received: int = 0  # bytes the box sent back (its debug text)
     last_error: str | None = None
 
 
@@ -68,7 +70,10 @@ class SerialCarLink:
     ``on_fault(exc)`` called once, from the sender thread, when the link faults;
     ``write_timeout`` seconds a write may block before it counts as a failure;
     ``handle_signals`` install SIGINT/SIGTERM handlers (main thread only) that send
-    neutral and then chain to the previously installed handler.
+    neutral and then chain to the previously installed handler; ``encoder`` the frame encoder
+    (``vehicles.link_protocols.make_encoder``; default this project's frame), which also says which
+    car ids the receiver drives, each car's limits and the receiver's frame-rate cap; ``capture``
+    a ``LinkCapture`` that gets every byte written and read.
     """
 
     def __init__(
@@ -83,17 +88,24 @@ class SerialCarLink:
         on_fault: Callable[[BaseException], None] | None = None,
         write_timeout: float = 0.1,
         handle_signals: bool = True,
+        encoder=None,
+        capture: LinkCapture | None = None,
     ):
+        self.encoder = Rd3gEncoder() if encoder is None else encoder
         if isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate <= 0:
             raise ValueError(f"baudrate must be a positive int, got {baudrate!r}")
         if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"rate_hz must be a positive finite number, got {rate_hz!r}")
-        # Worst case (MAX_CARS cars) must fit in one period, or frames queue up and latency grows.
-        max_rate = baudrate / (_BITS_PER_BYTE * MAX_FRAME_LEN)
+        # Worst case (the longest frame) must fit in one period, or frames queue up and latency grows.
+        frame_len = self.encoder.max_frame_len
+        max_rate = baudrate / (_BITS_PER_BYTE * frame_len)
         if rate_hz > max_rate:
             raise ValueError(
-                f"rate_hz {rate_hz} too high for baudrate {baudrate}: a {MAX_FRAME_LEN}-byte frame "
+                f"rate_hz {rate_hz} too high for baudrate {baudrate}: a {frame_len}-byte frame "
                 f"allows at most {max_rate:.1f} Hz")
+        cap = self.encoder.max_rate_hz
+        if cap is not None and rate_hz > cap:
+            raise ValueError(f"rate_hz {rate_hz} above the {self.encoder.name} receiver's {cap:g} frames/s")
         for name, limit in (("max_abs_steering", max_abs_steering), ("max_abs_throttle", max_abs_throttle)):
             if not (isinstance(limit, (int, float)) and 0 < limit <= 1):
                 raise ValueError(f"{name} must be in (0, 1], got {limit!r}")
@@ -107,12 +119,15 @@ class SerialCarLink:
         self.on_fault = on_fault
         self._limits = {"steering": float(max_abs_steering), "throttle": float(max_abs_throttle)}
         self._handle_signals = handle_signals
+        self.capture = capture
+        self._rx_line = bytearray()  # the box's debug text up to the next newline
+        self._paused = False
 
         self._state_lock = threading.Lock()  # commands and stats
         self._write_lock = threading.Lock()  # one frame at a time on the wire
-        self._known_cars: set[int] = {check_car_id(c) for c in car_ids}
-        if len(self._known_cars) > MAX_CARS:
-            raise ValueError(f"{len(self._known_cars)} car_ids given, at most {MAX_CARS} allowed")
+        self._known_cars: set[int] = {self.encoder.check_car_id(c) for c in car_ids}
+        if len(self._known_cars) > self.encoder.max_cars:
+            raise ValueError(f"{len(self._known_cars)} car_ids given, at most {self.encoder.max_cars} allowed")
         self._commands: dict[int, CarCommand] = {c: NEUTRAL for c in self._known_cars}
         self._stats = LinkStats()
         self._seq = 0
@@ -158,7 +173,10 @@ class SerialCarLink:
         if not self._fault_event.is_set():
             # Lock timeout: a signal handler may interrupt the main thread while it writes.
             self._write({c: NEUTRAL for c in self._known_cars}, lock_timeout=0.5)
+        self._read_box()
         self._close_port()
+        if self.capture is not None:
+            self.capture.flush()
         self._remove_exit_hooks()
 
     def set_commands(self, commands: Mapping[int, CarCommand]) -> None:
@@ -171,7 +189,7 @@ class SerialCarLink:
         validated: dict[int, CarCommand] = {}
         clamped = 0
         for car_id, command in commands.items():
-            check_car_id(car_id)
+            self.encoder.check_car_id(car_id)
             if not isinstance(command, CarCommand):
                 raise ProtocolError(f"car {car_id}: expected CarCommand, got {type(command).__name__}")
             values = {}
@@ -182,11 +200,12 @@ class SerialCarLink:
                     value = math.copysign(limit, value)
                     clamped += 1
                 values[name] = value
-            validated[car_id] = CarCommand(**values)
+            validated[car_id], n = self.encoder.limit(car_id, CarCommand(**values))
+            clamped += n
         with self._state_lock:
             known = self._known_cars | validated.keys()
-            if len(known) > MAX_CARS:
-                raise ProtocolError(f"{len(known)} cars commanded, at most {MAX_CARS} allowed per frame")
+            if len(known) > self.encoder.max_cars:
+                raise ProtocolError(f"{len(known)} cars commanded, at most {self.encoder.max_cars} allowed per frame")
             self._known_cars = known
             self._commands = {c: validated.get(c, NEUTRAL) for c in known}
             if clamped:
@@ -198,6 +217,11 @@ class SerialCarLink:
             self._commands = {c: NEUTRAL for c in self._known_cars}
         if self.running:
             self._write({c: NEUTRAL for c in self._known_cars})
+
+    def pause_sending(self, paused: bool) -> None:
+        """Stop (True) or resume (False) the periodic frames, e.g. to see the box's failsafe act;
+        ``neutral()`` and ``stop()`` still send."""
+        self._paused = bool(paused)
 
     @property
     def commands(self) -> dict[int, CarCommand]:
@@ -237,8 +261,9 @@ class SerialCarLink:
         while not self._stop_event.wait(max(0.0, next_tick - time.monotonic())):
             with self._state_lock:
                 commands = dict(self._commands)
-            if not self._write(commands):
+            if not self._paused and not self._write(commands):
                 return
+            self._read_box()
             next_tick += self.period
             now = time.monotonic()
             if next_tick < now:
@@ -258,9 +283,11 @@ class SerialCarLink:
             if self._fault_event.is_set() or port is None:
                 return False
             seq = self._seq
-            frame = encode_frame(seq, commands)
+            frame = self.encoder.encode(seq, commands)
             try:
                 port.write(frame)
+                if self.capture is not None:
+                    self.capture.record("tx", frame)
             except (serial.SerialException, OSError, ValueError) as exc:
                 # ValueError: pyserial raises it when the port was closed under us.
                 self._fail(exc)
@@ -286,7 +313,10 @@ class SerialCarLink:
         port = self._serial
         if port is not None:
             try:  # the device may still accept a frame after e.g. a write timeout
-                port.write(encode_frame(self._seq, {c: NEUTRAL for c in self._known_cars}))
+                frame = self.encoder.encode(self._seq, {c: NEUTRAL for c in self._known_cars})
+                port.write(frame)
+                if self.capture is not None:
+                    self.capture.record("tx", frame)
             except (serial.SerialException, OSError, ValueError):
                 pass
         self._fault_event.set()
@@ -296,6 +326,29 @@ class SerialCarLink:
                 self.on_fault(exc)
             except Exception:  # a broken callback must not hide the fault itself
                 log.exception("on_fault callback of %s raised", self.port)
+
+    def _read_box(self) -> None:
+        """Take what the box sent back without waiting (timeout 0): capture it, log its text lines."""
+        port = self._serial
+        if port is None:
+            return
+        try:
+            data = port.read(_READ_MAX)
+        except (serial.SerialException, OSError, ValueError, TypeError):
+            return  # the writer notices a gone device; reading is only diagnostics
+        if not data:
+            return
+        if self.capture is not None:
+            self.capture.record("rx", data)
+        with self._state_lock:
+            self._stats = replace(self._stats, bytes_received=self._stats.bytes_received + len(data))
+        self._rx_line += data
+        *lines, rest = self._rx_line.split(b"\n")
+        self._rx_line = bytearray(rest[-_READ_MAX:])
+        for line in lines:
+            text = line.decode("ascii", "replace").strip()
+            if text:
+                log.info("box %s: %s", self.port, text)
 
     def _close_port(self) -> None:
         # Take the writer lock (bounded: a hung writer must not block shutdown) so no

@@ -9,6 +9,13 @@ box must have (docs/serial-protocol.md, "Transmitter box behaviour"): every car 
 - at once when the host hangs up (the last writer closes the device) or reading fails;
 - when no valid frame has arrived for ``failsafe_timeout`` (100 ms).
 A simulator reads ``commands_at(t)``; ``close()`` unplugs the device.
+
+With ``protocol="buzzracer-fhss"`` it is the BuzzRacer FHSS box's firmware instead (vehicles/fhss.py):
+its 0xAA 0x55 state machine, bad-CRC frames dropped silently, no corrupt or hang-up failsafe (the
+firmware sees neither), every channel 1500 us after 100 ms without a valid frame, and free-form ASCII
+debug text back to the host. Its commands are keyed by modem id (0..5, always all six) and carry the
+pulses as ``vehicles.fhss.pulse_to_unit`` values (1500 us = 0): the car's receiver calibration turns
+them into wheel angle and throttle.
 """
 from __future__ import annotations
 
@@ -24,6 +31,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Callable, Literal
 
+from vehicles import fhss
 from vehicles.protocol import MAX_CARS, NEUTRAL, CarCommand, DecodedFrame, DecoderStats, FrameDecoder
 
 log = logging.getLogger(__name__)
@@ -58,7 +66,7 @@ class BoxStats:
     failsafe_events: int  # transitions from "receiving" to "failsafe neutral" (all reasons)
     failsafe_active: bool
     callback_errors: int  # exceptions raised by on_commands (logged, never fatal)
-    decoder: DecoderStats  # rejected frames by reason
+    decoder: DecoderStats | fhss.FhssParserStats  # rejected frames by reason (the protocol's decoder)
     failsafe_by_reason: dict[str, int]  # failsafe_events split by FailsafeReason (every reason present)
     line_errors: int  # reads that carried corrupt, truncated or stray bytes (whether or not receiving)
     hangups: int  # times the host closed the device (also while already neutral)
@@ -87,6 +95,37 @@ class _OrderedDecoder(FrameDecoder):
         if frame is not None:
             self.errors_at_accept.append(_line_error_count(self.stats))
         return frame
+
+
+class _FhssFirmware:
+    """The FHSS box's parser behind the interface VirtualCarBox uses for its decoder (no inter-byte
+    timeout, no sequence numbers: ``buffered`` is always 0, ``reset_sequence`` does nothing)."""
+
+    gap_timeout = 0.0
+    buffered = 0
+
+    def __init__(self) -> None:
+        self._parser = fhss.FhssParser()
+        self.stats = self._parser.stats
+        self.errors_at_accept: list[int] = []
+
+    def feed(self, data, now=None) -> list[DecodedFrame]:
+        frames = []
+        for pulses in self._parser.feed(data):
+            commands = {m: CarCommand(fhss.pulse_to_unit(pulses[fhss.steering_slot(m)]),
+                                      fhss.pulse_to_unit(pulses[fhss.throttle_slot(m)])) for m in range(fhss.MAX_CARS)}
+            frames.append(DecodedFrame(self._parser.stats.frames_ok % (1 << 16), commands))
+            self.errors_at_accept.append(_line_error_count(self.stats))
+        return frames
+
+    def poll(self, now=None) -> list[DecodedFrame]:
+        return []
+
+    def flush(self) -> list[DecodedFrame]:
+        return []
+
+    def reset_sequence(self) -> None:
+        pass
 
 
 class CommandHistory:
@@ -145,6 +184,8 @@ class VirtualCarBox:
         history_s: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
         max_cars: int = MAX_CARS,
+        protocol: str = "rd3g",
+        chatter_every_s: float = 1.0,
     ):
         if not failsafe_timeout > 0:
             raise ValueError(f"failsafe_timeout must be > 0 seconds, got {failsafe_timeout!r}")
@@ -159,10 +200,19 @@ class VirtualCarBox:
         self._clock = clock
         if isinstance(max_cars, bool) or not isinstance(max_cars, int) or not 1 <= max_cars <= MAX_CARS:
             raise ValueError(f"max_cars must be an int in 1..{MAX_CARS} (cars the box drives), got {max_cars!r}")
-        self._decoder = _OrderedDecoder(gap_timeout=gap_timeout, clock=clock, max_cars=max_cars)
+        if protocol not in ("rd3g", "buzzracer-fhss"):
+            raise ValueError(f"protocol must be rd3g or buzzracer-fhss, got {protocol!r}")
+        self.protocol = protocol
+        self._fhss = protocol == "buzzracer-fhss"
+        self._decoder = _FhssFirmware() if self._fhss else _OrderedDecoder(
+            gap_timeout=gap_timeout, clock=clock, max_cars=max_cars)
+        self.chatter_every_s = float(chatter_every_s)
+        self._next_chatter: float | None = None
         self._lock = threading.Lock()
         self._latest: dict[int, ReceivedCommand] = {}
         self._history = CommandHistory(failsafe_timeout, history_s)
+        if self._fhss:  # the box drives all twelve channels from power-on
+            self._history.known_cars = set(range(fhss.MAX_CARS))
         self._last_valid_t: float | None = None
         self._timed_out = False  # failsafe_timeout has passed since the last valid frame
         self._failsafe_active = True  # nothing received yet: cars are neutral
@@ -178,6 +228,8 @@ class VirtualCarBox:
         self._master_fd, slave_fd = os.openpty()
         # Raw mode: no echo, no CR/LF translation, no signal characters - a byte pipe.
         tty.setraw(slave_fd)
+        # Non-blocking: debug text that nobody reads is dropped, it never stalls the reader.
+        os.set_blocking(self._master_fd, False)
         self.path = os.ttyname(slave_fd)
         # While no host is attached the box holds the slave open itself, so the master does not
         # report a hang-up. It lets go once bytes arrive: from then on "every writer closed the
@@ -185,6 +237,8 @@ class VirtualCarBox:
         self._holder_fd: int | None = slave_fd
         self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=self._run, name=f"VirtualCarBox({self.path})", daemon=True)
+        if self._fhss:
+            self._next_chatter = clock() + self.chatter_every_s
         self._thread.start()
 
     # ------------------------------------------------------------------ public API
@@ -259,6 +313,20 @@ class VirtualCarBox:
         self.close()
 
     # ------------------------------------------------------------------ reader thread
+    def _say(self, text: str) -> None:
+        """FHSS firmware debug text to the host (dropped if the host does not read it)."""
+        try:
+            os.write(self._master_fd, (text + "\r\n").encode("ascii"))
+        except OSError:
+            pass
+
+    def _chatter(self, now: float) -> None:
+        if self._next_chatter is None or now < self._next_chatter:
+            return
+        self._next_chatter = now + self.chatter_every_s
+        stats = self._decoder.stats
+        self._say(f"frames {self._frames_received} crc_err {stats.corrupt} skipped {stats.bytes_discarded}")
+
     def _run(self) -> None:
         while True:
             readable, _, _ = select.select([self._master_fd, self._wake_r], [], [], self._wait_timeout())
@@ -285,11 +353,15 @@ class VirtualCarBox:
                 self._release_holder()
                 self._process(data, now)
             self._check_timeout(self._clock())
+            self._chatter(self._clock())
 
     def _release_holder(self) -> None:
         if self._holder_fd is not None:
             os.close(self._holder_fd)
             self._holder_fd = None
+            if self._fhss:  # a host attached (opening the port, pyserial flushed what was there before)
+                self._say(f"BuzzRacer FHSS box (emulated): {fhss.MAX_CARS} modems, failsafe "
+                          f"{1e3 * self.failsafe_timeout:.0f} ms")
 
     def _hang_up(self, now: float) -> bool:
         """Every writer closed the device: neutral at once, then wait for the next host.
@@ -300,7 +372,8 @@ class VirtualCarBox:
             self._hangups += 1
         for frame in frames:
             self._apply(frame, now)
-        self._engage(now, "hangup", "host closed the serial device")
+        if not self._fhss:  # the FHSS firmware cannot see the host go: its timeout acts
+            self._engage(now, "hangup", "host closed the serial device")
         with self._lock:
             # A new host is a new sender: accept its first frame whatever its sequence number.
             self._decoder.reset_sequence()
@@ -330,7 +403,7 @@ class VirtualCarBox:
         # Damage after the last valid frame of this read (or with no valid frame): the stream
         # is corrupt now, whatever the last valid frame said.
         last_good = errors_at_accept[-1] if errors_at_accept else errors_before
-        if errors_after > last_good:
+        if errors_after > last_good and not self._fhss:  # the FHSS firmware drops bad frames silently
             self._engage(now, "corrupt", f"corrupt {stats.corrupt}, truncated {stats.truncated}, "
                                          f"bytes discarded {stats.bytes_discarded} so far")
 
@@ -344,6 +417,8 @@ class VirtualCarBox:
             if self._decoder.buffered:
                 # Small slack so the decoder sees the gap as strictly exceeded.
                 deadlines.append(now + self._decoder.gap_timeout + 1e-3)
+            if self._next_chatter is not None:
+                deadlines.append(self._next_chatter)
         return max(0.0, min(deadlines) - now) if deadlines else None
 
     def _apply(self, frame: DecodedFrame, t: float) -> None:
@@ -373,6 +448,8 @@ class VirtualCarBox:
             self._failsafe_log.append(event)
             self._failsafe_counts[reason] += 1
         log.warning("%s: failsafe (%s: %s): all cars neutral", self.path, reason, detail)
+        if self._fhss:
+            self._say(f"failsafe ({reason}): all channels {fhss.NEUTRAL_US} us")
         self._notify(dict(neutral), now)
         if self.on_failsafe is not None:
             try:

@@ -79,6 +79,27 @@ def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: f
         raise UserError(f"{FLAGS.get(exc.field, exc.field)}: {exc.message}") from None
 
 
+def _simulated_link(args, setup):
+    """--link-capture in a pure simulation: (Simulator subclass that records each control step's frame at
+    the simulated time, the SimulatedLink, the capture), or Nones without the flag."""
+    if not args.link_capture:
+        return None, None, None
+    from app.realtime.run import open_capture, plan_link
+    from sim import Simulator
+    from vehicles.link_capture import SimulatedLink
+
+    plan = plan_link(args, "sim", setup, link_hz=1.0 / setup.control_period_s)
+    capture = open_capture(args)
+    link = SimulatedLink(capture, plan.encoder, [c.radio_id for c in plan.cars], setup.car.actuators.max_steering_rad)
+
+    class CapturingSimulator(Simulator):
+        def step(self, commands, dt_control):
+            link.send(self.time, commands)
+            return super().step(commands, dt_control)
+
+    return CapturingSimulator, link, capture
+
+
 def run(args) -> int:
     # --- real-time race stack: --hil or hardware mode runs the loop in app/realtime instead
     if wants_realtime(args):
@@ -98,7 +119,14 @@ def run(args) -> int:
     if args.json:
         check_output_path(args.json)
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
-    o = run_race(setup, telemetry_path=out)
+    simulator_cls, link, capture = _simulated_link(args, setup)
+    try:
+        o = run_race(setup, telemetry_path=out, **({"simulator_cls": simulator_cls} if link else {}))
+        if link is not None:
+            link.neutral(o.race_time_s)  # the race is over: what the link sends when it stops
+    finally:
+        if capture is not None:
+            capture.close()
     s = o.summary()
     print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
           f"({args.rd3g_speed} m/s) vs {args.opponent} ({args.opponent_speed} m/s), control {s['control_period_ms']:.1f} ms")

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = ""):
+def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = "",
+               link_protocol: str | None = None, link_capture: str | None = None):
     from app.commands import race
 
     p = argparse.ArgumentParser()
@@ -25,6 +26,10 @@ def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effe
     argv = ["race", "--seed", str(seed), "--out", out, "--json", json_path]
     if hil:
         argv += ["--hil", "--rt-priority", str(rt)]  # 0 = normal scheduling
+        if link_protocol:
+            argv += ["--link-protocol", link_protocol]
+        if link_capture:
+            argv += ["--link-capture", link_capture]
     elif sim_effects:
         argv += ["--sim-effects", sim_effects]
     return p.parse_args(argv)
@@ -41,6 +46,9 @@ def main(argv=None) -> int:
     parser.add_argument("--sim-effects", default="", metavar="TEXT",
                         help='hidden effects of the pure-simulation reference races (race --sim-effects), e.g. '
                              '"actuation_delay=0.03" to compare HIL with a simulation that has a loop-like delay')
+    parser.add_argument("--link-protocol", default=None, help="the HIL races' --link-protocol (default: race's, rd3g)")
+    parser.add_argument("--link-capture", action="store_true",
+                        help="write each HIL race's link capture to runs/loop_bench/hil-seed<N>-link.txt")
     parser.add_argument("--json", default="runs/loop_bench.json")
     parser.add_argument("--no-docs", action="store_true", help="do not write docs/benchmarks.md")
     parser.add_argument("--figure", default="docs/figures/loop_bench.png",
@@ -68,7 +76,9 @@ def main(argv=None) -> int:
         rec = {"seed": seed}
         for mode in ("sim", "hil"):
             out, js = runs / f"{mode}-seed{seed}.rrd", runs / f"{mode}-seed{seed}.json"
-            a = _race_args(seed, str(out), str(js), args.rt_priority, mode == "hil", args.sim_effects)
+            capture = str(runs / f"hil-seed{seed}-link.txt") if args.link_capture and mode == "hil" else None
+            a = _race_args(seed, str(out), str(js), args.rt_priority, mode == "hil", args.sim_effects,
+                           args.link_protocol, capture)
             load0 = os.getloadavg()[0]
             steal0 = steal_seconds()
             t0 = time.monotonic()
@@ -133,7 +143,8 @@ def report(rows, args, machine: str) -> str:
     lines = [
         f"Command: `.venv/bin/python -m app.realtime.bench --seeds {args.seeds} --first-seed {args.first_seed}"
         + f" --rt-priority {args.rt_priority}"
-        + (f" --sim-effects {args.sim_effects}`" if args.sim_effects else "`")
+        + (f" --sim-effects {args.sim_effects}" if args.sim_effects else "")
+        + (f" --link-protocol {args.link_protocol}" if args.link_protocol else "") + "`"
         + f" ({time.strftime('%Y-%m-%d %H:%M')}; {machine}).",
         "",
         f"Scheduling: {'SCHED_FIFO priority ' + str(args.rt_priority) + ' (loop); box 3, planner 4, world 5 and recorder 10 below' if args.rt_priority else 'normal time-sharing'}; "

@@ -12,6 +12,9 @@ transmitter box in another, running in real time.
   of it (:class:`BoxMirror`).
 * The simulator advances in 1 ms steps to each camera capture time with the commands the box had
   in effect at that moment (``commands_at``), so the loop's real latencies act on the cars.
+* With ``link_protocol="buzzracer-fhss"`` the box is the BuzzRacer firmware's emulation: its output is
+  pulse widths per modem id, which each simulated car's receiver (``WorldSpec.receivers``) turns into
+  wheel angle and throttle; its debug text goes back through the relay to the link.
 * Frames are rendered by ``tracking.SyntheticCamera`` at the camera rate and written to a shared
   memory ring; a small message per frame carries its slot, capture time, the true states (for
   telemetry and tracking error only), simulator/box events and render time.
@@ -38,6 +41,7 @@ from race.referee import fault_of
 from race.setup import CAR_NAMES
 from race.world import WorldPacket
 from sim.collision import footprint_gap
+from vehicles import fhss
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN
 
 FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[2] / "tracking" / "data" / "oval_fixed_markers.json"}
@@ -62,6 +66,13 @@ class WorldSpec:
     check_dt_s: float = 0.01
     corrupt_byte_rate: float = 0.5    # serial_corrupt: fraction of bytes with one flipped bit
     slots: int = 8
+    link_protocol: str = "rd3g"       # what the virtual box decodes (vehicles.link_protocols.PROTOCOLS)
+    # buzzracer-fhss: the simulated cars' receivers (vehicles.fhss.ServoCalibration, one per car): which
+    # modem id each listens to and how it turns pulses into wheel angle and throttle. Set-up faults for
+    # `check --hil` are receivers that differ from the host's calibration (swapped ids, reversed throttle).
+    receivers: tuple | None = None
+    hidden_markers: tuple[int, ...] = ()   # car markers not drawn (covered or missing)
+    covered_fixed_markers: tuple[int, ...] = ()  # fixed track markers not drawn
 
 
 class SerialRelay:
@@ -69,15 +80,19 @@ class SerialRelay:
     pty, with bit errors while ``corrupt`` is set. ``close()`` makes the device vanish: the link's
     next write fails with EIO, and the box, whose only writer the relay is, sees the host hang up."""
 
-    def __init__(self, downstream_path: str, seed: int = 0, byte_error_rate: float = 0.5) -> None:
+    def __init__(self, downstream_path: str, seed: int = 0, byte_error_rate: float = 0.5,
+                 frame_len: int = HEADER_LEN + 2 * CAR_RECORD_LEN + CRC_LEN) -> None:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         self.path = os.ttyname(self._slave)
-        self._out = os.open(downstream_path, os.O_WRONLY | os.O_NOCTTY)
+        # Read-write: the box's debug text comes back this way (to the link, dropped if it does not read).
+        self._out = os.open(downstream_path, os.O_RDWR | os.O_NOCTTY)
+        os.set_blocking(self._master, False)
         self._rng = np.random.default_rng(seed)
         self.byte_error_rate = float(byte_error_rate)
-        # A two-car frame; a longer read means frames queued up while this thread was not running.
-        self.frame_len = HEADER_LEN + 2 * CAR_RECORD_LEN + CRC_LEN
+        # One frame (default: a two-car rd3g frame); a longer read means frames queued up while this
+        # thread was not running.
+        self.frame_len = frame_len
         self.corrupt = False
         self.bytes_forwarded = 0
         self.bytes_corrupted = 0
@@ -90,9 +105,18 @@ class SerialRelay:
 
     def _run(self) -> None:
         while True:
-            readable, _, _ = select.select([self._master, self._wake_r], [], [])
+            readable, _, _ = select.select([self._master, self._out, self._wake_r], [], [])
             if self._wake_r in readable:
                 return
+            if self._out in readable:  # the box's text, up to the link
+                try:
+                    os.write(self._master, os.read(self._out, 4096))
+                except BlockingIOError:
+                    pass
+                except OSError:
+                    return
+            if self._master not in readable:
+                continue
             try:
                 data = bytearray(os.read(self._master, 4096))
             except OSError:
@@ -140,7 +164,8 @@ def failsafe_text(event) -> str:
     return f"{event.reason}: {cause} ({since}) - box commands all cars neutral"
 
 
-def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float, max_cars: int) -> None:
+def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float, max_cars: int,
+             protocol: str = "rd3g") -> None:
     """Box-process entry point: VirtualCarBox (driving ``max_cars`` cars) behind a SerialRelay. Messages to the world:
     ("ready", relay path), ("commands", t, {radio id: (steering, throttle)}), ("failsafe", FailsafeEvent),
     ("line_errors", n), ("injected", kind, t), ("summary", info); from the world: ("corrupt", on),
@@ -162,10 +187,11 @@ def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float,
                 pass
 
     box = VirtualCarBox(
-        failsafe_timeout=failsafe_timeout_s, max_cars=max_cars,
+        failsafe_timeout=failsafe_timeout_s, max_cars=max_cars, protocol=protocol,
         on_commands=lambda commands, t: send(("commands", t, {c: (v.steering, v.throttle) for c, v in commands.items()})),
         on_failsafe=lambda event: send(("failsafe", event)))
-    relay = SerialRelay(box.path, seed=seed, byte_error_rate=byte_error_rate)
+    relay = SerialRelay(box.path, seed=seed, byte_error_rate=byte_error_rate,
+                        **({"frame_len": fhss.FRAME_LEN} if protocol == "buzzracer-fhss" else {}))
     send(("ready", relay.path))
     line_errors = 0
     try:
@@ -264,7 +290,8 @@ def make_camera(spec: WorldSpec):
     camera = overhead_camera(bounds, image_size=spec.image_size)
     left, right = track.boundaries(0.01)
     fixed_path = FIXED_MARKERS.get(track.name)
-    fixed = list(load_fixed_markers(fixed_path).markers.values()) if fixed_path else []
+    fixed = [m for m in (load_fixed_markers(fixed_path).markers.values() if fixed_path else [])
+             if m.marker_id not in spec.covered_fixed_markers]
     appearance = CarAppearance(roof_height_m=spec.car.marker.height_m, marker_size_m=spec.car.marker.size_m)
     synth = SyntheticCamera(camera, TrackDrawing(left, right, arena_bounds=bounds), fixed, car=appearance,
                             effects=RenderEffects(seed=spec.seed), fps=spec.fps)
@@ -340,8 +367,16 @@ class _World:
 
     # ---- helpers
     def _commands(self, t_abs: float) -> np.ndarray:
+        """(throttle, wheel angle rad) per car: the box's output through each car's receiver."""
         cmds = self.box.commands_at(t_abs)
         out = np.zeros((2, 2))
+        if self.spec.receivers is not None:  # FHSS: pulses, through the car's own calibration
+            for i, cal in enumerate(self.spec.receivers):
+                c = cmds.get(cal.modem_id)
+                if c is not None:
+                    out[i] = (cal.throttle(fhss.unit_to_pulse(c.throttle)),
+                              cal.steering_rad(fhss.unit_to_pulse(c.steering)))
+            return out
         for i, rid in enumerate(self.spec.radio_ids):
             c = cmds.get(rid)
             if c is not None:
@@ -351,7 +386,7 @@ class _World:
     def _poses(self, states: np.ndarray, t_race: float | None) -> list:
         poses = []
         for i, state in enumerate(states):
-            hidden = t_race is not None and any(
+            hidden = self.spec.marker_ids[i] in self.spec.hidden_markers or t_race is not None and any(
                 f.kind == "occlude" and f.active(t_race) and f.applies_to(CAR_NAMES[i]) for f in self.spec.faults)
             if hidden:  # the marker is covered: the car is not drawn at all
                 continue
@@ -555,7 +590,7 @@ class HilWorld:
         box_world_end, box_end = ctx.Pipe()  # the world talks to the box directly
         self.box_process = ctx.Process(target=box_main, name="hil-box", daemon=True,
                                        args=(box_end, spec.failsafe_timeout_s, spec.seed, spec.corrupt_byte_rate,
-                                             len(spec.radio_ids)))
+                                             len(spec.radio_ids), spec.link_protocol))
         self.box_process.start()
         self.process = ctx.Process(target=world_main, args=(spec, child, self.shm.name, box_world_end),
                                    name="hil-world", daemon=True)

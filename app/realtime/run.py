@@ -7,6 +7,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,11 @@ from tracking.calibration import (CalibrationError, CameraCalibration, Intrinsic
 from tracking.camera import CameraError, OpenCVCamera
 from tracking.estimator import MultiCarEstimator
 from tracking.markers import ArucoTracker
+from vehicles.fhss import servo_calibration
+from vehicles.link_capture import LinkCapture
+from vehicles.link_protocols import HARDWARE_DEFAULT, HIL_DEFAULT, PROTOCOLS, check_protocol, make_encoder
+from vehicles.params import CarParamsError, load_car_params
+from vehicles.protocol import ProtocolError
 from vehicles.serial_link import SerialCarLink, SerialLinkError
 
 
@@ -46,6 +52,7 @@ def add_realtime_arguments(p) -> None:
     g.add_argument("--marker-ids", default="0,1", help="ArUco ids of the RD3G car and the opponent (default 0,1)")
     g.add_argument("--radio-ids", default=None, help="serial-protocol ids of the two cars (default: the marker ids)")
     g.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    add_link_arguments(g)
     g.add_argument("--human-opponent", action="store_true",
                    help="the opponent is driven by a person: tracked and raced against, never commanded")
     g.add_argument("--rt-priority", type=int, default=None, metavar="PRIO",
@@ -58,6 +65,20 @@ def add_realtime_arguments(p) -> None:
                         "(lost car, planner fault, ...) for S seconds without a break (default 3)")
     g.add_argument("--camera-latency-ms", type=float, default=0.0,
                    help="hardware: exposure-to-delivery delay of the camera, subtracted from frame times")
+
+
+def add_link_arguments(g) -> None:
+    """The transmitter link's flags (race and check)."""
+    g.add_argument("--link-protocol", default=None, metavar="|".join(PROTOCOLS),
+                   help=f"frame the transmitter box reads (docs/serial-protocol.md); default {HARDWARE_DEFAULT} on "
+                        f"hardware, {HIL_DEFAULT} with --hil")
+    g.add_argument("--link-capture", default=None, metavar="FILE",
+                   help="write every byte to and from the transmitter box here, one line per write or read: "
+                        "'<seconds since the race started> tx|rx <hex>' (decode: python -m app link-decode FILE)")
+    g.add_argument("--car-files", default=None, metavar="RD3G,OPPONENT",
+                   help="car parameter files of the two cars (rd3g car first) whose [radio] section (modem id, "
+                        "pulse calibration) drives buzzracer-fhss frames (docs/vehicles.md); default: --car-params "
+                        "for both, modem ids from --radio-ids")
 
 
 def wants_realtime(args) -> bool:
@@ -149,9 +170,6 @@ def _run_realtime(args, mode: str) -> int:
         faults = tuple(parse_fault(f) for f in args.fault)
     except LoopConfigError as exc:
         raise UserError(str(exc)) from None
-    markers = _ids(args.marker_ids, "--marker-ids")
-    radios = _ids(args.radio_ids, "--radio-ids") if args.radio_ids else markers
-    cars = [CarBinding("rd3g", markers[0], radios[0]), CarBinding("opponent", markers[1], radios[1])]
     out = Path(args.out)
     if out.suffix != ".rrd":
         raise UserError(f"--out must be a .rrd file, got {args.out!r}")
@@ -160,14 +178,16 @@ def _run_realtime(args, mode: str) -> int:
         out = out.parent / f"{mode}-seed{args.seed}-{stamp}.rrd"
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     opponent = "human" if args.human_opponent else args.opponent
+    link_plan = plan_link(args, mode, setup, config.link_hz)  # everything about the link valid before it opens
+    cars = link_plan.cars
 
     scheduling = _set_scheduling(args.rt_priority)
     if mode == "hardware":
         parts = _open_hardware(args, setup, cars, config)
     else:
-        parts = _open_hil(args, setup, cars, config, faults)
+        parts = _open_hil(args, setup, cars, config, faults, link_plan)
     world, feed, tracker, estimator, link_port, note = parts
-    recorder = loop = None
+    recorder = loop = capture = None
     try:
         planners = RacePlanners(setup, opponent)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -178,14 +198,17 @@ def _run_realtime(args, mode: str) -> int:
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
                         planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
         commanded = [c.radio_id for c in cars if c.name in planners.commanded]
-        link = SerialCarLink(link_port, baudrate=args.baud, rate_hz=config.link_hz, car_ids=commanded,
-                             on_fault=loop._on_link_fault)
+        capture = open_capture(args)
+        link = SerialCarLink(link_port, baudrate=args.baud, rate_hz=link_plan.rate_hz, car_ids=commanded,
+                             on_fault=loop._on_link_fault, encoder=link_plan.encoder, capture=capture)
         try:
             link.start()
         except SerialLinkError as exc:
             raise UserError(f"--serial: {exc}") from None
         loop.link = link
         loop._event("setup", f"scheduling: {scheduling}", t_race=0.0)
+        loop._event("setup", f"link: {link_plan.protocol} at {link_plan.rate_hz:g} frames/s, {args.baud} baud"
+                             + (f", capture {capture.path}" if capture else ""), t_race=0.0)
         if note:
             loop._event("setup", note, t_race=0.0)
         try:
@@ -200,6 +223,8 @@ def _run_realtime(args, mode: str) -> int:
                 feed.close()
         if recorder is not None:
             recorder.close()
+        if capture is not None:
+            capture.close()
     _print(outcome, setup, args, mode, opponent)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -207,11 +232,80 @@ def _run_realtime(args, mode: str) -> int:
     return 0 if outcome.reason in ("finished", "time_limit") else 1
 
 
-def _open_hil(args, setup, cars, config, faults):
+@dataclass(frozen=True)
+class LinkPlan:
+    """The transmitter link as configured from the command line, validated before anything opens."""
 
-    spec = WorldSpec(track=setup.track, car=setup.car, start_states=start_states(setup),
-                     marker_ids=(cars[0].marker_id, cars[1].marker_id), radio_ids=(cars[0].radio_id, cars[1].radio_id),
-                     laps=setup.laps, seed=setup.seed, fps=args.fps, faults=faults)
+    protocol: str
+    cars: list                 # race.loop.CarBinding, radio_id = modem id for buzzracer-fhss
+    calibrations: tuple        # vehicles.fhss.ServoCalibration per car (buzzracer-fhss), else ()
+    encoder: object            # vehicles.link_protocols.FrameEncoder
+    rate_hz: float             # frames per second (the loop's link rate, capped by the receiver)
+
+
+def plan_link(args, mode: str, setup, link_hz: float) -> LinkPlan:
+    """Protocol, car bindings and encoder from --link-protocol, --marker-ids, --radio-ids, --car-files
+    (UserError naming the flag or the car file's field on any fault)."""
+    protocol = args.link_protocol or (HARDWARE_DEFAULT if mode == "hardware" else HIL_DEFAULT)
+    try:
+        check_protocol(protocol)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    markers = _ids(args.marker_ids, "--marker-ids")
+    files = [setup.car, setup.car]
+    if args.car_files:
+        paths = [p.strip() for p in args.car_files.split(",")]
+        if len(paths) != 2 or not all(paths):
+            raise UserError(f"--car-files: expected two files RD3G,OPPONENT, got {args.car_files!r}")
+        try:
+            files = [load_car_params(p) for p in paths]
+        except CarParamsError as exc:
+            raise UserError(f"--car-files: {exc}") from None
+    if args.radio_ids:
+        radios = _ids(args.radio_ids, "--radio-ids")
+    elif args.car_files and protocol == "buzzracer-fhss":
+        radios = tuple(car.radio.modem_id for car in files)
+        for name, path, radio in zip(("rd3g", "opponent"), paths, radios):
+            if radio is None:
+                raise UserError(f"--car-files: {path}: radio.modem_id is not set (car {name}: the FHSS box "
+                                f"slot that drives it)")
+        if radios[0] == radios[1]:
+            raise UserError(f"--car-files: both cars have radio.modem_id {radios[0]}; each car needs its own")
+    else:
+        radios = markers
+    cars = [CarBinding("rd3g", markers[0], radios[0]), CarBinding("opponent", markers[1], radios[1])]
+    calibrations = ()
+    try:
+        if protocol == "buzzracer-fhss":
+            calibrations = tuple(servo_calibration(car, c.radio_id, setup.car.actuators.max_steering_rad)
+                                 for car, c in zip(files, cars))
+        encoder = make_encoder(protocol, calibrations)
+    except ProtocolError as exc:
+        raise UserError(f"--link-protocol {protocol}: {exc}") from None
+    rate = min(link_hz, encoder.max_rate_hz or link_hz)
+    return LinkPlan(protocol, cars, calibrations, encoder, rate)
+
+
+def open_capture(args):
+    """The --link-capture file (None without the flag); its time origin is now, the race's start."""
+    if not getattr(args, "link_capture", None):
+        return None
+    path = Path(args.link_capture)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return LinkCapture(path)
+    except OSError as exc:
+        raise UserError(f"--link-capture: cannot write {path}: {exc}") from None
+
+
+def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
+
+    fields = dict(track=setup.track, car=setup.car, start_states=start_states(setup),
+                  marker_ids=(cars[0].marker_id, cars[1].marker_id), radio_ids=(cars[0].radio_id, cars[1].radio_id),
+                  laps=setup.laps, seed=setup.seed, fps=args.fps, faults=faults, link_protocol=link_plan.protocol,
+                  receivers=link_plan.calibrations if link_plan.protocol == "buzzracer-fhss" else None)
+    fields.update(world_options)  # `check --hil --hil-fault`: a world that differs from the host's set-up
+    spec = WorldSpec(**fields)
     world = HilWorld(spec)
     try:
         info = world.info
