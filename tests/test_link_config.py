@@ -2,9 +2,12 @@
 id at fault, before any world, camera or serial port is opened (so no frame is ever sent)."""
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from app.cli import main
+from vehicles.params import CarParams
 
 
 @pytest.fixture
@@ -22,7 +25,9 @@ def nothing_opens(monkeypatch):
 
 def car_file(tmp_path, name, radio: str) -> str:
     path = tmp_path / f"{name}.toml"
-    path.write_text(f'name = "{name}"\n[radio]\n{radio}\n')
+    # a car file has every table (the loader rejects one cut short); empty tables take the defaults
+    tables = "".join(f"[{f.name}]\n" for f in dataclasses.fields(CarParams) if f.name not in ("name", "radio"))
+    path.write_text(f'name = "{name}"\n{tables}[radio]\n{radio}\n')
     return str(path)
 
 

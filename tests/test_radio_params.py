@@ -1,10 +1,11 @@
 """The [radio] section of car files: the FHSS box calibration (typed, validated, written back)."""
+import dataclasses
 import math
 
 import pytest
 
 from vehicles.fhss import servo_calibration
-from vehicles.params import CarParamsError, car_params_from_dict, dump_car_params, load_car_params
+from vehicles.params import CarParams, CarParamsError, car_params_from_dict, dump_car_params, load_car_params
 from vehicles.protocol import CarCommand, ProtocolError
 
 
@@ -21,7 +22,8 @@ def test_defaults_leave_modem_id_unset(tmp_path):
 
 def test_calibration_from_the_file(tmp_path):
     path = tmp_path / "red.toml"
-    path.write_text("[radio]\nmodem_id = 5\nsteering_left_max_rad = 0.4049\nsteering_right_max_rad = 0.5201\n"
+    tables = "".join(f"[{f.name}]\n" for f in dataclasses.fields(CarParams) if f.name not in ("name", "radio"))
+    path.write_text('name = "red"\n' + tables + "[radio]\nmodem_id = 5\nsteering_left_max_rad = 0.4049\nsteering_right_max_rad = 0.5201\n"
                     "throttle_forward_us = 1150\nthrottle_reverse_us = 1850\n")
     car = load_car_params(path)
     again = tmp_path / "again.toml"
@@ -41,7 +43,7 @@ def test_calibration_from_the_file(tmp_path):
     ({"steering_neutral_us": 2000}, "radio.steering_neutral_us"),  # at an end: not between left and right
     ({"throttle_neutral_us": 1000}, "radio.throttle_neutral_us"),
     ({"steering_right_max_rad": 0.0}, "radio.steering_right_max_rad"),
-    ({"pulse": 1500}, "radio: unknown key"),
+    ({"pulse": 1500}, "radio.pulse: unknown key"),
 ])
 def test_bad_radio_values_name_the_field(radio, field):
     with pytest.raises(CarParamsError, match=field.replace(".", r"\.")):
