@@ -160,6 +160,19 @@ void KinematicBicycleFrenet::eval(const CVecRef& x, const CVecRef& u, VecRef xn,
   }
 }
 
+void KinematicBicycleFrenet::eval_with_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& l, VecRef xn,
+                                               MatRef A, MatRef B, MatRef H) const {
+  Jet2<6> out[4];
+  step_jets(x, u, out);
+  H.setZero();
+  for (int r = 0; r < 4; ++r) {
+    xn[r] = out[r].v;
+    A.row(r) = out[r].g.head<4>().transpose();
+    B.row(r) = out[r].g.tail<2>().transpose();
+    H += l[r] * out[r].h;
+  }
+}
+
 void KinematicBicycleFrenet::lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& l, MatRef H) const {
   Jet2<6> out[4];
   step_jets(x, u, out);

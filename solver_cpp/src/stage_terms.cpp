@@ -16,7 +16,8 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
                      std::vector<Eigen::Triplet<double>>* trip, StageWorkspace& w) {
   const int nx = L.nx, nu = L.nu;
   const int ru = L.col_u(i, k), rf = L.col_lam(i, k), rx1 = L.col_x(i, k + 1);
-  f.eval(x.col(k), u.col(k), w.fx, w.A, w.B);
+  if (trip) f.eval_with_hessian(x.col(k), u.col(k), lk, w.fx, w.A, w.B, w.Hl);
+  else f.eval(x.col(k), u.col(k), w.fx, w.A, w.B);
   // dL/du_k = 2 R u_k + B' lambda_k
   r.segment(ru, nu) = 2.0 * cost.R.cwiseProduct(u.col(k)) + w.B.transpose() * lk;
   // F_k = f(x_k, u_k) - x_{k+1}
@@ -38,7 +39,6 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   auto add_neg_identity = [&](int r0, int c0, int n) {
     for (int a = 0; a < n; ++a) trip->emplace_back(r0 + a, c0 + a, -1.0);
   };
-  f.lambda_hessian(x.col(k), u.col(k), lk, w.Hl);
   // rows dL/du_k
   w.Huu = w.Hl.bottomRightCorner(nu, nu);
   w.Huu.diagonal() += 2.0 * cost.R;

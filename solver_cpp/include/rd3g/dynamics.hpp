@@ -27,6 +27,13 @@ class Dynamics {
   virtual void eval(const CVecRef& x, const CVecRef& u, VecRef x_next, MatRef A, MatRef B) const = 0;
   /// H = d^2 (lambda^T f) / d(x,u)^2, (nx+nu) x (nx+nu), ordered [x; u].
   virtual void lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, MatRef H) const = 0;
+  /// eval and lambda_hessian at one point (the Newton assembly needs both); a model whose derivatives
+  /// share one evaluation overrides it to evaluate once.
+  virtual void eval_with_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, VecRef x_next, MatRef A,
+                                 MatRef B, MatRef H) const {
+    eval(x, u, x_next, A, B);
+    lambda_hessian(x, u, lambda, H);
+  }
 };
 
 /// x_{k+1} = A x_k + B u_k (for linear-quadratic games).
@@ -78,6 +85,8 @@ class KinematicBicycleFrenet final : public Dynamics {
   std::string name() const override { return "kinematic_bicycle_frenet"; }
   void eval(const CVecRef& x, const CVecRef& u, VecRef x_next, MatRef A, MatRef B) const override;
   void lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, MatRef H) const override;
+  void eval_with_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, VecRef x_next, MatRef A,
+                         MatRef B, MatRef H) const override;
   /// kappa(s) and dkappa/ds (piecewise constant slope of the linear interpolation).
   void curvature(double s, double& kappa, double& dkappa) const;
 
