@@ -6,16 +6,27 @@ namespace rd3g {
 
 void StageRiccati::setup(int N, int T, int nx, int nu) {
   N_ = N; T_ = T; nx_ = nx; nu_ = nu; X_ = N * nx; U_ = N * nu;
+  n_primal_ = T * N * (nu + 2 * nx);
   auto alloc = [&](std::vector<Eigen::MatrixXd>& v, int r, int c) { v.assign(T, Eigen::MatrixXd::Zero(r, c)); };
   alloc(Ruu_, U_, U_); alloc(Rux_, U_, X_); alloc(Rul_, U_, X_);
   alloc(Fx_, X_, X_); alloc(Fu_, X_, U_);
   alloc(Qxx_, X_, X_); alloc(Qxu_, X_, U_); alloc(Qxl_, X_, X_);
-  alloc(P_, X_, X_); alloc(K_, U_, X_);
+  alloc(P_, X_, X_); alloc(K_, U_, X_); alloc(W_, X_, U_);
+  lu_.assign(T, Eigen::PartialPivLU<Eigen::MatrixXd>(U_));
   p_.assign(T + 1, Eigen::VectorXd::Zero(X_));
   kap_.assign(T, Eigen::VectorXd::Zero(U_));
+  g_.resize(U_); u_.resize(U_);
+  for (Eigen::VectorXd* v : {&e_, &h_, &pe_, &x_, &xn_, &lam_}) v->resize(X_);
 }
 
-bool StageRiccati::solve(const std::vector<Eigen::Triplet<double>>& trip, const Eigen::VectorXd& rhs, Eigen::VectorXd& dy) {
+void StageRiccati::stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind,
+                                 Eigen::VectorXd& out) const {
+  const int ss = nu_ + 2 * nx_, stage = N_ * ss;
+  const int n = kind == 0 ? nu_ : nx_, off = kind == 0 ? 0 : kind == 1 ? nu_ : nu_ + nx_;
+  for (int i = 0; i < N_; ++i) out.segment(i * n, n) = -b.segment(k * stage + i * ss + off, n);
+}
+
+bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
   const int ss = nu_ + 2 * nx_, stage = N_ * ss;
   for (int k = 0; k < T_; ++k) {
     Ruu_[k].setZero(); Rux_[k].setZero(); Rul_[k].setZero(); Fx_[k].setZero(); Fu_[k].setZero();
@@ -30,7 +41,7 @@ bool StageRiccati::solve(const std::vector<Eigen::Triplet<double>>& trip, const 
     else { kind = 2; pos = i * nx_ + loc - nu_ - nx_; }
   };
   for (const auto& t : trip) {
-    if (t.row() >= stage * T_ || t.col() >= stage * T_) return false;  // a multiplier row or column
+    if (t.row() >= n_primal_ || t.col() >= n_primal_) continue;  // multiplier rows/columns: Schur complement
     int kr, rk, pr, kc, ck, pc;
     decode(t.row(), kr, rk, pr);
     decode(t.col(), kc, ck, pc);
@@ -53,62 +64,98 @@ bool StageRiccati::solve(const std::vector<Eigen::Triplet<double>>& trip, const 
       else return false;
     }
   }
-  // Right-hand sides of J dy = -rhs, stacked per stage.
-  auto seg = [&](int k, int kind, Eigen::VectorXd& out) {
-    const int n = kind == 0 ? nu_ : nx_, off = kind == 0 ? 0 : kind == 1 ? nu_ : nu_ + nx_;
-    out.resize(N_ * n);
-    for (int i = 0; i < N_; ++i) out.segment(i * n, n) = -rhs.segment(k * stage + i * ss + off, n);
-  };
-  Eigen::VectorXd g, e, h;
   // Terminal: -lambda_{T-1} + Qxx_T x_T = h_T  =>  lambda_{T-1} = Qxx_T x_T - h_T.
-  seg(T_ - 1, 2, h);
-  Eigen::MatrixXd P = Qxx_[T_ - 1];
-  Eigen::VectorXd p = -h;
-  P_[T_ - 1] = P;
-  p_[T_] = p;
-  Eigen::MatrixXd G, PFx, PFu, W;
+  P_[T_ - 1] = Qxx_[T_ - 1];
   for (int k = T_ - 1; k >= 0; --k) {
     // lambda_k = P x_{k+1} + p, with P = P_[k] (for x_{k+1}); x_{k+1} = Fx x_k + Fu u_k + e.
-    seg(k, 0, g);
-    seg(k, 1, e);
-    e = -e;  // dynamics rows read Fx x + Fu u - x_{k+1} = -rhs_F, so x_{k+1} = Fx x + Fu u + rhs_F
-    PFx.noalias() = P * Fx_[k];
-    PFu.noalias() = P * Fu_[k];
-    G = Ruu_[k];
-    G.noalias() += Rul_[k] * PFu;
-    Eigen::PartialPivLU<Eigen::MatrixXd> lu(G);
-    if (!(std::abs(lu.determinant()) > 1e-300) || !std::isfinite(lu.determinant())) return false;
-    const Eigen::VectorXd Pe_p = P * e + p;
-    kap_[k] = lu.solve(g - Rul_[k] * Pe_p);
-    K_[k] = -lu.solve(Rux_[k] + Rul_[k] * PFx);
+    const Eigen::MatrixXd& P = P_[k];
+    PFx_.noalias() = P * Fx_[k];
+    PFu_.noalias() = P * Fu_[k];
+    G_ = Ruu_[k];
+    G_.noalias() += Rul_[k] * PFu_;
+    lu_[k].compute(G_);
+    const double det = lu_[k].determinant();
+    if (!(std::abs(det) > 1e-300) || !std::isfinite(det)) return false;
+    K_[k] = Rux_[k];
+    K_[k].noalias() += Rul_[k] * PFx_;
+    K_[k] = -lu_[k].solve(K_[k]);
     if (k == 0) break;
     // x-rows of time k: Qxx x_k + Qxu u_k + Qxl lambda_k - lambda_{k-1} = h_k (stored at index k-1).
-    seg(k - 1, 2, h);
-    W = Qxu_[k - 1];
-    W.noalias() += Qxl_[k - 1] * PFu;
-    Eigen::MatrixXd Pn = Qxx_[k - 1];
-    Pn.noalias() += Qxl_[k - 1] * PFx;
-    Pn.noalias() += W * K_[k];
-    p = W * kap_[k] + Qxl_[k - 1] * Pe_p - h;
-    P = std::move(Pn);
-    P_[k - 1] = P;
-    p_[k] = p;
+    W_[k - 1] = Qxu_[k - 1];
+    W_[k - 1].noalias() += Qxl_[k - 1] * PFu_;
+    Pn_ = Qxx_[k - 1];
+    Pn_.noalias() += Qxl_[k - 1] * PFx_;
+    Pn_.noalias() += W_[k - 1] * K_[k];
+    P_[k - 1] = Pn_;
+  }
+  return true;
+}
+
+void StageRiccati::back_substitute(const Eigen::Ref<const Eigen::VectorXd>& b, Eigen::Ref<Eigen::VectorXd> out) {
+  const int ss = nu_ + 2 * nx_, stage = N_ * ss;
+  stage_segment(b, T_ - 1, 2, h_);
+  p_[T_] = -h_;
+  for (int k = T_ - 1; k >= 0; --k) {
+    stage_segment(b, k, 0, g_);
+    stage_segment(b, k, 1, e_);
+    e_ = -e_;  // dynamics rows read Fx x + Fu u - x_{k+1} = -b_F, so x_{k+1} = Fx x + Fu u + b_F
+    pe_ = p_[k + 1];
+    pe_.noalias() += P_[k] * e_;
+    g_.noalias() -= Rul_[k] * pe_;
+    kap_[k] = lu_[k].solve(g_);
+    if (k == 0) break;
+    stage_segment(b, k - 1, 2, h_);
+    p_[k] = -h_;
+    p_[k].noalias() += W_[k - 1] * kap_[k];
+    p_[k].noalias() += Qxl_[k - 1] * pe_;
   }
   // Forward pass from dx_0 = 0.
-  Eigen::VectorXd x = Eigen::VectorXd::Zero(X_), u, xn, lam;
+  x_.setZero();
   for (int k = 0; k < T_; ++k) {
-    u = K_[k] * x + kap_[k];
-    seg(k, 1, e);
-    xn = Fx_[k] * x + Fu_[k] * u - e;
-    lam = P_[k] * xn + p_[k + 1];
+    u_ = kap_[k];
+    u_.noalias() += K_[k] * x_;
+    stage_segment(b, k, 1, e_);
+    xn_ = -e_;
+    xn_.noalias() += Fx_[k] * x_;
+    xn_.noalias() += Fu_[k] * u_;
+    lam_ = p_[k + 1];
+    lam_.noalias() += P_[k] * xn_;
     for (int i = 0; i < N_; ++i) {
-      dy.segment(k * stage + i * ss, nu_) = u.segment(i * nu_, nu_);
-      dy.segment(k * stage + i * ss + nu_, nx_) = lam.segment(i * nx_, nx_);
-      dy.segment(k * stage + i * ss + nu_ + nx_, nx_) = xn.segment(i * nx_, nx_);
+      out.segment(k * stage + i * ss, nu_) = u_.segment(i * nu_, nu_);
+      out.segment(k * stage + i * ss + nu_, nx_) = lam_.segment(i * nx_, nx_);
+      out.segment(k * stage + i * ss + nu_ + nx_, nx_) = xn_.segment(i * nx_, nx_);
     }
-    x = xn;
+    x_ = xn_;
   }
-  return dy.head(stage * T_).allFinite();
+}
+
+bool StageRiccati::solve(const std::vector<Eigen::Triplet<double>>& trip, int n, const Eigen::VectorXd& rhs,
+                         Eigen::VectorXd& dy) {
+  if (!factor(trip)) return false;
+  const int np = n_primal_, m = n - np;
+  back_substitute(rhs.head(np), dy.head(np));  // a = -K^{-1} rhs_p
+  if (m == 0) return dy.head(np).allFinite();
+  // [K B; C D] [dp; dmu] = -[rhs_p; rhs_mu]:  (D - C K^{-1} B) dmu = -rhs_mu - C a,  dp = a - K^{-1} B dmu.
+  Bm_.setZero(np, m);
+  Cm_.setZero(m, np);
+  S_.setZero(m, m);
+  for (const auto& t : trip) {
+    const bool pr = t.row() < np, pc = t.col() < np;
+    if (pr && !pc) Bm_(t.row(), t.col() - np) += t.value();
+    else if (!pr && pc) Cm_(t.row() - np, t.col()) += t.value();
+    else if (!pr && !pc) S_(t.row() - np, t.col() - np) += t.value();
+  }
+  Z_.resize(np, m);
+  for (int j = 0; j < m; ++j) back_substitute(Bm_.col(j), Z_.col(j));  // Z = -K^{-1} B
+  S_.noalias() += Cm_ * Z_;
+  rhs_mu_ = -rhs.segment(np, m);
+  rhs_mu_.noalias() -= Cm_ * dy.head(np);
+  Eigen::PartialPivLU<Eigen::MatrixXd> slu(S_);
+  const double det = slu.determinant();
+  if (!(std::abs(det) > 1e-300) || !std::isfinite(det)) return false;
+  dy.segment(np, m) = slu.solve(rhs_mu_);
+  dy.head(np).noalias() += Z_ * dy.segment(np, m);
+  return dy.head(n).allFinite();
 }
 
 }  // namespace rd3g

@@ -461,8 +461,8 @@ void Solver::build_J() {
 bool Solver::solve_linear(Vec& dy, Info& info) {
   J_built_ = false;
   const int n = n_vars_;
-  if (settings_.linear_solver == LinearSolver::Riccati && n == n_primal_) {
-    if (riccati_.solve(trip_, rhs_, dy)) {
+  if (settings_.linear_solver == LinearSolver::Riccati) {
+    if (riccati_.solve(trip_, n, rhs_, dy)) {
       // Check the step against the assembled system (O(nnz)); a poorly conditioned recursion falls back to LU.
       lin_res_.head(n) = rhs_.head(n);
       for (const auto& t : trip_) lin_res_[t.row()] += t.value() * dy[t.col()];

@@ -1,7 +1,9 @@
-// Structured solve of RD3G's Newton system when it has no equality-constraint rows: with the variables
-// ordered stage by stage, the system is block-tridiagonal in time, and a backward recursion on
-// lambda_k = P_{k+1} dx_{k+1} + p_{k+1} (the coupled, nonsymmetric Riccati recursion of an open-loop
-// game) solves it in O(T (N nx)^3) instead of a general sparse LU.
+// Structured solve of RD3G's Newton system: with the variables ordered stage by stage, the primal part
+// is block-tridiagonal in time, and a backward recursion on lambda_k = P_{k+1} dx_{k+1} + p_{k+1} (the
+// coupled, nonsymmetric Riccati recursion of an open-loop game) solves it in O(T (N nx)^3) instead of a
+// general sparse LU. Constraints held as equalities add a few multiplier rows and columns; they are
+// eliminated by a Schur complement (one Riccati back-substitution per multiplier column, then a small
+// dense solve), so the structured solve is kept while track limits or speed bounds are active.
 #pragma once
 #include <Eigen/Dense>
 #include <Eigen/Sparse>
@@ -13,15 +15,27 @@ class StageRiccati {
  public:
   /// N agents, horizon T, sizes nx, nu; variables per stage and agent ordered [u, lambda, x_{k+1}].
   void setup(int N, int T, int nx, int nu);
-  /// Solves J dy = -rhs from J's triplets (primal variables only). Returns false when the triplets do
-  /// not have the stage structure or a stage matrix is singular; the caller then uses a general solver.
-  bool solve(const std::vector<Eigen::Triplet<double>>& trip, const Eigen::VectorXd& rhs, Eigen::VectorXd& dy);
+  /// Solves J dy = -rhs (J of size n, given by its triplets; the first n_primal = N T (nu + 2 nx) variables
+  /// are the primal ones, the rest multipliers). Returns false when the primal block does not have the
+  /// stage structure or a stage or Schur matrix is singular; the caller then uses a general solver.
+  bool solve(const std::vector<Eigen::Triplet<double>>& trip, int n, const Eigen::VectorXd& rhs, Eigen::VectorXd& dy);
 
  private:
-  int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0, X_ = 0, U_ = 0;
+  /// Stage blocks of the primal-primal triplets and the rhs-independent part of the recursion.
+  bool factor(const std::vector<Eigen::Triplet<double>>& trip);
+  /// out = -K^{-1} b for the primal block K factored last (b, out of length n_primal).
+  void back_substitute(const Eigen::Ref<const Eigen::VectorXd>& b, Eigen::Ref<Eigen::VectorXd> out);
+  void stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind, Eigen::VectorXd& out) const;
+
+  int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0, X_ = 0, U_ = 0, n_primal_ = 0;
   // Per stage k = 0..T-1 (x-row blocks Q* belong to time k+1 and are stored at index k):
-  std::vector<Eigen::MatrixXd> Ruu_, Rux_, Rul_, Fx_, Fu_, Qxx_, Qxu_, Qxl_, P_, K_;
+  std::vector<Eigen::MatrixXd> Ruu_, Rux_, Rul_, Fx_, Fu_, Qxx_, Qxu_, Qxl_, P_, K_, W_;
+  std::vector<Eigen::PartialPivLU<Eigen::MatrixXd>> lu_;
   std::vector<Eigen::VectorXd> p_, kap_;
+  // Work vectors (sized in setup; no allocation per solve at fixed multiplier count).
+  Eigen::VectorXd g_, e_, h_, pe_, x_, u_, xn_, lam_, rhs_mu_;
+  Eigen::MatrixXd Bm_, Cm_, Z_, S_;  // multiplier columns, rows, K^{-1} columns, Schur matrix
+  Eigen::MatrixXd PFx_, PFu_, G_, Pn_;
 };
 
 }  // namespace rd3g
