@@ -1,5 +1,7 @@
 """The structured Riccati solve must give the same Newton steps (hence the same iterates and solution) as
 the general sparse LU on the same system; the paper's least-squares options must reach an equilibrium too."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -21,3 +23,21 @@ def test_riccati_is_used_when_no_constraint_is_an_equality():
     s = Solver(merging_problem(8, 1))
     info = s._solver.solve(None).info
     assert info.riccati_solves == info.iterations > 0  # this instance never holds a constraint as an equality
+
+
+@pytest.mark.parametrize("cars, seed", [(2, 0), (3, 1)])
+def test_riccati_with_active_bounds_matches_sparse_lu(cars, seed):
+    # Speed caps 0.2 m/s below every car's initial speed: violated at the start, so they are held as
+    # equalities (multiplier rows); the Riccati path eliminates them by a Schur complement instead of LU.
+    p = merging_problem(cars, seed)
+    cap = [a.x0[2] - 0.2 for a in p.agents]
+    p = dataclasses.replace(p, agents=[dataclasses.replace(a, x_max=np.array([np.inf, np.inf, c, np.inf]))
+                                       for a, c in zip(p.agents, cap)])
+    ric, lu = Solver(p, linear_solver="riccati")._solver.solve(None), Solver(p, linear_solver="sparse_lu")._solver.solve(None)
+    assert ric.info.active_constraints > 0 and lu.info.symbolic_factorizations > 0  # equality rows present
+    assert ric.info.symbolic_factorizations == 0 and ric.info.riccati_solves == ric.info.iterations
+    assert ric.info.iterations == lu.info.iterations
+    np.testing.assert_allclose(np.stack(ric.u), np.stack(lu.u), atol=1e-9, rtol=0)
+    np.testing.assert_allclose(np.stack(ric.x), np.stack(lu.x), atol=1e-9, rtol=0)
+    for i, c in enumerate(cap):  # the converged plan keeps the caps (k >= 1; x_0 is given)
+        assert np.max(np.stack(ric.x)[i][1:, 2]) <= c + 1e-6
