@@ -150,10 +150,10 @@ bool StageRiccati::solve(const std::vector<Eigen::Triplet<double>>& trip, int n,
   S_.noalias() += Cm_ * Z_;
   rhs_mu_ = -rhs.segment(np, m);
   rhs_mu_.noalias() -= Cm_ * dy.head(np);
-  Eigen::PartialPivLU<Eigen::MatrixXd> slu(S_);
-  const double det = slu.determinant();
+  slu_.compute(S_);
+  const double det = slu_.determinant();
   if (!(std::abs(det) > 1e-300) || !std::isfinite(det)) return false;
-  dy.segment(np, m) = slu.solve(rhs_mu_);
+  dy.segment(np, m) = slu_.solve(rhs_mu_);
   dy.head(np).noalias() += Z_ * dy.segment(np, m);
   return dy.head(n).allFinite();
 }

@@ -80,8 +80,9 @@ enum class BarrierMode {
 };
 
 enum class LinearSolver {
-  Riccati,   ///< default: variational multipliers; a stage-wise (coupled, nonsymmetric) Riccati recursion when no
-             ///< constraint is held as an equality, otherwise (or if it fails its residual check) SparseLU
+  Riccati,   ///< default: variational multipliers; a stage-wise (coupled, nonsymmetric) Riccati recursion, with
+             ///< the multipliers of equality-held constraints eliminated by a Schur complement; SparseLU if it
+             ///< fails its residual check
   SparseLU,  ///< variational multipliers (mu_ij = mu_ji), square system, Eigen SparseLU with reused symbolic analysis
   LSCG,      ///< paper: per-agent multipliers, least-squares conjugate gradient, SparseQR fallback
   SparseQR,  ///< paper's fallback alone: per-agent multipliers, Eigen SparseQR

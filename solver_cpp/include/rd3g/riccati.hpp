@@ -31,8 +31,9 @@ class StageRiccati {
   // Per stage k = 0..T-1 (x-row blocks Q* belong to time k+1 and are stored at index k):
   std::vector<Eigen::MatrixXd> Ruu_, Rux_, Rul_, Fx_, Fu_, Qxx_, Qxu_, Qxl_, P_, K_, W_;
   std::vector<Eigen::PartialPivLU<Eigen::MatrixXd>> lu_;
+  Eigen::PartialPivLU<Eigen::MatrixXd> slu_;  // Schur matrix
   std::vector<Eigen::VectorXd> p_, kap_;
-  // Work vectors (sized in setup; no allocation per solve at fixed multiplier count).
+  // Work vectors (sized in setup; the multiplier blocks reallocate only when the number of equality rows changes).
   Eigen::VectorXd g_, e_, h_, pe_, x_, u_, xn_, lam_, rhs_mu_;
   Eigen::MatrixXd Bm_, Cm_, Z_, S_;  // multiplier columns, rows, K^{-1} columns, Schur matrix
   Eigen::MatrixXd PFx_, PFu_, G_, Pn_;
