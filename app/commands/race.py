@@ -6,10 +6,12 @@ import json
 from pathlib import Path
 
 from app.cli import UserError
-from app.realtime.run import add_realtime_arguments, run_realtime, wants_realtime
+from app.realtime.run import add_realtime_arguments, open_capture, plan_link, run_realtime, wants_realtime
 from fileio import atomic_write_text, check_output_path
 from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
+from sim import Simulator
+from vehicles.link_capture import SimulatedLink
 
 DEFAULT_OUT = "runs/race.rrd"
 
@@ -84,9 +86,6 @@ def _simulated_link(args, setup):
     the simulated time, the SimulatedLink, the capture), or Nones without the flag."""
     if not args.link_capture:
         return None, None, None
-    from app.realtime.run import open_capture, plan_link
-    from sim import Simulator
-    from vehicles.link_capture import SimulatedLink
 
     plan = plan_link(args, "sim", setup, link_hz=1.0 / setup.control_period_s)
     capture = open_capture(args)
