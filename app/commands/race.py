@@ -140,8 +140,10 @@ def run(args) -> int:
         print(f"  {name:9s} lap times: {', '.join(f'{t:.3f} s' for t in laps) or '-'}")
     faults = ", ".join(f"{c.at_fault} at fault at {c.time_s:.2f} s" for c in o.collisions)
     print(f"minimum gap between footprints: {s['min_gap_m']:.3f} m; collisions: {s['collisions']}" + (f" ({faults})" if faults else ""))
-    print(f"RD3G planner (wall time per control step): p50 {s['solve_ms_p50']:.1f} ms, p99 {s['solve_ms_p99']:.1f} ms, "
-          f"max {o.solve_ms.max():.1f} ms; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
+    # a race interrupted before its first control step has no planner times
+    times = (f"p50 {s['solve_ms_p50']:.1f} ms, p99 {s['solve_ms_p99']:.1f} ms, max {o.solve_ms.max():.1f} ms"
+             if o.solve_ms.size else "no control step yet")
+    print(f"RD3G planner (wall time per control step): {times}; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
           f"first (cold) plan before the start {s['prestart_ms']:.0f} ms")
     if o.planner_errors:
         first = o.planner_errors[0]
