@@ -12,7 +12,7 @@ import time
 from app.cli import UserError
 from app.commands.race import add_race_arguments, make_setup
 from app.realtime.check import CheckTiming, PreRaceCheck
-from app.realtime.hil import FIXED_MARKERS
+from race.hil import FIXED_MARKERS
 from app.realtime.run import _check_mode, _open_hardware, _open_hil, add_link_arguments, open_capture, plan_link
 from race.config import LoopConfig
 from tracking.calibration import CalibrationError, load_fixed_markers
