@@ -586,6 +586,17 @@ bool Solver::past_deadline() const {
   return settings_.time_limit > 0 && seconds_since(t_start_) > settings_.time_limit;
 }
 
+bool Solver::next_iteration_overruns() {
+  // An iteration (assembly, linear solve, line search) cannot be cut short: with a time limit the next one
+  // is not started when the last one, measured between these checks, would not fit into the time left.
+  if (settings_.time_limit <= 0) return false;
+  const auto now = Clock::now();
+  if (have_iteration_start_) last_iteration_seconds_ = std::chrono::duration<double>(now - iteration_start_).count();
+  iteration_start_ = now;
+  have_iteration_start_ = true;
+  return past_deadline() || last_iteration_seconds_ > time_left();
+}
+
 double Solver::time_left() const { return settings_.time_limit - seconds_since(t_start_); }
 
 double Solver::flop_rate() const { return ldlt_flop_rate_ > 0 ? ldlt_flop_rate_ : kDefaultFlopRate; }
@@ -762,6 +773,8 @@ Result Solver::solve(const WarmStart* warm) {
   rng_.seed(12345);
   noise_.reset();
   timed_out_ = false;
+  have_iteration_start_ = false;
+  last_iteration_seconds_ = 0;
   best_merit_ = kInf;
   int total_iter = 0;
   for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
@@ -876,7 +889,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
                   cons_.empty() ? 0.0 : std::max(0.0, h_.maxCoeff()), n_vars_ - n_primal_);
     if (converged(rnorm)) { info.status = Status::Converged; break; }
     if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
-    if (past_deadline()) { info.status = Status::TimeLimit; break; }
+    if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
     const int w = settings_.stall_window;
     if (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]) {
       // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per

@@ -104,6 +104,7 @@ class Solver {
   double take_step(double rnorm, Info& info);
   void write_result(Result& res, Info& info);
   bool past_deadline() const;
+  bool next_iteration_overruns();  // with a time limit: the deadline passed or the next iteration would pass it
   double time_left() const;  // (s) until the time limit (only meaningful with one)
   // Bounded linear-solve fallback under a time limit (see solve_linear).
   double flop_rate() const;
@@ -160,6 +161,9 @@ class Solver {
   bool timed_out_ = false;              // the deadline passed inside a step
   double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
   double ldlt_flop_rate_ = 0;           // measured speed of its last regularised LDLT factorisation (flop/s)
+  Clock::time_point iteration_start_;   // with a time limit: when the current iteration began
+  bool have_iteration_start_ = false;
+  double last_iteration_seconds_ = 0;
   mutable Vec row_count_;               // entries per row of J_ (cost of forming J'J)
   double best_merit_ = 0;               // with a time limit: lowest merit seen, its iterate in best_seen_
 
