@@ -10,9 +10,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
+import sys
 import time
 
+from bench.families import FAMILIES, family_problem
 from bench.merging import merging_problem
+from fileio import atomic_write_text, check_output_path
 from solver_cpp import solve
 
 PATHS = {"sparse_lu": {}, "sparse_qr": {}, "lscg": {"lscg_tol": 1e-16, "lscg_max_iter": 10**6}}
@@ -30,8 +34,6 @@ def timed(problem, limit: float, **settings) -> tuple[str, float]:
 
 
 def family_cases(names: list[str], cars: list[int], seeds: int):
-    from bench.families import family_problem
-
     for name in names:
         for n in cars:
             for seed in range(seeds):
@@ -42,7 +44,7 @@ def fuzz_cases(count: int, seed: int):
     """Problems from the solver-API fuzz generator that pass validation (the others never reach the solver)."""
     from hypothesis import HealthCheck, Phase, given, seed as hseed, settings
 
-    from bench.fuzz import game_problems
+    from bench.fuzz import game_problems  # needs hypothesis (a test extra): only with --fuzz
 
     found = []
 
@@ -93,9 +95,6 @@ def markdown(result: dict, command: str, load: tuple[float, float]) -> str:
 
 
 def main() -> None:
-    import shlex
-    import sys
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cars", default="6", help="car counts, comma-separated")
     p.add_argument("--seeds", type=int, default=3)
@@ -116,12 +115,8 @@ def main() -> None:
                     status, wall = timed(merging_problem(cars[0], seed), limit, linear_solver=name, **extra)
                     print(f"{name:<13}  {limit:7.3f}  {seed:4d}  {status:<10}  {wall:6.3f}  {wall - limit:11.3f}")
         return
-    from fileio import atomic_write_text, check_output_path
-
     if args.json:
         check_output_path(args.json)
-    from bench.families import FAMILIES
-
     names = [] if args.families is None else list(FAMILIES) if args.families == "all" else args.families.split(",")
     load0 = os.getloadavg()[0]
     cases = [*family_cases(names, cars, args.seeds), *(fuzz_cases(args.fuzz, 0) if args.fuzz else [])]
