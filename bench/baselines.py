@@ -13,36 +13,17 @@ import numpy as np
 
 from bench.merging import merging_problem
 from solver_cpp import GameProblem, GameResult, WarmStart, _core, solve
-
-
-def _settings(settings, where: str, overrides: dict):
-    """Fill a C++ settings struct from keyword overrides; unknown names or bad values raise ValueError."""
-    for name, value in overrides.items():
-        if name.startswith("_") or not hasattr(settings, name):
-            raise ValueError(f"{where}.{name} is not a setting")
-        current = getattr(settings, name)
-        if isinstance(current, bool):
-            value = bool(value)
-        elif isinstance(current, int):
-            if isinstance(value, bool) or int(value) != value:
-                raise ValueError(f"{where}.{name} must be an integer, got {value!r}")
-            value = int(value)
-        else:
-            value = float(value)
-            if not np.isfinite(value):
-                raise ValueError(f"{where}.{name} must be finite, got {value!r}")
-        setattr(settings, name, value)
-    return settings
+from solver_cpp.solve import fill_settings
 
 
 def ilqgames_settings(**overrides) -> _core.ILQGamesSettings:
     """C++ defaults (solver_cpp/include/rd3g/ilqgames.hpp) with keyword overrides."""
-    return _settings(_core.ILQGamesSettings(), "ilqgames", overrides)
+    return fill_settings(_core.ILQGamesSettings(), "ilqgames", overrides)
 
 
 def algames_settings(**overrides) -> _core.ALGamesSettings:
     """C++ defaults (solver_cpp/include/rd3g/algames.hpp) with keyword overrides."""
-    return _settings(_core.ALGamesSettings(), "algames", overrides)
+    return fill_settings(_core.ALGamesSettings(), "algames", overrides)
 
 
 def _warm(problem: GameProblem, warm_start: WarmStart | None) -> _core.WarmStart | None:

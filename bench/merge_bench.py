@@ -6,11 +6,13 @@ from __future__ import annotations
 
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from bench import baselines, verify
+from fileio import atomic_write_with
 from bench.families import family_problem
 from bench.merging import MAIN_LANE_Y, MERGE_LANE_Y, lane_counts, merging_problem
 from solver_cpp import solve
@@ -249,7 +251,7 @@ def plot_times(summary: list[dict], path: str) -> str:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=120, format=Path(path).suffix.lstrip(".") or "png"))
     plt.close(fig)
     return path
 
@@ -292,7 +294,7 @@ def plot_merge(cars: int, seed: int, path: str) -> str:
                  f"(footprints at t = {', '.join(f'{k * problem.dt:.1f}' for k in instants)} s)", fontsize=9)
     ax.legend(fontsize=6, ncol=min(cars, 4), loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=120, format=Path(path).suffix.lstrip(".") or "png"))
     plt.close(fig)
     return path
 

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fileio import atomic_write_text
+
 from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
 from sim import Simulator
@@ -103,7 +105,7 @@ def main(argv=None) -> int:
     wins = [s for s, w in winners.items() if w == "rd3g"]
     print(f"RD3G won {len(wins)} of {len(winners)}: seeds {wins}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n")
     return 0
 
 

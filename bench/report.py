@@ -6,6 +6,8 @@ import platform
 import re
 from pathlib import Path
 
+from fileio import atomic_write_text
+
 BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 
 
@@ -35,6 +37,5 @@ def write_section(name: str, body: str, path: Path = BENCHMARKS_MD) -> Path:
         text = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _: block, text, flags=re.S)
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    atomic_write_text(path, text)
     return path

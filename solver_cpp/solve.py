@@ -15,33 +15,42 @@ from .problem import GameProblem
 def make_settings(**overrides) -> _core.Settings:
     """C++ defaults, with keyword overrides; unknown names, bad types or values out of range raise
     ValueError naming them."""
-    s = _core.Settings()
+    s = fill_settings(_core.Settings(), "solver", overrides)
+    _core.validate_settings(s)  # ranges, with the C++ set-up's messages
+    return s
+
+
+def fill_settings(s, where: str, overrides: dict):
+    """Set the fields of a C++ settings struct (RD3G's or a baseline's) from keyword overrides, converting
+    each to the field's type; unknown names, wrong types, non-finite floats and integers beyond the C++
+    int raise ValueError naming ``where.name`` (never pybind11's own TypeError)."""
     for name, value in overrides.items():
         if name.startswith("_") or not hasattr(s, name):
-            raise ValueError(f"solver.{name} is not a solver setting")
+            raise ValueError(f"{where}.{name} is not a {where} setting")
         current = getattr(s, name)
         try:
             if hasattr(type(current), "__members__"):  # a C++ enum: accept its value names
                 choices = tuple(type(current).__members__)
                 if not isinstance(value, str) or value not in choices:
-                    raise ValueError(f"solver.{name} must be one of {choices}, got {value!r}")
+                    raise ValueError(f"{where}.{name} must be one of {choices}, got {value!r}")
                 value = type(current).__members__[value]
             elif isinstance(current, bool):
                 value = bool(value)
             elif isinstance(current, int):
                 if isinstance(value, bool) or int(value) != value:
-                    raise ValueError(f"solver.{name} must be an integer, got {value!r}")
+                    raise ValueError(f"{where}.{name} must be an integer, got {value!r}")
+                if not -2**31 < int(value) < 2**31:
+                    raise ValueError(f"{where}.{name} must be an integer below 2^31 in magnitude, got {value!r}")
                 value = int(value)
             elif isinstance(current, float):
                 value = float(value)
                 if not np.isfinite(value):
-                    raise ValueError(f"solver.{name} must be finite")
+                    raise ValueError(f"{where}.{name} must be finite, got {value!r}")
             setattr(s, name, value)
-        except (TypeError, ValueError) as exc:
-            if str(exc).startswith(f"solver.{name}"):
+        except (TypeError, ValueError, OverflowError) as exc:
+            if str(exc).startswith(f"{where}.{name}"):
                 raise
-            raise ValueError(f"solver.{name}: invalid value {value!r}") from None
-    _core.validate_settings(s)  # ranges, with the C++ set-up's messages
+            raise ValueError(f"{where}.{name}: invalid value {value!r:.80}") from None
     return s
 
 

@@ -6,6 +6,7 @@ import sys
 import time
 
 from app.cli import UserError
+from fileio import atomic_write_text, check_output_path
 from bench import merge_bench, problem_size, solver_bench
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
@@ -103,6 +104,8 @@ def run_merge(args) -> int:
             raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
     if args.instances < 1 or args.workers < 1:
         raise UserError("--instances and --workers must be at least 1")
+    if args.json:
+        check_output_path(args.json)  # fail before the long run, not after it
     t0 = time.perf_counter()
     records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit)
     summary = merge_bench.summarize(records)
@@ -119,7 +122,7 @@ def run_merge(args) -> int:
     for r in summary:
         print(f"{r['solver']:9s} {r['cars']} cars: {r['converged']}/{r['instances']} successful")
     if args.json:
-        Path(args.json).write_text(json.dumps(merge_bench.records_json(summary), indent=1))
+        atomic_write_text(args.json, json.dumps(merge_bench.records_json(summary), indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('merge-bench-' + '-'.join(solvers), md)}")
@@ -184,6 +187,8 @@ def _run_families(args, cars: list[int]) -> int:
             raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
     if args.instances < 1 or args.workers < 1:
         raise UserError("--instances and --workers must be at least 1")
+    if args.json:
+        check_output_path(args.json)  # fail before the long run, not after it
     import os
 
     load0 = os.getloadavg()[0]
@@ -198,7 +203,7 @@ def _run_families(args, cars: list[int]) -> int:
     md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0, args.best_response_rounds)
     print(md)
     if args.json:
-        Path(args.json).write_text(json.dumps({"results": summary}, indent=1))
+        atomic_write_text(args.json, json.dumps({"results": summary}, indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
         section = "merge-families" + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")

@@ -189,13 +189,13 @@ def run_bench(args) -> int:
     outcomes = run_benchmark([CASES[i - 1] for i in picked], out, args.minutes, args.rate, car, SysidSettings(),
                              progress)
     table = markdown_table(outcomes)
-    (out / "bench.md").write_text(table, encoding="utf-8")
-    (out / "bench.json").write_text(json.dumps([
+    atomic_write_text(out / "bench.md", table)
+    atomic_write_text(out / "bench.json", json.dumps([
         {"case": CASES.index(o.case) + 1, "name": o.case.name, "effects": o.case.effects,
          "other_terms": o.case.other_terms, "verdict": [e.effect for e in o.result.selected],
          "params": {k: v for e in o.result.selected for k, v in e.params.items()},
          "heldout_error_reduction": o.result.heldout_error_reduction, "wall_s": o.wall_s, "cpu_s": o.cpu_s,
-         "load": o.load, "failures": o.failures} for o in outcomes], indent=2) + "\n", encoding="utf-8")
+         "load": o.load, "failures": o.failures} for o in outcomes], indent=2) + "\n")
     print(table)
     print(f"wrote {out / 'bench.md'}, {out / 'bench.json'}")
     return 0 if all(o.passed for o in outcomes) else 1

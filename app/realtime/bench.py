@@ -17,6 +17,7 @@ import numpy as np
 
 from app.commands import race
 from bench.report import machine_description, write_section
+from fileio import atomic_write_text, atomic_write_with
 
 
 def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = "",
@@ -88,8 +89,7 @@ def main(argv=None) -> int:
             rec[mode]["steal_s"] = None if steal0 is None else steal_seconds() - steal0
             print(f"seed {seed} {mode}: winner {rec[mode]['winner']}", flush=True)
         rows.append(rec)
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+    atomic_write_text(args.json, json.dumps(rows, indent=2) + "\n")
     body = report(rows, args, machine_description())
     print(body)
     print(plot(rows, args.figure))
@@ -226,8 +226,7 @@ def plot(rows, path: str) -> str:
     ax.set_xticks(seeds)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
     plt.close(fig)
     return path
 

@@ -15,6 +15,7 @@ import numpy as np
 from app.cli import UserError
 from app.realtime.hardware import CameraFeed
 from race.hil import HilWorld, WorldSpec
+from fileio import atomic_write_text
 from race.config import LoopConfig, LoopConfigError, parse_fault
 from race.loop import CarBinding, LoopError, RaceLoop, setup_document
 from race.planning import RacePlanners
@@ -227,8 +228,7 @@ def _run_realtime(args, mode: str) -> int:
             capture.close()
     _print(outcome, setup, args, mode, opponent)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(outcome.summary(), indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(outcome.summary(), indent=2) + "\n")
     return 0 if outcome.reason in ("finished", "time_limit") else 1
 
 

@@ -3,6 +3,7 @@
 #include "rd3g/second_order.hpp"
 
 #include <Eigen/IterativeLinearSolvers>
+#include <Eigen/SparseCholesky>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -22,6 +23,28 @@ inline double seconds_since(Clock::time_point t0) {
 }
 // LSCG iterations between deadline checks when a time limit is set.
 constexpr int kLscgChunk = 50;
+// Sparse factorisation speed assumed before this solver has measured its own (flop/s): low, so that a
+// prediction errs towards not starting a factorisation that might overrun the time limit.
+constexpr double kDefaultFlopRate = 2e8;
+// Eigen's SparseQR takes up to this many times as long as a sparse LDLT of J'J (whose factor has R's
+// pattern): its Householder vectors fill in far more than R. Measured about 80 on the 10-car merging game
+// (0.45 s against 5.7 ms, verbose output of bench/time_limit.py); 200 leaves a margin.
+constexpr double kQrPerCholeskyFlop = 200.0;
+
+// Sparse LDLT that reports the flops of its numeric factorisation once its pattern is analysed, so the
+// cost of a factorisation is known before it starts (sum over columns of c^2 + c, c = entries below
+// the diagonal of L; the counts are Eigen's own, kept in a protected member after analyzePattern).
+class CountedLDLT : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
+ public:
+  double factor_flops() const {
+    double f = 0;
+    for (Eigen::Index j = 0; j < this->m_nonZerosPerCol.size(); ++j) {
+      const double c = this->m_nonZerosPerCol[j];
+      f += c * c + c;
+    }
+    return f;
+  }
+};
 }  // namespace
 
 std::string status_name(Status s) {
@@ -477,10 +500,15 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
   neg_rhs_.head(n) = -rhs_.head(n);
   const auto rhs = neg_rhs_.head(n);
   auto qr_solve = [&]() -> bool {
-    // SparseQR cannot be interrupted: with a time limit it is not started once the deadline has passed,
-    // nor when the previous factorisation of this solver would not fit into the time left.
-    if (past_deadline() ||
-        (settings_.time_limit > 0 && seconds_since(t_start_) + last_qr_seconds_ > settings_.time_limit)) {
+    // SparseQR cannot be interrupted: with a time limit it is started only when its predicted duration
+    // fits into the time left; otherwise the bounded least-squares fallback takes its place.
+    if (past_deadline()) {
+      timed_out_ = true;
+      return false;
+    }
+    if (settings_.time_limit > 0 && predicted_qr_seconds() > time_left()) {
+      if (settings_.verbose) std::printf("   SparseQR would overrun the time limit: regularised least squares\n");
+      if (bounded_least_squares(dy)) return true;
       timed_out_ = true;
       return false;
     }
@@ -556,6 +584,71 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
 
 bool Solver::past_deadline() const {
   return settings_.time_limit > 0 && seconds_since(t_start_) > settings_.time_limit;
+}
+
+bool Solver::next_iteration_overruns() {
+  // An iteration (assembly, linear solve, line search) cannot be cut short: with a time limit the next one
+  // is not started when the last one, measured between these checks, would not fit into the time left.
+  if (settings_.time_limit <= 0) return false;
+  const auto now = Clock::now();
+  if (have_iteration_start_) last_iteration_seconds_ = std::chrono::duration<double>(now - iteration_start_).count();
+  iteration_start_ = now;
+  have_iteration_start_ = true;
+  return past_deadline() || last_iteration_seconds_ > time_left();
+}
+
+double Solver::time_left() const { return settings_.time_limit - seconds_since(t_start_); }
+
+double Solver::flop_rate() const { return ldlt_flop_rate_ > 0 ? ldlt_flop_rate_ : kDefaultFlopRate; }
+
+double Solver::normal_matrix_flops() const {
+  // Forming J'J costs the sum over rows of (entries in the row)^2.
+  row_count_.setZero(n_vars_);
+  for (Eigen::Index k = 0; k < J_.outerSize(); ++k)
+    for (SpMat::InnerIterator it(J_, k); it; ++it) row_count_[it.row()] += 1;
+  return row_count_.squaredNorm();
+}
+
+double Solver::predicted_qr_seconds() {
+  if (last_qr_seconds_ > 0) return last_qr_seconds_;  // this solver's own measurement
+  // Never measured: from the pattern of R (that of the Cholesky factor of J'J), computed symbolically.
+  const double form = normal_matrix_flops() / flop_rate();
+  if (form > time_left()) return form;
+  SpMat JtJ = J_.transpose() * J_;
+  CountedLDLT ldlt;
+  ldlt.analyzePattern(JtJ);
+  return form + kQrPerCholeskyFlop * ldlt.factor_flops() / flop_rate();
+}
+
+bool Solver::bounded_least_squares(Vec& dy) {
+  // Tikhonov-regularised normal equations (J'J + delta I) dy = J'(-rhs) by sparse LDLT: the least-squares
+  // step SparseQR would give (up to delta), at a cost known before the numeric factorisation starts, which
+  // is skipped when it would not fit into the time left. Two refinement steps remove most of delta's bias.
+  const int n = n_vars_;
+  if (normal_matrix_flops() / flop_rate() > time_left()) return false;
+  SpMat JtJ = J_.transpose() * J_;
+  const double dmax = JtJ.diagonal().cwiseAbs().maxCoeff();
+  SpMat eye(n, n);
+  eye.setIdentity();
+  const double delta = 1e-10 * (dmax > 0 ? dmax : 1.0);
+  SpMat M = JtJ + delta * eye;
+  CountedLDLT ldlt;
+  ldlt.analyzePattern(M);
+  const double flops = ldlt.factor_flops();
+  if (flops / flop_rate() > time_left()) return false;
+  const auto t0 = Clock::now();
+  ldlt.factorize(M);
+  const double sec = seconds_since(t0);
+  if (settings_.verbose)
+    std::printf("   regularised LDLT: %.3g flop predicted %.3g s, took %.3g s\n", flops, flops / flop_rate(), sec);
+  if (sec > 1e-3) ldlt_flop_rate_ = flops / sec;  // too short a factorisation measures the overhead, not the rate
+  if (ldlt.info() != Eigen::Success) return false;
+  const Vec g = J_.transpose() * neg_rhs_.head(n);
+  Vec x = ldlt.solve(g);
+  for (int r = 0; r < 2 && x.allFinite(); ++r) x += ldlt.solve(g - JtJ * x);
+  if (!x.allFinite()) return false;
+  dy.head(n) = x;
+  return true;
 }
 
 void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const {
@@ -680,6 +773,8 @@ Result Solver::solve(const WarmStart* warm) {
   rng_.seed(12345);
   noise_.reset();
   timed_out_ = false;
+  have_iteration_start_ = false;
+  last_iteration_seconds_ = 0;
   best_merit_ = kInf;
   int total_iter = 0;
   for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
@@ -794,7 +889,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
                   cons_.empty() ? 0.0 : std::max(0.0, h_.maxCoeff()), n_vars_ - n_primal_);
     if (converged(rnorm)) { info.status = Status::Converged; break; }
     if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
-    if (past_deadline()) { info.status = Status::TimeLimit; break; }
+    if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
     const int w = settings_.stall_window;
     if (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]) {
       // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per

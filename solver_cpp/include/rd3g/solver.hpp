@@ -104,6 +104,13 @@ class Solver {
   double take_step(double rnorm, Info& info);
   void write_result(Result& res, Info& info);
   bool past_deadline() const;
+  bool next_iteration_overruns();  // with a time limit: the deadline passed or the next iteration would pass it
+  double time_left() const;  // (s) until the time limit (only meaningful with one)
+  // Bounded linear-solve fallback under a time limit (see solve_linear).
+  double flop_rate() const;
+  double normal_matrix_flops() const;
+  double predicted_qr_seconds();
+  bool bounded_least_squares(Vec& dy);
 
   void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const;
   void eval_all_constraints(const Iterate& y, Vec& h) const;
@@ -153,6 +160,11 @@ class Solver {
   std::vector<double> merits_;          // merit per iteration of the current attempt
   bool timed_out_ = false;              // the deadline passed inside a step
   double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
+  double ldlt_flop_rate_ = 0;           // measured speed of its last regularised LDLT factorisation (flop/s)
+  Clock::time_point iteration_start_;   // with a time limit: when the current iteration began
+  bool have_iteration_start_ = false;
+  double last_iteration_seconds_ = 0;
+  mutable Vec row_count_;               // entries per row of J_ (cost of forming J'J)
   double best_merit_ = 0;               // with a time limit: lowest merit seen, its iterate in best_seen_
 
   // buffers (allocated in setup)

@@ -1,0 +1,60 @@
+"""Issue 17 gaps: integers beyond the C++ int given through the Python API get an error naming the field
+(not pybind11's "Invoked with"), and benchmark outputs are written atomically and checked before the run."""
+import dataclasses
+import os
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from bench.baselines import solve_algames, solve_ilqgames
+from bench.merging import merging_problem
+from bench.report import write_section
+from solver_cpp import Solver, make_settings, solve
+
+
+@pytest.mark.parametrize("horizon", [2**31, 2**40, np.int64(2**31), 0, -5])
+def test_horizon_beyond_the_cpp_int_names_the_field(horizon):
+    problem = dataclasses.replace(merging_problem(2, 0), horizon=horizon)
+    for call in (solve, Solver, solve_ilqgames, solve_algames):
+        with pytest.raises(ValueError, match="^horizon must be a positive integer"):
+            call(problem)
+
+
+@pytest.mark.parametrize("call,field", [
+    (lambda: make_settings(max_iter=2**31), "solver.max_iter"),
+    (lambda: make_settings(lscg_max_iter=-2**40), "solver.lscg_max_iter"),
+    (lambda: solve_ilqgames(merging_problem(2, 0), max_iter=2**31), "ilqgames.max_iter"),
+    (lambda: solve_algames(merging_problem(2, 0), max_iter=2**63), "algames.max_iter"),
+    (lambda: solve_algames(merging_problem(2, 0), max_iter=1.5), "algames.max_iter"),
+    (lambda: solve_ilqgames(merging_problem(2, 0), tol=float("nan")), "ilqgames.tol"),
+    (lambda: solve_ilqgames(merging_problem(2, 0), nonsense=1), "ilqgames.nonsense"),
+])
+def test_out_of_range_settings_name_the_field(call, field):
+    with pytest.raises(ValueError) as info:
+        call()
+    message = str(info.value)
+    assert message.startswith(field), message
+    assert "Invoked with" not in message
+
+
+@pytest.mark.parametrize("argv", [
+    ["bench", "merge", "--family", "all", "--cars", "2", "--instances", "1", "--no-docs"],
+    ["bench", "merge", "--cars", "2", "--instances", "1", "--no-docs"],
+])
+def test_bench_json_path_is_checked_before_the_run(tmp_path, capsys, argv):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    assert main([*argv, "--json", str(blocker / "out.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: cannot write") and "a-file" in err
+    assert sorted(os.listdir(tmp_path)) == ["a-file"]
+
+
+def test_write_section_replaces_the_block_and_leaves_no_temporary(tmp_path):
+    path = tmp_path / "bench.md"
+    write_section("x", "first", path)
+    write_section("x", "second", path)
+    text = path.read_text()
+    assert "second" in text and "first" not in text
+    assert os.listdir(tmp_path) == ["bench.md"]
