@@ -460,6 +460,7 @@ void Solver::build_J() {
 
 bool Solver::solve_linear(Vec& dy, Info& info) {
   J_built_ = false;
+  lm_ready_ = false;
   const int n = n_vars_;
   if (settings_.linear_solver == LinearSolver::Riccati && n == n_primal_) {
     if (riccati_.solve(trip_, rhs_, dy)) {
@@ -609,15 +610,28 @@ double Solver::line_search(double merit0) {
 }
 
 // Levenberg-Marquardt direction on ||r||^2: (J'J + nu I) dy = -J' r, always a descent direction.
+// The tries of one iteration (several nu) reuse J'J, J'r and the symbolic analysis: they were most of the
+// line-search time on dense games (up to 4 full LDLTs per iteration).
 bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
-  build_J();
-  SpMat JtJ = J_.transpose() * J_;
-  for (int d = 0; d < n_vars_; ++d) JtJ.coeffRef(d, d) += nu;
-  Eigen::SimplicialLDLT<SpMat> ldlt(JtJ);
-  if (ldlt.info() != Eigen::Success) return false;
-  dy.head(n_vars_) = ldlt.solve(-(J_.transpose() * rhs_.head(n_vars_)));
+  if (!lm_ready_) {
+    build_J();
+    lm_JtJ_ = J_.transpose() * J_;
+    SpMat eye(n_vars_, n_vars_);
+    eye.setIdentity();
+    lm_JtJ_ = lm_JtJ_ + 0.0 * eye;  // every diagonal entry stored, so J'J + nu I keeps the analysed pattern
+    lm_JtJ_.makeCompressed();
+    lm_ldlt_.analyzePattern(lm_JtJ_);
+    if (lm_ldlt_.info() != Eigen::Success) return false;
+    lm_Jtr_ = J_.transpose() * rhs_.head(n_vars_);
+    lm_ready_ = true;
+  }
+  SpMat A = lm_JtJ_;
+  for (int d = 0; d < n_vars_; ++d) A.coeffRef(d, d) += nu;
+  lm_ldlt_.factorize(A);
+  if (lm_ldlt_.info() != Eigen::Success) return false;
+  dy.head(n_vars_) = lm_ldlt_.solve(-lm_Jtr_);
   if (settings_.verbose) std::printf("   Levenberg-Marquardt step, nu %.2e\n", nu);
-  return ldlt.info() == Eigen::Success && dy.head(n_vars_).allFinite();
+  return lm_ldlt_.info() == Eigen::Success && dy.head(n_vars_).allFinite();
 }
 
 std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::vector<Mat>& u,
