@@ -696,13 +696,32 @@ Result Solver::solve(const WarmStart* warm) {
   timed_out_ = false;
   best_merit_ = kInf;
   int total_iter = 0;
+  Result saddle;  // the first converged attempt the second-order test rejected (restart_on_saddle)
+  bool have_saddle = false;
   for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
     info.attempts = attempt + 1;
     start_attempt(attempt, warm);
-    if (run_attempt(info, total_iter) == AttemptEnd::Finished) break;
+    if (run_attempt(info, total_iter) == AttemptEnd::Finished) {
+      // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.
+      if (!(settings_.restart_on_saddle && info.status == Status::Converged && settings_.second_order_gap >= 0 &&
+            attempt < settings_.restarts && total_iter < settings_.max_iter && !past_deadline()))
+        break;
+      Result cand = res;
+      write_result(cand, cand.info);
+      if (cand.info.status != Status::Saddle) return cand;
+      if (settings_.verbose) std::printf("converged to a saddle, restarting\n");
+      if (!have_saddle) { saddle = std::move(cand); have_saddle = true; }
+    }
     ++total_iter;
   }
   write_result(res, info);
+  if (have_saddle && info.status != Status::Converged) {
+    // No later attempt found an equilibrium: the saddle (feasible, first-order stationary) beats a failure.
+    saddle.info.iterations = info.iterations;
+    saddle.info.attempts = info.attempts;
+    saddle.info.timings.total = seconds_since(t_start_);
+    return saddle;
+  }
   return res;
 }
 
