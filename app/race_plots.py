@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from fileio import atomic_write_with
+from tracks import draw_track, load_track
 
 
 def _clean(r, cell) -> bool:
@@ -26,8 +27,6 @@ def _plot(rec, track, title: str, path: Path) -> Path:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from tracks import draw_track
 
     t, states, progress = rec["trace"]
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.2), gridspec_kw={"width_ratios": [1.6, 1]})
@@ -49,8 +48,6 @@ def _plot(rec, track, title: str, path: Path) -> Path:
 
 
 def plot_examples(records, args, folder: Path) -> list[Path]:
-    from tracks import load_track
-
     track = load_track(args.track)
     out = []
     overtake = _pick(records, ("rear", "fast"), lambda p: (p[0, 0] - p[0, 1]) < 0 < (p[-1, 0] - p[-1, 1]))

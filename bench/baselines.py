@@ -11,7 +11,8 @@ import sys
 
 import numpy as np
 
-from solver_cpp import GameProblem, GameResult, WarmStart, _core
+from bench.merging import merging_problem
+from solver_cpp import GameProblem, GameResult, WarmStart, _core, solve
 
 
 def _settings(settings, where: str, overrides: dict):
@@ -106,9 +107,6 @@ def min_pair_distance(result: GameResult, pos=(0, 1)) -> float:
 
 
 def main(argv=None) -> int:
-    from bench.merging import merging_problem
-    from solver_cpp import solve
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cars", type=int, nargs="+", default=[2, 3, 4, 5])
     ap.add_argument("--seeds", type=int, default=20)

@@ -27,6 +27,18 @@ from typing import Any, Callable
 
 from hypothesis import strategies as st
 
+from bench.merging import merging_problem
+from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, QuadraticCost, solve
+from solver_cpp.problem_file import ProblemFileError, load_problem, problem_to_dict
+from sysid.log import LogFormatError, read_log
+from tracking import calibration
+from tracking.calibration import CalibrationError, CameraCalibration, calibration_to_json
+from tracking.geometry import PinholeCamera
+from tracks import TrackFormatError, load_track
+from tracks.io import DATA_DIR
+from vehicles.params import VEHICLES_DIR, CarParamsError, load_car_params
+from vehicles.protocol import FULL_SCALE, CarCommand, FrameDecoder, encode_frame
+
 WEIRD_VALUES = [None, True, False, 0, -1, 1, 0.5, -0.0, 1e-320, 1e308, 2**31, 2**63, 10**400, float("nan"),
                 float("inf"), float("-inf"), "", "2", "no", "x" * 300, [], {}, [1.0], [[1.0]], {"d": 2},
                 [True, False], [0, 1, "2", 3], "\u00e9\x00"]
@@ -196,9 +208,6 @@ def _loader_run(suffix: str, load: Callable[[Path], Any], error: Callable[[], ty
 # --------------------------------------------------------------------------- seeds
 @functools.cache
 def problem_seeds() -> list:
-    from bench.merging import merging_problem
-    from solver_cpp.problem_file import problem_to_dict
-
     merge = problem_to_dict(merging_problem(2, 0), solver={"tol": 5e-4, "max_iter": 100})
     merge["horizon"] = 5
     for a in merge["agents"]:
@@ -218,13 +227,11 @@ def problem_seeds() -> list:
 def car_seeds() -> list:
     import tomllib
 
-    from vehicles.params import VEHICLES_DIR
     return [tomllib.loads((VEHICLES_DIR / "buzzracer.toml").read_text())]
 
 
 @functools.cache
 def track_seeds() -> list:
-    from tracks.io import DATA_DIR
     # The merging road and the oval: one point track and one segment track (twisty is slow to build).
     return [json.loads((DATA_DIR / f"{n}.json").read_text()) for n in ("oval", "merge_road")]
 
@@ -245,9 +252,6 @@ def intrinsics_seeds() -> list:
 @functools.cache
 def calibration_seeds() -> list:
     import numpy as np
-
-    from tracking.calibration import CameraCalibration, calibration_to_json
-    from tracking.geometry import PinholeCamera
 
     cam = PinholeCamera(np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]]), np.zeros(5),
                         np.diag([1.0, -1.0, -1.0]), np.array([-2.5, 1.5, 3.0]), (1280, 720))
@@ -317,8 +321,6 @@ def _reference_frames(stream: bytes) -> dict[int, tuple[int, dict]]:
 @st.composite
 def decoder_inputs(draw) -> bytes:
     """Noise with valid frames spliced in (some then damaged), as one byte string."""
-    from vehicles.protocol import CarCommand, encode_frame
-
     parts = []
     for _ in range(draw(st.integers(0, 6))):
         kind = draw(st.sampled_from(["noise", "frame", "frame", "sync"]))
@@ -336,8 +338,6 @@ def decoder_inputs(draw) -> bytes:
 def run_decoder(data: bytes, chunks: list[int] | None = None) -> str:
     """No exception for any byte stream; each decoded frame is a well-formed frame of the input (by
     the reference parser) with the same commands; feeding in chunks or whole gives the same frames."""
-    from vehicles.protocol import FULL_SCALE, FrameDecoder
-
     def decode(pieces: list[bytes]) -> list:
         d = FrameDecoder(gap_timeout=1.0, clock=lambda: 0.0)
         out = []
@@ -370,54 +370,44 @@ def run_decoder(data: bytes, chunks: list[int] | None = None) -> str:
 
 # --------------------------------------------------------------------------- targets
 def _problem_load(path: Path):
-    from solver_cpp.problem_file import load_problem
     return load_problem(path)
 
 
 def _problem_error():
-    from solver_cpp.problem_file import ProblemFileError
     return ProblemFileError
 
 
 def _car_load(path: Path):
-    from vehicles.params import load_car_params
     return load_car_params(path)
 
 
 def _car_error():
-    from vehicles.params import CarParamsError
     return CarParamsError
 
 
 def _track_load(path: Path):
-    from tracks import load_track
     return load_track(path)
 
 
 def _track_error():
-    from tracks import TrackFormatError
     return TrackFormatError
 
 
 def _calibration_error():
-    from tracking.calibration import CalibrationError
     return CalibrationError
 
 
 def _tracking_load(name: str):
     def load(path: Path):
-        from tracking import calibration
         return getattr(calibration, name)(path)
     return load
 
 
 def _log_load(path: Path):
-    from sysid.log import read_log
     return read_log(path)
 
 
 def _log_error():
-    from sysid.log import LogFormatError
     return LogFormatError
 
 
@@ -448,8 +438,6 @@ def _numbers(lo: float = -10.0, hi: float = 10.0) -> st.SearchStrategy:
 @st.composite
 def game_problems(draw):
     """Random games through the Python API: shapes right or off by one, NaN/inf and extreme values."""
-    from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, QuadraticCost
-
     N, T = draw(st.integers(1, 3)), draw(st.integers(1, 8))
     bicycle = draw(st.booleans())
     nx, nu = (4, 2) if bicycle else (draw(st.integers(1, 4)), draw(st.integers(1, 3)))
@@ -494,8 +482,6 @@ def game_problems(draw):
 
 def solve_one(problem) -> str:
     """"accepted" (any solver status) or "rejected" (ValueError from validation); else FuzzFailure."""
-    from solver_cpp import solve
-
     try:
         result = solve(problem, max_iter=30, time_limit=0.5)
     except ValueError:

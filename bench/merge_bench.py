@@ -10,8 +10,11 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from tqdm import tqdm
 
+from bench import baselines, verify
 from bench.families import family_problem
-from bench.merging import merging_problem
+from bench.merging import MAIN_LANE_Y, MERGE_LANE_Y, lane_counts, merging_problem
+from solver_cpp import solve
+from solver_cpp.best_response import best_response_guess
 
 PAPER_MS = {  # Table I of the paper (mean ms over converged runs, i7-7700K)
     "rd3g": {2: 18, 3: 29, 4: 83, 5: 137, 6: 226, 7: 339, 8: 430},
@@ -35,16 +38,12 @@ def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: in
     if name == "rd3g":
         import time
 
-        from solver_cpp import solve
-        from solver_cpp.best_response import best_response_guess
-
         if best_response_rounds <= 0:
             return solve(problem, time_limit=time_limit_s), 0.0
         t0 = time.perf_counter()
         guess = best_response_guess(problem, best_response_rounds, **BEST_RESPONSE_SETTINGS)
         setup_s = time.perf_counter() - t0
         return solve(problem, time_limit=max(time_limit_s - setup_s, 1e-6), warm_start=guess), setup_s
-    from bench import baselines
 
     if name == "ilqgames":
         return baselines.solve_ilqgames(problem, time_limit=time_limit_s), 0.0
@@ -72,8 +71,6 @@ class RunRecord:
 
 
 def one_run(job: tuple) -> RunRecord:
-    from bench import verify
-
     name, cars, seed, time_limit = job[:4]
     family = job[4] if len(job) > 4 else "authors"
     rounds = job[5] if len(job) > 5 else 0
@@ -265,9 +262,6 @@ def plot_merge(cars: int, seed: int, path: str) -> str:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
     from matplotlib.transforms import Affine2D
-
-    from bench.merging import MAIN_LANE_Y, MERGE_LANE_Y, lane_counts
-    from solver_cpp import solve
 
     problem = merging_problem(cars, seed)
     r = solve(problem)

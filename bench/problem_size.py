@@ -7,6 +7,10 @@ import json
 import subprocess
 import sys
 
+from bench.merging import merging_problem
+from solver_cpp import Solver
+from solver_cpp.limits import estimate_size
+
 SIZES = [(2, 20), (2, 400), (2, 2000), (4, 100), (8, 20), (8, 200), (16, 20), (24, 20), (32, 20)]
 
 
@@ -14,10 +18,6 @@ def measure_one(cars: int, horizon: int, iterations: int = 3) -> dict:
     """In this process: solve a merging game of the given size for a few iterations."""
     import dataclasses
     import resource
-
-    from bench.merging import merging_problem
-    from solver_cpp import Solver
-    from solver_cpp.limits import estimate_size
 
     problem = dataclasses.replace(merging_problem(cars, 0), horizon=horizon)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

@@ -1,6 +1,6 @@
 """Fault injection (``race --hil --fault KIND@START[+DURATION][:CAR]``, docs/race-stack.md) as wrappers
 around the loop's parts, so the loop itself has no fault branches. Camera and serial faults
-(``occlude``, ``serial_corrupt``, ``serial_vanish``) act in the HIL world (app.realtime.hil); the two
+(``occlude``, ``serial_corrupt``, ``serial_vanish``) act in the HIL world (race.hil); the two
 below act on the loop's own parts. ``race_time(t_abs)`` maps the clock's time to race time."""
 from __future__ import annotations
 

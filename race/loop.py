@@ -1,7 +1,7 @@
 """The real-time race loop: frame -> detect -> estimate -> plan -> command -> telemetry at a fixed rate.
 
 One loop for the hardware-in-the-loop simulation (``--hil``) and real hardware (``--camera``):
-only the frame feed differs (``app.realtime.hil.HilWorld`` or ``app.realtime.hardware.CameraFeed``).
+only the frame feed differs (``race.hil.HilWorld`` or ``app.realtime.hardware.CameraFeed``).
 
 * Tick k starts at t_go + k T (T = 1 / rate_hz) and must issue its command by t_go + (k+1) T (its
   deadline). Every stage is timed. A tick that starts more than a period late skips the ticks it

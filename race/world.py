@@ -1,5 +1,5 @@
 """The interfaces the race loop runs against (docs/race-stack.md): what it observes of the world, the
-parts it drives, and time. The HIL world (``app.realtime.hil``), the hardware camera feed
+parts it drives, and time. The HIL world (``race.hil``), the hardware camera feed
 (``app.realtime.hardware``) and the tests' fakes implement them; the loop knows nothing else.
 
 Time is injected: :class:`MonotonicClock` for real time (HIL, hardware); :class:`SimulatedClock`

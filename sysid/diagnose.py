@@ -618,6 +618,22 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     other_fit, other_params, other_std = fit_other(traj, split, horizon, named, s)
     other_verdict = _judge(traj, split, named, other_fit, "other", s, other_params, other_std)
     dropped_after_other: list[str] = []
+    if not other_verdict.significant and chosen:
+        # A named effect can stand in for one the library cannot name (torque steer, a heading rate
+        # ~ throttle x speed, looks like a steering offset at the mean throttle; the offset then takes
+        # the mean and the rest is too small for `other` on top). So the terms are also fitted on the
+        # model without the named effects: if they alone predict held-out data significantly better
+        # than the named effects (same rule as any effect: a named effect wins a tie), the named
+        # effects go into the model on top of the terms and are re-tested below like any others.
+        neutral = {p: getattr(reference.setup.car.corrections, p) for c in chosen for p in c.params}
+        bare = evaluate(traj, split, horizon, without_other_terms(dataclasses.replace(
+            named.setup, car=with_corrections(named.setup.car, neutral))))
+        alone_fit, alone_params, alone_std = fit_other(traj, split, horizon, bare, s)
+        if alone_params and _judge(traj, split, named, alone_fit, "other", s).significant:
+            joint = fit_candidates(traj, split, horizon, alone_fit.setup, chosen, s, alone_fit.effects)
+            joint_verdict = _judge(traj, split, named, joint, "other", s, alone_params, alone_std)
+            if joint_verdict.significant:
+                other_fit, other_params, other_std, other_verdict = joint, alone_params, alone_std, joint_verdict
     if other_verdict.significant:
         while chosen:
             loo = _leave_one_out(traj, split, horizon, chosen, named, other_fit, reference, s, with_other=True)

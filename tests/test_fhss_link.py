@@ -134,7 +134,7 @@ def test_link_decode_counts_bad_frames(tmp_path, capsys):
 def test_unplugged_box_is_neutral_within_its_100_ms():
     """The USB device vanishes (the HIL relay closes): the link faults, and the box, which sees only
     silence, commands 1500 us no later than 100 ms after the unplug."""
-    from app.realtime.hil import SerialRelay
+    from race.hil import SerialRelay
 
     with VirtualCarBox(protocol="buzzracer-fhss") as box:
         relay = SerialRelay(box.path, frame_len=fhss.FRAME_LEN)

@@ -13,7 +13,7 @@ from vehicles.params import CarParams
 @pytest.fixture
 def nothing_opens(monkeypatch):
     """Fail the test if the race or check gets as far as opening the HIL world or a serial link."""
-    import app.realtime.hil as hil
+    import race.hil as hil
     import vehicles.serial_link as serial_link
 
     def refuse(*args, **kwargs):

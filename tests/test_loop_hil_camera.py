@@ -1,4 +1,4 @@
-"""The HIL world's synthetic camera with two cars close together (app/realtime/hil.py renders with
+"""The HIL world's synthetic camera with two cars close together (race/hil.py renders with
 tracking.camera.SyntheticCamera): a car beside another one must stay visible as long as the cars do
 not touch, whatever order the world passes them in (HIL seed 16 of the loop bench lost the RD3G car
 this way, 1-2 cm from the opponent, and then drove into it on a dead-reckoned state)."""

@@ -1,5 +1,6 @@
 """The project's package layering, read from the source with `ast` (no import is executed): `app/` is
-the CLI and wiring, nothing below it imports it, and the packages import each other without cycles."""
+the CLI and wiring, nothing below it imports it, the packages import each other without cycles, and
+project imports sit at module top unless a comment says why one is inside a function."""
 from __future__ import annotations
 
 import ast
@@ -22,6 +23,34 @@ def _imports(path: Path) -> list[tuple[str, int]]:
             continue
         out.extend((n.split(".")[0], node.lineno) for n in names if n.split(".")[0] in PACKAGES)
     return out
+
+
+def _unexplained_function_imports(path: Path) -> list[int]:
+    """Lines of project imports inside a function (relative ones too) without a `#` comment on the
+    import's line, on the line above it, or on the line above the run of imports it belongs to."""
+    text = path.read_text()
+    lines = text.splitlines()
+    tree = ast.parse(text, filename=str(path))
+    out = []
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, ast.Import):
+                project = any(alias.name.split(".")[0] in PACKAGES for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                project = node.level > 0 or (node.module or "").split(".")[0] in PACKAGES
+            else:
+                continue
+            if not project:
+                continue
+            first = node.lineno - 1  # 0-based; walk up over the imports of the same run
+            while first > 0 and lines[first - 1].strip().startswith(("from ", "import ")):
+                first -= 1
+            explained = lines[first - 1: node.end_lineno] if first > 0 else lines[: node.end_lineno]
+            if not any("#" in line for line in explained):
+                out.append(node.lineno)
+    return sorted(set(out))
 
 
 def _package_graph() -> dict[str, dict[str, list[str]]]:
@@ -66,3 +95,19 @@ def test_packages_import_each_other_without_cycles():
     for p in PACKAGES:
         if p not in state:
             visit(p, [])
+
+
+def test_the_function_import_check_wants_a_comment(tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text("import sim\n"
+                   "def f():\n    import os\n    from race import loop\n"  # line 4: no reason given
+                   "def g():\n    # here: race imports this module\n    from race import loop\n    from sim import x\n"
+                   "def h():\n    from . import plotting  # matplotlib on first use\n"
+                   "def k():\n    from . import plotting\n")  # line 12: relative, no reason
+    assert _unexplained_function_imports(src) == [4, 12]
+
+
+def test_project_imports_are_at_module_top_unless_a_comment_says_why():
+    offenders = [f"{path.relative_to(ROOT)}:{line}" for package in PACKAGES
+                 for path in sorted((ROOT / package).rglob("*.py")) for line in _unexplained_function_imports(path)]
+    assert offenders == []

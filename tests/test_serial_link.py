@@ -398,7 +398,9 @@ def test_signal_handlers_installed_and_restored():
 
 
 CHILD_SCRIPT = textwrap.dedent("""
-    import sys, time
+    import signal, sys, time
+    # A shell's background job starts with SIGINT ignored; the test is about Python's default handler.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     sys.path.insert(0, sys.argv[1])
     from vehicles.protocol import CarCommand
     from vehicles.serial_link import SerialCarLink

@@ -14,7 +14,7 @@ from .track import Track
 
 def draw_track(ax, track, **kwargs):
     """Draw a track on a matplotlib Axes (see tracks.plotting.draw_track; imports matplotlib on first use)."""
-    from .plotting import draw_track as _draw_track
+    from .plotting import draw_track as _draw_track  # matplotlib only when something is drawn
 
     return _draw_track(ax, track, **kwargs)
 

@@ -19,6 +19,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
+from vehicles import fhss
+from vehicles.link_protocols import check_protocol
+from vehicles.protocol import CarCommand, FrameDecoder, ProtocolError
+
 Direction = Literal["tx", "rx"]
 _LINE = re.compile(rb"^(-?[0-9]+\.[0-9]+) (tx|rx) ((?:[0-9a-f]{2})+)$")
 
@@ -86,8 +90,6 @@ class SimulatedLink:
         self.frames = 0
 
     def send(self, t: float, commands) -> None:
-        from vehicles.protocol import CarCommand, ProtocolError
-
         cars = {}
         for radio_id, (throttle, steering) in zip(self.radio_ids, commands):
             command = CarCommand(max(-1.0, min(1.0, float(steering) / self.full_scale)), max(-1.0, min(1.0, float(throttle))))
@@ -158,10 +160,6 @@ class CaptureDecode:
 
 def decode_capture(records: list[CaptureRecord], protocol: str) -> CaptureDecode:
     """The frames in a capture's tx bytes (decoded as the receiver would) and the box's text lines."""
-    from vehicles import fhss
-    from vehicles.link_protocols import check_protocol
-    from vehicles.protocol import FrameDecoder
-
     check_protocol(protocol, "--protocol")
     frames: list[CapturedFrame] = []
     text: list[tuple[float, str]] = []

@@ -15,6 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import UserError
+from app.commands.race import add_race_arguments, make_setup
+from app.race_plots import plot_examples
+from fileio import atomic_write_text
+from race.simulation import run_race
 
 # Paper (Zhang & Tsiotras, RD3G), physical races RD3G vs MPC: win rate of RD3G per cell.
 PAPER_WIN_RATES = {("front", "fast"): 1.0, ("front", "slow"): 0.72, ("rear", "fast"): 0.96, ("rear", "slow"): 0.16}
@@ -30,8 +34,6 @@ class RaceFailed(RuntimeError):
 
 
 def register(sub) -> None:
-    from app.commands.race import add_race_arguments
-
     p = sub.add_parser("batch", help="RD3G vs MPC win rates in the paper's 2x2 grid (start x top speed)")
     p.add_argument("--races", type=int, default=200, help="races per cell (default 200)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1); not with --cluster")
@@ -53,8 +55,6 @@ def register(sub) -> None:
 def _one(job):
     """Worker: one race -> small picklable record (and the trace if asked for figures)."""
     args, cell, r, fast, slow, keep_trace = job
-    from app.commands.race import make_setup
-    from race.simulation import run_race
 
     start, speed = cell
     rd3g, opp = (fast, slow) if speed == "fast" else (slow, fast)
@@ -264,7 +264,6 @@ def run(args) -> int:
     slow = args.slow_speed if args.slow_speed is not None else 0.8 * fast
     if not 0 < slow < fast:
         raise UserError(f"--slow-speed must be between 0 and the fast speed {fast}, got {slow}")
-    from app.commands.race import make_setup
     make_setup(args, 0, "front", fast, slow)  # validate track/car files before starting workers
     keep = bool(args.figures)
     jobs = [(args, cell, r, fast, slow, keep) for r in range(args.races) for cell in CELLS]
@@ -274,10 +273,8 @@ def run(args) -> int:
           f"slow {slow} m/s (ratio {slow / fast:.2f}); win rate ours / paper")
     print(table(cells))
     if args.json:
-        from fileio import atomic_write_text
         atomic_write_text(args.json, json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n")
     if keep:
-        from app.race_plots import plot_examples
         for path in plot_examples(records, args, Path(args.figures)):
             print(f"figure: {path}")
     return 0

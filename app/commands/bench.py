@@ -6,6 +6,9 @@ import sys
 import time
 
 from app.cli import UserError
+from bench import merge_bench, problem_size, solver_bench
+from bench.families import FAMILIES
+from bench.report import machine_description, write_section
 
 
 def parse_range(text: str) -> list[int]:
@@ -69,9 +72,6 @@ def register(sub) -> None:
 
 
 def run_solver(args) -> int:
-    from bench import solver_bench
-    from bench.report import machine_description, write_section
-
     cars = parse_range(args.cars)
     options = [x.strip() for x in args.linear_solvers.split(",") if x.strip()]
     for o in options:
@@ -93,9 +93,6 @@ def run_solver(args) -> int:
 def run_merge(args) -> int:
     import json
     from pathlib import Path
-
-    from bench import merge_bench
-    from bench.report import machine_description, write_section
 
     cars = parse_range(args.cars)
     if args.family:
@@ -132,11 +129,10 @@ def run_merge(args) -> int:
 def run_fuzz(args) -> int:
     from pathlib import Path
 
-    try:
+    try:  # bench.fuzz needs hypothesis, an optional extra (.[test])
         from bench import fuzz
     except ImportError as exc:
         raise UserError(f"bench fuzz needs hypothesis (pip install -e '.[test]'): {exc}") from None
-    from bench.report import machine_description, write_section
 
     names = [*fuzz.TARGETS, "solver_api"]
     if args.target not in names:
@@ -165,9 +161,6 @@ def run_fuzz(args) -> int:
 def run_size(args) -> int:
     import os
 
-    from bench import problem_size
-    from bench.report import machine_description, write_section
-
     load = os.getloadavg()
     rows = problem_size.run()
     md = problem_size.markdown(rows, "python -m app bench size", machine_description(), load)
@@ -180,10 +173,6 @@ def run_size(args) -> int:
 def _run_families(args, cars: list[int]) -> int:
     import json
     from pathlib import Path
-
-    from bench import merge_bench
-    from bench.families import FAMILIES
-    from bench.report import machine_description, write_section
 
     names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
     for n in names:

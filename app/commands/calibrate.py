@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 
-from fileio import check_output_path
+from app.cli import UserError
+from fileio import InputFileError, check_output_path, read_bytes
+from tracking.calibration import calibrate_image, load_fixed_markers, load_intrinsics, save_calibration
+from tracking.camera import CameraError, OpenCVCamera
 
 
 def register(sub):
@@ -25,9 +28,6 @@ def register(sub):
 
 
 def _grab(camera_arg: str, warmup: int):
-    from app.cli import UserError
-    from tracking.camera import CameraError, OpenCVCamera
-
     source = int(camera_arg) if camera_arg.isdigit() else camera_arg
     try:
         cam = OpenCVCamera(source)
@@ -44,16 +44,12 @@ def _grab(camera_arg: str, warmup: int):
 def run(args) -> int:
     import cv2
 
-    from app.cli import UserError
-    from tracking.calibration import calibrate_image, load_fixed_markers, load_intrinsics, save_calibration
-
     check_output_path(args.out)  # before a camera is opened
     marker_set = load_fixed_markers(args.fixed_markers)
     intrinsics = load_intrinsics(args.intrinsics) if args.intrinsics else None
     if args.image:
         import numpy as np
 
-        from fileio import InputFileError, read_bytes
         try:  # read through fileio: cv2.imread blocks on a FIFO and reads devices
             data = read_bytes(args.image, "image", max_bytes=256 * 2**20)
         except InputFileError as exc:

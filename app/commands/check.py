@@ -10,6 +10,13 @@ import sys
 import time
 
 from app.cli import UserError
+from app.commands.race import add_race_arguments, make_setup
+from app.realtime.check import CheckTiming, PreRaceCheck
+from race.hil import FIXED_MARKERS
+from app.realtime.run import _check_mode, _open_hardware, _open_hil, add_link_arguments, open_capture, plan_link
+from race.config import LoopConfig
+from tracking.calibration import CalibrationError, load_fixed_markers
+from vehicles.serial_link import SerialCarLink
 
 SETUP_FAULTS = ("swapped_radio_ids", "reversed_throttle:CAR", "missing_marker:CAR", "covered_fixed_marker:ID")
 _SETUP_FAULT = re.compile(r"^(swapped_radio_ids|reversed_throttle:(rd3g|opponent)|missing_marker:(rd3g|opponent)"
@@ -17,8 +24,6 @@ _SETUP_FAULT = re.compile(r"^(swapped_radio_ids|reversed_throttle:(rd3g|opponent
 
 
 def register(sub) -> None:
-    from app.commands.race import add_race_arguments
-
     p = sub.add_parser("check", help="pre-race hardware check: camera, markers, calibration, serial port, "
                                      "each car's radio and the box failsafe (exit 1 on any failure)")
     p.add_argument("--hil", action="store_true", help="check the emulated hardware (HIL world)")
@@ -37,7 +42,6 @@ def register(sub) -> None:
     p.add_argument("--throttle", type=float, default=0.15, help="throttle of the short pulse (default 0.15)")
     p.add_argument("--hil-fault", action="append", default=[], metavar="|".join(SETUP_FAULTS),
                    help="HIL: a faulty set-up for the check to catch (repeatable)")
-    from app.realtime.run import add_link_arguments
     add_link_arguments(p)
     add_race_arguments(p)
     p.set_defaults(func=run)
@@ -79,14 +83,6 @@ def _world_options(args, link_plan, cars, fixed_ids) -> dict:
 
 
 def run(args) -> int:
-    from app.commands.race import make_setup
-    from app.realtime.check import CheckTiming, PreRaceCheck
-    from race.config import LoopConfig
-    from app.realtime.hil import FIXED_MARKERS
-    from app.realtime.run import _check_mode, _open_hardware, _open_hil, open_capture, plan_link
-    from tracking.calibration import CalibrationError, load_fixed_markers
-    from vehicles.serial_link import SerialCarLink
-
     args.fault = []
     mode = _check_mode(args)
     if args.hil_fault and mode != "hil":

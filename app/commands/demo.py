@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from bench.merging import lane_counts, merging_problem
+from solver_cpp import solve
+
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="solve a 3-car merging game and print the equilibrium")
@@ -12,9 +15,6 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from bench.merging import lane_counts, merging_problem
-    from solver_cpp import solve
-
     problem = merging_problem(args.cars, args.seed)
     result = solve(problem)
     n_main, _ = lane_counts(args.cars)

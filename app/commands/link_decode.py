@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 from app.cli import UserError
+from vehicles.link_capture import CaptureError, decode_capture, read_capture
+from vehicles.link_protocols import HARDWARE_DEFAULT, PROTOCOLS, UnknownProtocolError, check_protocol
 
 
 def register(sub) -> None:
-    from vehicles.link_protocols import HARDWARE_DEFAULT, PROTOCOLS
-
     p = sub.add_parser("link-decode", help="print the frames of a serial link capture (race --link-capture) "
                                            "and count the bad ones")
     p.add_argument("capture", metavar="FILE", help="capture file written by race --link-capture")
@@ -23,9 +23,6 @@ def _values(frame, protocol: str) -> str:
 
 
 def run(args) -> int:
-    from vehicles.link_capture import CaptureError, decode_capture, read_capture
-    from vehicles.link_protocols import UnknownProtocolError, check_protocol
-
     try:
         check_protocol(args.protocol, "--protocol")
         report = decode_capture(read_capture(args.capture), args.protocol)

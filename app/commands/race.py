@@ -6,10 +6,12 @@ import json
 from pathlib import Path
 
 from app.cli import UserError
-from app.realtime.run import add_realtime_arguments, run_realtime, wants_realtime
+from app.realtime.run import add_realtime_arguments, open_capture, plan_link, run_realtime, wants_realtime
 from fileio import atomic_write_text, check_output_path
 from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
+from sim import Simulator
+from vehicles.link_capture import SimulatedLink
 
 DEFAULT_OUT = "runs/race.rrd"
 
@@ -84,9 +86,6 @@ def _simulated_link(args, setup):
     the simulated time, the SimulatedLink, the capture), or Nones without the flag."""
     if not args.link_capture:
         return None, None, None
-    from app.realtime.run import open_capture, plan_link
-    from sim import Simulator
-    from vehicles.link_capture import SimulatedLink
 
     plan = plan_link(args, "sim", setup, link_hz=1.0 / setup.control_period_s)
     capture = open_capture(args)
@@ -141,8 +140,10 @@ def run(args) -> int:
         print(f"  {name:9s} lap times: {', '.join(f'{t:.3f} s' for t in laps) or '-'}")
     faults = ", ".join(f"{c.at_fault} at fault at {c.time_s:.2f} s" for c in o.collisions)
     print(f"minimum gap between footprints: {s['min_gap_m']:.3f} m; collisions: {s['collisions']}" + (f" ({faults})" if faults else ""))
-    print(f"RD3G planner (wall time per control step): p50 {s['solve_ms_p50']:.1f} ms, p99 {s['solve_ms_p99']:.1f} ms, "
-          f"max {o.solve_ms.max():.1f} ms; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
+    # a race interrupted before its first control step has no planner times
+    times = (f"p50 {s['solve_ms_p50']:.1f} ms, p99 {s['solve_ms_p99']:.1f} ms, max {o.solve_ms.max():.1f} ms"
+             if o.solve_ms.size else "no control step yet")
+    print(f"RD3G planner (wall time per control step): {times}; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
           f"first (cold) plan before the start {s['prestart_ms']:.0f} ms")
     if o.planner_errors:
         first = o.planner_errors[0]

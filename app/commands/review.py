@@ -11,6 +11,8 @@ from pathlib import Path
 
 from app.cli import UserError
 from fileio import atomic_write_text, check_output_path
+from race.recording import RecordingError, load_recording
+from race.review import format_summary, save_plots, summarize
 
 
 def register(sub) -> None:
@@ -36,9 +38,6 @@ def viewer_command(path: Path) -> list[str]:
 
 
 def run(args) -> int:
-    from race.review import format_summary, save_plots, summarize
-    from race.recording import RecordingError, load_recording
-
     path = Path(args.recording)
     try:
         data = load_recording(path)

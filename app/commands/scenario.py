@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import json
 
+from bench.merging import merging_problem
+from fileio import atomic_write_text
+from solver_cpp.problem_file import problem_to_dict
+
 
 def register(sub) -> None:
     p = sub.add_parser("scenario", help="write a standard scenario as a problem file")
@@ -15,11 +19,6 @@ def register(sub) -> None:
 
 
 def run_merge(args) -> int:
-    from bench.merging import merging_problem
-    from solver_cpp.problem_file import problem_to_dict
-
-    from fileio import atomic_write_text
-
     problem = merging_problem(args.cars, args.seed)
     atomic_write_text(args.out, json.dumps(problem_to_dict(problem, solver={"tol": 5e-4, "max_iter": 100}), indent=1))
     print(f"wrote merging instance (cars {args.cars}, seed {args.seed}) to {args.out}")

@@ -5,6 +5,10 @@ import json
 import sys
 
 from app.cli import UserError
+from fileio import atomic_write_text, check_output_path
+from solver_cpp import Solver
+from solver_cpp.limits import check_size, estimate_size
+from solver_cpp.problem_file import load_problem, result_to_dict
 
 DEFAULT_TIME_LIMIT_S = 60.0
 
@@ -23,11 +27,6 @@ def register(sub) -> None:
 
 def run(args) -> int:
     import math
-
-    from fileio import atomic_write_text, check_output_path
-    from solver_cpp import Solver
-    from solver_cpp.limits import check_size, estimate_size
-    from solver_cpp.problem_file import load_problem, result_to_dict
 
     if args.time_limit is not None and not (math.isfinite(args.time_limit) and args.time_limit >= 0):
         raise UserError(f"--time-limit must be a number of seconds >= 0, got {args.time_limit}")

@@ -10,6 +10,13 @@ from pathlib import Path
 
 from app.cli import UserError
 from fileio import atomic_write_text, check_output_path
+from planning import PlannerConfig
+from race.setup import RaceSpec
+from sim import SimEffectsError
+from sysid.generate import (CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, ExcitationSettings, generate_log,
+                            parse_effects, sim_effects)
+from sysid.log import read_log, write_log_csv
+from vehicles.params import CarParamsError, load_car_params, resolve_car_path, save_car_params
 
 
 def register(sub) -> None:
@@ -72,11 +79,10 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    # here, not at the top: these import scipy.signal (sysid.data), about 0.3 s on every CLI start
     from sysid.data import build_trajectory
     from sysid.diagnose import SysidSettings, identify
-    from sysid.log import read_log
     from sysid.report import make_plots, markdown_report, write_json
-    from vehicles.params import load_car_params, resolve_car_path, save_car_params
 
     if not args.horizon > 0:
         raise UserError(f"--horizon must be > 0, got {args.horizon}")
@@ -133,11 +139,6 @@ def run(args) -> int:
 
 
 def run_generate(args) -> int:
-    from sysid.generate import (CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, ExcitationSettings, generate_log,
-                                parse_effects)
-    from sysid.log import write_log_csv
-    from vehicles.params import load_car_params
-
     if not args.minutes > 0:
         raise UserError(f"--minutes must be > 0, got {args.minutes}")
     if not 1.0 <= args.rate <= 1000.0:
@@ -160,9 +161,9 @@ def run_generate(args) -> int:
 def run_bench(args) -> int:
     import json
 
+    # here, not at the top: these import scipy.signal (sysid.data), about 0.3 s on every CLI start
     from sysid.benchmark import CASES, markdown_table, run_benchmark
     from sysid.diagnose import SysidSettings
-    from vehicles.params import load_car_params
 
     try:
         picked = [int(v) for v in args.cases.split(",") if v.strip()] or list(range(1, len(CASES) + 1))
@@ -205,11 +206,8 @@ def run_closed_loop_command(args) -> int:
 
     import numpy as np
 
-    from sim import SimEffectsError
-    from race.setup import RaceSpec
+    # here, not at the top: these import scipy.signal (sysid.data), about 0.3 s on every CLI start
     from sysid.closed_loop import PLANNER_CAR, format_table, plot, run_closed_loop, summarize
-    from sysid.generate import parse_effects, sim_effects
-    from vehicles.params import CarParamsError, load_car_params
 
     try:
         seeds = [int(v) for v in args.seeds.split(",") if v.strip()]
@@ -248,7 +246,6 @@ def run_closed_loop_command(args) -> int:
     races = run_closed_loop(cars["--car-params"], cars["--corrected"], effects, seeds, race,
                             Path(args.recordings) if args.recordings else None, progress)
     summary = summarize(races)
-    from planning import PlannerConfig
 
     cfg = PlannerConfig()
     print(format_table(summary, cfg.horizon * cfg.plan_dt_s, cfg.plan_dt_s))

@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from app.commands import race
+from bench.report import machine_description, write_section
+
 
 def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = "",
                link_protocol: str | None = None, link_capture: str | None = None):
-    from app.commands import race
-
     p = argparse.ArgumentParser()
     sub = p.add_subparsers()
     race.register(sub)
@@ -36,8 +37,6 @@ def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effe
 
 
 def main(argv=None) -> int:
-    from bench.report import machine_description, write_section
-
     parser = argparse.ArgumentParser(prog="python -m app.realtime.bench")
     parser.add_argument("--seeds", type=int, default=6)
     parser.add_argument("--first-seed", type=int, default=0)

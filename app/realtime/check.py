@@ -12,6 +12,7 @@ import numpy as np
 
 from tracking.checks import STILL_M, displacement, fixed_marker_fit, judge_throttle_pulse
 from vehicles.protocol import NEUTRAL, CarCommand
+from vehicles.serial_link import SerialLinkError
 
 # Fixed-marker fit limits: a calibration that still fits reprojects within a couple of pixels
 # (HIL: ~0.2 px) and maps corners back within a few mm; a bumped camera is off by far more.
@@ -191,8 +192,6 @@ class PreRaceCheck:
         return visible
 
     def _serial(self) -> bool:
-        from vehicles.serial_link import SerialLinkError
-
         try:
             self.link.start()
         except SerialLinkError as exc:

@@ -14,7 +14,7 @@ import numpy as np
 
 from app.cli import UserError
 from app.realtime.hardware import CameraFeed
-from app.realtime.hil import HilWorld, WorldSpec
+from race.hil import HilWorld, WorldSpec
 from race.config import LoopConfig, LoopConfigError, parse_fault
 from race.loop import CarBinding, LoopError, RaceLoop, setup_document
 from race.planning import RacePlanners

@@ -36,15 +36,20 @@ from pathlib import Path
 import numpy as np
 
 from race.commands import physical_command
-from race.config import FaultSpec
+from race.config import FaultSpec, lower_realtime_priority
 from race.referee import fault_of
 from race.setup import CAR_NAMES
 from race.world import WorldPacket
+from sim import Simulator
+from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
 from sim.collision import footprint_gap
+from tracking.calibration import load_fixed_markers
+from tracking.camera import Frame
 from vehicles import fhss
-from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN
+from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN, CarCommand
+from vehicles.virtual_box import CommandHistory, VirtualCarBox
 
-FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[2] / "tracking" / "data" / "oval_fixed_markers.json"}
+FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json"}
 
 
 @dataclass(frozen=True)
@@ -172,9 +177,6 @@ def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float,
     ("vanish",), ("stop",). Times are time.monotonic() (shared by the processes of one machine)."""
     import signal
 
-    from race.config import lower_realtime_priority
-    from vehicles.virtual_box import VirtualCarBox
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us
     lower_realtime_priority(3)  # --rt-priority: hardware, above the world (5 below the loop)
     send_lock = threading.Lock()  # the box's reader thread and this thread both send
@@ -228,8 +230,6 @@ class BoxMirror:
     and counters, from the messages of :func:`box_main`. ``pump()`` reads what has arrived."""
 
     def __init__(self, conn, failsafe_timeout_s: float) -> None:
-        from vehicles.virtual_box import CommandHistory
-
         self.conn = conn
         self.history = CommandHistory(failsafe_timeout_s)
         self.line_errors = 0
@@ -239,8 +239,6 @@ class BoxMirror:
         self.summary: dict | None = None
 
     def pump(self, timeout: float = 0.0) -> None:
-        from vehicles.protocol import CarCommand
-
         while self.conn.poll(timeout):
             timeout = 0.0
             msg = self.conn.recv()
@@ -281,9 +279,6 @@ class BoxMirror:
 def make_camera(spec: WorldSpec):
     """The synthetic overhead camera of the track's arena (and its fixed markers, if the track has a
     fixed-marker file)."""
-    from tracking.calibration import load_fixed_markers
-    from sim.camera import CarAppearance, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
-
     track = spec.track
     arena = track.arena
     bounds = (arena.x_min, arena.y_min, arena.x_max, arena.y_max) if arena else (0.0, 0.0, 5.0, 3.0)
@@ -305,7 +300,6 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
     from multiprocessing import shared_memory
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us; Ctrl-C goes to the parent
-    from race.config import lower_realtime_priority
 
     lower_realtime_priority(5)  # --rt-priority: the world (camera, cars) just below the loop
     import sys
@@ -326,8 +320,6 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
 
 class _World:
     def __init__(self, spec: WorldSpec, conn, shm, box_conn) -> None:
-        from sim import Simulator
-        from sim.camera import CarPose
         self.spec, self.conn, self.shm = spec, conn, shm
         self.CarPose, self.fault_of, self.footprint_gap = CarPose, fault_of, footprint_gap
         w, h = spec.image_size
@@ -617,8 +609,6 @@ class HilWorld:
         self.conn.send(("go", t_go))
 
     def poll(self, timeout: float = 0.0) -> WorldPacket:
-        from tracking.camera import Frame
-
         packet = WorldPacket()
         newest = None
         while self.conn.poll(timeout):
