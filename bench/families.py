@@ -45,12 +45,10 @@ class MergeFamily:
 
 
 @dataclass(frozen=True)
-class CrossingFamily:
-    """Two perpendicular one-lane streams through an intersection at the origin: cars 0, 2, 4, ... drive east along
-    y = 0, cars 1, 3, ... north along x = 0, queued at `spacing` behind the first car of their stream, which starts
-    `approach` before the origin. Each tracks its lane's centre line (weight lane_weight), heading (heading_weight)
-    and v_ref. Draws: per car, in agent order, a position jitter U[0,1) (m, along its lane) and a speed v_ref - 0.5
-    + U[0,1)."""
+class StreamFamily:
+    """Base of the two-stream games (crossing, head-on): cars 0, 2, 4, ... form one stream and 1, 3, ... the other,
+    each stream queued at `spacing`; every car tracks its lane (lane_weight), heading (heading_weight) and v_ref
+    (speed_weight). A subclass places car i in `_car`, which makes that car's random draws in its documented order."""
 
     description: str
     dt: float = 0.2
@@ -58,7 +56,6 @@ class CrossingFamily:
     lf: float = 1.0
     lr: float = 1.0
     v_ref: float = 2.0
-    approach: float = 5.0
     spacing: float = 4.5
     lane_weight: float = 0.5
     heading_weight: float = 1.0
@@ -67,69 +64,64 @@ class CrossingFamily:
     min_distance: float = 1.6
     form: str = "distance"
 
+    def _car(self, i: int, queue: int, rng: np.random.RandomState) -> tuple[tuple, tuple, tuple]:
+        """Initial state, x_ref and Q_ref of car i (the queue-th car of its stream)."""
+        raise NotImplementedError
+
     def problem(self, num_cars: int, seed: int) -> GameProblem:
         if num_cars < 2:
             raise ValueError(f"cars must be at least 2, got {num_cars}")
         rng = np.random.RandomState(seed)
         agents = []
         for i in range(num_cars):
-            queue = i // 2
-            s = -self.approach - self.spacing * queue + rng.rand()
-            v = self.v_ref - 0.5 + rng.rand()
-            if i % 2 == 0:  # east-bound
-                x0 = (s, 0.0, v, 0.0)
-                cost = QuadraticCost(x_ref=(0.0, 0.0, self.v_ref, 0.0), R=self.R,
-                                     Q_ref=(0.0, self.lane_weight, self.speed_weight, self.heading_weight))
-            else:  # north-bound
-                x0 = (0.0, s, v, np.pi / 2)
-                cost = QuadraticCost(x_ref=(0.0, 0.0, self.v_ref, np.pi / 2), R=self.R,
-                                     Q_ref=(self.lane_weight, 0.0, self.speed_weight, self.heading_weight))
-            agents.append(Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x0, cost))
+            x0, x_ref, Q_ref = self._car(i, i // 2, rng)
+            agents.append(Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x0,
+                                QuadraticCost(x_ref=x_ref, R=self.R, Q_ref=Q_ref)))
         return GameProblem(dt=self.dt, horizon=self.horizon, agents=agents,
                            collision=Collision(min_distance=self.min_distance, form=self.form))
 
 
 @dataclass(frozen=True)
-class HeadOnFamily:
+class CrossingFamily(StreamFamily):
+    """Two perpendicular one-lane streams through an intersection at the origin: cars 0, 2, 4, ... drive east along
+    y = 0, cars 1, 3, ... north along x = 0, queued at `spacing` behind the first car of their stream, which starts
+    `approach` before the origin. Each tracks its lane's centre line (weight lane_weight), heading (heading_weight)
+    and v_ref. Draws: per car, in agent order, a position jitter U[0,1) (m, along its lane) and a speed v_ref - 0.5
+    + U[0,1)."""
+
+    approach: float = 5.0
+
+    def _car(self, i, queue, rng):
+        s = -self.approach - self.spacing * queue + rng.rand()
+        v = self.v_ref - 0.5 + rng.rand()
+        if i % 2 == 0:  # east-bound
+            return ((s, 0.0, v, 0.0), (0.0, 0.0, self.v_ref, 0.0),
+                    (0.0, self.lane_weight, self.speed_weight, self.heading_weight))
+        return ((0.0, s, v, np.pi / 2), (0.0, 0.0, self.v_ref, np.pi / 2),  # north-bound
+                (self.lane_weight, 0.0, self.speed_weight, self.heading_weight))
+
+
+@dataclass(frozen=True)
+class HeadOnFamily(StreamFamily):
     """A road along x whose centre line y = 0 every car tracks: cars 0, 2, 4, ... drive east from x = -gap/2,
     cars 1, 3, ... west (heading pi) from x = +gap/2, each stream queued at `spacing`; they must swerve to pass.
     Draws: per car, in agent order, a position jitter U[0,1) (m, along the road), a lateral offset
     lateral (2 U[0,1) - 1) (m) and a speed v_ref - 0.5 + U[0,1)."""
 
-    description: str
-    dt: float = 0.2
     horizon: int = 30
-    lf: float = 1.0
-    lr: float = 1.0
-    v_ref: float = 2.0
-    gap: float = 20.0
     spacing: float = 5.0
-    lateral: float = 0.3
     lane_weight: float = 0.2
-    heading_weight: float = 1.0
-    speed_weight: float = 0.05
-    R: tuple = (0.3, 0.3)
-    min_distance: float = 1.6
-    form: str = "distance"
+    gap: float = 20.0
+    lateral: float = 0.3
 
-    def problem(self, num_cars: int, seed: int) -> GameProblem:
-        if num_cars < 2:
-            raise ValueError(f"cars must be at least 2, got {num_cars}")
-        rng = np.random.RandomState(seed)
-        agents = []
-        for i in range(num_cars):
-            queue = i // 2
-            s = self.gap / 2 + self.spacing * queue + rng.rand()
-            y = self.lateral * (2 * rng.rand() - 1)
-            v = self.v_ref - 0.5 + rng.rand()
-            east = i % 2 == 0
-            theta = 0.0 if east else np.pi
-            x0 = (-s if east else s, y, v, theta)
-            cost = QuadraticCost(x_ref=(0.0, 0.0, self.v_ref, theta), R=self.R,
-                                 Q_ref=(0.0, self.lane_weight, self.speed_weight, self.heading_weight))
-            agents.append(Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x0, cost))
-        return GameProblem(dt=self.dt, horizon=self.horizon, agents=agents,
-                           collision=Collision(min_distance=self.min_distance, form=self.form))
+    def _car(self, i, queue, rng):
+        s = self.gap / 2 + self.spacing * queue + rng.rand()
+        y = self.lateral * (2 * rng.rand() - 1)
+        v = self.v_ref - 0.5 + rng.rand()
+        east = i % 2 == 0
+        theta = 0.0 if east else np.pi
+        return ((-s if east else s, y, v, theta), (0.0, 0.0, self.v_ref, theta),
+                (0.0, self.lane_weight, self.speed_weight, self.heading_weight))
 
 
 FAMILIES = {

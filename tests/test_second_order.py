@@ -154,3 +154,31 @@ def test_reduced_hessian_matches_finite_differences(case):
         n_active += na
         assert result.second_order[a] == pytest.approx(lam_min, rel=1e-4, abs=1e-5), a
     assert n_active > 0  # the cases exercise the null-space projection
+
+
+def test_restart_on_saddle_finds_a_local_equilibrium():
+    """head-on 2 cars seed 2: the first attempt converges to a saddle (the detection), the restarts kept going
+    by restart_on_saddle reach a point that the second-order test accepts and where, independently, SLSQP on
+    each player's own problem (others fixed) finds no profitable deviation, while at the saddle it does."""
+    from bench.families import family_problem
+
+    problem = family_problem("head-on", 2, 2)
+    kept = solve(problem, restart_on_saddle=False)
+    assert kept.status == "saddle"
+    assert max(best_response_gap(problem, kept.x, kept.u, i) for i in range(2)) > 1e-3
+    r = solve(problem)  # restart_on_saddle is the default
+    assert r.status == "converged" and r.attempts > kept.attempts
+    assert np.all(r.second_order > 0)
+    assert np.all(stationarity_residual(problem, r.x, r.u, relative=True) <= 1e-3)
+    assert max(best_response_gap(problem, r.x, r.u, i) for i in range(2)) <= 1e-4
+
+
+def test_restart_on_saddle_returns_the_saddle_when_no_attempt_does_better():
+    """The disc game (R 1, F 2) from zero controls: every attempt ends at the saddle in front of the discs, so
+    after the whole restart schedule the kept saddle is returned, unchanged, with the work of all attempts."""
+    problem = _disc_game(1.0, 2.0)
+    off = solve(problem, tol=1e-9, restart_on_saddle=False)
+    on = solve(problem, tol=1e-9, restarts=3)
+    assert on.status == "saddle" and on.attempts == 4 and on.iterations > off.iterations
+    np.testing.assert_allclose(on.x[:, 1], [[-1.0, 0.0], [-1.0, 100.0]], atol=1e-6)
+    np.testing.assert_allclose(on.second_order, [6 * 1.0 - 4 * 2.0] * 2, rtol=1e-5)

@@ -483,6 +483,7 @@ void Solver::build_J() {
 
 bool Solver::solve_linear(Vec& dy, Info& info) {
   J_built_ = false;
+  lm_ready_ = false;
   const int n = n_vars_;
   if (settings_.linear_solver == LinearSolver::Riccati) {
     if (riccati_.solve(trip_, n, rhs_, dy)) {
@@ -702,15 +703,28 @@ double Solver::line_search(double merit0) {
 }
 
 // Levenberg-Marquardt direction on ||r||^2: (J'J + nu I) dy = -J' r, always a descent direction.
+// The tries of one iteration (several nu) reuse J'J, J'r and the symbolic analysis: they were most of the
+// line-search time on dense games (up to 4 full LDLTs per iteration).
 bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
-  build_J();
-  SpMat JtJ = J_.transpose() * J_;
-  for (int d = 0; d < n_vars_; ++d) JtJ.coeffRef(d, d) += nu;
-  Eigen::SimplicialLDLT<SpMat> ldlt(JtJ);
-  if (ldlt.info() != Eigen::Success) return false;
-  dy.head(n_vars_) = ldlt.solve(-(J_.transpose() * rhs_.head(n_vars_)));
+  if (!lm_ready_) {
+    build_J();
+    lm_JtJ_ = J_.transpose() * J_;
+    SpMat eye(n_vars_, n_vars_);
+    eye.setIdentity();
+    lm_JtJ_ = lm_JtJ_ + 0.0 * eye;  // every diagonal entry stored, so J'J + nu I keeps the analysed pattern
+    lm_JtJ_.makeCompressed();
+    lm_ldlt_.analyzePattern(lm_JtJ_);
+    if (lm_ldlt_.info() != Eigen::Success) return false;
+    lm_Jtr_ = J_.transpose() * rhs_.head(n_vars_);
+    lm_ready_ = true;
+  }
+  SpMat A = lm_JtJ_;
+  for (int d = 0; d < n_vars_; ++d) A.coeffRef(d, d) += nu;
+  lm_ldlt_.factorize(A);
+  if (lm_ldlt_.info() != Eigen::Success) return false;
+  dy.head(n_vars_) = lm_ldlt_.solve(-lm_Jtr_);
   if (settings_.verbose) std::printf("   Levenberg-Marquardt step, nu %.2e\n", nu);
-  return ldlt.info() == Eigen::Success && dy.head(n_vars_).allFinite();
+  return lm_ldlt_.info() == Eigen::Success && dy.head(n_vars_).allFinite();
 }
 
 std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::vector<Mat>& u,
@@ -777,13 +791,32 @@ Result Solver::solve(const WarmStart* warm) {
   last_iteration_seconds_ = 0;
   best_merit_ = kInf;
   int total_iter = 0;
+  Result saddle;  // the first converged attempt the second-order test rejected (restart_on_saddle)
+  bool have_saddle = false;
   for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
     info.attempts = attempt + 1;
     start_attempt(attempt, warm);
-    if (run_attempt(info, total_iter) == AttemptEnd::Finished) break;
+    if (run_attempt(info, total_iter) == AttemptEnd::Finished) {
+      // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.
+      if (!(settings_.restart_on_saddle && info.status == Status::Converged && settings_.second_order_gap >= 0 &&
+            attempt < settings_.restarts && total_iter < settings_.max_iter && !past_deadline()))
+        break;
+      Result cand = res;
+      write_result(cand, cand.info);
+      if (cand.info.status != Status::Saddle) return cand;
+      if (settings_.verbose) std::printf("converged to a saddle, restarting\n");
+      if (!have_saddle) { saddle = std::move(cand); have_saddle = true; }
+    }
     ++total_iter;
   }
   write_result(res, info);
+  if (have_saddle && info.status != Status::Converged) {
+    // No later attempt found an equilibrium: the saddle (feasible, first-order stationary) beats a failure.
+    saddle.info.iterations = info.iterations;
+    saddle.info.attempts = info.attempts;
+    saddle.info.timings.total = seconds_since(t_start_);
+    return saddle;
+  }
   return res;
 }
 

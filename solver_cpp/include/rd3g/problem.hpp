@@ -143,6 +143,9 @@ struct Settings {
   /// A converged point that fails is reported as Status::Saddle. second_order_gap < 0 turns the test off.
   double second_order_gap = 1e-2;
   double second_order_tol = 1e-6;
+  /// A converged attempt that fails the second-order test is kept aside and the restart schedule (restarts)
+  /// goes on, looking for a point that passes; if none is found the kept saddle is returned (status saddle).
+  bool restart_on_saddle = true;
   bool verbose = false;
 };
 

@@ -178,6 +178,12 @@ class Solver {
   Eigen::SparseLU<SpMat, Eigen::COLAMDOrdering<int>> lu_;
   bool lu_analyzed_ = false;
   bool J_built_ = false;  // J_ holds this iteration's matrix (the Riccati path does not need it)
+  // Levenberg-Marquardt tries of one iteration share J'J (diagonal stored explicitly), its symbolic LDLT and J'r;
+  // only the numeric factorisation depends on nu. Invalidated with J_built_.
+  SpMat lm_JtJ_;
+  Vec lm_Jtr_;
+  Eigen::SimplicialLDLT<SpMat> lm_ldlt_;
+  bool lm_ready_ = false;
   StageRiccati riccati_;
   void build_J();
   /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
