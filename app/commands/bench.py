@@ -91,14 +91,9 @@ def run_solver(args) -> int:
     return 0
 
 
-def run_merge(args) -> int:
-    import json
-    from pathlib import Path
-
-    cars = parse_range(args.cars)
-    if args.family:
-        return _run_families(args, cars)
-    solvers = [x.strip() for x in (args.solvers or "rd3g,ilqgames,algames").split(",") if x.strip()]
+def _merge_options(args, default_solvers: str) -> list[str]:
+    """The solvers of a `bench merge` run, with its counts and --json path checked before the long run."""
+    solvers = [x.strip() for x in (args.solvers or default_solvers).split(",") if x.strip()]
     for s in solvers:
         if s not in merge_bench.SOLVERS:
             raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
@@ -106,6 +101,17 @@ def run_merge(args) -> int:
         raise UserError("--instances and --workers must be at least 1")
     if args.json:
         check_output_path(args.json)  # fail before the long run, not after it
+    return solvers
+
+
+def run_merge(args) -> int:
+    import json
+    from pathlib import Path
+
+    cars = parse_range(args.cars)
+    if args.family:
+        return _run_families(args, cars)
+    solvers = _merge_options(args, default_solvers="rd3g,ilqgames,algames")
     t0 = time.perf_counter()
     records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit)
     summary = merge_bench.summarize(records)
@@ -181,14 +187,7 @@ def _run_families(args, cars: list[int]) -> int:
     for n in names:
         if n not in FAMILIES:
             raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
-    solvers = [x.strip() for x in (args.solvers or "rd3g").split(",") if x.strip()]
-    for s in solvers:
-        if s not in merge_bench.SOLVERS:
-            raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
-    if args.instances < 1 or args.workers < 1:
-        raise UserError("--instances and --workers must be at least 1")
-    if args.json:
-        check_output_path(args.json)  # fail before the long run, not after it
+    solvers = _merge_options(args, default_solvers="rd3g")
     import os
 
     load0 = os.getloadavg()[0]
