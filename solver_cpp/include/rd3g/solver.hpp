@@ -188,6 +188,7 @@ class Solver {
   void build_J();
   /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
   bool check_second_order(Info& info);
+  bool second_order_wanted(const Info& info) const;  // whether write_result runs check_second_order
   std::shared_ptr<SecondOrderCheck> second_order_;
 };
 
