@@ -31,6 +31,11 @@ CALIBRATION_FORMAT_VERSION = 1
 
 
 MAX_FILE_BYTES = 4 * 2**20
+# Fixed-marker coordinates and sizes (m) and distortion coefficients beyond these are typos, not arenas:
+# a 2**64 m marker put the camera "below the track", a 1e308 coefficient made OpenCV's pose solver assert.
+MAX_ARENA_M = 1000.0
+MAX_MARKER_M = 10.0
+MAX_DISTORTION = 1e4
 
 
 class CalibrationError(fileio.InputFileError):
@@ -85,11 +90,13 @@ def aruco_dictionary_id(name: str, field_name: str = "dictionary") -> int:
     return value
 
 
-def _number(value, where: str, positive: bool = False) -> float:
+def _number(value, where: str, positive: bool = False, bound: float = 1e300) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or abs(value) > 1e300 or not math.isfinite(value):
         raise CalibrationError(f"{where}: must be a finite number, got {value!r}")
     if positive and value <= 0:
         raise CalibrationError(f"{where}: must be positive, got {value!r}")
+    if abs(value) > bound:
+        raise CalibrationError(f"{where}: must be within +-{bound:g}, got {value!r}")
     return float(value)
 
 
@@ -124,11 +131,11 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
         heading = entry.get("heading_deg")
         markers[marker_id] = FixedMarker(
             marker_id=marker_id,
-            x=_number(entry["x"], f"{where}.x"),
-            y=_number(entry["y"], f"{where}.y"),
-            size=_number(entry["size"], f"{where}.size", positive=True),
-            heading_rad=None if heading is None else math.radians(_number(heading, f"{where}.heading_deg")),
-            z=_number(entry.get("z", 0.0), f"{where}.z"),
+            x=_number(entry["x"], f"{where}.x", bound=MAX_ARENA_M),
+            y=_number(entry["y"], f"{where}.y", bound=MAX_ARENA_M),
+            size=_number(entry["size"], f"{where}.size", positive=True, bound=MAX_MARKER_M),
+            heading_rad=None if heading is None else math.radians(_number(heading, f"{where}.heading_deg", bound=1e6)),
+            z=_number(entry.get("z", 0.0), f"{where}.z", bound=MAX_ARENA_M),
         )
     return FixedMarkerSet(dictionary=dictionary, markers=markers)
 
@@ -180,6 +187,8 @@ def _validate_intrinsics(k: np.ndarray, dist: np.ndarray, size, source: str) -> 
     dist = dist.ravel()
     if dist.size not in (0, 4, 5, 8, 12, 14):
         raise CalibrationError(f"{source}: dist_coeffs: OpenCV needs 4, 5, 8, 12 or 14 values, got {dist.size}")
+    if np.any(np.abs(dist) > MAX_DISTORTION):  # larger ones make OpenCV's pose solvers assert (cv2.error)
+        raise CalibrationError(f"{source}: dist_coeffs: each must be within +-{MAX_DISTORTION:g}, got {dist.tolist()}")
     width, height = size
     for name, value in (("image_width", width), ("image_height", height)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 2**31 or int(value) != value:
@@ -488,7 +497,7 @@ def load_calibration(path) -> CameraCalibration:
         raise CalibrationError(f"{path}: top level must be a JSON object")
     _check_keys(data, _calibration_keys(), str(path))
     version = data.get("format_version")
-    if version != CALIBRATION_FORMAT_VERSION:
+    if isinstance(version, bool) or version != CALIBRATION_FORMAT_VERSION:  # (True == 1 in Python)
         raise CalibrationError(f"{path}: format_version: expected {CALIBRATION_FORMAT_VERSION}, got {version!r}")
     for name in ("camera_matrix", "dist_coeffs", "rvec", "tvec", "image_width", "image_height"):
         if name not in data:

@@ -20,6 +20,7 @@ from fileio import unknown_key_message
 
 VEHICLES_DIR = Path(__file__).resolve().parent
 GRAVITY_MPS2 = 9.81
+MAX_MAGNITUDE = 1e6  # every number in a car file (docs/vehicles.md)
 
 
 class CarParamsError(fileio.InputFileError):
@@ -289,8 +290,9 @@ def _validate_value(source: str, key: str, f: dataclasses.Field, value: Any) -> 
         raise CarParamsError(f"{source}: {key}: must be {kind}, got {value!r}")
     if is_int and not isinstance(value, int):
         raise CarParamsError(f"{source}: {key}: must be an integer, got {value!r}")
-    if abs(value) > 1e300 or not math.isfinite(value):  # (math.isfinite overflows on a huge int)
-        raise CarParamsError(f"{source}: {key}: must be finite, got {value!r}")
+    if abs(value) > MAX_MAGNITUDE or not math.isfinite(value):  # (math.isfinite overflows on a huge int)
+        # Far beyond any model car: a 2**64 motor loss passed the range checks and blew up the simulation.
+        raise CarParamsError(f"{source}: {key}: must be finite and within +-{MAX_MAGNITUDE:g}, got {value!r}")
     problem = f.metadata["check"](value)
     if problem:
         raise CarParamsError(f"{source}: {key}: {problem}, got {value!r}")

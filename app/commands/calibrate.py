@@ -6,7 +6,7 @@ import math
 
 from app.cli import UserError
 from fileio import InputFileError, check_output_path, read_bytes
-from tracking.calibration import calibrate_image, load_fixed_markers, load_intrinsics, save_calibration
+from tracking.calibration import CalibrationError, calibrate_image, load_fixed_markers, load_intrinsics, save_calibration
 from tracking.camera import CameraError, OpenCVCamera
 
 
@@ -59,7 +59,13 @@ def run(args) -> int:
             raise UserError(f"--image: cannot read {args.image!r} (not an image OpenCV can decode)")
     else:
         image = _grab(args.camera, args.warmup_frames)
-    cal = calibrate_image(image, marker_set, intrinsics)
+    inputs = f"--fixed-markers {args.fixed_markers}" + (f", --intrinsics {args.intrinsics}" if args.intrinsics else "")
+    try:
+        cal = calibrate_image(image, marker_set, intrinsics)
+    except cv2.error as exc:  # OpenCV's assertions on degenerate input (a file's values it cannot use)
+        raise UserError(f"calibration failed in OpenCV ({inputs}): {str(exc).strip().splitlines()[-1]}") from None
+    except CalibrationError as exc:  # the files loaded, but their values do not fit this image: name them
+        raise UserError(f"{exc} ({inputs})") from None
     save_calibration(args.out, cal)
     cam = cal.camera
     print(f"markers used: {cal.markers_used}" + (f"; not found: {cal.markers_missing}" if cal.markers_missing else ""))

@@ -133,6 +133,8 @@ class PreRaceCheck:
                     if c.name not in visible:
                         self._add(f"radio {c.name}", False, f"not checked: its marker {c.marker_id} is not seen")
                 self._failsafe(passed[0] if passed else None)
+        except RuntimeError as exc:  # the feed's "the world failed" (a camera that stopped, a file that ended)
+            self._add("camera", False, f"{exc}; the remaining checks were not run")
         finally:
             self._all_neutral()
         return self.items

@@ -1,0 +1,472 @@
+"""Hand-built malformed inputs through the command line: the second malformed-input family of issue 17.
+
+bench/fuzz.py draws random structures for each loader in-process; this family takes the project's real
+files (the tracks, the car file and the fixed markers in the repository; a problem, intrinsics, a
+calibration, a drive log, a link capture and a race recording written by the project's own writers),
+mutates them by hand-written rules (truncation at many byte offsets, one field at a time swapped for a
+value of another type, a huge number, a NaN string, deleted, nested 40 deep; the whole file re-encoded
+as UTF-16 or Latin-1, cut in the middle of a UTF-8 sequence) and runs the command that reads them in a
+child process (forked from a parent that imported the CLI once: the same process isolation as a
+subprocess, without 2 s of imports per case). Each case must end in one of:
+
+* rejected: exit code 2, a message on stderr naming the file and the place (a field of the file, or
+  line / row / column / byte), no traceback, and no output file or temporary file left behind;
+* accepted: the command's normal exit code (the mutation left a file the format allows, e.g. an
+  optional field deleted), with its outputs written whole.
+
+Anything else (another exit code, a traceback, a signal, a timeout, a partial output) is a failure.
+Some mutations can never give a valid file (a NaN string or a type swap where only numbers are
+allowed, text cut inside JSON, re-encoding as UTF-16): for those acceptance is a failure too.
+
+    python -m bench.malformed_cli [--formats all] [--per-format N] [--seed S] [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import re
+import signal
+import sys
+import tempfile
+import time
+import tomllib
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parent.parent
+WORDS = re.compile(r"\b(line|row|column|byte|offset|char|position)\b", re.I)
+DEEP = 40  # nesting levels: above fileio.MAX_DEPTH (32)
+
+
+@dataclass(frozen=True)
+class Case:
+    format: str
+    mutation: str       # e.g. "swap agents[0].x0[1] -> 'NaN'", "truncate at byte 120"
+    data: bytes
+    must_reject: bool
+    names: tuple[str, ...] = ()  # words one of which the message must contain (field names), else WORDS
+
+
+@dataclass(frozen=True)
+class Format:
+    name: str
+    suffix: str
+    kind: str                                   # json | toml | csv | capture | binary
+    argv: Callable[[Path, Path, "Seeds"], list[str]]  # (input file, empty output folder, seeds) -> CLI arguments
+    accepted_codes: tuple[int, ...] = (0,)
+    timeout_s: float = 120.0
+
+
+@dataclass
+class Seeds:
+    """Valid example files (bytes) per format, and the side files the commands need."""
+    folder: Path
+    files: dict[str, bytes] = field(default_factory=dict)
+    arena_png: Path | None = None
+    intrinsics: Path | None = None
+    fixed_markers: Path = ROOT / "tracking" / "data" / "oval_fixed_markers.json"
+
+
+# --------------------------------------------------------------------------- the formats and commands
+FORMATS = {f.name: f for f in [
+    Format("problem", ".json", "json", lambda f, o, s: ["solve", f, "--out", o / "result.json", "--time-limit", "0.3"]),
+    Format("car", ".toml", "toml", lambda f, o, s: ["race", "--car-params", f, "--max-time", "0.3", "--out", o / "race.rrd",
+                                                    "--json", o / "race.json"]),
+    Format("track", ".json", "json", lambda f, o, s: ["race", "--track", f, "--max-time", "0.3", "--out", o / "race.rrd",
+                                                      "--json", o / "race.json"]),
+    Format("fixed_markers", ".json", "json", lambda f, o, s: ["calibrate", "--image", s.arena_png, "--fixed-markers", f,
+                                                              "--intrinsics", s.intrinsics, "--out", o / "cal.json"]),
+    Format("intrinsics", ".json", "json", lambda f, o, s: ["calibrate", "--image", s.arena_png, "--fixed-markers",
+                                                           s.fixed_markers, "--intrinsics", f, "--out", o / "cal.json"]),
+    # A valid calibration gets as far as the camera (an image file: one frame, then the camera check fails, exit 1).
+    Format("calibration", ".json", "json", lambda f, o, s: ["check", "--calibration", f, "--camera", s.arena_png,
+                                                            "--serial", os.devnull], accepted_codes=(1,)),
+    Format("sysid_csv", ".csv", "csv", lambda f, o, s: ["sysid", f, "--car-params", "buzzracer", "--report", o / "r.md",
+                                                        "--json", o / "r.json", "--fit-windows", "20"]),
+    # link-decode exits 1 when the capture holds bad frames (a decode report, not an error).
+    Format("link_capture", ".txt", "capture", lambda f, o, s: ["link-decode", f, "--protocol", "buzzracer-fhss", "--quiet"],
+           accepted_codes=(0, 1)),
+    Format("recording", ".rrd", "binary", lambda f, o, s: ["review", f, "--no-plots", "--json", o / "review.json"]),
+]}
+
+
+def make_seeds(folder: Path) -> Seeds:
+    """The valid files: from the repository where it has one, else written by the project's own writers."""
+    import cv2
+    import numpy as np
+
+    from bench.merging import merging_problem
+    from sim.camera import SyntheticCamera, overhead_camera
+    from solver_cpp.problem_file import problem_to_dict
+    from sysid.generate import generate_log
+    from sysid.log import write_log_csv
+    from tracking.calibration import Intrinsics, load_fixed_markers, save_intrinsics
+    from vehicles.fhss import FhssEncoder, ServoCalibration
+    from vehicles.link_capture import LinkCapture
+    from vehicles.params import load_car_params
+    from vehicles.protocol import CarCommand
+
+    s = Seeds(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    s.files["problem"] = json.dumps(problem_to_dict(merging_problem(2, 0)), indent=1).encode()
+    s.files["car"] = (ROOT / "vehicles" / "buzzracer.toml").read_bytes()
+    s.files["track"] = (ROOT / "tracks" / "data" / "oval.json").read_bytes()
+    s.files["fixed_markers"] = s.fixed_markers.read_bytes()
+    camera = overhead_camera()
+    synth = SyntheticCamera(camera, fixed_markers=list(load_fixed_markers(s.fixed_markers).markers.values()))
+    s.arena_png = folder / "arena.png"
+    cv2.imwrite(str(s.arena_png), synth.render([], 0.0).image)
+    s.intrinsics = folder / "intrinsics.json"
+    save_intrinsics(s.intrinsics, Intrinsics(camera.camera_matrix, np.zeros(5), camera.image_size))
+    s.files["intrinsics"] = s.intrinsics.read_bytes()
+    cal = folder / "calibration.json"
+    code, _, err = run_cli(["calibrate", "--image", s.arena_png, "--fixed-markers", s.fixed_markers,
+                            "--intrinsics", s.intrinsics, "--out", cal], folder, 300)
+    if code != 0:
+        raise RuntimeError(f"calibrate on the rendered arena failed ({code}): {err}")
+    s.files["calibration"] = cal.read_bytes()
+    log = folder / "drive.csv"
+    write_log_csv(log, generate_log(load_car_params("buzzracer"), {}, 0.5, seed=1, physics_dt=0.002))
+    s.files["sysid_csv"] = log.read_bytes()
+    # Two cars' servo calibrations as tests/test_fhss_link.py writes them (modem ids 0 and 5).
+    encoder = FhssEncoder([ServoCalibration(0, math.radians(27), math.radians(23.2), math.radians(29.8)),
+                           ServoCalibration(5, math.radians(27), math.radians(27), math.radians(27))])
+    cap = folder / "capture.txt"
+    with LinkCapture(cap, clock=lambda: 0.0, origin=0.0) as capture:
+        for k in range(12):
+            capture.record("tx", encoder.encode(k, {5: CarCommand(0.1 * (k % 3), 0.5)}), t=0.02 * k)
+        capture.record("rx", b"box\r\n", t=0.25)
+    s.files["link_capture"] = cap.read_bytes()
+    rec = folder / "race.rrd"
+    code, _, err = run_cli(["race", "--max-time", "0.5", "--out", rec, "--json", folder / "race.json"], folder, 600)
+    if code != 0:
+        raise RuntimeError(f"the seed race failed ({code}): {err}")
+    s.files["recording"] = rec.read_bytes()
+    return s
+
+
+# --------------------------------------------------------------------------- running one command
+def run_cli(argv: list, workdir: Path, timeout_s: float) -> tuple[int | str, str, str]:
+    """`python -m app ARGV` in a forked child; (exit code or "signal N" / "timeout", stdout, stderr)."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    out, err = workdir / ".stdout", workdir / ".stderr"
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:  # child: never returns
+        code = 1
+        try:
+            fo = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            fe = os.open(err, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            os.dup2(fo, 1)
+            os.dup2(fe, 2)
+            os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            from app.cli import main
+            try:
+                code = main([str(a) for a in argv])
+            except SystemExit as exc:  # argparse and sys.exit: as the interpreter would report it
+                code = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
+                if isinstance(exc.code, str):
+                    print(exc.code, file=sys.stderr)
+            except BaseException:
+                traceback.print_exc()
+                code = 1
+        finally:
+            try:
+                sys.stdout.flush()
+                sys.stderr.flush()
+            finally:
+                os._exit(int(code) & 0xFF if isinstance(code, int) else 1)
+    deadline = time.monotonic() + timeout_s
+    status = None
+    while True:
+        done, st = os.waitpid(pid, os.WNOHANG)
+        if done:
+            status = os.waitstatus_to_exitcode(st)
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            status = "timeout"
+            break
+        time.sleep(0.01)
+    code: int | str = status if status == "timeout" or status >= 0 else f"signal {-status}"
+    read = lambda p: p.read_bytes().decode("utf-8", "replace") if p.exists() else ""  # noqa: E731
+    return code, read(out), read(err)
+
+
+# --------------------------------------------------------------------------- mutations
+SWAPS: list[tuple[str, Any, bool]] = [  # (label, value, always invalid where a number is)
+    ("'NaN'", "NaN", True), ("'1e999'", "1e999", True), ("true", True, True), ("null", None, True),
+    ("[]", [], False), ("{}", {}, True), ("huge 1e308", 1e308, False), ("huge 2**64", 2**64, False),
+    ("-1", -1, False), ("1.5", 1.5, False), ("'x'*200", "x" * 200, False),
+]
+
+
+def _leaves(doc: Any, path: tuple = ()) -> list[tuple[tuple, Any]]:
+    out = []
+    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
+    for k, v in items:
+        out.append((path + (k,), v))
+        out += _leaves(v, path + (k,))
+    return out
+
+
+def _label(path: tuple) -> str:
+    s = ""
+    for k in path:
+        s += f"[{k}]" if isinstance(k, int) else (f".{k}" if s else str(k))
+    return s
+
+
+def _field_names(path: tuple) -> tuple[str, ...]:
+    """Words that name the place of ``path``: its last key (and, for list items, the list's key)."""
+    keys = [str(k) for k in path if not isinstance(k, int)]
+    return tuple(keys[-1:])
+
+
+def _set(doc: Any, path: tuple, value: Any, delete: bool = False) -> Any:
+    import copy
+    d = copy.deepcopy(doc)
+    c = d
+    for k in path[:-1]:
+        c = c[k]
+    if delete:
+        del c[path[-1]]
+    else:
+        c[path[-1]] = value
+    return d
+
+
+def _toml(doc: dict) -> bytes:
+    """TOML text of a document (tables, arrays of numbers/strings/booleans, and inline tables)."""
+    def value(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
+        if isinstance(v, int):
+            return str(v)
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{" + ", ".join(f"{json.dumps(k)} = {value(x)}" for k, x in v.items()) + "}"
+        raise TypeError(type(v))
+
+    lines, tables = [], []
+    for k, v in doc.items():
+        (tables if isinstance(v, dict) else lines).append((k, v))
+    out = [f"{json.dumps(k)} = {value(v)}" for k, v in lines if v is not None]
+    for name, table in tables:
+        out.append(f"\n[{json.dumps(name)}]")
+        out += [f"{json.dumps(k)} = {value(v)}" for k, v in table.items() if v is not None]
+    return ("\n".join(out) + "\n").encode()
+
+
+def _structured_cases(fmt: Format, data: bytes) -> list[Case]:
+    if fmt.kind == "json":
+        doc, render = json.loads(data), lambda d: json.dumps(d, indent=1).encode()
+    else:
+        doc, render = tomllib.loads(data.decode()), _toml
+    cases = []
+    for path, old in _leaves(doc):
+        where, names = _label(path), _field_names(path)
+        number = isinstance(old, (int, float)) and not isinstance(old, bool)
+        for label, new, invalid in SWAPS:
+            if new is None and fmt.kind == "toml":
+                continue  # TOML has no null
+            if type(new) is type(old) and not isinstance(new, (int, float)):
+                continue
+            cases.append(Case(fmt.name, f"swap {where} -> {label}", render(_set(doc, path, new)),
+                              must_reject=number and invalid, names=names))
+        cases.append(Case(fmt.name, f"delete {where}", render(_set(doc, path, None, delete=True)), False, names))
+        deep: Any = old
+        for _ in range(DEEP):
+            deep = [deep]
+        cases.append(Case(fmt.name, f"nest {where} {DEEP} deep", render(_set(doc, path, deep)), True,
+                          names + ("deep", "depth", "nest")))
+    return cases
+
+
+def _csv_cases(fmt: Format, data: bytes) -> list[Case]:
+    lines = data.decode().splitlines(keepends=True)
+    header = lines[0].rstrip("\n").split(",")
+    cases = []
+    for row in (1, len(lines) // 2, len(lines) - 1):
+        cells = lines[row].rstrip("\n").split(",")
+        for col, name in enumerate(header):
+            for label, new in (("'NaN'", "NaN"), ("'abc'", "abc"), ("''", ""), ("'1e999'", "1e999"), ("'inf'", "inf")):
+                c = list(cells)
+                c[col] = new
+                mutated = lines[:row] + [",".join(c) + "\n"] + lines[row + 1:]
+                cases.append(Case(fmt.name, f"row {row + 1} column {name} -> {label}", "".join(mutated).encode(),
+                                  must_reject=name != "car", names=(name, "row")))
+        short = lines[:row] + [",".join(cells[:-2]) + "\n"] + lines[row + 1:]
+        cases.append(Case(fmt.name, f"row {row + 1} missing 2 cells", "".join(short).encode(), True, ("row",)))
+    for col, name in enumerate(header):
+        drop = lambda ln: ",".join(x for i, x in enumerate(ln.rstrip("\n").split(",")) if i != col) + "\n"  # noqa: E731
+        cases.append(Case(fmt.name, f"delete column {name}", "".join(drop(ln) for ln in lines).encode(), True, (name,)))
+    return cases
+
+
+def _capture_cases(fmt: Format, data: bytes) -> list[Case]:
+    lines = data.decode().splitlines(keepends=True)
+    cases = []
+    for row in (0, len(lines) // 2, len(lines) - 1):
+        t, direction, hexdata = lines[row].split()
+        for label, line in (("time 'abc'", f"abc {direction} {hexdata}"), ("time 'nan'", f"nan {direction} {hexdata}"),
+                            ("direction 'xx'", f"{t} xx {hexdata}"), ("odd hex", f"{t} {direction} {hexdata[:-1]}"),
+                            ("hex 'zz'", f"{t} {direction} zz{hexdata[2:]}"), ("no data", f"{t} {direction}")):
+            mutated = lines[:row] + [line + "\n"] + lines[row + 1:]
+            cases.append(Case(fmt.name, f"line {row + 1} {label}", "".join(mutated).encode(), True, ("line",)))
+    return cases
+
+
+def _byte_cases(fmt: Format, data: bytes, offsets: int, rng: random.Random) -> list[Case]:
+    """Truncation at many byte offsets; re-encodings; flipped bytes (recordings)."""
+    n = len(data)
+    cut_at = sorted({0, 1, n // 2, n - 1, *(rng.randrange(1, n) for _ in range(offsets))})
+    text = fmt.kind != "binary"
+    cases = []
+    for k in cut_at:
+        tail = data[k:]
+        # Cut text whose rest is whitespace only is the same file; TOML/CSV/captures cut at a line end can be valid.
+        if text and not tail.strip():
+            continue
+        reject = fmt.kind == "json" or fmt.kind == "binary"
+        cases.append(Case(fmt.name, f"truncate at byte {k} of {n}", data[:k], reject, ("byte", "truncat", "missing", "cut")))
+    if text:
+        cases.append(Case(fmt.name, "UTF-16 encoded", data.decode().encode("utf-16"), True, ("UTF-8", "byte", "decode")))
+        cases.append(Case(fmt.name, "Latin-1 byte 0xE9 at the start", b"\xe9" + data, True, ("UTF-8", "byte", "decode")))
+        k = rng.randrange(1, n)
+        cases.append(Case(fmt.name, f"NUL byte at {k}", data[:k] + b"\x00" + data[k:], False, ("byte", "line", "row")))
+    else:
+        for k in sorted({4, *(rng.randrange(8, n - 8) for _ in range(max(4, offsets // 4)))}):
+            flipped = data[:k] + bytes(b ^ 0xFF for b in data[k:k + 16]) + data[k + 16:]
+            cases.append(Case(fmt.name, f"16 bytes flipped at {k}", flipped, False, ("damaged", "corrupt", "truncat", "byte")))
+    return cases
+
+
+def cases_for(fmt: Format, data: bytes, offsets: int, rng: random.Random) -> list[Case]:
+    cases = _byte_cases(fmt, data, offsets, rng)
+    if fmt.kind in ("json", "toml"):
+        cases += _structured_cases(fmt, data)
+    elif fmt.kind == "csv":
+        cases += _csv_cases(fmt, data)
+    elif fmt.kind == "capture":
+        cases += _capture_cases(fmt, data)
+    return cases
+
+
+# --------------------------------------------------------------------------- judging one case
+def judge(fmt: Format, case: Case, code, out: str, err: str, infile: Path, outdir: Path) -> tuple[str, str]:
+    """("rejected" | "accepted", "") or ("failure", why)."""
+    left = sorted(p.name for p in outdir.iterdir() if not p.name.startswith(".std"))
+    if "Traceback" in err or "Traceback" in out:
+        return "failure", "traceback: " + err.strip().splitlines()[-1][:300]
+    if code == 2:
+        message = err.strip()
+        if not message:
+            return "failure", "exit 2 with nothing on stderr"
+        if infile.name not in message:
+            return "failure", f"message does not name the file: {message[:300]}"
+        if not (WORDS.search(message) or any(n.lower() in message.lower() for n in case.names)):
+            return "failure", f"message names no field, row or byte: {message[:300]}"
+        if left:
+            return "failure", f"exit 2 but output left behind: {left}"
+        return "rejected", ""
+    if code in fmt.accepted_codes:
+        if case.must_reject:
+            return "failure", f"accepted (exit {code}) though this mutation cannot be valid"
+        return "accepted", ""
+    return "failure", f"exit {code}: {err.strip()[-300:]}"
+
+
+def run(formats: list[str], per_format: int, seed: int, workdir: Path, offsets: int = 40,
+        progress: Callable[[str], None] | None = None) -> dict:
+    """Run up to ``per_format`` cases of each format (a seeded sample when there are more)."""
+    rng = random.Random(seed)
+    seeds = make_seeds(workdir / "seeds")
+    report: dict = {"formats": {}, "failures": []}
+    for name in formats:
+        fmt = FORMATS[name]
+        cases = cases_for(fmt, seeds.files[name], offsets, rng)
+        if per_format and len(cases) > per_format:
+            cases = rng.sample(cases, per_format)
+        counts = {"cases": 0, "rejected": 0, "accepted": 0, "failure": 0, "seconds": 0.0}
+        t0 = time.perf_counter()
+        for i, case in enumerate(cases):
+            case_dir = workdir / name / str(i)
+            outdir = case_dir / "out"
+            outdir.mkdir(parents=True, exist_ok=True)
+            infile = case_dir / f"input{fmt.suffix}"
+            infile.write_bytes(case.data)
+            code, out, err = run_cli(fmt.argv(infile, outdir, seeds), outdir, fmt.timeout_s)
+            outcome, why = judge(fmt, case, code, out, err, infile, outdir)
+            counts["cases"] += 1
+            counts[outcome] += 1
+            if outcome == "failure":
+                report["failures"].append({"format": name, "mutation": case.mutation, "why": why, "input": str(infile),
+                                           "argv": [str(a) for a in fmt.argv(infile, outdir, seeds)]})
+            else:
+                for p in sorted(case_dir.rglob("*"), reverse=True):  # keep only the failures' inputs
+                    p.unlink() if p.is_file() else p.rmdir()
+                case_dir.rmdir()
+            if progress:
+                progress(f"{name} {i + 1}/{len(cases)} {outcome} {case.mutation}" + (f": {why}" if why else ""))
+        counts["seconds"] = time.perf_counter() - t0
+        report["formats"][name] = counts
+    return report
+
+
+def markdown(report: dict, command: str, load: tuple[float, float]) -> str:
+    lines = [f"`{command}` (1-min load average {load[0]:.1f} at the start, {load[1]:.1f} at the end; 2 cores)", "",
+             "| format (command) | cases | rejected (exit 2, names the place) | accepted | failures | time (s) |",
+             "|---|---|---|---|---|---|"]
+    for name, c in report["formats"].items():
+        cmd = FORMATS[name].argv(Path("F"), Path("O"), Seeds(Path(".")))[0]
+        lines.append(f"| {name} (`{cmd}`) | {c['cases']} | {c['rejected']} | {c['accepted']} | {c['failure']} | {c['seconds']:.0f} |")
+    for f in report["failures"][:20]:
+        lines.append(f"\nfailure: {f['format']}, {f['mutation']}: {f['why']}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--formats", default="all", help=f"comma-separated, or all: {', '.join(FORMATS)}")
+    p.add_argument("--per-format", type=int, default=0, help="at most this many cases per format (0 = all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--offsets", type=int, default=40, help="truncation offsets per file")
+    p.add_argument("--workdir", help="keep the failures' inputs here (default: a temporary folder)")
+    p.add_argument("--json", help="write the report here")
+    p.add_argument("--verbose", action="store_true")
+    args = p.parse_args(argv)
+    names = list(FORMATS) if args.formats == "all" else args.formats.split(",")
+    unknown = [n for n in names if n not in FORMATS]
+    if unknown:
+        p.error(f"unknown format(s) {', '.join(unknown)}; known: {', '.join(FORMATS)}")
+    import app.cli  # once, in the parent: every forked child starts with the commands imported
+    app.cli.build_parser()
+    workdir = Path(args.workdir or tempfile.mkdtemp(prefix="rd3g-malformed-"))
+    load0 = os.getloadavg()[0]
+    report = run(names, args.per_format, args.seed, workdir, args.offsets,
+                 progress=(lambda s: print(s, flush=True)) if args.verbose else None)
+    md = markdown(report, "python -m bench.malformed_cli " + " ".join(argv if argv is not None else sys.argv[1:]),
+                  (load0, os.getloadavg()[0]))
+    print(md)
+    if args.json:
+        from fileio import atomic_write_text
+        atomic_write_text(args.json, json.dumps(report, indent=1) + "\n")
+    return 1 if report["failures"] else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
