@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 ROOT = Path(__file__).resolve().parent.parent
-WORDS = re.compile(r"\b(line|row|column|byte|offset|char|position)\b", re.I)
+WORDS = re.compile(r"\b(line|row|column|byte|offset|char|position|empty)\b", re.I)
 DEEP = 40  # nesting levels: above fileio.MAX_DEPTH (32)
 
 
@@ -74,7 +74,9 @@ class Seeds:
 
 # --------------------------------------------------------------------------- the formats and commands
 FORMATS = {f.name: f for f in [
-    Format("problem", ".json", "json", lambda f, o, s: ["solve", f, "--out", o / "result.json", "--time-limit", "0.3"]),
+    # solve exits 1 when the solver does not converge (a result, written whole).
+    Format("problem", ".json", "json", lambda f, o, s: ["solve", f, "--out", o / "result.json", "--time-limit", "0.3"],
+           accepted_codes=(0, 1)),
     Format("car", ".toml", "toml", lambda f, o, s: ["race", "--car-params", f, "--max-time", "0.3", "--out", o / "race.rrd",
                                                     "--json", o / "race.json"]),
     Format("track", ".json", "json", lambda f, o, s: ["race", "--track", f, "--max-time", "0.3", "--out", o / "race.rrd",
@@ -166,6 +168,9 @@ def run_cli(argv: list, workdir: Path, timeout_s: float) -> tuple[int | str, str
             os.dup2(fo, 1)
             os.dup2(fe, 2)
             os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+            # New text streams on fds 1 and 2: the parent's may write elsewhere (pytest's capture).
+            sys.stdout = open(1, "w", encoding="utf-8", errors="backslashreplace", closefd=False)
+            sys.stderr = open(2, "w", encoding="utf-8", errors="backslashreplace", closefd=False)
             signal.signal(signal.SIGINT, signal.default_int_handler)
             from app.cli import main
             try:
@@ -226,9 +231,8 @@ def _label(path: tuple) -> str:
 
 
 def _field_names(path: tuple) -> tuple[str, ...]:
-    """Words that name the place of ``path``: its last key (and, for list items, the list's key)."""
-    keys = [str(k) for k in path if not isinstance(k, int)]
-    return tuple(keys[-1:])
+    """Words that name the place of ``path``: its keys."""
+    return tuple(str(k) for k in path if not isinstance(k, int))  # (a check on the whole list names the list)
 
 
 def _set(doc: Any, path: tuple, value: Any, delete: bool = False) -> Any:
@@ -390,6 +394,24 @@ def judge(fmt: Format, case: Case, code, out: str, err: str, infile: Path, outdi
     return "failure", f"exit {code}: {err.strip()[-300:]}"
 
 
+def run_case(case: Case, seeds: Seeds, case_dir: Path) -> tuple[str, str]:
+    """Write the case's file into case_dir, run its command, judge; the folder is removed unless it failed."""
+    fmt = FORMATS[case.format]
+    outdir = case_dir / "out"
+    outdir.mkdir(parents=True, exist_ok=True)
+    infile = case_dir / f"input{fmt.suffix}"
+    infile.write_bytes(case.data)
+    code, out, err = run_cli(fmt.argv(infile, outdir, seeds), outdir, fmt.timeout_s)
+    outcome, why = judge(fmt, case, code, out, err, infile, outdir)
+    if outcome == "failure":
+        argv = " ".join(str(a) for a in fmt.argv(infile, outdir, seeds))
+        return outcome, f"{why} (reproduce: python -m app {argv})"
+    for p in sorted(case_dir.rglob("*"), reverse=True):
+        p.unlink() if p.is_file() else p.rmdir()
+    case_dir.rmdir()
+    return outcome, why
+
+
 def run(formats: list[str], per_format: int, seed: int, workdir: Path, offsets: int = 40,
         progress: Callable[[str], None] | None = None) -> dict:
     """Run up to ``per_format`` cases of each format (a seeded sample when there are more)."""
@@ -397,29 +419,17 @@ def run(formats: list[str], per_format: int, seed: int, workdir: Path, offsets: 
     seeds = make_seeds(workdir / "seeds")
     report: dict = {"formats": {}, "failures": []}
     for name in formats:
-        fmt = FORMATS[name]
-        cases = cases_for(fmt, seeds.files[name], offsets, rng)
+        cases = cases_for(FORMATS[name], seeds.files[name], offsets, rng)
         if per_format and len(cases) > per_format:
             cases = rng.sample(cases, per_format)
         counts = {"cases": 0, "rejected": 0, "accepted": 0, "failure": 0, "seconds": 0.0}
         t0 = time.perf_counter()
         for i, case in enumerate(cases):
-            case_dir = workdir / name / str(i)
-            outdir = case_dir / "out"
-            outdir.mkdir(parents=True, exist_ok=True)
-            infile = case_dir / f"input{fmt.suffix}"
-            infile.write_bytes(case.data)
-            code, out, err = run_cli(fmt.argv(infile, outdir, seeds), outdir, fmt.timeout_s)
-            outcome, why = judge(fmt, case, code, out, err, infile, outdir)
+            outcome, why = run_case(case, seeds, workdir / name / str(i))
             counts["cases"] += 1
             counts[outcome] += 1
             if outcome == "failure":
-                report["failures"].append({"format": name, "mutation": case.mutation, "why": why, "input": str(infile),
-                                           "argv": [str(a) for a in fmt.argv(infile, outdir, seeds)]})
-            else:
-                for p in sorted(case_dir.rglob("*"), reverse=True):  # keep only the failures' inputs
-                    p.unlink() if p.is_file() else p.rmdir()
-                case_dir.rmdir()
+                report["failures"].append({"format": name, "mutation": case.mutation, "why": why})
             if progress:
                 progress(f"{name} {i + 1}/{len(cases)} {outcome} {case.mutation}" + (f": {why}" if why else ""))
         counts["seconds"] = time.perf_counter() - t0

@@ -509,6 +509,11 @@ def load_calibration(path) -> CameraCalibration:
     tvec = _matrix(data["tvec"], (3,), f"{path}: tvec")
     rot, _ = cv2.Rodrigues(rvec)
     src = str(path)
+    # Derived from rvec/tvec and recomputed, not read; still numbers of the written shape, so that a damaged
+    # or hand-mangled value is not silently passed over.
+    for name, shape in (("camera_position_m", (3,)), ("homography_track_to_image", (3, 3))):
+        if name in data:
+            _matrix(data[name], shape, f"{src}: {name}")
     dictionary = data.get("dictionary", "DICT_4X4_50")
     aruco_dictionary_id(dictionary, f"{src}: dictionary")
     source = data.get("intrinsics_source", "file")
