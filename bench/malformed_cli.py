@@ -4,15 +4,18 @@ bench/fuzz.py draws random structures for each loader in-process; this family ta
 files (the tracks, the car file and the fixed markers in the repository; a problem, intrinsics, a
 calibration, a drive log, a link capture and a race recording written by the project's own writers),
 mutates them by hand-written rules (truncation at many byte offsets, one field at a time swapped for a
-value of another type, a huge number, a NaN string, deleted, nested 40 deep; the whole file re-encoded
-as UTF-16 or Latin-1, cut in the middle of a UTF-8 sequence) and runs the command that reads them in a
+value of another type, a huge number, a NaN string, deleted, nested 40 deep; CSV cells and capture
+lines made non-numeric, short or odd; the whole file re-encoded as UTF-16, a Latin-1 byte or a NUL
+inserted; 16 bytes of a recording flipped) and runs the command that reads them in a
 child process (forked from a parent that imported the CLI once: the same process isolation as a
 subprocess, without 2 s of imports per case). Each case must end in one of:
 
-* rejected: exit code 2, a message on stderr naming the file and the place (a field of the file, or
-  line / row / column / byte), no traceback, and no output file or temporary file left behind;
+* rejected: exit code 2, a message on stderr naming the file and, for a mutation that cannot be valid,
+  the place (a field of the file, or line / row / column / byte), no traceback, and no output file
+  or temporary file left behind (a mutation that loads and then fails on its values, e.g. a marker
+  moved so that the camera fit fails, must name the file);
 * accepted: the command's normal exit code (the mutation left a file the format allows, e.g. an
-  optional field deleted), with its outputs written whole.
+  optional field deleted), with its JSON outputs complete (they parse).
 
 Anything else (another exit code, a traceback, a signal, a timeout, a partial output) is a failure.
 Some mutations can never give a valid file (a NaN string or a type swap where only numbers are
@@ -39,7 +42,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 ROOT = Path(__file__).resolve().parent.parent
-WORDS = re.compile(r"\b(line|row|column|byte|offset|char|position|empty)\b", re.I)
+WORDS = re.compile(r"\b(line|row|column|byte|offset|char|position|empty|end of document)\b", re.I)
 DEEP = 40  # nesting levels: above fileio.MAX_DEPTH (32)
 
 
@@ -281,8 +284,9 @@ def _structured_cases(fmt: Format, data: bytes) -> list[Case]:
     else:
         doc, render = tomllib.loads(data.decode()), _toml
     cases = []
+    top = tuple(str(k) for k in doc) if isinstance(doc, dict) else ()  # a check of the whole table names it
     for path, old in _leaves(doc):
-        where, names = _label(path), _field_names(path)
+        where, names = _label(path), _field_names(path) + top
         number = isinstance(old, (int, float)) and not isinstance(old, bool)
         for label, new, invalid in SWAPS:
             if new is None and fmt.kind == "toml":
@@ -382,7 +386,9 @@ def judge(fmt: Format, case: Case, code, out: str, err: str, infile: Path, outdi
             return "failure", "exit 2 with nothing on stderr"
         if infile.name not in message:
             return "failure", f"message does not name the file: {message[:300]}"
-        if not (WORDS.search(message) or any(n.lower() in message.lower() for n in case.names)):
+        # A mutation that cannot be valid must be caught by the loader, at its place. Another one may load and
+        # then fail on its values (a marker moved so that the camera fit fails): naming the file is enough.
+        if case.must_reject and not (WORDS.search(message) or any(n.lower() in message.lower() for n in case.names)):
             return "failure", f"message names no field, row or byte: {message[:300]}"
         if left:
             return "failure", f"exit 2 but output left behind: {left}"
@@ -390,6 +396,11 @@ def judge(fmt: Format, case: Case, code, out: str, err: str, infile: Path, outdi
     if code in fmt.accepted_codes:
         if case.must_reject:
             return "failure", f"accepted (exit {code}) though this mutation cannot be valid"
+        for p in outdir.glob("*.json"):
+            try:
+                json.loads(p.read_bytes())
+            except ValueError as exc:
+                return "failure", f"accepted, but {p.name} is not complete JSON: {exc}"
         return "accepted", ""
     return "failure", f"exit {code}: {err.strip()[-300:]}"
 

@@ -47,6 +47,12 @@ class ProgressUnwrapper:
         return self.s.copy()
 
 
+def lateral_half_extent(g, heading_allowance_rad: float) -> float:
+    """Half the lateral room (m) the car's footprint (geometry ``g``) takes at up to the allowed heading error."""
+    a = heading_allowance_rad
+    return 0.5 * g.footprint_width_m * math.cos(a) + (0.5 * g.footprint_length_m + abs(g.footprint_offset_m)) * math.sin(a)
+
+
 class FrenetTrackModel:
     """The planning model of one car on one track and the geometric limits derived from it.
 
@@ -73,9 +79,7 @@ class FrenetTrackModel:
         self.model = KinematicBicycleFrenet(lf=car.geometry.lf_m, lr=car.geometry.lr_m, kappa=self.kappa,
                                             ds=self.table_ds, closed=True)
         g = car.geometry
-        a = config.heading_allowance_rad
-        self.lateral_half_extent = 0.5 * g.footprint_width_m * math.cos(a) + (
-            0.5 * g.footprint_length_m + abs(g.footprint_offset_m)) * math.sin(a)
+        self.lateral_half_extent = lateral_half_extent(g, config.heading_allowance_rad)
         self.footprint_radius = math.hypot(0.5 * g.footprint_length_m + abs(g.footprint_offset_m),
                                            0.5 * g.footprint_width_m)
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planning import PlannerConfig
+from planning.frenet import lateral_half_extent
 from sim.effects import SimEffects, SimEffectsError, parse_effects, sim_effects
 from tracks import TrackFormatError, load_track
 from tracks.io import UnknownTrackError
@@ -116,6 +117,13 @@ class RaceSpec:
         if not math.isfinite(raceline) or abs(raceline) >= track.min_width / 2:
             raise RaceSetupError("raceline_ey_m", f"must be a finite offset inside the track "
                                                   f"(|M| < {track.min_width / 2:g} m), got {raceline}")
+        planner = PlannerConfig(raceline_ey_m=raceline)
+        # Before any output is opened: the planner refuses a car wider than the track in its first plan.
+        need = lateral_half_extent(car.geometry, planner.heading_allowance_rad) + planner.track_margin_m
+        if need >= track.min_width / 2:
+            raise RaceSetupError("car_params", f"{self.car_params}: geometry.footprint_width_m/length_m/offset_m: the "
+                                               f"car needs {need:.3f} m either side of its path, track {track.name!r} "
+                                               f"offers {track.min_width / 2:.3f} m")
         sim_car = None
         if self.sim_car_params:
             try:
@@ -131,7 +139,7 @@ class RaceSpec:
                          start=self.start, rd3g_top_speed_mps=self.rd3g_top_speed_mps,
                          opponent_top_speed_mps=self.opponent_top_speed_mps, control_period_s=1.0 / self.control_hz,
                          max_time_s=self.max_time_s, sim_car=sim_car, sim_effects=effects,
-                         planner=PlannerConfig(raceline_ey_m=raceline))
+                         planner=planner)
 
 
 def start_states(setup: RaceSetup) -> np.ndarray:

@@ -129,6 +129,9 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
             if name not in entry:
                 raise CalibrationError(f"{where}.{name}: missing")
         heading = entry.get("heading_deg")
+        if "heading_deg" in entry and heading is None:  # null is not "absent": a damaged value must not pass
+            raise CalibrationError(f"{where}.heading_deg: must be a finite number (leave the key out when the "
+                                   "heading is unknown), got null")
         markers[marker_id] = FixedMarker(
             marker_id=marker_id,
             x=_number(entry["x"], f"{where}.x", bound=MAX_ARENA_M),
