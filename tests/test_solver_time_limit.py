@@ -37,6 +37,21 @@ def test_slow_path_stops_at_the_time_limit_with_the_best_iterate(settings, cars)
     assert np.all(np.isfinite(result.u))
 
 
+def test_no_second_order_test_after_the_deadline():
+    """The second-order test (a dense eigenproblem per agent, 20 ms on 8 cars) ran on every result and
+    put an 8-car merge 6 ms past the 10 % + 20 ms goal at a 50 ms limit. A time_limit result now skips it
+    (second_order empty, as with the test turned off); a result within the limit still gets one value
+    per agent, here the same as without any limit (max_iter stops both runs at the same iterate)."""
+    problem = merging_problem(8, 0)
+    timed_out = solve(problem, time_limit=0.01, linear_solver="sparse_lu")
+    assert timed_out.status == "time_limit" and timed_out.second_order.size == 0
+    within = solve(problem, time_limit=1e6, max_iter=2, linear_solver="sparse_lu")
+    reference = solve(problem, max_iter=2, linear_solver="sparse_lu")
+    assert within.status == reference.status == "max_iterations"
+    np.testing.assert_allclose(within.second_order, reference.second_order, rtol=1e-9)
+    assert within.second_order.size == 8
+
+
 def test_without_a_limit_the_same_problem_runs_past_it():
     """The reference for the test above: the QR path really needs longer than the limit here."""
     t0 = time.perf_counter()
