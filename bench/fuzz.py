@@ -273,18 +273,20 @@ CSV_TOKENS = ["", "nan", "inf", "-inf", "1e400", "true", "0x10", " 1", "1,2", "\
 
 
 @st.composite
-def csv_inputs(draw) -> bytes:
-    lines = csv_seed().decode().split("\n")
+def line_inputs(draw, seed: bytes, sep: str, tokens: list) -> bytes:
+    """Up to three line edits of a line-based file (a cell / field replaced, dropped or added; a line
+    dropped, duplicated or random), then byte damage."""
+    lines = seed.decode().split("\n")
     for _ in range(draw(st.integers(0, 3))):
         i = draw(st.integers(0, len(lines) - 1))
-        cells = lines[i].split(",")
+        cells = lines[i].split(sep)
         op = draw(st.sampled_from(["cell", "cell", "drop_cell", "add_cell", "drop_line", "dup_line", "random_line"]))
         if op == "cell":
-            cells[draw(st.integers(0, len(cells) - 1))] = draw(st.sampled_from(CSV_TOKENS) | st.text(max_size=8))
+            cells[draw(st.integers(0, len(cells) - 1))] = draw(st.sampled_from(tokens) | st.text(max_size=8))
         elif op == "drop_cell" and len(cells) > 1:
             del cells[draw(st.integers(0, len(cells) - 1))]
         elif op == "add_cell":
-            cells.append(draw(st.sampled_from(CSV_TOKENS)))
+            cells.append(draw(st.sampled_from(tokens)))
         elif op == "drop_line":
             lines[i] = ""
         elif op == "dup_line":
@@ -292,8 +294,30 @@ def csv_inputs(draw) -> bytes:
         elif op == "random_line":
             lines[i] = draw(st.text(max_size=40))
         if op in ("cell", "drop_cell", "add_cell"):
-            lines[i] = ",".join(cells)
+            lines[i] = sep.join(cells)
     return draw(damaged_bytes("\n".join(lines).encode()))
+
+
+def csv_inputs() -> st.SearchStrategy:
+    return line_inputs(csv_seed(), ",", CSV_TOKENS)
+
+
+def capture_seed() -> bytes:
+    """A link capture as vehicles.link_capture.LinkCapture writes it: '<seconds> tx|rx <lowercase hex>'."""
+    from vehicles.fhss import FhssEncoder, ServoCalibration
+
+    encoder = FhssEncoder([ServoCalibration(0, 0.47, 0.40, 0.52), ServoCalibration(5, 0.47, 0.47, 0.47)])
+    lines = [f"{0.02 * k:.6f} tx {encoder.encode(k, {5: CarCommand(0.1 * (k % 3), 0.5)}).hex()}" for k in range(8)]
+    lines.append(f"{0.17:.6f} rx {b'box' .hex()}0d0a")
+    return ("\n".join(lines) + "\n").encode()
+
+
+CAPTURE_TOKENS = ["", "nan", "inf", "-1", "1e400", "tx", "rx", "TX", "xx", "zz", "0", "abc", "0" * 5001, "\x00", "é",
+                  "0.010000", "aa55", "AA55", "a"]
+
+
+def capture_inputs() -> st.SearchStrategy:
+    return line_inputs(capture_seed(), " ", CAPTURE_TOKENS)
 
 
 # --------------------------------------------------------------------------- rd3g frame decoder
@@ -411,6 +435,18 @@ def _log_error():
     return LogFormatError
 
 
+def _capture_load(path: Path):
+    from vehicles.link_capture import decode_capture, read_capture
+
+    return decode_capture(read_capture(path), "buzzracer-fhss")
+
+
+def _capture_error():
+    from vehicles.link_capture import CaptureError
+
+    return CaptureError
+
+
 TARGETS: dict[str, Target] = {t.name: t for t in [
     Target("problem", _file_strategy(problem_seeds, _json_bytes), _loader_run(".json", _problem_load, _problem_error), ".json"),
     Target("car", _file_strategy(car_seeds, toml_bytes), _loader_run(".toml", _car_load, _car_error), ".toml"),
@@ -423,6 +459,7 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
            _loader_run(".json", _tracking_load("load_calibration"), _calibration_error), ".json"),
     Target("sysid_csv", csv_inputs, _loader_run(".csv", _log_load, _log_error), ".csv"),
     Target("rd3g_decoder", decoder_inputs, run_decoder),
+    Target("link_capture", capture_inputs, _loader_run(".txt", _capture_load, _capture_error), ".txt"),
 ]}
 
 

@@ -124,8 +124,10 @@ def read_verified(path) -> tuple:
     """(store entry, chunks) of the first recording in ``path``; ``RecordingDamage`` if the file is
     truncated or corrupt, ``FileNotFoundError``/``ValueError`` if it is missing or holds no recording."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"{path}: recording not found")
+    if not path.is_file():  # a FIFO is never opened (Rerun's reader would block on it)
+        raise ValueError(f"{path}: recording is not a regular file")
     store, chunks, footer, error = _decode(path)
     if error is not None:
         kind = _kind(error)

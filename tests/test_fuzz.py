@@ -36,6 +36,7 @@ def test_unmutated_seeds_are_accepted():
         for seed in seeds:
             assert fuzz.TARGETS[name].run(render(seed)) == "accepted", name
     assert fuzz.TARGETS["sysid_csv"].run(fuzz.csv_seed()) == "accepted"
+    assert fuzz.TARGETS["link_capture"].run(fuzz.capture_seed()) == "accepted"
 
 
 def test_decoder_reference_finds_hand_built_frames():

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
+import fileio
 from vehicles import fhss
 from vehicles.link_protocols import check_protocol
 from vehicles.protocol import CarCommand, FrameDecoder, ProtocolError
@@ -27,7 +28,7 @@ Direction = Literal["tx", "rx"]
 _LINE = re.compile(rb"^(-?[0-9]+\.[0-9]+) (tx|rx) ((?:[0-9a-f]{2})+)$")
 
 
-class CaptureError(ValueError):
+class CaptureError(fileio.InputFileError):
     """A capture file that is not one, or was cut short; the message names line and byte offset."""
 
 
@@ -109,10 +110,7 @@ def read_capture(path: str | Path) -> list[CaptureRecord]:
     """Every line of a capture file, or CaptureError naming the first bad line and its byte offset
     (a last line without its newline means the file was cut short)."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise CaptureError(f"{path}: capture file not found") from None
+    raw = fileio.read_bytes(path, "capture file", error=CaptureError)  # a FIFO or device is an error, not a hang
     records: list[CaptureRecord] = []
     offset = 0
     for number, line in enumerate(raw.split(b"\n"), start=1):

@@ -63,7 +63,7 @@ def register(sub) -> None:
 
     f = kinds.add_parser("fuzz", help="property-based fuzzing of a loader, the frame decoder or the solver API")
     f.add_argument("--target", required=True, help="problem, car, track, fixed_markers, intrinsics, calibration, "
-                                                   "sysid_csv, rd3g_decoder, solver_api")
+                                                   "sysid_csv, rd3g_decoder, link_capture, solver_api")
     f.add_argument("--examples", type=int, default=100_000, help="generated inputs (default 100000)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--out", default="runs/fuzz", help="folder for reproducer files of failures")
