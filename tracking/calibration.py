@@ -512,6 +512,10 @@ def load_calibration(path) -> CameraCalibration:
     tvec = _matrix(data["tvec"], (3,), f"{path}: tvec")
     rot, _ = cv2.Rodrigues(rvec)
     src = str(path)
+    position = -rot.T @ tvec
+    if not (np.all(np.isfinite(position)) and position[2] > 0):  # calibrate refuses these too
+        raise CalibrationError(f"{src}: rvec/tvec: place the camera at {position.tolist()} m, not above the track "
+                               "plane (z > 0)")
     # Derived from rvec/tvec and recomputed, not read; still numbers of the written shape, so that a damaged
     # or hand-mangled value is not silently passed over.
     for name, shape in (("camera_position_m", (3,)), ("homography_track_to_image", (3, 3))):
@@ -534,6 +538,9 @@ def load_calibration(path) -> CameraCalibration:
         if value is None or (isinstance(value, float) and math.isnan(value)):
             return float("nan")
         return _number(value, f"{src}: {where}")
+
+    for key, v in errors.items():  # written by calibrate for every marker it used: never null
+        _number(v, f"{src}: marker_errors_px[{key!r}]")
 
     return CameraCalibration(
         camera=PinholeCamera(intr.camera_matrix, intr.dist_coeffs, rot, tvec, intr.image_size),

@@ -106,8 +106,11 @@ def run(args) -> int:
         log_note = (f"car {car_id} ({car_log.car_labels.get(car_id, '?')}) of the recording; poses from "
                     f"{car_log.pose_sources[car_id]}")
         print(log_note)
-    traj = build_trajectory(car_log)
-    result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed, fit_max_starts=args.fit_windows))
+    try:
+        traj = build_trajectory(car_log)
+        result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed, fit_max_starts=args.fit_windows))
+    except ValueError as exc:  # the log loaded but does not support the fit (too short, too few moving samples)
+        raise UserError(f"{args.log}: {exc}") from None
 
     report = Path(args.report)
     params_out = Path(args.params_out) if args.params_out else report.with_suffix(".toml")
