@@ -104,6 +104,7 @@ class Solver {
   double take_step(double rnorm, Info& info);
   void write_result(Result& res, Info& info);
   bool past_deadline() const;
+  bool qr_would_overrun();  // with a time limit: SparseQR's predicted duration (with a margin) does not fit
   bool next_iteration_overruns();  // with a time limit: the deadline passed or the next iteration would pass it
   double time_left() const;  // (s) until the time limit (only meaningful with one)
   // Bounded linear-solve fallback under a time limit (see solve_linear).
