@@ -350,7 +350,9 @@ def _byte_cases(fmt: Format, data: bytes, offsets: int, rng: random.Random) -> l
         if text and not tail.strip():
             continue
         reject = fmt.kind == "json" or fmt.kind == "binary"
-        cases.append(Case(fmt.name, f"truncate at byte {k} of {n}", data[:k], reject, ("byte", "truncat", "missing", "cut")))
+        # A recording's reader says what is readable before the damage (recording.integrity), not a byte.
+        names = ("byte", "truncat", "missing", "cut") + (("damage", "corrupt", "too small") if not text else ())
+        cases.append(Case(fmt.name, f"truncate at byte {k} of {n}", data[:k], reject, names))
     if text:
         cases.append(Case(fmt.name, "UTF-16 encoded", data.decode().encode("utf-16"), True, ("UTF-8", "byte", "decode")))
         cases.append(Case(fmt.name, "Latin-1 byte 0xE9 at the start", b"\xe9" + data, True, ("UTF-8", "byte", "decode")))
