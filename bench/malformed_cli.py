@@ -63,6 +63,7 @@ class Format:
     argv: Callable[[Path, Path, "Seeds"], list[str]]  # (input file, empty output folder, seeds) -> CLI arguments
     accepted_codes: tuple[int, ...] = (0,)
     timeout_s: float = 120.0
+    nullable: tuple[str, ...] = ()                # fields where null is a documented value (no estimate)
 
 
 @dataclass
@@ -90,7 +91,9 @@ FORMATS = {f.name: f for f in [
                                                            s.fixed_markers, "--intrinsics", f, "--out", o / "cal.json"]),
     # A valid calibration gets as far as the camera (an image file: one frame, then the camera check fails, exit 1).
     Format("calibration", ".json", "json", lambda f, o, s: ["check", "--calibration", f, "--camera", s.arena_png,
-                                                            "--serial", os.devnull], accepted_codes=(1,)),
+                                                            "--serial", os.devnull], accepted_codes=(1,),
+           nullable=("focal_std_px", "focal_std_markers_px", "focal_std_principal_point_px", "reprojection_rms_px",
+                     "reprojection_max_px")),
     Format("sysid_csv", ".csv", "csv", lambda f, o, s: ["sysid", f, "--car-params", "buzzracer", "--report", o / "r.md",
                                                         "--json", o / "r.json", "--fit-windows", "20"]),
     # link-decode exits 1 when the capture holds bad frames (a decode report, not an error).
@@ -293,8 +296,9 @@ def _structured_cases(fmt: Format, data: bytes) -> list[Case]:
                 continue  # TOML has no null
             if type(new) is type(old) and not isinstance(new, (int, float)):
                 continue
+            documented = new is None and path[-1] in fmt.nullable
             cases.append(Case(fmt.name, f"swap {where} -> {label}", render(_set(doc, path, new)),
-                              must_reject=number and invalid, names=names))
+                              must_reject=number and invalid and not documented, names=names))
         cases.append(Case(fmt.name, f"delete {where}", render(_set(doc, path, None, delete=True)), False, names))
         deep: Any = old
         for _ in range(DEEP):
