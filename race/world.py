@@ -20,8 +20,9 @@ class WorldPacket:
     poll."""
 
     frame: object | None = None              # tracking.camera.Frame
-    truth: np.ndarray | None = None          # (2, 6) true states at the frame's capture time (HIL)
-    t_race: float | None = None
+    truth: np.ndarray | None = None          # (2, 6) true states at the frame's capture time (HIL) or at the poll (simulation)
+    t_race: float | None = None              # race time of ``truth``
+    t_truth: float | None = None             # clock time of ``truth`` (simulation: race.perception.TruthPerception)
     render_ms: list[float] = field(default_factory=list)
     events: list[tuple] = field(default_factory=list)   # (race time s, kind, text)
     winner: str | None = None                # the world's own referee (HIL simulator) decided the race
@@ -46,6 +47,10 @@ class MonotonicClock:
 
     def sleep(self, seconds: float) -> None:
         time.sleep(seconds)
+
+
+# Two readings of one instant on a simulated clock differ by rounding only (t_go + k T - t_go vs k T).
+CLOCK_ROUNDING_S = 1e-9
 
 
 class SimulatedClock:
