@@ -77,15 +77,6 @@ def plan_step(planner, own_state, other_state) -> tuple[object, np.ndarray, floa
     return plan, command, 1e3 * (time.perf_counter() - t0)
 
 
-def cold_plan(planner, own_state, other_state):
-    """The first plan, on the grid before the start (no prediction: the cars stand), with plan_step's
-    failure rule."""
-    try:
-        return planner.plan(own_state, other_state)
-    except Exception as exc:  # noqa: BLE001 - as in plan_step
-        return planner.fallback_plan(own_state, other_state, f"{type(exc).__name__}: {exc}")
-
-
 class SolverFailure(RuntimeError):
     """A planning call failed (raised, or produced non-finite output)."""
 
