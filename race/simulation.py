@@ -28,8 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planning import ProgressUnwrapper, frenet_state
-from planning.frenet import S
+from planning import ProgressUnwrapper
 from race.commands import physical_command
 from race.config import LoopConfig
 from race.loop import CarBinding, PlannerErrorRecord, RaceLoop, SimulatedDeadlineMonitor
@@ -129,8 +128,7 @@ class SimWorld:
         self.progress, self.interrupt = progress, interrupt
         self._events: list[tuple] = []
         self._observed = -1
-        x0 = sim.states
-        self._unwrap = ProgressUnwrapper(setup.track, [frenet_state(setup.track, x0[i])[S] for i in range(len(x0))])
+        self._unwrap = ProgressUnwrapper(setup.track, self._arc_lengths(sim.states))
         self.trace_t: list[float] = []
         self.trace_states: list[np.ndarray] = []
         self.trace_progress: list[np.ndarray] = []
@@ -158,11 +156,14 @@ class SimWorld:
             self.referee.observe(self.sim.time, states)
             self.trace_t.append(self.sim.time)
             self.trace_states.append(states)
-            self.trace_progress.append(self._unwrap.update(
-                np.array([frenet_state(self.setup.track, states[i])[S] for i in range(len(states))])).copy())
+            self.trace_progress.append(self._unwrap.update(self._arc_lengths(states)).copy())
         events, self._events = self._events, []
         return WorldPacket(truth=self.sim.states, t_race=self.sim.time if started else None,
                            t_truth=self.clock.now(), events=events, winner=winner)
+
+    def _arc_lengths(self, states: np.ndarray) -> np.ndarray:
+        """Every car's s along the track (one vectorised projection, as planning.frenet_state's s)."""
+        return self.setup.track.to_frenet(states[:, 0], states[:, 1], states[:, 2])[0]
 
     def _advance(self) -> None:
         if self.t_go is None:
