@@ -456,7 +456,7 @@ def run(formats: list[str], per_format: int, seed: int, workdir: Path, offsets: 
 
 def markdown(report: dict, command: str, load: tuple[float, float]) -> str:
     lines = [f"`{command}` (1-min load average {load[0]:.1f} at the start, {load[1]:.1f} at the end; 2 cores)", "",
-             "| format (command) | cases | rejected (exit 2, names the place) | accepted | failures | time (s) |",
+             "| format (command) | cases | rejected (exit 2, message naming the file) | accepted | failures | time (s) |",
              "|---|---|---|---|---|---|"]
     for name, c in report["formats"].items():
         cmd = FORMATS[name].argv(Path("F"), Path("O"), Seeds(Path(".")))[0]
