@@ -37,6 +37,8 @@ from tracking.geometry import PinholeCamera
 from tracks import TrackFormatError, load_track
 from tracks.io import DATA_DIR
 from vehicles.params import VEHICLES_DIR, CarParamsError, load_car_params
+from vehicles.fhss import FhssEncoder, ServoCalibration
+from vehicles.link_capture import CaptureError, decode_capture, read_capture
 from vehicles.protocol import FULL_SCALE, CarCommand, FrameDecoder, encode_frame
 
 WEIRD_VALUES = [None, True, False, 0, -1, 1, 0.5, -0.0, 1e-320, 1e308, 2**31, 2**63, 10**400, float("nan"),
@@ -304,8 +306,6 @@ def csv_inputs() -> st.SearchStrategy:
 
 def capture_seed() -> bytes:
     """A link capture as vehicles.link_capture.LinkCapture writes it: '<seconds> tx|rx <lowercase hex>'."""
-    from vehicles.fhss import FhssEncoder, ServoCalibration
-
     encoder = FhssEncoder([ServoCalibration(0, 0.47, 0.40, 0.52), ServoCalibration(5, 0.47, 0.47, 0.47)])
     lines = [f"{0.02 * k:.6f} tx {encoder.encode(k, {5: CarCommand(0.1 * (k % 3), 0.5)}).hex()}" for k in range(8)]
     lines.append(f"{0.17:.6f} rx {b'box' .hex()}0d0a")
@@ -436,14 +436,10 @@ def _log_error():
 
 
 def _capture_load(path: Path):
-    from vehicles.link_capture import decode_capture, read_capture
-
     return decode_capture(read_capture(path), "buzzracer-fhss")
 
 
 def _capture_error():
-    from vehicles.link_capture import CaptureError
-
     return CaptureError
 
 

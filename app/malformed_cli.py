@@ -21,7 +21,7 @@ Anything else (another exit code, a traceback, a signal, a timeout, a partial ou
 Some mutations can never give a valid file (a NaN string or a type swap where only numbers are
 allowed, text cut inside JSON, re-encoding as UTF-16): for those acceptance is a failure too.
 
-    python -m bench.malformed_cli [--formats all] [--per-format N] [--seed S] [--json out.json]
+    python -m app.malformed_cli [--formats all] [--per-format N] [--seed S] [--json out.json]
 """
 from __future__ import annotations
 
@@ -40,6 +40,19 @@ import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
+
+from app.cli import build_parser, main as cli_main
+from bench.merging import merging_problem
+from fileio import atomic_write_text
+from sim.camera import SyntheticCamera, overhead_camera
+from solver_cpp.problem_file import problem_to_dict
+from sysid.generate import generate_log
+from sysid.log import write_log_csv
+from tracking.calibration import Intrinsics, load_fixed_markers, save_intrinsics
+from vehicles.fhss import FhssEncoder, ServoCalibration
+from vehicles.link_capture import LinkCapture
+from vehicles.params import load_car_params
+from vehicles.protocol import CarCommand
 
 ROOT = Path(__file__).resolve().parent.parent
 WORDS = re.compile(r"\b(line|row|column|byte|offset|char|position|empty|end of document)\b", re.I)
@@ -108,16 +121,6 @@ def make_seeds(folder: Path) -> Seeds:
     import cv2
     import numpy as np
 
-    from bench.merging import merging_problem
-    from sim.camera import SyntheticCamera, overhead_camera
-    from solver_cpp.problem_file import problem_to_dict
-    from sysid.generate import generate_log
-    from sysid.log import write_log_csv
-    from tracking.calibration import Intrinsics, load_fixed_markers, save_intrinsics
-    from vehicles.fhss import FhssEncoder, ServoCalibration
-    from vehicles.link_capture import LinkCapture
-    from vehicles.params import load_car_params
-    from vehicles.protocol import CarCommand
 
     s = Seeds(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -178,9 +181,8 @@ def run_cli(argv: list, workdir: Path, timeout_s: float) -> tuple[int | str, str
             sys.stdout = open(1, "w", encoding="utf-8", errors="backslashreplace", closefd=False)
             sys.stderr = open(2, "w", encoding="utf-8", errors="backslashreplace", closefd=False)
             signal.signal(signal.SIGINT, signal.default_int_handler)
-            from app.cli import main
             try:
-                code = main([str(a) for a in argv])
+                code = cli_main([str(a) for a in argv])
             except SystemExit as exc:  # argparse and sys.exit: as the interpreter would report it
                 code = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
                 if isinstance(exc.code, str):
@@ -480,17 +482,15 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [n for n in names if n not in FORMATS]
     if unknown:
         p.error(f"unknown format(s) {', '.join(unknown)}; known: {', '.join(FORMATS)}")
-    import app.cli  # once, in the parent: every forked child starts with the commands imported
-    app.cli.build_parser()
+    build_parser()  # once, in the parent: every forked child starts with the commands imported
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="rd3g-malformed-"))
     load0 = os.getloadavg()[0]
     report = run(names, args.per_format, args.seed, workdir, args.offsets,
                  progress=(lambda s: print(s, flush=True)) if args.verbose else None)
-    md = markdown(report, "python -m bench.malformed_cli " + " ".join(argv if argv is not None else sys.argv[1:]),
+    md = markdown(report, "python -m app.malformed_cli " + " ".join(argv if argv is not None else sys.argv[1:]),
                   (load0, os.getloadavg()[0]))
     print(md)
     if args.json:
-        from fileio import atomic_write_text
         atomic_write_text(args.json, json.dumps(report, indent=1) + "\n")
     return 1 if report["failures"] else 0
 
