@@ -158,6 +158,7 @@ class Solver {
   std::mt19937 rng_;                    // restart offsets: the same sequence in every solve
   std::normal_distribution<double> noise_{0.0, 1.0};
   std::vector<double> merits_;          // merit per iteration of the current attempt
+  std::vector<double> violations_;      // total violation per iteration of the current attempt
   bool timed_out_ = false;              // the deadline passed inside a step
   double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
   double ldlt_flop_rate_ = 0;           // measured speed of its last regularised LDLT factorisation (flop/s)
