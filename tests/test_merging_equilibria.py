@@ -163,7 +163,7 @@ def test_rho_progress_and_non_monotone_violation_test_rescue_a_dense_crossing():
     problem = family_problem("crossing", 5, 3)
     paper = solve(problem, max_iter=150)
     assert not paper.converged
-    result = solve(problem, max_iter=150, rho_progress=10.0, violation_memory=4)
+    result = solve(problem, max_iter=150, rho_progress=10.0, rho_on_stall=True, violation_memory=4)
     assert result.converged
     assert np.all(result.second_order > 0)
     report = verify_equilibrium(problem, result.x, result.u, best_response_starts=0)
