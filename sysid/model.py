@@ -103,15 +103,20 @@ def _segment(a: np.ndarray, target: np.ndarray, rate: float, length, w: np.ndarr
     return end, mean, w_end, w_mean
 
 
-# Actuation per (trajectory, windows, actuator parameters); the trajectory is held weakly so a new one
-# with the id of a collected one cannot hit.
-_ACTUATION_CACHE: dict[tuple, tuple[weakref.ref, Actuation]] = {}
+# The actuator chain up to the play (delays, limits, rate limits, play), per channel and per (trajectory,
+# windows, the channel's parameters): the throttle, the linkage angle. The asymmetry and the motor drift act
+# after it and are applied per car, so a fit of those, or of the other channel, reuses it. The trajectory is
+# held weakly so a new one with the id of a collected one cannot hit.
+_CHAIN_CACHE: dict[tuple, tuple[weakref.ref, np.ndarray]] = {}
+THROTTLE, STEERING = "throttle", "steering"
 
 
-def _actuation_key(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n_sub: int) -> tuple:
-    c = car.corrections
-    return (id(traj), first.tobytes(), steps, n_sub, c.steering_delay_s, c.throttle_delay_s,
-            c.steering_backlash_rad, c.steering_gain_asymmetry, c.motor_force_drift_per_s, car.actuators)
+def _chain_key(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n_sub: int, channel: str) -> tuple:
+    c, a = car.corrections, car.actuators
+    where = (id(traj), first.tobytes(), steps, n_sub, channel)
+    if channel == THROTTLE:
+        return where + (c.throttle_delay_s, a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s)
+    return where + (c.steering_delay_s, c.steering_backlash_rad, a.max_steering_rad, a.steering_rate_limit_radps)
 
 
 def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n_sub: int) -> Actuation:
@@ -120,136 +125,135 @@ def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n
 
     The actuators start at the delayed, limited command ACTUATOR_RUN_IN_S before ``first`` (or at the
     segment start) and run over the run-in unrecorded. Cached on the actuator parameters: a fit that
-    varies only gain, offset, drag or grip reuses it.
+    varies only gain, offset, drag, grip, asymmetry or drift reuses the chain.
     """
     return actuations(traj, first, steps, [car], n_sub)[0]
 
 
 def actuations(traj: Trajectory, first: np.ndarray, steps: int, cars: Sequence[CarParams],
                n_sub: int) -> list[Actuation]:
-    """:func:`actuation` of several cars; the ones not cached run in one batch (cars x windows)."""
-    keys = [_actuation_key(traj, first, steps, c, n_sub) for c in cars]
-    out: dict[tuple, Actuation] = {}
-    for key in keys:
-        hit = _ACTUATION_CACHE.get(key)
-        if hit is not None and hit[0]() is traj:
-            out[key] = hit[1]
-    todo: dict[tuple, CarParams] = {}
-    for key, car in zip(keys, cars):
-        if key not in out:
-            todo.setdefault(key, car)
-    by_actuators: dict = {}
-    for key, car in todo.items():  # one batch per actuator declaration (limits and rates are scalars)
-        by_actuators.setdefault(car.actuators, []).append((key, car))
-    for group in by_actuators.values():
-        for (key, _), act in zip(group, _actuation_batch(traj, first, steps, [c for _, c in group], n_sub)):
-            out[key] = act
-            if len(_ACTUATION_CACHE) > 64:
-                _ACTUATION_CACHE.clear()
-            _ACTUATION_CACHE[key] = (weakref.ref(traj), act)
-    return [out[key] for key in keys]
-
-
-def _actuation_batch(traj: Trajectory, first: np.ndarray, steps: int, cars: list[CarParams],
-                     n_sub: int) -> list[Actuation]:
-    """The chain of :func:`actuation` for S cars sharing their actuator declaration: arrays (S, N)."""
-    act = cars[0].actuators
-    corr = [c.corrections for c in cars]
-    run_in = np.minimum(int(round(ACTUATOR_RUN_IN_S / traj.dt)), first - traj.seg_start[first])
-    begin = first - run_in
-    n_run = int(run_in.max()) if run_in.size else 0
-    pieces = n_sub * PIECES_PER_SUBSTEP
-    length = traj.dt / pieces
-    last = traj.throttle.size - 1
-    seg_first = traj.seg_start[first]
-    js = np.arange(-n_run, steps)
-    channels = []
-    for command, delay, lo, hi, rate in (
-            (traj.throttle, [c.throttle_delay_s for c in corr], act.throttle_min, act.throttle_max,
-             act.throttle_rate_limit_per_s),
-            (traj.steering, [c.steering_delay_s for c in corr], -act.max_steering_rad, act.max_steering_rad,
-             act.steering_rate_limit_radps)):
-        offset, weight = _piece_weights(delay, traj.dt, pieces)  # (S, pieces)
-        limited = np.clip(command, lo, hi)
-        # Per piece p: the held command at the piece's start and after its switch, for every step of every
-        # window of every car (steps, S, N), and the fraction f of the piece before the switch (S, 1).
-        base = first[None, None, :] + js[:, None, None]
-        pieces_of = []
-        for p in range(pieces):
-            at = base + offset[None, :, p, None]
-            f = weight[:, p, None]
-            pieces_of.append((limited[np.clip(at, seg_first, last)], limited[np.clip(at + 1, seg_first, last)],
-                              f, bool(np.all(f >= 1.0)), f * length, (1.0 - f) * length))
-
-        def move(a: np.ndarray, i: int, p: int, w=None, half=0.0, pieces_of=pieces_of, rate=rate):
-            """_segment over piece p of step i: the held command switches once inside the piece, after
-            the fraction f of it (exact for the shifted zero-order hold; continuous in the delay).
-            Cars whose command does not switch (f = 1) get a zero-length second part."""
-            targets, targets_after, f, whole, f_length, rest_length = pieces_of[p]
-            if whole:
-                return _segment(a, targets[i], rate, length, w, half)
-            one = _segment(a, targets[i], rate, f_length, w, half)
-            two = _segment(one[0], targets_after[i], rate, rest_length, None if w is None else one[2], half)
-            if w is None:
-                return two[0], f * one[1] + (1.0 - f) * two[1]
-            return two[0], f * one[1] + (1.0 - f) * two[1], two[2], f * one[3] + (1.0 - f) * two[3]
-
-        def start_value(k: np.ndarray, offset=offset, weight=weight, limited=limited) -> np.ndarray:
-            return limited[np.clip(k + offset[:, 0, None] + (weight[:, 0, None] <= 0.0), seg_first, last)]
-
-        channels.append((move, start_value))
-    (throttle_move, throttle_start), (steer_move, steer_start) = channels
-    # Windows with a shorter run-in (near a segment start) hold their first target until their own start.
-    k0 = np.maximum(begin, first - n_run)
-    u = throttle_start(k0)
-    s = steer_start(k0)
-    w = s.copy()
-    half = 0.5 * np.array([c.steering_backlash_rad for c in corr])[:, None]
-    play = half > 0.0  # cars without play: the linkage is the servo (the plain path, not a zero play)
-    any_play = bool(play.any())
-    n_cars = len(cars)
-    thr_out = np.empty((n_cars, first.size, steps, n_sub))
-    steer_out = np.empty((n_cars, first.size, steps, n_sub))
-    thr_acc = np.zeros((n_cars, first.size))
-    steer_acc = np.zeros((n_cars, first.size))
-    for i, j in enumerate(js):
-        # Before its own run-in a window's actuators hold; from j = 0 on every window is running.
-        active = None if j >= 0 else first + j >= begin
-        for p in range(pieces):
-            u_end, u_mean = throttle_move(u, i, p)
-            if any_play:
-                s_end, s_mean, w_end, w_mean = steer_move(s, i, p, w, half)
-                w = w_end if active is None else np.where(active, w_end, w)
-                if not play.all():
-                    w_mean = np.where(play, w_mean, s_mean)
-            else:
-                s_end, s_mean = steer_move(s, i, p)
-                w_mean = s_mean
-            u = u_end if active is None else np.where(active, u_end, u)
-            s = s_end if active is None else np.where(active, s_end, s)
-            if j >= 0:
-                if PIECES_PER_SUBSTEP == 1:
-                    thr_out[:, :, j, p] = u_mean
-                    steer_out[:, :, j, p] = w_mean
-                    continue
-                thr_acc += u_mean
-                steer_acc += w_mean
-                if (p + 1) % PIECES_PER_SUBSTEP == 0:
-                    q = p // PIECES_PER_SUBSTEP
-                    thr_out[:, :, j, q] = thr_acc / PIECES_PER_SUBSTEP
-                    steer_out[:, :, j, q] = steer_acc / PIECES_PER_SUBSTEP
-                    thr_acc[:] = 0.0
-                    steer_acc[:] = 0.0
+    """:func:`actuation` of several cars; the channels not cached run in one batch (cars x windows)."""
+    chains: dict[tuple, np.ndarray] = {}
+    for channel in (THROTTLE, STEERING):
+        todo: dict[tuple, CarParams] = {}
+        for car in cars:
+            key = _chain_key(traj, first, steps, car, n_sub, channel)
+            hit = _CHAIN_CACHE.get(key)
+            if hit is not None and hit[0]() is traj:
+                chains[key] = hit[1]
+            elif key not in chains:
+                todo.setdefault(key, car)
+        if not todo:
+            continue
+        for key, chain in zip(todo, _actuation_batch(traj, first, steps, list(todo.values()), n_sub, channel)):
+            chains[key] = chain
+            if len(_CHAIN_CACHE) > 256:
+                _CHAIN_CACHE.clear()
+            _CHAIN_CACHE[key] = (weakref.ref(traj), chain)
     out = []
-    for i, c in enumerate(corr):
-        steering = steer_out[i]
+    for car in cars:
+        c = car.corrections
+        throttle = chains[_chain_key(traj, first, steps, car, n_sub, THROTTLE)]
+        steering = chains[_chain_key(traj, first, steps, car, n_sub, STEERING)]
         if c.steering_gain_asymmetry != 0.0:
             steering = asymmetric(steering, c.steering_gain_asymmetry)
         motor_scale = None
         if c.motor_force_drift_per_s != 0.0:
             t_mid = traj.t[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt - traj.t[0]
             motor_scale = motor_force_scale(c.motor_force_drift_per_s, t_mid)
-        out.append(Actuation(thr_out[i], steering, motor_scale))
+        out.append(Actuation(throttle, steering, motor_scale))
+    return out
+
+
+def _actuation_batch(traj: Trajectory, first: np.ndarray, steps: int, cars: list[CarParams], n_sub: int,
+                     channel: str) -> list[np.ndarray]:
+    """One channel of :func:`actuation`'s chain, up to the play, for S cars (computed on arrays (S, N)):
+    per car the mean throttle or linkage angle (before the asymmetry) per sub-step, (N, steps, n_sub)."""
+    groups: dict[tuple, list[int]] = {}  # limits and rate are scalars within a batch
+    for i, car in enumerate(cars):
+        a = car.actuators
+        limits = ((a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s) if channel == THROTTLE
+                  else (-a.max_steering_rad, a.max_steering_rad, a.steering_rate_limit_radps))
+        groups.setdefault(limits, []).append(i)
+    out: list = [None] * len(cars)
+    for (lo, hi, rate), members in groups.items():
+        corr = [cars[i].corrections for i in members]
+        if channel == THROTTLE:
+            chain = _chain(traj, first, steps, n_sub, traj.throttle, [c.throttle_delay_s for c in corr], lo, hi, rate,
+                           None)
+        else:
+            chain = _chain(traj, first, steps, n_sub, traj.steering, [c.steering_delay_s for c in corr], lo, hi, rate,
+                           [c.steering_backlash_rad for c in corr])
+        for i, c in zip(members, chain):
+            out[i] = c
+    return out
+
+
+def _chain(traj: Trajectory, first: np.ndarray, steps: int, n_sub: int, command: np.ndarray, delay: list[float],
+           lo: float, hi: float, rate: float, backlash: list[float] | None) -> np.ndarray:
+    """Delay, limits, rate limit and (``backlash`` given) play of one command for S cars: (S, N, steps, n_sub)."""
+    run_in = np.minimum(int(round(ACTUATOR_RUN_IN_S / traj.dt)), first - traj.seg_start[first])
+    begin = first - run_in
+    n_run = int(run_in.max()) if run_in.size else 0
+    pieces = n_sub * PIECES_PER_SUBSTEP
+    length = traj.dt / pieces
+    last = command.size - 1
+    seg_first = traj.seg_start[first]
+    js = np.arange(-n_run, steps)
+    offset, weight = _piece_weights(delay, traj.dt, pieces)  # (S, pieces)
+    limited = np.clip(command, lo, hi)
+    # Per piece p: the held command at the piece's start and after its switch, for every step of every
+    # window of every car (steps, S, N), and the fraction f of the piece before the switch (S, 1).
+    base = first[None, None, :] + js[:, None, None]
+    pieces_of = []
+    for p in range(pieces):
+        at = base + offset[None, :, p, None]
+        f = weight[:, p, None]
+        pieces_of.append((limited[np.clip(at, seg_first, last)], limited[np.clip(at + 1, seg_first, last)],
+                          f, bool(np.all(f >= 1.0)), f * length, (1.0 - f) * length))
+
+    def move(a: np.ndarray, i: int, p: int, w=None, half=0.0):
+        """_segment over piece p of step i: the held command switches once inside the piece, after
+        the fraction f of it (exact for the shifted zero-order hold; continuous in the delay).
+        Cars whose command does not switch (f = 1) get a zero-length second part."""
+        targets, targets_after, f, whole, f_length, rest_length = pieces_of[p]
+        if whole:
+            return _segment(a, targets[i], rate, length, w, half)
+        one = _segment(a, targets[i], rate, f_length, w, half)
+        two = _segment(one[0], targets_after[i], rate, rest_length, None if w is None else one[2], half)
+        if w is None:
+            return two[0], f * one[1] + (1.0 - f) * two[1]
+        return two[0], f * one[1] + (1.0 - f) * two[1], two[2], f * one[3] + (1.0 - f) * two[3]
+
+    # Windows with a shorter run-in (near a segment start) hold their first target until their own start.
+    k0 = np.maximum(begin, first - n_run)
+    s = limited[np.clip(k0 + offset[:, 0, None] + (weight[:, 0, None] <= 0.0), seg_first, last)]
+    w = s.copy()
+    half = 0.5 * np.array(backlash or [0.0] * len(delay))[:, None]
+    play = half > 0.0  # cars without play: the linkage is the servo (the plain path, not a zero play)
+    any_play = bool(play.any())
+    out = np.empty((len(delay), first.size, steps, n_sub))
+    acc = np.zeros((len(delay), first.size))
+    for i, j in enumerate(js):
+        # Before its own run-in a window's actuators hold; from j = 0 on every window is running.
+        active = None if j >= 0 else first + j >= begin
+        for p in range(pieces):
+            if any_play:
+                s_end, s_mean, w_end, w_mean = move(s, i, p, w, half)
+                w = w_end if active is None else np.where(active, w_end, w)
+                if not play.all():
+                    w_mean = np.where(play, w_mean, s_mean)
+            else:
+                s_end, w_mean = move(s, i, p)
+            s = s_end if active is None else np.where(active, s_end, s)
+            if j >= 0:
+                if PIECES_PER_SUBSTEP == 1:
+                    out[:, :, j, p] = w_mean
+                    continue
+                acc += w_mean
+                if (p + 1) % PIECES_PER_SUBSTEP == 0:
+                    out[:, :, j, p // PIECES_PER_SUBSTEP] = acc / PIECES_PER_SUBSTEP
+                    acc[:] = 0.0
     return out
 
 
@@ -289,7 +293,7 @@ def _with_motor_scale(k: ModelCoefficients, scale: np.ndarray | None) -> ModelCo
 
 # Predictions per (trajectory, windows, horizon, setup), least recently used dropped beyond the byte cap: a
 # selection evaluates the same model on the same windows several times (a fit's start, refits from the same
-# point, the judged models). Arrays are read-only; the trajectory is held weakly (see _ACTUATION_CACHE).
+# point, the judged models). Arrays are read-only; the trajectory is held weakly (see _CHAIN_CACHE).
 _PREDICTION_CACHE: OrderedDict[tuple, tuple[weakref.ref, np.ndarray]] = OrderedDict()
 PREDICTION_CACHE_BYTES = 64 * 2 ** 20
 
