@@ -185,12 +185,18 @@ def test_kinematic_prediction_matches_solver_cpp_kinematic_bicycle_at_fine_steps
     assert abs(ours[-1, 2] - x[3]) < 1e-3 and abs(ours[-1, 3] - x[2]) < 1e-3
 
 
-def test_dynamic_prediction_reproduces_a_noise_free_simulation():
+@pytest.fixture(scope="module")
+def noise_free_traj():
+    """15 s of the nominal car, no measurement noise (shared by the predictor tests)."""
+    log = generate_log(CAR, {}, 0.25, seed=5, position_noise_m=0.0, heading_noise_rad=0.0, physics_dt=0.002)
+    return build_trajectory(log)
+
+
+def test_dynamic_prediction_reproduces_a_noise_free_simulation(noise_free_traj):
     # Generated with the nominal car: the predictor's dynamic model is the simulator's physics, so
     # one-second predictions from the estimated states land within millimetres (actuator rate limits
     # and state estimation from poses are the only differences).
-    log = generate_log(CAR, {}, 0.25, seed=5, position_noise_m=0.0, heading_noise_rad=0.0, physics_dt=0.002)
-    traj = build_trajectory(log)
+    traj = noise_free_traj
     starts = np.arange(10, 190, 5)
     pred = predict(traj, starts, 30, ModelSetup(CAR, dynamic=True))
     err = np.hypot(pred[:, -1, 0] - traj.x[starts + 30], pred[:, -1, 1] - traj.y[starts + 30])
@@ -200,7 +206,7 @@ def test_dynamic_prediction_reproduces_a_noise_free_simulation():
     assert np.sqrt(np.mean(err_kin**2)) > 5 * np.sqrt(np.mean(err**2))  # the planner's model misses tyre slip
 
 
-def test_hot_path_rates_and_batched_setups_equal_the_model_one_at_a_time():
+def test_hot_path_rates_and_batched_setups_equal_the_model_one_at_a_time(noise_free_traj):
     """The predictor's rates (input terms once per sub-step, vx/vy/yaw-rate rates without the pose) equal
     vehicles.dynamic_bicycle.derivative in all three speed regimes, and stacked setups (different delays,
     play, asymmetry, drift, gain) predict what each predicts alone."""
@@ -217,8 +223,7 @@ def test_hot_path_rates_and_batched_setups_equal_the_model_one_at_a_time():
         got = np.column_stack(body_rates(state[:, 3], state[:, 4], state[:, 5], input_terms(u[:, 0], u[:, 1], k), k))
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
-    log = generate_log(CAR, {}, 0.25, seed=8, physics_dt=0.002)
-    traj = build_trajectory(log)
+    traj = noise_free_traj
     starts = np.arange(20, 180, 7)
     cars = [dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, **c)) for c in (
         {}, {"steering_delay_s": 0.03, "throttle_delay_s": 0.011}, {"steering_backlash_rad": 0.05},
@@ -236,10 +241,9 @@ def test_fits_side_by_side_equal_the_fits_alone(monkeypatch):
     from sysid.diagnose import CANDIDATES, SysidSettings, fit_candidates, split_starts
     from sysid.lockstep import side_by_side
 
-    log = generate_log(CAR, parse_effects("actuation_delay=0.05"), 0.4, seed=9,
-                       physics_dt=0.002)
+    log = generate_log(CAR, parse_effects("actuation_delay=0.05"), 0.3, seed=9, physics_dt=0.002)
     traj = build_trajectory(log)
-    settings = SysidSettings(fit_max_starts=40, heldout_max_starts=100)
+    settings = SysidSettings(fit_max_starts=30, heldout_max_starts=100)
     split = split_starts(traj, 30, settings)
     base = ModelSetup(CAR, dynamic=True)
     cands = [c for c in CANDIDATES if c.effect in ("steering_offset", "actuation_delay", "steering_backlash")]
