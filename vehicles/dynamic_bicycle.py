@@ -181,8 +181,10 @@ def pacejka(slip, b, c, peak, e, xp=np, slope: bool = True):
     return force, slope
 
 
-class _Inputs(SimpleNamespace):
+class _Inputs:
     """Quantities of the input alone (constant while the input is held, e.g. over an RK4 step)."""
+
+    __slots__ = ("throttle", "delta", "cos_d", "sin_d", "tan_d", "root", "abs_u", "motor")
 
 
 def input_terms(throttle, steering, k: ModelCoefficients, xp=np) -> _Inputs:
@@ -192,8 +194,11 @@ def input_terms(throttle, steering, k: ModelCoefficients, xp=np) -> _Inputs:
     i = _Inputs()
     i.throttle = throttle
     i.delta = delta = k.steering_gain * steering + k.steering_offset
-    i.cos_d, i.sin_d = _cos_sin(delta, xp)
-    i.tan_d = i.sin_d / i.cos_d if xp is np else xp.tan(delta)
+    if xp is np:
+        i.cos_d, i.sin_d = _cos_sin(delta, xp)
+        i.tan_d = i.sin_d / i.cos_d
+    else:
+        i.cos_d, i.sin_d, i.tan_d = xp.cos(delta), xp.sin(delta), xp.tan(delta)
     eps = k.throttle_smoothing
     i.root = xp.sqrt(throttle * throttle + eps * eps)
     i.abs_u = i.root - eps
@@ -208,7 +213,8 @@ def drive_force(vx, throttle, k: ModelCoefficients, xp=np, partials: bool = True
     force is differentiable at zero throttle.
     """
     eps = k.throttle_smoothing
-    i = _Inputs(throttle=throttle, root=xp.sqrt(throttle * throttle + eps * eps), motor=k.motor_force * throttle)
+    i = _Inputs()
+    i.throttle, i.root, i.motor = throttle, xp.sqrt(throttle * throttle + eps * eps), k.motor_force * throttle
     i.abs_u = i.root - eps
     return _drive_force(vx, i, k, xp, partials)
 
@@ -287,7 +293,7 @@ def _terms(vx, vy, r, i: _Inputs, k: ModelCoefficients, xp, slopes: bool, kinema
 
 def pose_rates(heading, vx, vy, r, xp=np):
     """World-frame velocity of the CG and the heading rate."""
-    cos_h, sin_h = _cos_sin(heading, xp)
+    cos_h, sin_h = _cos_sin(heading, np) if xp is np else (xp.cos(heading), xp.sin(heading))
     return vx * cos_h - vy * sin_h, vx * sin_h + vy * cos_h, r
 
 
