@@ -35,14 +35,19 @@ class StageBudgets:
     telemetry: float = 1.5
 
 
+# Fields that may be 0: the simulated world's lock-step timing (no delay, no linger).
+_MAY_BE_ZERO = ("plan_ticks", "command_delay_s", "linger_s")
+
+
 @dataclass(frozen=True)
 class LoopConfig:
     rate_hz: float = 60.0            # loop ticks per second
     plan_hz: float = 30.0            # planning jobs per second (asynchronous, latest plan applied)
     link_hz: float = 120.0           # serial frames per second (SerialCarLink sender)
     # A plan made at tick k is applied at tick k + plan_ticks (a late plan: at the first tick after it is
-    # done), so every plan acts after the same, known delay, as in the simulated race, whatever its solve
-    # time. Applied as soon as done, plans acted 17 ms early or on time depending on the solve.
+    # done), so every plan acts after the same, known delay whatever its solve time. Applied as soon as
+    # done, plans acted 17 ms early or on time depending on the solve. 0: the plan of tick k's
+    # observation is applied at tick k (the simulated world's lock-step timing, race.simulation).
     plan_ticks: int = 2
     # From a tick's scheduled start until the cars act on the command that tick sends: the loop's stages
     # before the command, the link's 120 Hz cadence, relay and box (HIL; on hardware add the radio and
@@ -53,28 +58,39 @@ class LoopConfig:
     lost_search_every: int = 6       # full-frame marker search every n frames while a car is lost
     serial_quiet_s: float = 0.3      # HIL: corrupt-frame counter unchanged this long = stream healthy again
     acquire_timeout_s: float = 10.0  # pre-race: time to find every car
-    linger_s: float = 0.3            # HIL: keep reading the world's events this long after the race
+    linger_s: float = 0.3            # HIL: keep reading the world's events this long after the race (0: stop at once)
     stop_after_hold_s: float = 3.0   # cars held neutral (any safety hold) this long without a break: stop the race
     acquire_measurements: int = 5    # pre-race: accepted measurements per car before the start
     image_log_every: int = 6         # log every n-th camera frame (downsampled) to the recording
     image_downscale: int = 4
+    # A plan in which a car's planner failed (race.planning, one policy: plan_step gives that car its
+    # fallback plan with the error): True holds every car neutral until a good plan arrives (real cars,
+    # where any fault sends neutral first); False applies the plan, fallback included, and logs a
+    # ``planner_error`` event (the simulated race: it measures the planners, and a hold would also
+    # stop the other car). A job that produced no plan at all is a hold either way.
+    hold_on_planner_error: bool = True
     budgets: StageBudgets = field(default_factory=StageBudgets)
 
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
+            if f.type == "bool":
+                if not isinstance(v, bool):
+                    raise LoopConfigError(f"{f.name}: must be true or false, got {v!r}")
+                continue
             if f.name == "budgets":
                 for b in fields(v):
                     bv = getattr(v, b.name)
                     if not (isinstance(bv, (int, float)) and math.isfinite(bv) and bv > 0):
                         raise LoopConfigError(f"budgets.{b.name}: must be a positive number of ms, got {bv!r}")
                 continue
-            if isinstance(f.default, int) and not isinstance(f.default, bool) and f.type in ("int",):
-                if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                    raise LoopConfigError(f"{f.name}: must be an integer >= 1, got {v!r}")
+            lowest = 0 if f.name in _MAY_BE_ZERO else 1
+            if f.type == "int":
+                if isinstance(v, bool) or not isinstance(v, int) or v < lowest:
+                    raise LoopConfigError(f"{f.name}: must be an integer >= {lowest}, got {v!r}")
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise LoopConfigError(f"{f.name}: must be a positive number, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (v == 0 and lowest):
+                raise LoopConfigError(f"{f.name}: must be a {'non-negative' if not lowest else 'positive'} number, got {v!r}")
         if self.plan_hz > self.rate_hz:
             raise LoopConfigError(f"plan_hz: must not exceed rate_hz ({self.rate_hz}), got {self.plan_hz}")
 

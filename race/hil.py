@@ -37,7 +37,7 @@ import numpy as np
 
 from race.commands import physical_command
 from race.config import FaultSpec, lower_realtime_priority
-from race.referee import fault_of
+from race.referee import event_text, fault_of
 from race.setup import CAR_NAMES
 from race.world import WorldPacket
 from sim import Simulator
@@ -484,10 +484,9 @@ class _World:
                 if ev.kind == "collision":
                     who = CAR_NAMES[self.fault_of(sim.states)]
                     self.collisions.append({"time_s": ev.time, "at_fault": who})
-                    self.events.append((ev.time, "collision", f"{CAR_NAMES[ev.car]} (fault {who})"))
+                    self.events.append((ev.time, "collision", event_text(ev, who)))
                 elif ev.kind in ("lap", "finished", "off_track"):
-                    extra = f" lap {ev.lap} in {ev.lap_time:.3f} s" if ev.kind == "lap" else ""
-                    self.events.append((ev.time, ev.kind, f"{CAR_NAMES[ev.car]}{extra}"))
+                    self.events.append((ev.time, ev.kind, event_text(ev)))
 
     # ---- main loop
     def run(self) -> None:

@@ -1,7 +1,9 @@
-"""The real-time race loop: frame -> detect -> estimate -> plan -> command -> telemetry at a fixed rate.
+"""The race loop: frame -> detect -> estimate -> plan -> command -> telemetry at a fixed rate.
 
-One loop for the hardware-in-the-loop simulation (``--hil``) and real hardware (``--camera``):
-only the frame feed differs (``race.hil.HilWorld`` or ``app.realtime.hardware.CameraFeed``).
+One loop for every mode; only the world behind it differs: the pure simulation
+(``race.simulation.SimWorld`` on a ``SimulatedClock``, true states as the observation, lock-step
+timing: ``plan_ticks = 0``), the hardware-in-the-loop simulation (``--hil``, ``race.hil.HilWorld``) and
+real hardware (``--camera``, ``app.realtime.hardware.CameraFeed``), both in real time.
 
 * Tick k starts at t_go + k T (T = 1 / rate_hz) and must issue its command by t_go + (k+1) T (its
   deadline). Every stage is timed. A tick that starts more than a period late skips the ticks it
@@ -15,11 +17,17 @@ only the frame feed differs (``race.hil.HilWorld`` or ``app.realtime.hardware.Ca
   (``held_neutral``) when holds have lasted ``stop_after_hold_s`` without a break. A serial link
   fault (device gone) ends the race: the link cannot be reopened (docs/serial-protocol.md); the
   transmitter box's failsafe keeps the cars neutral.
-* Planning is asynchronous (``race.planning.PlannerWorker``): a job every rate_hz / plan_hz
+* Planning is asynchronous in real time (``race.planning.PlannerWorker``): a job every rate_hz / plan_hz
   ticks for the instant t_plan = its tick + ``plan_latency_s`` (plan_ticks periods + command_delay_s)
   when its command will act; the plan is applied at tick k + plan_ticks, not earlier, and its first
   control is held (zero-order hold) until the next plan is due. The commanded cars are predicted to
-  t_plan through the controls the loop has sent them (``PlanJob.in_flight``).
+  t_plan through the controls the loop has sent them (``PlanJob.in_flight``). With plan_ticks = 0
+  the job is submitted before the tick's plan is chosen, so a synchronous runner
+  (``race.planning.SyncPlanRunner``, the simulated race) applies the plan of a tick's observation at
+  that tick.
+* A planner's failure (race.planning, one policy) holds the cars neutral or applies the failing car's
+  fallback plan, as ``LoopConfig.hold_on_planner_error`` says; planner wall times (``solve_ms``) are
+  measured on the wall clock whatever the loop's clock.
 """
 from __future__ import annotations
 
@@ -38,14 +46,15 @@ import numpy as np
 from race.commands import link_command
 from race.config import STAGES, FaultSpec, LoopConfig
 from race.faults import FailingPlanners, NanStateEstimator
-from race.perception import Perception, body_state
-from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between
+from race.perception import Perception
+from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between, planner_errors
 from race.recording import record_car, record_plan
-from race.referee import Referee
+from race.referee import Referee, event_text
 from race.safety import SafetyHolds
 from race.setup import CAR_NAMES
 from race.summary import percentile, race_summary
-from race.world import Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, Tracker, World
+from race.world import (CLOCK_ROUNDING_S, Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, SimulatedClock,
+                        Tracker, World)
 from tracking.estimator import EstimatorConfig
 from vehicles.protocol import CarCommand, ProtocolError
 
@@ -115,6 +124,41 @@ class DeadlineMonitor:
                     self._cv.acquire()
 
 
+class SimulatedDeadlineMonitor:
+    """DeadlineMonitor on a race.world.SimulatedClock: fires when the clock is advanced past the armed
+    deadline (checked by the clock's watchers, no thread). The simulated race's clock only moves
+    between ticks, so there it never fires; the fake-clock tests advance it inside a tick."""
+
+    def __init__(self, on_miss, clock) -> None:
+        self.on_miss, self.clock, self.stage = on_miss, clock, "-"
+        self._deadline = None
+        self._fired = False
+        self._tick = -1
+        clock.watchers.append(self._check)
+
+    def arm(self, tick: int, deadline: float) -> None:
+        self._tick, self._deadline, self._fired = tick, deadline, False
+
+    def disarm(self) -> bool:
+        self._deadline = None
+        return self._fired
+
+    def _check(self) -> None:
+        if self._deadline is not None and self.clock.now() > self._deadline:
+            self._deadline, self._fired = None, True
+            self.on_miss(self._tick, self.stage)
+
+    def stop(self) -> None:
+        self.clock.watchers.remove(self._check)
+
+
+@dataclass
+class PlannerErrorRecord:
+    time_s: float   # race time of the plan (its t_plan)
+    car: str        # car name
+    message: str    # "ExceptionType: message"
+
+
 @dataclass
 class LoopOutcome:
     reason: str                                  # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
@@ -130,7 +174,10 @@ class LoopOutcome:
     stage_ms: dict = field(default_factory=dict)
     busy_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stage_overruns: dict = field(default_factory=dict)
-    solve_ms: dict = field(default_factory=dict)
+    solve_ms: dict = field(default_factory=dict)  # per car, planning wall time (ms) of every plan after the cold one
+    prestart_ms: float = 0.0                     # the cold plan before the start (wall time, ms)
+    fallbacks: int = 0                           # applied RD3G plans that were the planner's fallback
+    planner_errors: list = field(default_factory=list)  # PlannerErrorRecord of every failed car plan
     # Per plan: when the loop first applied it minus the instant its states were predicted to
     # (t_plan = job tick + plan_latency_s); >= -command_delay_s when applied at its tick, > 0 when late.
     plan_lag_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -185,19 +232,23 @@ class LoopOutcome:
 
 class RaceLoop:
     """One race on the clock. The world behind ``feed`` (``poll(timeout) -> WorldPacket``) and ``link``
-    is the HIL world or the hardware; ``world`` is the HilWorld (None on hardware: laps are then counted
-    from the estimated states). ``faults`` are injected by wrapping the estimator and the planners
-    (race.faults); ``clock`` defaults to real time, ``worker_factory(planners, clock)`` to a PlannerWorker
-    thread (race.planning.SyncPlanRunner plans in the loop's thread) and ``monitor_factory(on_miss,
-    clock)`` to the DeadlineMonitor thread."""
+    is the simulated world, the HIL world or the hardware; ``world`` is the simulated or HIL world
+    (None on hardware: laps are then counted from the estimated states). ``perception`` defaults to
+    race.perception.Perception(tracker, estimator) (race.perception.TruthPerception: the simulated
+    world's true states, no tracker or estimator). ``faults`` are injected by wrapping the estimator
+    and the planners (race.faults); ``clock`` defaults to real time, ``worker_factory(planners, clock)``
+    to a PlannerWorker thread (race.planning.SyncPlanRunner plans in the loop's thread) and
+    ``monitor_factory(on_miss, clock)`` to the DeadlineMonitor thread."""
 
-    def __init__(self, *, setup, config: LoopConfig, feed: Feed, tracker: Tracker, estimator, link: Link,
-                 planners: Planners, cars: list[CarBinding], recorder=None, faults: tuple[FaultSpec, ...] = (),
-                 world: World | None = None, mode: str = "hil", clock: Clock | None = None, worker_factory=None,
-                 monitor_factory=DeadlineMonitor) -> None:
+    def __init__(self, *, setup, config: LoopConfig, feed: Feed, link: Link, planners: Planners,
+                 cars: list[CarBinding], tracker: Tracker | None = None, estimator=None, perception=None,
+                 recorder=None, faults: tuple[FaultSpec, ...] = (), world: World | None = None, mode: str = "hil",
+                 clock: Clock | None = None, worker_factory=None, monitor_factory=DeadlineMonitor) -> None:
         self.setup, self.cfg, self.feed = setup, config, feed
         self.link, self.cars, self.rec, self.world, self.mode = link, cars, recorder, world, mode
         self.clock = clock if clock is not None else MonotonicClock()
+        # The loop's timing is recorded in real time only (on a simulated clock the period is the set one).
+        self.realtime = not isinstance(self.clock, SimulatedClock)
         self.faults = tuple(faults)
         if any(f.kind == "nan_state" for f in self.faults):
             estimator = NanStateEstimator(estimator, self.faults, {c.name: c.marker_id for c in cars}, self.race_time,
@@ -205,7 +256,8 @@ class RaceLoop:
         if any(f.kind == "solver_fail" for f in self.faults):
             planners = FailingPlanners(planners, self.faults, self.race_time)
         self.estimator, self.planners = estimator, planners
-        self.perception = Perception(tracker, estimator, cars, config.lost_search_every)
+        self.perception = perception if perception is not None else Perception(tracker, estimator, cars,
+                                                                                config.lost_search_every)
         self.safety = SafetyHolds(self._neutral_now, self._event, config.stop_after_hold_s)
         self.track = setup.track
         self.car = setup.car
@@ -232,6 +284,9 @@ class RaceLoop:
         self.overruns = {s: 0 for s in STAGES}
         self.deadline_misses = 0
         self.solve_ms = {name: [] for name in CAR_NAMES}
+        self.prestart_ms = 0.0
+        self.fallbacks = 0
+        self.planner_errors: list[PlannerErrorRecord] = []
         self.plan_lag_ms: list[float] = []
         self._plan_commands: list[tuple[float, int, float, float]] = []  # (t_plan, car index, throttle, steering)
         self._last_sent: dict[str, tuple[float, float]] = {}
@@ -301,9 +356,7 @@ class RaceLoop:
         deadline = self.clock.now() + self.cfg.acquire_timeout_s
         while True:
             packet = self.feed.poll(0.1)
-            if packet.frame is not None:
-                meas, _ = self.perception.detect(packet.frame, None)
-                self.estimator.update(packet.frame.t_capture_s, meas)
+            self.perception.acquire(packet)
             missing = self.perception.acquired(self.cfg.acquire_measurements)
             if not missing:
                 return
@@ -312,15 +365,13 @@ class RaceLoop:
                 raise LoopError(f"camera did not find {names} within {self.cfg.acquire_timeout_s:.0f} s; "
                                 f"check the markers, the lighting and the calibration")
 
-    def _states_at(self, t_abs: float) -> dict[str, np.ndarray]:
-        return {c.name: body_state(self.estimator.filters[c.marker_id].predict_to(t_abs)) for c in self.cars}
-
     def _cold_start(self) -> None:
         """First plan with the solver's full globalisation, before the clock starts."""
         t = self.clock.now()
-        result = self.worker.run_sync(PlanJob(-1, t, self._states_at(t)))
-        if result.error:
-            raise LoopError(f"cold-start planning failed: {result.error}")
+        result = self.worker.run_sync(PlanJob(-1, t, self.perception.states_at(t)))
+        failed = result.error or (self.cfg.hold_on_planner_error and self._errors_text(result))
+        if failed:
+            raise LoopError(f"cold-start planning failed: {failed}")
         self.worker.start()
         self.t_go = self.clock.now() + 2 * self.cfg.period_s
         result.job.t_plan = self.t_go  # the cold-start plan is the plan for the start
@@ -332,7 +383,7 @@ class RaceLoop:
             self.world.go(self.t_go)
         if self.mode == "hardware":
             self.referee = Referee(self.track, self.setup.car, self.setup.laps)
-            at_go = self._states_at(self.t_go)
+            at_go = self.perception.states_at(self.t_go)
             self.referee.observe(0.0, np.array([at_go[name] for name in CAR_NAMES]))
         self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
                     t_race=0.0)
@@ -360,12 +411,12 @@ class RaceLoop:
         out = {}
         for c in self.commanded:
             log = self._controls.get(c.name)
-            f = self.estimator.filters.get(c.marker_id)
-            if not log or f is None or f.t_s is None or not log[0][0] <= f.t_s < t_plan:
+            last = self.perception.last_measurement(c.name)
+            if not log or last is None or not log[0][0] <= last[0] < t_plan:
                 continue
-            state = body_state(f.predict_to(f.t_s))
+            t_s, state = last
             if np.all(np.isfinite(state)):
-                out[c.name] = (state, controls_between(log, f.t_s, t_plan))
+                out[c.name] = (state, controls_between(log, t_s, t_plan))
         return out
 
     def _command_lags(self, applied) -> np.ndarray:
@@ -385,24 +436,41 @@ class RaceLoop:
                     break
         return np.array(lags)
 
+    @staticmethod
+    def _errors_text(result: PlanResult) -> str:
+        return "; ".join(f"{name}: {text}" for name, text in planner_errors(result).items())
+
     def _take_plan(self, result: PlanResult, now: float) -> None:
         self._last_seq = result.seq
-        if result.error:
+        t_race = self.race_time(result.job.t_plan) if self.t_go is not None else 0.0
+        errors = planner_errors(result)
+        for name, text in errors.items():
+            self.planner_errors.append(PlannerErrorRecord(t_race, name, text))
+        if result.error or (errors and self.cfg.hold_on_planner_error):
             self.plan_failures += 1
-            self.safety.set("planner", True, f"planner failed: {result.error}")
+            self.safety.set("planner", True, f"planner failed: {result.error or self._errors_text(result)}")
             return
+        for name, text in errors.items():  # the fallback plan is applied (LoopConfig.hold_on_planner_error)
+            self._event("planner_error", f"{name}: {text}", t_race=t_race)
         self._active = result
         self.plans += 1
         self.safety.set("planner", False)
-        t_race = self.race_time(result.job.t_plan) if self.t_go is not None else 0.0
+        cold = self.t_go is None or result.job.tick < 0
         if self.t_go is not None and result.job.tick >= 0:  # not the cold plan for the start
             lag = 1e3 * (now - result.job.t_plan)
             self.plan_lag_ms.append(lag)
             if self.rec is not None:
                 self.rec.scalar("planner/plan_lag_ms", max(self.k, 0), t_race, lag)
         for name, cp in result.cars.items():
-            self.solve_ms[name].append(cp.solve_ms)
-            if self.rec is None or cp.plan is None:
+            if cold:  # the cold plan is made on the grid before the start, outside the real-time budget
+                if name == "rd3g":
+                    self.prestart_ms = cp.solve_ms
+            elif cp.plan is not None:  # pure pursuit has no planning call to time
+                self.solve_ms[name].append(cp.solve_ms)
+                self.fallbacks += name == "rd3g" and cp.plan is not None and cp.plan.used == "fallback"
+            # The cold plan is recorded where the loop drives it (its first plan_ticks ticks); in
+            # lock-step the tick-0 plan replaces it before any command.
+            if self.rec is None or cp.plan is None or (cold and self.cfg.plan_ticks == 0):
                 continue
             step = max(self.k, 0)
             record_plan(self.rec, step, t_race, self.track, name, cp.plan, cp.solve_ms)
@@ -469,6 +537,12 @@ class RaceLoop:
             self._event(kind, text, t_race=t_ev)
         self.render_ms.extend(packet.render_ms)
         self.dropped = max(self.dropped, packet.dropped)
+        if packet.winner is not None and self.winner_seen is None:  # the world's referee ended the race
+            self.winner_seen = packet.winner
+            return "finished"
+        if t_race >= self.setup.max_time_s - CLOCK_ROUNDING_S:  # nothing more is planned
+            self._event("stop", f"time limit {self.setup.max_time_s:.0f} s reached")
+            return "time_limit"
         t0 = self._stage("frame", t0, times)
         t_tick = deadline - self.cfg.period_s  # the tick's scheduled start: plans are timed from it, not from `now`
         t_plan = t_tick + self.cfg.plan_latency_s
@@ -477,7 +551,7 @@ class RaceLoop:
         def detected() -> None:
             marks[0] = self._stage("detect", marks[0], times)
 
-        perceived = self.perception.perceive(packet.frame, t_plan, self.clock.now(), after_detect=detected)
+        perceived = self.perception.perceive(packet, t_plan, self.clock.now(), after_detect=detected)
         if packet.truth is not None and perceived.detections is not None:
             self._tracking_errors(k, packet, perceived)
         now = self.clock.now()
@@ -490,7 +564,7 @@ class RaceLoop:
         if self.rec is not None:
             self._record(k, t_race, times, packet, perceived.detections, perceived.states, sent)
         self._stage("telemetry", t0, times)
-        if self.rec is not None:
+        if self.rec is not None and self.realtime:
             self.rec.scalar("loop/stage/telemetry_ms", k, t_race, times["telemetry"])
         return self._end_of_race(t_race, now, perceived.states, packet)
 
@@ -504,7 +578,7 @@ class RaceLoop:
             self.detection_error_mm.append(det_err)
             if self.rec is not None:
                 self.rec.scalar(f"tracking/{name}/detection_error_mm", k, t_cap, det_err)
-            f = self.estimator.filters.get(m.marker_id)
+            f = self.perception.filter_of(name)
             if f is not None and perceived.results[m.marker_id].accepted:
                 err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
                 self.tracking_error_mm.append(err)
@@ -513,7 +587,7 @@ class RaceLoop:
 
     def _safety_checks(self, perceived, packet, now: float) -> None:
         """The tracking, state and serial-stream holds of this tick (race.safety)."""
-        lost_ms = 1e3 * self.estimator.config.lost_after_s
+        lost_ms = 1e3 * self.perception.lost_after_s
         for c in self.cars:
             self.safety.set(f"lost:{c.name}", perceived.lost[c.name],
                             f"car {c.name} lost (no marker {c.marker_id} for {lost_ms:.0f} ms)")
@@ -532,6 +606,9 @@ class RaceLoop:
         hold is active), log the controls the cars execute and submit the next planning job.
         Returns ({radio id: CarCommand}, {car: (throttle, steering rad) sent})."""
         cfg = self.cfg
+        submit = k % cfg.plan_every == 0 and len(states) == len(self.cars)
+        if submit and cfg.plan_ticks == 0:  # lock-step: plan from this tick's observation, for this tick
+            self.worker.submit(PlanJob(k, t_plan, states, self._in_flight(t_plan)))
         result = self.worker.latest()
         # A plan is applied at its scheduled tick, not earlier: every plan then acts plan_latency_s after
         # its job, whatever its solve time (a failure is taken at once: it is a fault).
@@ -560,7 +637,7 @@ class RaceLoop:
             self._log_control(c.name, t_tick + cfg.command_delay_s, self.planners.executed_control(c.name, cp, speed))
         if driving:
             self._last_sent = dict(sent)
-        if k % cfg.plan_every == 0 and len(states) == len(self.cars):
+        if submit and cfg.plan_ticks > 0:
             self.worker.submit(PlanJob(k, t_plan, states, self._in_flight(t_plan)))
         return commands, sent
 
@@ -584,12 +661,9 @@ class RaceLoop:
         return sent
 
     def _end_of_race(self, t_race: float, now: float, states: dict, packet) -> str | None:
-        if packet.winner is not None and self.winner_seen is None:
-            self.winner_seen = packet.winner
-            return "finished"
         if self.referee is not None and len(states) == len(self.cars):
             for ev in self.referee.observe(t_race, np.array([states[name] for name in CAR_NAMES])):
-                self._event(ev.kind, f"{CAR_NAMES[ev.car]}" + (f" lap {ev.lap} in {ev.lap_time:.3f} s" if ev.lap_time else ""))
+                self._event(ev.kind, event_text(ev))
             if self.referee.winner is not None:
                 self.winner_seen = self.referee.winner
                 return "finished"
@@ -597,21 +671,20 @@ class RaceLoop:
         if stop is not None:
             self._event("stop", stop)
             return "held_neutral"
-        if t_race > self.setup.max_time_s:
-            self._event("stop", f"time limit {self.setup.max_time_s:.0f} s reached")
-            return "time_limit"
         return None
 
     def _record(self, k, t_race, times, packet, det, states, sent) -> None:
         rec = self.rec
-        if len(self.period_ms):
-            rec.scalar("loop/period_ms", k, t_race, self.period_ms[-1])
-        for name, ms in times.items():
-            rec.scalar(f"loop/stage/{name}_ms", k, t_race, ms)
-        rec.scalar("loop/busy_ms", k, t_race, self.busy_ms[-1])
-        for name, st in states.items():
-            rec.points(f"world/cars/{name}/estimate", k, t_race, st[:2])
-            rec.scalar(f"cars/{name}/estimated_speed_mps", k, t_race, st[3])
+        if self.realtime:
+            if len(self.period_ms):
+                rec.scalar("loop/period_ms", k, t_race, self.period_ms[-1])
+            for name, ms in times.items():
+                rec.scalar(f"loop/stage/{name}_ms", k, t_race, ms)
+            rec.scalar("loop/busy_ms", k, t_race, self.busy_ms[-1])
+        if self.perception.estimated:
+            for name, st in states.items():
+                rec.points(f"world/cars/{name}/estimate", k, t_race, st[:2])
+                rec.scalar(f"cars/{name}/estimated_speed_mps", k, t_race, st[3])
         for name, (throttle, steer) in sent.items():
             rec.scalar(f"cars/{name}/command/throttle", k, t_race, throttle)
             rec.scalar(f"cars/{name}/command/steering_rad", k, t_race, steer)
@@ -684,6 +757,8 @@ class RaceLoop:
                           stage_ms={s: np.array(v) for s, v in self.stage_ms.items()},
                           busy_ms=np.array(self.busy_ms), stage_overruns=dict(self.overruns),
                           solve_ms={n: np.array(v) for n, v in self.solve_ms.items()}, plans=self.plans,
+                          prestart_ms=self.prestart_ms, fallbacks=self.fallbacks,
+                          planner_errors=list(self.planner_errors),
                           plan_lag_ms=np.array(self.plan_lag_ms),
                           command_lag_ms=self._command_lags((summary or {}).get("applied_changes") or []),
                           plan_failures=self.plan_failures, frames=self.frames,

@@ -6,10 +6,11 @@ pursuit or none for a human-driven car).
   steering angle]).
 * Planner failure, one policy: a planning call that raises (an invalid problem, a solver error) never
   escapes :func:`plan_step`; that step gets the planner's fallback plan (closed-loop tracking of the
-  previous plan, neutral before the first one) with the exception text in ``plan.error``. The
-  simulated race applies the fallback and logs ``planner_error``; the real-time loop, where any fault
-  sends neutral first (hardware), treats a plan with an error, or a non-finite command, as a planner
-  fault (:class:`SolverFailure`) and holds every car neutral until a good plan arrives.
+  previous plan, neutral before the first one) with the exception text in ``plan.error``
+  (:func:`planner_errors`). What the race loop does with such a plan is its configuration
+  (race.config.LoopConfig.hold_on_planner_error): HIL and hardware, where any fault sends neutral
+  first, hold every car neutral until a good plan arrives; the simulated race applies the fallback and
+  logs ``planner_error``. A non-finite command is always a planner fault (:class:`SolverFailure`).
 * :class:`PlannerWorker` runs the steps of the real-time loop asynchronously in a worker thread; the
   loop applies the latest plan. The C++ solver releases the GIL, so a solve does not stall the loop.
 """
@@ -76,15 +77,6 @@ def plan_step(planner, own_state, other_state) -> tuple[object, np.ndarray, floa
     return plan, command, 1e3 * (time.perf_counter() - t0)
 
 
-def cold_plan(planner, own_state, other_state):
-    """The first plan, on the grid before the start (no prediction: the cars stand), with plan_step's
-    failure rule."""
-    try:
-        return planner.plan(own_state, other_state)
-    except Exception as exc:  # noqa: BLE001 - as in plan_step
-        return planner.fallback_plan(own_state, other_state, f"{type(exc).__name__}: {exc}")
-
-
 class SolverFailure(RuntimeError):
     """A planning call failed (raised, or produced non-finite output)."""
 
@@ -137,7 +129,8 @@ class RacePlanners:
         self.commanded = ("rd3g",) if opponent == "human" else CAR_NAMES
 
     def plan(self, job: PlanJob) -> PlanResult:
-        """One planning step for every commanded car. Raises SolverFailure on non-finite output."""
+        """One planning step for every commanded car; a car whose planner failed has its fallback plan
+        (:func:`planner_errors`). Raises SolverFailure on a non-finite command."""
         fs = np.array([frenet_state(self.track, job.states[name]) for name in CAR_NAMES])
         if self.unwrap is None:
             self.unwrap = ProgressUnwrapper(self.track, fs[:, S])
@@ -154,8 +147,6 @@ class RacePlanners:
             throttle, steer = self.pursuit.command(job.states["opponent"], self.setup.control_period_s)
             result.cars["opponent"] = CarPlan(float(throttle), float(steer))
         for name, cp in result.cars.items():
-            if cp.plan is not None and cp.plan.error is not None:
-                raise SolverFailure(f"{name}: {cp.plan.error}")
             if not (math.isfinite(cp.throttle) and math.isfinite(cp.steering_rad)):
                 raise SolverFailure(f"{name}: planner produced a non-finite command "
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
@@ -188,6 +179,11 @@ class RacePlanners:
         ds = math.remainder(float(x[S]) - float(at_plan[S]), length)  # same lap as the unwrapped progress
         x[S] = at_plan[S] + ds
         return x
+
+
+def planner_errors(result: PlanResult) -> dict[str, str]:
+    """{car: "Type: message"} of the cars whose planning raised in this result (they got the fallback plan)."""
+    return {name: cp.plan.error for name, cp in result.cars.items() if cp.plan is not None and cp.plan.error is not None}
 
 
 def run_job(planners, job: PlanJob, t_done: float, seq: int) -> PlanResult:

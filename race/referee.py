@@ -34,6 +34,18 @@ def fault_of(states: np.ndarray) -> int:
     return 0 if ahead[0] >= ahead[1] else 1
 
 
+def event_text(ev: SimEvent, at_fault: str | None = None) -> str:
+    """A simulator event's text in the race's event log (kind ``ev.kind``): the car first, then the lap
+    and its time (``lap``) or the car at fault (``collision``): ``rd3g lap 1 in 5.123 s``,
+    ``opponent (fault rd3g)``. race.review reads the car as the first word."""
+    text = CAR_NAMES[ev.car]
+    if ev.kind == "lap":
+        text += f" lap {ev.lap} in {ev.lap_time:.3f} s"
+    elif ev.kind == "collision" and at_fault is not None:
+        text += f" (fault {at_fault})"
+    return text
+
+
 @dataclass
 class Referee:
     """Judges one two-car race from its states (rows [x, y, heading, ...], CAR_NAMES order).

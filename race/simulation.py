@@ -1,33 +1,51 @@
-"""One simulated race: our car (RD3G racing planner) against an opponent (MPC or pure pursuit) in
-sim.Simulator, with optional rerun telemetry. Used by `python -m app race` and `python -m app batch`.
-Conventions and entity paths: docs/racing.md."""
+"""The pure simulation: one race of our car (RD3G racing planner) against an opponent (MPC or pure
+pursuit) in sim.Simulator, run by the one race loop (race.loop.RaceLoop) on a simulated clock. Used
+by `python -m app race`, `python -m app batch`, sysid's closed loop and the race benches.
+Conventions and entity paths: docs/racing.md.
+
+* :class:`SimWorld` is the simulator behind the loop's World and Link interfaces (race.world): each
+  poll advances the physics to the clock's time in whole control periods with the commands the
+  link was last given, and reports the true states, the simulator's events (laps, finish,
+  collisions with the car at fault, off-track) and the winner. The loop perceives the true states
+  (race.perception.TruthPerception).
+* Timing (:func:`simulation_config`): one loop tick per control period (``RaceSetup.control_period_s``)
+  and lock-step planning: the plan made from the states observed at tick k is applied at tick k and
+  acts from then until tick k + 1 (``plan_ticks = 0``, ``command_delay_s = 0``); the planner's own
+  prediction covers the car's actuation delay (race.planning.plan_step). The clock
+  (race.world.SimulatedClock) moves only between ticks, so results do not depend on how long a plan
+  takes: the same seed gives the same race on any machine load. Planner wall times are still
+  measured (``solve_ms``).
+* A car whose planner raised drives its fallback plan and the step is logged as ``planner_error``
+  (``LoopConfig.hold_on_planner_error = False``; race.planning has the one failure policy).
+"""
 from __future__ import annotations
 
 import dataclasses
 import math
 import signal
 import threading
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from planning import MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
-from planning.frenet import S
-from race.planning import cold_plan, make_planner, plan_step
-from race.recording import SETUP_ENTITY, RaceRecorder, record_car, record_plan
-from race.referee import CollisionRecord, Referee
+from planning import ProgressUnwrapper
+from race.commands import physical_command
+from race.config import LoopConfig
+from race.loop import CarBinding, PlannerErrorRecord, RaceLoop, SimulatedDeadlineMonitor
+from race.perception import TruthPerception
+from race.planning import RacePlanners, SyncPlanRunner
+from race.recording import SETUP_ENTITY, RaceRecorder
+from race.referee import CollisionRecord, Referee, event_text
 from race.setup import CAR_NAMES, RaceSetup, start_states
 from race.summary import race_summary
+from race.world import CLOCK_ROUNDING_S, SimulatedClock, WorldPacket
 from sim import Simulator
-from vehicles.params import CarParams
+from vehicles.protocol import check_command_value
 
+__all__ = ["PlannerErrorRecord", "RaceOutcome", "SimWorld", "run_race", "simulation_config"]
 
-@dataclass
-class PlannerErrorRecord:
-    time_s: float
-    car: str        # car name
-    message: str    # "ExceptionType: message"
+# Marker and radio ids of the simulated cars (CAR_NAMES order): the loop addresses cars by them.
+SIM_CARS = [CarBinding(name, i, i) for i, name in enumerate(CAR_NAMES)]
 
 
 @dataclass
@@ -69,41 +87,10 @@ class RaceOutcome:
                 "race_time_s": self.race_time_s}
 
 
-class _Telemetry:
-    """The simulated race's recording through the one writer (race.recording.RaceRecorder, synchronous
-    mode); entity paths in docs/racing.md."""
-
-    def __init__(self, path, track, car: CarParams, setup: RaceSetup) -> None:
-        self.car, self.track = car, track
-        self.rec = RaceRecorder(path, recording_id=f"race-seed{setup.seed}", background=False,
-                                car_names=CAR_NAMES, realtime=False)
-        self.rec.static_track(track)
-        sim_car = None if setup.sim_car is None else setup.sim_car.name
-        self.rec.static_document(SETUP_ENTITY, str(dataclasses.asdict(dataclasses.replace(
-            setup, track=track.name, car=car.name, sim_car=sim_car))))
-        self.rec.static_car_colors()
-        self.event(0.0, "start: race started (simulation)")  # the events view has its entity from the start
-
-    def step(self, k: int, t: float, states: np.ndarray, plans: dict, commands: np.ndarray, solve_ms: dict) -> None:
-        rec = self.rec
-        for i, name in enumerate(CAR_NAMES):
-            record_car(rec, k, t, name, states[i], self.car.geometry)
-            rec.scalar(f"cars/{name}/command/throttle", k, t, commands[i, 0])
-            rec.scalar(f"cars/{name}/command/steering_rad", k, t, commands[i, 1])
-            if plans.get(name) is not None:
-                record_plan(rec, k, t, self.track, name, plans[name], solve_ms[name])
-
-    def event(self, t: float, text: str) -> None:
-        kind, _, rest = text.partition(": ")
-        self.rec.event(t, kind, rest)
-
-    def close(self) -> None:
-        self.rec.close()
-
-
 class _InterruptRequest:
     """While active (main thread only), the first Ctrl-C sets ``requested`` instead of raising, so the
-    race loop can stop between steps with its telemetry and summary whole; a second Ctrl-C raises."""
+    simulated world can stop the race at its next poll (between ticks) with the recording and the
+    summary whole; a second Ctrl-C raises at once."""
 
     def __init__(self) -> None:
         self.requested = False
@@ -123,102 +110,148 @@ class _InterruptRequest:
             signal.signal(signal.SIGINT, self._previous)
 
 
+class SimWorld:
+    """sim.Simulator behind the loop's World (``poll``, ``go``, ``close``) and Link (``set_commands``,
+    ``neutral``, ``stop``) interfaces, on a SimulatedClock. ``cars``: the loop's CarBinding of each
+    simulated car (CAR_NAMES order; commands are addressed by radio id). ``interrupt``: an object whose
+    ``requested`` flag ends the race at the next poll (KeyboardInterrupt, as a real Ctrl-C)."""
+
+    def __init__(self, sim: Simulator, clock: SimulatedClock, setup: RaceSetup, cars=SIM_CARS, progress=None,
+                 interrupt=None) -> None:
+        self.sim, self.clock, self.setup = sim, clock, setup
+        self.period = setup.control_period_s
+        self.radio_index = {c.radio_id: i for i, c in enumerate(cars)}
+        self.referee = Referee(setup.track, setup.car)  # minimum gap and the car at fault in a collision
+        self.commands = np.zeros((sim.n_cars, 2))        # (throttle, steering rad) in effect
+        self.t_go: float | None = None
+        self.steps = 0
+        self.progress, self.interrupt = progress, interrupt
+        self._events: list[tuple] = []
+        self._observed = -1
+        self._unwrap = ProgressUnwrapper(setup.track, self._arc_lengths(sim.states))
+        self.trace_t: list[float] = []
+        self.trace_states: list[np.ndarray] = []
+        self.trace_progress: list[np.ndarray] = []
+
+    # ---- World
+    def go(self, t_go: float) -> None:
+        self.t_go = t_go
+
+    def poll(self, timeout: float = 0.0) -> WorldPacket:
+        """The true states now (the physics caught up in whole control periods) and the events since the
+        last poll. The simulated world answers at once; after the start a ``timeout`` lets that much
+        simulated time pass (what waiting would do)."""
+        if self.interrupt is not None and self.interrupt.requested:
+            raise KeyboardInterrupt
+        if timeout > 0 and self.t_go is not None:
+            self.clock.advance(timeout)
+        self._advance()
+        status = self.sim.race_status()
+        winner = None if status.winner is None else CAR_NAMES[status.winner]
+        started = self.t_go is not None
+        racing = started and winner is None and self.clock.now() - self.t_go < self.setup.max_time_s - CLOCK_ROUNDING_S
+        if racing and self.steps != self._observed:  # a control step the loop will command: referee and trace
+            self._observed = self.steps
+            states = self.sim.states
+            self.referee.observe(self.sim.time, states)
+            self.trace_t.append(self.sim.time)
+            self.trace_states.append(states)
+            self.trace_progress.append(self._unwrap.update(self._arc_lengths(states)).copy())
+        events, self._events = self._events, []
+        return WorldPacket(truth=self.sim.states, t_race=self.sim.time if started else None,
+                           t_truth=self.clock.now(), events=events, winner=winner)
+
+    def _arc_lengths(self, states: np.ndarray) -> np.ndarray:
+        """Every car's s along the track (one vectorised projection, as planning.frenet_state's s)."""
+        return self.setup.track.to_frenet(states[:, 0], states[:, 1], states[:, 2])[0]
+
+    def _advance(self) -> None:
+        if self.t_go is None:
+            return
+        due = math.floor((self.clock.now() - self.t_go) / self.period + 1e-6)  # whole periods (clock rounding)
+        while self.steps < due:
+            for ev in self.sim.step(self.commands, self.period):
+                if ev.kind == "collision":
+                    record = self.referee.collision(ev.time, self.sim.states)
+                    self._events.append((ev.time, ev.kind, event_text(ev, record.at_fault)))
+                elif ev.kind in ("lap", "finished", "off_track"):
+                    self._events.append((ev.time, ev.kind, event_text(ev)))
+            if self.progress:
+                self.progress(self.steps)
+            self.steps += 1
+
+    def close(self) -> dict:
+        """The race summary the loop takes (as from race.hil.HilWorld.close)."""
+        status = self.sim.race_status()
+        return {"winner": None if status.winner is None else CAR_NAMES[status.winner],
+                "lap_times_s": {name: list(status.lap_times[i]) for i, name in enumerate(CAR_NAMES)},
+                "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
+                "race_time_s": self.sim.time,
+                "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)},
+                "frames_dropped": 0, "render_ms": np.zeros(0), "events": []}
+
+    # ---- Link
+    def set_commands(self, commands: dict) -> None:
+        """{radio id: vehicles.protocol.CarCommand}, in effect from now until the next call; a car not
+        named gets neutral. A non-finite value is a ProtocolError, as on the serial link."""
+        out = np.zeros_like(self.commands)
+        for radio_id, cmd in commands.items():
+            check_command_value(radio_id, "steering", cmd.steering)
+            check_command_value(radio_id, "throttle", cmd.throttle)
+            out[self.radio_index[radio_id]] = physical_command(self.setup.car, cmd)
+        self.commands = out
+
+    def neutral(self) -> None:
+        self.commands = np.zeros_like(self.commands)
+
+    def stop(self) -> None:
+        self.neutral()
+
+
+def simulation_config(setup: RaceSetup) -> LoopConfig:
+    """The loop's timing for the simulated world (module doc): a tick per control period, lock-step
+    planning, a failing planner's fallback applied, no linger after the race."""
+    rate = 1.0 / setup.control_period_s
+    return LoopConfig(rate_hz=rate, plan_hz=rate, plan_ticks=0, command_delay_s=0.0, linger_s=0.0,
+                      hold_on_planner_error=False)
+
+
 def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator) -> RaceOutcome:
-    """Simulate one race until a car completes `laps` laps (or max_time_s, or Ctrl-C: ``interrupted``).
-    ``simulator_cls``: a Simulator subclass that perturbs how commands reach the cars
-    (bench/race_perturbations.py)."""
-    with _InterruptRequest() as stop:
-        return _run_race(setup, telemetry_path, progress, simulator_cls, stop)
-
-
-def _run_race(setup: RaceSetup, telemetry_path, progress, simulator_cls, stop: _InterruptRequest) -> RaceOutcome:
+    """Simulate one race until a car completes `laps` laps (or max_time_s, or Ctrl-C: ``interrupted``)
+    through the race loop (module doc). ``simulator_cls``: a Simulator subclass that perturbs how
+    commands reach the cars (bench/race_perturbations.py, `race --link-capture`); ``progress(step)`` is
+    called after every control step."""
     track, car = setup.track, setup.car
     sim_car = car if setup.sim_car is None else setup.sim_car
-    sim = simulator_cls(track, [sim_car, sim_car], effects=setup.sim_effects, seed=setup.seed, physics_dt=setup.physics_dt_s,
-                    laps_to_win=setup.laps)
+    sim = simulator_cls(track, [sim_car, sim_car], effects=setup.sim_effects, seed=setup.seed,
+                        physics_dt=setup.physics_dt_s, laps_to_win=setup.laps)
     x0 = start_states(setup)
     sim.reset(x0)
-    ours = make_planner(RacingPlanner, setup, setup.rd3g_top_speed_mps,
-                         opponent_top_speed_mps=setup.opponent_top_speed_mps)
-    if setup.opponent == "mpc":
-        theirs = make_planner(MPCOpponent, setup, setup.opponent_top_speed_mps)
-        pursuit = None
-    else:
-        theirs = None
-        pursuit = PurePursuitController(track, car, target_speed_mps=setup.opponent_top_speed_mps)
-    tel = _Telemetry(telemetry_path, track, car, setup) if telemetry_path else None
-    unwrap = ProgressUnwrapper(track, [frenet_state(track, x0[i])[S] for i in range(2)])
-    referee = Referee(track, car)
-    solve_ms, opp_ms = [], []
-    trace_t, trace_x, trace_s = [], [], []
-    fallbacks = 0
-    period = setup.control_period_s
-    # The first plans (cars at rest, no warm start) get the solver's full globalisation; they are
-    # computed on the grid before the start, like on the real track, so they are outside the
-    # real-time budget and reported separately. Each step's plan is then warm-started.
-    fs0 = np.array([frenet_state(track, x0[i]) for i in range(2)])
-    fs0[:, S] = unwrap.s
-    planner_errors = []
-
-    def note_error(name: str, plan, t: float) -> None:
-        if plan.error is not None:
-            planner_errors.append(PlannerErrorRecord(t, name, plan.error))
-            if tel:
-                tel.event(t, f"planner_error: {name}: {plan.error}")
-
-    t0 = time.perf_counter()
-    note_error("rd3g", cold_plan(ours, fs0[0], fs0[1]), 0.0)
-    prestart_ms = 1e3 * (time.perf_counter() - t0)
-    if theirs is not None:
-        note_error("opponent", cold_plan(theirs, fs0[1], fs0[0]), 0.0)
-    n_steps = int(math.ceil(setup.max_time_s / period))
-    interrupted = False
-    k = 0
-    for k in range(n_steps):
-        if stop.requested:  # Ctrl-C: end the race here; the outcome covers what happened so far
-            interrupted = True
-            break
-        states = sim.states
-        fs = np.array([frenet_state(track, states[i]) for i in range(2)])
-        fs[:, S] = unwrap.update(fs[:, S])
-        referee.observe(sim.time, states)
-        trace_t.append(sim.time); trace_x.append(states); trace_s.append(fs[:, S].copy())
-        plans, ms = {}, {}
-        commands = np.zeros((2, 2))
-        # Our car: plan from the state predicted over the actuation delay.
-        plan, commands[0], ms["rd3g"] = plan_step(ours, fs[0], fs[1])
-        solve_ms.append(ms["rd3g"])
-        fallbacks += plan.used == "fallback"
-        plans["rd3g"] = plan
-        note_error("rd3g", plan, sim.time)
-        if theirs is not None:
-            plans["opponent"], commands[1], ms["opponent"] = plan_step(theirs, fs[1], fs[0])
-            opp_ms.append(ms["opponent"])
-            note_error("opponent", plans["opponent"], sim.time)
-        else:
-            commands[1] = pursuit.command(states[1], period)
-        if tel:
-            tel.step(k, sim.time, states, plans, commands, ms)
-        events = sim.step(commands, period)
-        for ev in events:
-            if ev.kind == "collision":
-                referee.collision(ev.time, sim.states)
-            if tel and ev.kind in ("collision", "lap", "finished", "off_track"):
-                tel.event(ev.time, f"{ev.kind}: {CAR_NAMES[ev.car]}" + (f" (fault {referee.collisions[-1].at_fault})" if ev.kind == "collision" else ""))
-        if progress:
-            progress(k)
-        if sim.race_status().winner is not None:
-            break
-    status = sim.race_status()
-    if tel:
-        if interrupted:
-            tel.event(sim.time, "interrupted: Ctrl-C")
-        tel.close()
+    clock = SimulatedClock(0.0)
+    rec = None
+    if telemetry_path:
+        rec = RaceRecorder(telemetry_path, recording_id=f"race-seed{setup.seed}", background=False,
+                           car_names=CAR_NAMES, realtime=False)
+        rec.static_track(track)
+        rec.static_document(SETUP_ENTITY, str(dataclasses.asdict(dataclasses.replace(
+            setup, track=track.name, car=car.name, sim_car=None if setup.sim_car is None else setup.sim_car.name))))
+        rec.static_car_colors()
+    try:
+        with _InterruptRequest() as stop:
+            world = SimWorld(sim, clock, setup, progress=progress, interrupt=stop)
+            loop = RaceLoop(setup=setup, config=simulation_config(setup), feed=world, link=world, world=world,
+                            planners=RacePlanners(setup, setup.opponent), cars=SIM_CARS,
+                            perception=TruthPerception(SIM_CARS), recorder=rec, mode="simulation", clock=clock,
+                            worker_factory=SyncPlanRunner, monitor_factory=SimulatedDeadlineMonitor)
+            out = loop.run()
+    finally:
+        if rec is not None:
+            rec.close()
     return RaceOutcome(
-        winner=None if status.winner is None else CAR_NAMES[status.winner],
-        lap_times_s={name: list(status.lap_times[i]) for i, name in enumerate(CAR_NAMES)},
-        min_gap_m=float(referee.min_gap_m), collisions=referee.collisions, solve_ms=np.array(solve_ms), opponent_solve_ms=np.array(opp_ms),
-        control_period_ms=1e3 * period, race_time_s=sim.time, fallbacks=int(fallbacks),
-        off_track={name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)}, start_states=x0,
-        trace_t=np.array(trace_t), trace_states=np.array(trace_x), trace_progress=np.array(trace_s),
-        prestart_ms=prestart_ms, planner_errors=planner_errors, interrupted=interrupted)
+        winner=out.winner, lap_times_s=out.lap_times_s, min_gap_m=out.min_gap_m, collisions=out.collisions,
+        solve_ms=out.solve_ms["rd3g"], opponent_solve_ms=out.solve_ms["opponent"],
+        control_period_ms=1e3 * setup.control_period_s, race_time_s=out.race_time_s, fallbacks=out.fallbacks,
+        off_track=world.close()["off_track"], start_states=x0, trace_t=np.array(world.trace_t),
+        trace_states=np.array(world.trace_states).reshape(-1, 2, 6),
+        trace_progress=np.array(world.trace_progress).reshape(-1, 2), prestart_ms=out.prestart_ms,
+        planner_errors=out.planner_errors, interrupted=out.reason == "interrupted")

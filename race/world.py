@@ -1,9 +1,11 @@
 """The interfaces the race loop runs against (docs/race-stack.md): what it observes of the world, the
-parts it drives, and time. The HIL world (``race.hil``), the hardware camera feed
-(``app.realtime.hardware``) and the tests' fakes implement them; the loop knows nothing else.
+parts it drives, and time. The simulated world (``race.simulation.SimWorld``), the HIL world
+(``race.hil``), the hardware camera feed (``app.realtime.hardware``) and the tests' fakes implement
+them; the loop knows nothing else.
 
 Time is injected: :class:`MonotonicClock` for real time (HIL, hardware); :class:`SimulatedClock`
-(the fake-clock tests) advances at once on ``sleep``, so the loop runs as fast as the CPU allows.
+(the pure simulation, the fake-clock tests) advances at once on ``sleep``, so the loop runs as fast
+as the CPU allows.
 """
 from __future__ import annotations
 
@@ -20,8 +22,9 @@ class WorldPacket:
     poll."""
 
     frame: object | None = None              # tracking.camera.Frame
-    truth: np.ndarray | None = None          # (2, 6) true states at the frame's capture time (HIL)
-    t_race: float | None = None
+    truth: np.ndarray | None = None          # (2, 6) true states at the frame's capture time (HIL) or at the poll (simulation)
+    t_race: float | None = None              # race time of ``truth``
+    t_truth: float | None = None             # clock time of ``truth`` (simulation: race.perception.TruthPerception)
     render_ms: list[float] = field(default_factory=list)
     events: list[tuple] = field(default_factory=list)   # (race time s, kind, text)
     winner: str | None = None                # the world's own referee (HIL simulator) decided the race
@@ -46,6 +49,10 @@ class MonotonicClock:
 
     def sleep(self, seconds: float) -> None:
         time.sleep(seconds)
+
+
+# Two readings of one instant on a simulated clock differ by rounding only (t_go + k T - t_go vs k T).
+CLOCK_ROUNDING_S = 1e-9
 
 
 class SimulatedClock:
@@ -75,7 +82,8 @@ class Feed(Protocol):
 
 
 class World(Feed, Protocol):
-    """A feed that is a whole simulated world (the HIL world): it starts the race and reports its end."""
+    """A feed that is a whole simulated world (race.simulation.SimWorld, the HIL world): it starts the race
+    and reports its end."""
 
     def go(self, t_go: float) -> None:
         """The race starts at clock time ``t_go``."""
@@ -101,7 +109,7 @@ class Estimator(Protocol):
 
 
 class Link(Protocol):
-    """vehicles.serial_link.SerialCarLink: normalised commands to the cars."""
+    """Normalised commands to the cars: vehicles.serial_link.SerialCarLink, race.simulation.SimWorld."""
 
     def set_commands(self, commands: dict) -> None:
         """{radio id: vehicles.protocol.CarCommand}; ProtocolError for a command the protocol rejects."""

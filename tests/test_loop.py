@@ -44,9 +44,15 @@ def test_loop_config_validation():
     with pytest.raises(LoopConfigError, match="budgets.detect"):
         LoopConfig(budgets=StageBudgets(detect=-1))
     with pytest.raises(LoopConfigError, match="plan_ticks"):
-        LoopConfig(plan_ticks=0)
+        LoopConfig(plan_ticks=-1)
     with pytest.raises(LoopConfigError, match="command_delay_s"):
         LoopConfig(command_delay_s=float("nan"))
+    with pytest.raises(LoopConfigError, match="command_delay_s"):
+        LoopConfig(command_delay_s=-0.001)
+    with pytest.raises(LoopConfigError, match="hold_on_planner_error"):
+        LoopConfig(hold_on_planner_error=1)
+    # The simulated world's lock-step timing: no delay, the plan acts at the tick of its observation.
+    assert LoopConfig(plan_ticks=0, command_delay_s=0.0, linger_s=0.0).plan_latency_s == 0.0
     # A plan made at tick k acts plan_ticks periods later plus the command's delay.
     assert LoopConfig(rate_hz=50, plan_hz=25, plan_ticks=3, command_delay_s=0.01).plan_latency_s == pytest.approx(0.07)
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from race.config import FaultSpec, LoopConfig
-from race.loop import CarBinding, RaceLoop
+from race.loop import CarBinding, RaceLoop, SimulatedDeadlineMonitor
 from race.planning import CarPlan, PlanResult, SyncPlanRunner
 from race.setup import CAR_NAMES, RaceSetup
 from race.world import SimulatedClock
@@ -33,31 +33,6 @@ SPEED_MPS = 1.0
 DRIVE = CarPlan(throttle=0.4, steering_rad=0.05)
 CARS = [CarBinding("rd3g", 0, 0), CarBinding("opponent", 1, 1)]
 LOST_AFTER_S = EstimatorConfig().lost_after_s
-
-
-class FakeMonitor:
-    """DeadlineMonitor on the fake clock: fires when the clock moves past the armed deadline."""
-
-    def __init__(self, on_miss, clock: SimulatedClock) -> None:
-        self.on_miss, self.clock, self.stage = on_miss, clock, "-"
-        self._deadline = None
-        self._fired = False
-        clock.watchers.append(self._check)
-
-    def arm(self, tick, deadline) -> None:
-        self._tick, self._deadline, self._fired = tick, deadline, False
-
-    def disarm(self) -> bool:
-        self._deadline = None
-        return self._fired
-
-    def _check(self) -> None:
-        if self._deadline is not None and self.clock.now() > self._deadline:
-            self._deadline, self._fired = None, True
-            self.on_miss(self._tick, self.stage)
-
-    def stop(self) -> None:
-        pass
 
 
 @dataclass
@@ -185,7 +160,7 @@ def make_loop(setup, faults=(), runner=None, config=LoopConfig()):
     loop = RaceLoop(setup=setup, config=config, feed=world, tracker=tracker, estimator=MultiCarEstimator(),
                     link=link, planners=planners, cars=CARS, faults=faults, mode="hardware", clock=clock,
                     worker_factory=(lambda p, c: runner(p, c, world)) if runner else SyncPlanRunner,
-                    monitor_factory=FakeMonitor)
+                    monitor_factory=SimulatedDeadlineMonitor)
     original_cold_start = loop._cold_start
 
     def cold_start():  # the world needs the race clock's zero to place faults in race time

@@ -172,3 +172,64 @@ def test_raceline_option_reaches_both_planners_and_is_validated():
     for bad in ("0.3", "nan"):  # the oval is 0.6 m wide: 0.3 m is on its edge
         with pytest.raises(UserError, match="--raceline-ey"):
             race_cmd.make_setup(parser.parse_args(["race", "--raceline-ey", bad]), 0, "front", 2.0, 1.8)
+
+
+def test_simulated_race_does_not_depend_on_solve_time(track, car, monkeypatch):
+    """The simulated clock moves only between ticks: a planner made 5 ms slower per call (as on a loaded
+    machine) gives the bit-identical race, and the planning wall time it reports grows by those 5 ms."""
+    import time
+
+    from planning import RacingPlanner
+
+    setup = RaceSetup(track=track, car=car, seed=4, start="rear", max_time_s=1.0)
+    fast = run_race(setup)
+    original = RacingPlanner.plan
+
+    def slow_plan(self, x_self, x_other):
+        time.sleep(0.005)
+        return original(self, x_self, x_other)
+
+    monkeypatch.setattr(RacingPlanner, "plan", slow_plan)
+    slow = run_race(setup)
+    assert len(fast.trace_t) == len(slow.trace_t) == 30  # ticks 0..29: the 1 s limit is reached at tick 30
+    assert np.array_equal(fast.trace_states, slow.trace_states)
+    assert fast.solve_ms.size == slow.solve_ms.size == 30
+    assert np.all(slow.solve_ms >= 5.0)
+
+
+def test_sim_world_applies_each_command_for_one_control_period(track, car):
+    """SimWorld behind the link: a command given at a tick drives the cars until the next tick; the states
+    it reports equal a Simulator stepped by hand with the same physical commands (steering normalised
+    by the car file's max_steering_rad on the way, as on the serial link)."""
+    from race.commands import link_command
+    from race.simulation import SimWorld
+    from race.world import SimulatedClock
+    from sim import Simulator
+    from vehicles.protocol import CarCommand, ProtocolError
+
+    setup = RaceSetup(track=track, car=car, seed=2)
+    x0 = start_states(setup)
+    by_hand = Simulator(track, [car, car], seed=setup.seed)
+    by_hand.reset(x0)
+    sim = Simulator(track, [car, car], seed=setup.seed)
+    sim.reset(x0)
+    clock = SimulatedClock(10.0)
+    world = SimWorld(sim, clock, setup)
+    T = setup.control_period_s
+    assert world.poll().t_race is None  # before the start: the grid, nothing advances
+    clock.advance(1.0)
+    assert np.array_equal(world.poll().truth, x0)
+    world.go(clock.now())
+    commands = [(0.5, 0.1), (0.3, -0.2), (0.0, 0.0)]
+    for throttle, steering in commands:  # one loop tick each: observe, command, the clock moves on
+        packet = world.poll()
+        assert np.array_equal(packet.truth, by_hand.states)
+        assert packet.t_race == pytest.approx(by_hand.time)
+        world.set_commands({0: link_command(car, throttle, steering), 1: link_command(car, 0.4, 0.0)})
+        clock.advance(T)
+        by_hand.step([[throttle, steering / car.actuators.max_steering_rad * car.actuators.max_steering_rad],
+                      [0.4, 0.0]], T)
+    assert np.array_equal(world.poll().truth, by_hand.states) and not np.array_equal(by_hand.states, x0)
+    assert world.trace_t == pytest.approx([0.0, T, 2 * T, 3 * T], abs=1e-3)  # the states the loop observed
+    with pytest.raises(ProtocolError, match="car 0 steering is NaN"):
+        world.set_commands({0: CarCommand(float("nan"), 0.0)})

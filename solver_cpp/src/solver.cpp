@@ -12,15 +12,12 @@
 #include <stdexcept>
 #include <string>
 
+#include "rd3g/clock.hpp"
 #include "rd3g/validate.hpp"
 
 namespace rd3g {
 
 namespace {
-using Clock = std::chrono::steady_clock;
-inline double seconds_since(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
 // LSCG iterations between deadline checks when a time limit is set.
 constexpr int kLscgChunk = 50;
 // Sparse factorisation speed assumed before this solver has measured its own (flop/s): low, so that a

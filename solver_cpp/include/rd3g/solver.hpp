@@ -11,6 +11,7 @@
 #include <random>
 #include <vector>
 
+#include "rd3g/clock.hpp"
 #include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/riccati.hpp"
@@ -71,7 +72,6 @@ class Solver {
  private:
   using SpMat = Eigen::SparseMatrix<double>;
   using Triplet = Eigen::Triplet<double>;
-  using Clock = std::chrono::steady_clock;
 
   struct Iterate {
     std::vector<Mat> x;    // per agent nx x (T+1), column k = x_k
