@@ -82,6 +82,8 @@ class FrenetTrackModel:
         self.lateral_half_extent = lateral_half_extent(g, config.heading_allowance_rad)
         self.footprint_radius = math.hypot(0.5 * g.footprint_length_m + abs(g.footprint_offset_m),
                                            0.5 * g.footprint_width_m)
+        self._window_key: tuple[float, float] | None = None  # the last window's (min, max) progress
+        self._window_limits = (math.nan, math.nan)
 
     @lru_cache(maxsize=8)
     def rollout_model(self, dt: float):
@@ -94,9 +96,20 @@ class FrenetTrackModel:
         reach = self.config.top_speed_mps * self.config.horizon * self.config.plan_dt_s + 0.5
         return np.arange(float(s_values.min()) - 0.2, float(s_values.max()) + reach, 0.01)
 
+    def _limits(self, s_values) -> tuple[float, float]:
+        """(smallest track width m, largest |curvature| 1/m) over the window of the given progress values;
+        a plan asks for both (ey_bound, collision_distance) with the same values, so the last window's are kept."""
+        s_values = np.asarray(s_values, dtype=float)
+        key = (float(s_values.min()), float(s_values.max()))
+        if key != self._window_key:
+            s = np.mod(self.window(s_values), self.track.length)
+            self._window_limits = (float(np.min(self.track.width(s))), float(np.max(np.abs(self.track.curvature(s)))))
+            self._window_key = key
+        return self._window_limits
+
     def ey_bound(self, s_values) -> float:
         """Largest |ey| the planner allows over the window ahead of the given progress values (m)."""
-        w = float(np.min(self.track.width(np.mod(self.window(s_values), self.track.length))))
+        w = self._limits(s_values)[0]
         bound = 0.5 * w - self.lateral_half_extent - self.config.track_margin_m
         if bound <= 0:
             raise ValueError(f"track: {self.track.name!r} is too narrow for car {self.car.name!r} "
@@ -109,8 +122,7 @@ class FrenetTrackModel:
         plus lateral_reach_m instead of the track-limit bound, which is less conservative."""
         r_other = self.footprint_radius if other_radius is None else other_radius
         d_cart = self.footprint_radius + r_other + self.config.collision_margin_m
-        s = np.mod(self.window(s_values), self.track.length)
-        kappa_max = float(np.max(np.abs(self.track.curvature(s))))
+        kappa_max = self._limits(s_values)[1]
         ey_max = self.ey_bound(s_values)
         if ey_values is not None:
             ey_max = min(ey_max, float(np.max(np.abs(ey_values))) + self.config.lateral_reach_m)

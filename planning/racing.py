@@ -77,6 +77,7 @@ class _RecedingHorizon:
         self._cold_settings = solver_settings(config.solver, config.cold_start_solver)
         # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
         self._retry_settings = solver_settings(config.solver, {"rho_init": None})
+        self._shift_weights: dict[int, tuple] = {}  # _shifted's interpolation per series length
 
     def reset(self) -> None:
         self._prev = None
@@ -98,10 +99,12 @@ class _RecedingHorizon:
         """Per-agent time series (N, n, ...) advanced by one control period (interpolated: the
         planning step is longer), the last sample held."""
         n = a.shape[1]
-        t = np.minimum(np.arange(n) + self.control_period_s / self.config.plan_dt_s, n - 1)
-        i0 = np.floor(t).astype(int)
-        i1 = np.minimum(i0 + 1, n - 1)
-        w = (t - i0).reshape((1, n) + (1,) * (a.ndim - 2))
+        if n not in self._shift_weights:  # the same few lengths every step (T, T+1)
+            t = np.minimum(np.arange(n) + self.control_period_s / self.config.plan_dt_s, n - 1)
+            i0 = np.floor(t).astype(int)
+            self._shift_weights[n] = (i0, np.minimum(i0 + 1, n - 1), t - i0)
+        i0, i1, w = self._shift_weights[n]
+        w = w.reshape((1, n) + (1,) * (a.ndim - 2))
         return (1 - w) * a[:, i0] + w * a[:, i1]
 
     def _warm_start(self) -> WarmStart | None:
@@ -146,8 +149,8 @@ class _RecedingHorizon:
         first = []
         for x0 in x0s:
             x0 = np.asarray(x0, dtype=float)
-            toward = self.mapper.delta_max if x0[EY] < 0 else self.mapper.delta_min
-            u = np.tile([0.0, toward], (c.horizon, 1))
+            u = np.zeros((c.horizon, 2))
+            u[:, 1] = self.mapper.delta_max if x0[EY] < 0 else self.mapper.delta_min
             x = np.asarray(model.rollout(x0, u))
             # recovery: steer toward the centre until heading inward, then the bound is not needed further
             inward = np.sign(-x0[EY]) * x[:, EPSI] > 0
@@ -301,7 +304,9 @@ class _RecedingHorizon:
                 u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V])
         x = self._rollout(problem, u_all)
         lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
-        self._prev = dataclasses.replace(result, u=np.asarray(u_all), x=np.asarray(x), lam=np.asarray(lam))
+        # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
+        result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
+        self._prev = result
         return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
                     solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
                     d_min=float(np.min(d_min)), ey_bound=ey_bound)

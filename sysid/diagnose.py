@@ -22,7 +22,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sysid.data import Trajectory
-from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, predict, prediction_errors, substeps
+from sysid.lockstep import predict, side_by_side
+from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, prediction_errors, substeps
 from sysid.sparse import coefficient_std, stlsq
 from vehicles.extra_terms import LIBRARY, terms_from_coefficients
 from vehicles.params import CarParams, OtherTermsParams
@@ -291,25 +292,23 @@ def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetu
     if len(trials) > 1:
         costs = np.sum(resid_many(trials) ** 2, axis=1)
         x0 = trials[int(np.argmin(costs))]
-    # Forward differences of all parameters in one batch with the point itself.
+    # Forward differences, all parameters in one batch, only where least_squares asks for the Jacobian
+    # (at accepted points; most fits also try steps they reject).
     step = 0.05 * scale
     last: dict[str, np.ndarray] = {}
 
-    def evaluate_with_jacobian(theta: np.ndarray) -> None:
-        h = np.where(theta + step <= upper, step, -step)
-        thetas = [theta] + [theta + h[i] * np.eye(theta.size)[i] for i in range(theta.size)]
-        r = resid_many(thetas)
-        last["x"], last["f"] = theta.copy(), r[0]
-        last["jac"] = ((r[1:] - r[0]) / h[:, None]).T
-
     def fun(theta: np.ndarray) -> np.ndarray:
         if "x" not in last or not np.array_equal(last["x"], theta):
-            evaluate_with_jacobian(theta)
+            last.clear()
+            last["x"], last["f"] = theta.copy(), resid_many([theta])[0]
         return last["f"]
 
     def jac(theta: np.ndarray) -> np.ndarray:
-        if "x" not in last or not np.array_equal(last["x"], theta):
-            evaluate_with_jacobian(theta)
+        f = fun(theta)
+        if "jac" not in last:
+            h = np.where(theta + step <= upper, step, -step)
+            r = resid_many([theta + h[i] * np.eye(theta.size)[i] for i in range(theta.size)])
+            last["jac"] = ((r - f) / h[:, None]).T
         return last["jac"]
 
     res = least_squares(fun, x0, jac=jac, bounds=(lower, upper), x_scale=scale, max_nfev=30, xtol=1e-6,
@@ -474,9 +473,8 @@ def _leave_one_out(traj: Trajectory, split: Split, horizon: int, chosen: list[Ca
                    reference: Fit, s: SysidSettings, with_other: bool) -> list[tuple[CandidateResult, int, Fit, Fit]]:
     """Each chosen effect judged against ``full`` refitted without it: (verdict, index, model without it,
     named effects without it). ``named`` holds the named effects' fit; with_other: `other` refitted on top."""
-    out = []
-    for i, cand in enumerate(chosen):
-        rest = chosen[:i] + chosen[i + 1:]
+    def refit(i: int) -> tuple[CandidateResult, int, Fit, Fit]:
+        cand, rest = chosen[i], chosen[:i] + chosen[i + 1:]
         neutral = {p: getattr(reference.setup.car.corrections, p) for p in cand.params}
         base = dataclasses.replace(named.setup, car=with_corrections(named.setup.car, neutral))
         if with_other:
@@ -484,16 +482,18 @@ def _leave_one_out(traj: Trajectory, split: Split, horizon: int, chosen: list[Ca
         named_rest = (fit_candidates(traj, split, horizon, base, rest, s, tuple(c.effect for c in rest)) if rest
                       else evaluate(traj, split, horizon, base))
         without = fit_other(traj, split, horizon, named_rest, s)[0] if with_other else named_rest
-        out.append((_judge(traj, split, without, full, cand.effect, s), i, without, named_rest))
-    return out
+        return _judge(traj, split, without, full, cand.effect, s), i, without, named_rest
+
+    return side_by_side([lambda i=i: refit(i) for i in range(len(chosen))])
 
 
 def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit, s: SysidSettings) -> _Selection:
     """Candidates alone on top of ``reference``, then forward selection (docs/sysid.md)."""
     candidates: list[CandidateResult] = []
     alone: dict[str, Fit] = {}
-    for cand in CANDIDATES:
-        fit = fit_candidates(traj, split, horizon, reference.setup, [cand], s)
+    fits = side_by_side([lambda c=cand: fit_candidates(traj, split, horizon, reference.setup, [c], s)
+                         for cand in CANDIDATES])
+    for cand, fit in zip(CANDIDATES, fits):
         alone[cand.effect] = fit
         candidates.append(_judge(traj, split, reference, fit, cand.effect, s))
     candidates.sort(key=lambda c: c.heldout_error_reduction, reverse=True)
@@ -518,11 +518,9 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
             pool += [by_name[e] for e in ranked[:_SCORE_TOP] if scores[e] > _SCORE_MIN and by_name[e] not in pool]
         if not pool:
             break
-        trials = []
-        for cand in pool:
-            fit = alone[cand.effect] if not chosen else fit_candidates(
-                traj, split, horizon, current.setup, chosen + [cand], s)
-            trials.append((_judge(traj, split, current, fit, cand.effect, s), cand, fit))
+        fits = [alone[c.effect] for c in pool] if not chosen else side_by_side(
+            [lambda c=c: fit_candidates(traj, split, horizon, current.setup, chosen + [c], s) for c in pool])
+        trials = [(_judge(traj, split, current, fit, cand.effect, s), cand, fit) for cand, fit in zip(pool, fits)]
         verdict, cand, fit = max(trials, key=lambda t: t[0].heldout_error_reduction)
         if not verdict.significant:
             break
@@ -599,7 +597,7 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     structure_train = _judge(traj, train_split, evaluate(traj, train_split, horizon, planner.setup),
                              evaluate(traj, train_split, horizon, dynamic_nominal.setup), "tire_slip", s, {}, {})
     references = (dynamic_nominal,) if structure_train.significant else (dynamic_nominal, planner)
-    families = [_forward_select(traj, split, horizon, ref, s) for ref in references]
+    families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s) for ref in references])
     sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
     reference, candidates, selected = sel.reference, sel.candidates, sel.selected
     effect_steps, current = sel.effect_steps, sel.current

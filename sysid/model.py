@@ -15,13 +15,15 @@ the kinematic one; that is the "tire_slip" candidate.
 from __future__ import annotations
 
 import dataclasses
+import weakref
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
 from sysid.data import Trajectory
-from vehicles.dynamic_bicycle import ModelCoefficients, derivative, drive_force
+from vehicles.dynamic_bicycle import ModelCoefficients, body_rates, drive_force, input_terms, pose_rates
 from vehicles.extra_terms import car_extra_terms, extra_rates
 from vehicles.linkage import asymmetric
 from vehicles.params import CarParams, motor_force_scale
@@ -42,10 +44,11 @@ class ModelSetup:
     substeps: int = field(default=0)  # RK4 steps per sample; 0: sub-steps of <= MAX_SUBSTEP_S (2 at 30 Hz, 1 at 60 Hz)
 
 
-def _piece_weights(delay_s: float, dt: float, pieces: int) -> tuple[np.ndarray, np.ndarray]:
+def _piece_weights(delay_s, dt: float, pieces: int) -> tuple[np.ndarray, np.ndarray]:
     """Per piece p of a sample split into ``pieces``: index offset o_p and weight w_p such that the mean
-    of the held command shifted by delay_s over piece p of sample k is w_p u[k + o_p] + (1 - w_p) u[k + o_p + 1]."""
-    shift = np.arange(pieces) / pieces - delay_s / dt
+    of the held command shifted by delay_s over piece p of sample k is w_p u[k + o_p] + (1 - w_p) u[k + o_p + 1].
+    One delay gives arrays of shape (pieces,), an array of S delays (S, pieces)."""
+    shift = np.arange(pieces) / pieces - np.asarray(delay_s, dtype=float)[..., None] / dt
     offset = np.floor(shift + 1e-12)
     weight = np.minimum(1.0, (offset + 1.0 - shift) * pieces)
     return offset.astype(int), weight
@@ -75,31 +78,45 @@ class Actuation:
     motor_scale: np.ndarray | None  # (N, steps) motor force scale (battery drift); None without drift
 
 
-def _segment(a: np.ndarray, target: np.ndarray, rate: float, length: float, w: np.ndarray | None = None,
-             half: float = 0.0):
+def _segment(a: np.ndarray, target: np.ndarray, rate: float, length, w: np.ndarray | None = None, half=0.0):
     """An actuator moving from a toward a constant target at <= rate over ``length`` seconds (a ramp, then
     held): (end, exact mean). With a play of half-width ``half`` behind it, starting at linkage angle w:
-    (end, mean, linkage end, exact linkage mean); the linkage holds until the ramp reaches w +- half."""
-    if length <= 0.0:
+    (end, mean, linkage end, exact linkage mean); the linkage holds until the ramp reaches w +- half.
+    ``length`` and ``half`` may be arrays (one per car of a batch); a zero length returns end = a and
+    linkage end = w, and means that are finite (the caller weighs them by the zero length)."""
+    if isinstance(length, float) and length <= 0.0:
         return (a, a) if w is None else (a, a, w, w)
     gap = target - a
     reach = rate * length
-    end = a + np.clip(gap, -reach, reach)
-    moving = np.minimum(np.abs(gap) / max(reach, 1e-300), 1.0)  # fraction of the piece on the ramp
+    end = a + np.minimum(np.maximum(gap, -reach), reach)  # np.clip, without its Python-level overhead
+    moving = np.minimum(np.abs(gap) / np.maximum(reach, 1e-300), 1.0)  # fraction of the piece on the ramp
     mean = np.where(np.abs(gap) <= reach, target - 0.5 * gap * moving, 0.5 * (a + end))
     if w is None:
         return end, mean
     up = end >= a
     catch = np.where(up, w + half, w - half)  # servo angle at which the play is taken up
     span = end - a
-    before = np.clip((catch - a) / np.where(span == 0.0, 1.0, span), 0.0, 1.0)  # ramp fraction with w held
+    before = np.minimum(np.maximum((catch - a) / np.where(span == 0.0, 1.0, span), 0.0), 1.0)  # ramp fraction with w held
     follow = np.where(up, 0.5 * (np.maximum(catch, a) + end) - half, 0.5 * (np.minimum(catch, a) + end) + half)
-    w_end = np.clip(w, end - half, end + half)
+    w_end = np.minimum(np.maximum(w, end - half), end + half)
     w_mean = moving * (before * w + (1.0 - before) * follow) + (1.0 - moving) * w_end
     return end, mean, w_end, w_mean
 
 
-_ACTUATION_CACHE: dict[tuple, Actuation] = {}
+# The actuator chain up to the play (delays, limits, rate limits, play), per channel and per (trajectory,
+# windows, the channel's parameters): the throttle, the linkage angle. The asymmetry and the motor drift act
+# after it and are applied per car, so a fit of those, or of the other channel, reuses it. The trajectory is
+# held weakly so a new one with the id of a collected one cannot hit.
+_CHAIN_CACHE: dict[tuple, tuple[weakref.ref, np.ndarray]] = {}
+THROTTLE, STEERING = "throttle", "steering"
+
+
+def _chain_key(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n_sub: int, channel: str) -> tuple:
+    c, a = car.corrections, car.actuators
+    where = (id(traj), first.tobytes(), steps, n_sub, channel)
+    if channel == THROTTLE:
+        return where + (c.throttle_delay_s, a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s)
+    return where + (c.steering_delay_s, c.steering_backlash_rad, a.max_steering_rad, a.steering_rate_limit_radps)
 
 
 def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n_sub: int) -> Actuation:
@@ -108,91 +125,135 @@ def actuation(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n
 
     The actuators start at the delayed, limited command ACTUATOR_RUN_IN_S before ``first`` (or at the
     segment start) and run over the run-in unrecorded. Cached on the actuator parameters: a fit that
-    varies only gain, offset, drag or grip reuses it.
+    varies only gain, offset, drag, grip, asymmetry or drift reuses the chain.
     """
-    c, act = car.corrections, car.actuators
-    key = (id(traj), first.tobytes(), steps, n_sub, c.steering_delay_s, c.throttle_delay_s,
-           c.steering_backlash_rad, c.steering_gain_asymmetry, c.motor_force_drift_per_s, act)
-    hit = _ACTUATION_CACHE.get(key)
-    if hit is not None:
-        return hit
+    return actuations(traj, first, steps, [car], n_sub)[0]
+
+
+def actuations(traj: Trajectory, first: np.ndarray, steps: int, cars: Sequence[CarParams],
+               n_sub: int) -> list[Actuation]:
+    """:func:`actuation` of several cars; the channels not cached run in one batch (cars x windows)."""
+    chains: dict[tuple, np.ndarray] = {}
+    for channel in (THROTTLE, STEERING):
+        todo: dict[tuple, CarParams] = {}
+        for car in cars:
+            key = _chain_key(traj, first, steps, car, n_sub, channel)
+            hit = _CHAIN_CACHE.get(key)
+            if hit is not None and hit[0]() is traj:
+                chains[key] = hit[1]
+            elif key not in chains:
+                todo.setdefault(key, car)
+        if not todo:
+            continue
+        for key, chain in zip(todo, _actuation_batch(traj, first, steps, list(todo.values()), n_sub, channel)):
+            chains[key] = chain
+            if len(_CHAIN_CACHE) > 256:
+                _CHAIN_CACHE.clear()
+            _CHAIN_CACHE[key] = (weakref.ref(traj), chain)
+    out = []
+    for car in cars:
+        c = car.corrections
+        throttle = chains[_chain_key(traj, first, steps, car, n_sub, THROTTLE)]
+        steering = chains[_chain_key(traj, first, steps, car, n_sub, STEERING)]
+        if c.steering_gain_asymmetry != 0.0:
+            steering = asymmetric(steering, c.steering_gain_asymmetry)
+        motor_scale = None
+        if c.motor_force_drift_per_s != 0.0:
+            t_mid = traj.t[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt - traj.t[0]
+            motor_scale = motor_force_scale(c.motor_force_drift_per_s, t_mid)
+        out.append(Actuation(throttle, steering, motor_scale))
+    return out
+
+
+def _actuation_batch(traj: Trajectory, first: np.ndarray, steps: int, cars: list[CarParams], n_sub: int,
+                     channel: str) -> list[np.ndarray]:
+    """One channel of :func:`actuation`'s chain, up to the play, for S cars (computed on arrays (S, N)):
+    per car the mean throttle or linkage angle (before the asymmetry) per sub-step, (N, steps, n_sub)."""
+    groups: dict[tuple, list[int]] = {}  # limits and rate are scalars within a batch
+    for i, car in enumerate(cars):
+        a = car.actuators
+        limits = ((a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s) if channel == THROTTLE
+                  else (-a.max_steering_rad, a.max_steering_rad, a.steering_rate_limit_radps))
+        groups.setdefault(limits, []).append(i)
+    out: list = [None] * len(cars)
+    for (lo, hi, rate), members in groups.items():
+        corr = [cars[i].corrections for i in members]
+        if channel == THROTTLE:
+            chain = _chain(traj, first, steps, n_sub, traj.throttle, [c.throttle_delay_s for c in corr], lo, hi, rate,
+                           None)
+        else:
+            chain = _chain(traj, first, steps, n_sub, traj.steering, [c.steering_delay_s for c in corr], lo, hi, rate,
+                           [c.steering_backlash_rad for c in corr])
+        for i, c in zip(members, chain):
+            out[i] = c
+    return out
+
+
+def _chain(traj: Trajectory, first: np.ndarray, steps: int, n_sub: int, command: np.ndarray, delay: list[float],
+           lo: float, hi: float, rate: float, backlash: list[float] | None) -> np.ndarray:
+    """Delay, limits, rate limit and (``backlash`` given) play of one command for S cars: (S, N, steps, n_sub)."""
     run_in = np.minimum(int(round(ACTUATOR_RUN_IN_S / traj.dt)), first - traj.seg_start[first])
     begin = first - run_in
     n_run = int(run_in.max()) if run_in.size else 0
     pieces = n_sub * PIECES_PER_SUBSTEP
     length = traj.dt / pieces
-    last = traj.throttle.size - 1
+    last = command.size - 1
     seg_first = traj.seg_start[first]
-    channels = []
-    for command, delay, lo, hi, rate in (
-            (traj.throttle, c.throttle_delay_s, act.throttle_min, act.throttle_max, act.throttle_rate_limit_per_s),
-            (traj.steering, c.steering_delay_s, -act.max_steering_rad, act.max_steering_rad,
-             act.steering_rate_limit_radps)):
-        offset, weight = _piece_weights(delay, traj.dt, pieces)
-        limited = np.clip(command, lo, hi)
+    js = np.arange(-n_run, steps)
+    offset, weight = _piece_weights(delay, traj.dt, pieces)  # (S, pieces)
+    limited = np.clip(command, lo, hi)
+    # Per piece p: the held command at the piece's start and after its switch, for every step of every
+    # window of every car (steps, S, N), and the fraction f of the piece before the switch (S, 1).
+    base = first[None, None, :] + js[:, None, None]
+    pieces_of = []
+    for p in range(pieces):
+        at = base + offset[None, :, p, None]
+        f = weight[:, p, None]
+        pieces_of.append((limited[np.clip(at, seg_first, last)], limited[np.clip(at + 1, seg_first, last)],
+                          f, bool(np.all(f >= 1.0)), f * length, (1.0 - f) * length))
 
-        def move(a: np.ndarray, k: np.ndarray, p: int, w=None, half=0.0, offset=offset, weight=weight,
-                 limited=limited, rate=rate):
-            """_segment over piece p of sample k: the held command switches once inside the piece, after
-            the fraction weight[p] of it (exact for the shifted zero-order hold; continuous in the delay)."""
-            first_target = limited[np.clip(k + offset[p], seg_first, last)]
-            f = weight[p]
-            if f >= 1.0:
-                return _segment(a, first_target, rate, length, w, half)
-            one = _segment(a, first_target, rate, f * length, w, half)
-            two = _segment(one[0], limited[np.clip(k + offset[p] + 1, seg_first, last)], rate, (1.0 - f) * length,
-                           None if w is None else one[2], half)
-            if w is None:
-                return two[0], f * one[1] + (1.0 - f) * two[1]
-            return two[0], f * one[1] + (1.0 - f) * two[1], two[2], f * one[3] + (1.0 - f) * two[3]
+    def move(a: np.ndarray, i: int, p: int, w=None, half=0.0):
+        """_segment over piece p of step i: the held command switches once inside the piece, after
+        the fraction f of it (exact for the shifted zero-order hold; continuous in the delay).
+        Cars whose command does not switch (f = 1) get a zero-length second part."""
+        targets, targets_after, f, whole, f_length, rest_length = pieces_of[p]
+        if whole:
+            return _segment(a, targets[i], rate, length, w, half)
+        one = _segment(a, targets[i], rate, f_length, w, half)
+        two = _segment(one[0], targets_after[i], rate, rest_length, None if w is None else one[2], half)
+        if w is None:
+            return two[0], f * one[1] + (1.0 - f) * two[1]
+        return two[0], f * one[1] + (1.0 - f) * two[1], two[2], f * one[3] + (1.0 - f) * two[3]
 
-        def start_value(k: np.ndarray, offset=offset, weight=weight, limited=limited) -> np.ndarray:
-            return limited[np.clip(k + offset[0] + (weight[0] <= 0.0), seg_first, last)]
-
-        channels.append((move, start_value))
-    (throttle_move, throttle_start), (steer_move, steer_start) = channels
     # Windows with a shorter run-in (near a segment start) hold their first target until their own start.
     k0 = np.maximum(begin, first - n_run)
-    u = throttle_start(k0)
-    s = steer_start(k0)
+    s = limited[np.clip(k0 + offset[:, 0, None] + (weight[:, 0, None] <= 0.0), seg_first, last)]
     w = s.copy()
-    backlash, asym = c.steering_backlash_rad, c.steering_gain_asymmetry
-    thr_out = np.empty((first.size, steps, n_sub))
-    steer_out = np.empty((first.size, steps, n_sub))
-    thr_acc = np.zeros(first.size)
-    steer_acc = np.zeros(first.size)
-    for j in range(-n_run, steps):
-        k = first + j
-        active = k >= begin
+    half = 0.5 * np.array(backlash or [0.0] * len(delay))[:, None]
+    play = half > 0.0  # cars without play: the linkage is the servo (the plain path, not a zero play)
+    any_play = bool(play.any())
+    out = np.empty((len(delay), first.size, steps, n_sub))
+    acc = np.zeros((len(delay), first.size))
+    for i, j in enumerate(js):
+        # Before its own run-in a window's actuators hold; from j = 0 on every window is running.
+        active = None if j >= 0 else first + j >= begin
         for p in range(pieces):
-            u_end, u_mean = throttle_move(u, k, p)
-            if backlash > 0.0:
-                s_end, s_mean, w_end, w_mean = steer_move(s, k, p, w, 0.5 * backlash)
-                w = np.where(active, w_end, w)
+            if any_play:
+                s_end, s_mean, w_end, w_mean = move(s, i, p, w, half)
+                w = w_end if active is None else np.where(active, w_end, w)
+                if not play.all():
+                    w_mean = np.where(play, w_mean, s_mean)
             else:
-                s_end, s_mean = steer_move(s, k, p)
-                w_mean = s_mean
-            u = np.where(active, u_end, u)
-            s = np.where(active, s_end, s)
+                s_end, w_mean = move(s, i, p)
+            s = s_end if active is None else np.where(active, s_end, s)
             if j >= 0:
-                thr_acc += u_mean
-                steer_acc += w_mean
+                if PIECES_PER_SUBSTEP == 1:
+                    out[:, :, j, p] = w_mean
+                    continue
+                acc += w_mean
                 if (p + 1) % PIECES_PER_SUBSTEP == 0:
-                    q = p // PIECES_PER_SUBSTEP
-                    thr_out[:, j, q] = thr_acc / PIECES_PER_SUBSTEP
-                    steer_out[:, j, q] = steer_acc / PIECES_PER_SUBSTEP
-                    thr_acc[:] = 0.0
-                    steer_acc[:] = 0.0
-    if asym != 0.0:
-        steer_out = asymmetric(steer_out, asym)
-    motor_scale = None
-    if c.motor_force_drift_per_s != 0.0:
-        t_mid = traj.t[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt - traj.t[0]
-        motor_scale = motor_force_scale(c.motor_force_drift_per_s, t_mid)
-    out = Actuation(thr_out, steer_out, motor_scale)
-    if len(_ACTUATION_CACHE) > 64:
-        _ACTUATION_CACHE.clear()
-    _ACTUATION_CACHE[key] = out
+                    out[:, :, j, p // PIECES_PER_SUBSTEP] = acc / PIECES_PER_SUBSTEP
+                    acc[:] = 0.0
     return out
 
 
@@ -204,25 +265,37 @@ def substeps(setup: ModelSetup, dt: float) -> int:
 
 
 def _stack(setups: Sequence[ModelSetup], traj: Trajectory, first: np.ndarray, steps: int, n_sub: int):
-    """Coefficients (one per window, windows of setup 0 first) and actuation of several setups."""
+    """Coefficients and actuation of several setups, windows of setup 0 first: coefficients that differ
+    between setups are arrays (one per window), the others floats; inputs (steps, n_sub, S * N) and the
+    motor scale (steps, S * N) or None, laid out so each sub-step's inputs are contiguous."""
     n = first.size
     cars = [s.car for s in setups]
     if any(c.other_terms != cars[0].other_terms or c.geometry != cars[0].geometry for c in cars[1:]):
         raise ValueError("predict: stacked setups may differ in [corrections] only")
-    acts = [actuation(traj, first, steps, c, n_sub) for c in cars]
+    acts = actuations(traj, first, steps, cars, n_sub)
     k = ModelCoefficients.from_params(cars)
-    if len(cars) == 1:
-        k = ModelCoefficients(**{f.name: float(getattr(k, f.name)[0]) for f in dataclasses.fields(k)})
-        return k, acts[0].throttle, acts[0].steering, acts[0].motor_scale
-    k = ModelCoefficients(**{f.name: np.repeat(getattr(k, f.name), n) for f in dataclasses.fields(k)})
+    k = ModelCoefficients(**{f.name: float(v[0]) if np.all(v == v[0]) else np.repeat(v, n)
+                             for f in dataclasses.fields(k) for v in (getattr(k, f.name),)})
+
+    def inputs(a: list[np.ndarray]) -> np.ndarray:
+        return np.ascontiguousarray((a[0] if len(a) == 1 else np.concatenate(a)).transpose(1, 2, 0))
+
     scale = None
     if any(a.motor_scale is not None for a in acts):
-        scale = np.concatenate([np.ones((n, steps)) if a.motor_scale is None else a.motor_scale for a in acts])
-    return (k, np.concatenate([a.throttle for a in acts]), np.concatenate([a.steering for a in acts]), scale)
+        scale = np.concatenate([np.ones((n, steps)) if a.motor_scale is None else a.motor_scale for a in acts]).T
+        scale = np.ascontiguousarray(scale)
+    return k, inputs([a.throttle for a in acts]), inputs([a.steering for a in acts]), scale
 
 
 def _with_motor_scale(k: ModelCoefficients, scale: np.ndarray | None) -> ModelCoefficients:
     return k if scale is None else dataclasses.replace(k, motor_force=k.motor_force * scale)
+
+
+# Predictions per (trajectory, windows, horizon, setup), least recently used dropped beyond the byte cap: a
+# selection evaluates the same model on the same windows several times (a fit's start, refits from the same
+# point, the judged models). Arrays are read-only; the trajectory is held weakly (see _CHAIN_CACHE).
+_PREDICTION_CACHE: OrderedDict[tuple, tuple[weakref.ref, np.ndarray]] = OrderedDict()
+PREDICTION_CACHE_BYTES = 64 * 2 ** 20
 
 
 def predict(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetup | Sequence[ModelSetup]) -> np.ndarray:
@@ -230,7 +303,7 @@ def predict(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetu
 
     Given a sequence of S setups (same model family, differing in ``[corrections]`` only), all are run
     in one batch and the result has shape (S, N, horizon+1, 4). Every start must have
-    ``start + horizon`` inside its segment.
+    ``start + horizon`` inside its segment. Results are read-only (they may be shared with later calls).
     """
     starts = np.asarray(starts, dtype=int)
     if np.any(starts + horizon >= traj.seg_end[starts]):
@@ -238,9 +311,26 @@ def predict(traj: Trajectory, starts: np.ndarray, horizon: int, setup: ModelSetu
     setups = [setup] if isinstance(setup, ModelSetup) else list(setup)
     if len({s.dynamic for s in setups}) != 1 or len({s.substeps for s in setups}) != 1:
         raise ValueError("predict: stacked setups must share the model family and sub-steps")
-    run = _predict_dynamic if setups[0].dynamic else _predict_kinematic
-    out = run(traj, starts, horizon, setups)
-    return out[0] if isinstance(setup, ModelSetup) else out
+    where = (id(traj), starts.tobytes(), horizon)
+    found: dict[ModelSetup, np.ndarray] = {}
+    for s in setups:
+        hit = _PREDICTION_CACHE.get(where + (s,))
+        if hit is not None and hit[0]() is traj:
+            found[s] = hit[1]
+            _PREDICTION_CACHE.move_to_end(where + (s,))
+    todo = list(dict.fromkeys(s for s in setups if s not in found))  # each distinct setup once
+    if todo:
+        run = _predict_dynamic if todo[0].dynamic else _predict_kinematic
+        for s, pred in zip(todo, run(traj, starts, horizon, todo)):
+            pred.flags.writeable = False
+            found[s] = pred
+            _PREDICTION_CACHE[where + (s,)] = (weakref.ref(traj), pred)
+        size = sum(v[1].nbytes for v in _PREDICTION_CACHE.values())
+        while size > PREDICTION_CACHE_BYTES and len(_PREDICTION_CACHE) > 1:
+            size -= _PREDICTION_CACHE.popitem(last=False)[1][1].nbytes
+    if isinstance(setup, ModelSetup):
+        return found[setup]
+    return np.stack([found[s] for s in setups])
 
 
 def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setups: list[ModelSetup]) -> np.ndarray:
@@ -255,10 +345,10 @@ def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup
     x, y, th, v = traj.xs[idx], traj.ys[idx], traj.headings[idx], traj.speed[idx]
     out[:, 0] = np.stack([x, y, th, v], axis=-1)
     for j in range(horizon):
-        k = _with_motor_scale(k_all, None if motor_scale is None else motor_scale[:, j])
+        k = _with_motor_scale(k_all, None if motor_scale is None else motor_scale[j])
         for q in range(n_sub):
-            throttle = thr[:, j, q]
-            delta = k.steering_gain * steer[:, j, q] + k.steering_offset
+            throttle = thr[j, q]
+            delta = k.steering_gain * steer[j, q] + k.steering_offset
             beta = np.arctan(lr / wheelbase * np.tan(delta))
             yaw_per_speed = np.sin(beta) / lr
 
@@ -290,11 +380,6 @@ def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup
     return out.reshape(len(setups), starts.size, horizon + 1, 4)
 
 
-def _measured_state(traj: Trajectory, idx: np.ndarray) -> np.ndarray:
-    return np.stack([traj.xs[idx], traj.ys[idx], traj.headings[idx], traj.vx[idx], traj.vy[idx],
-                     traj.yaw_rate[idx]], axis=-1)
-
-
 def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setups: list[ModelSetup]) -> np.ndarray:
     car = setups[0].car
     n_sub = substeps(setups[0], traj.dt)
@@ -306,43 +391,43 @@ def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setups:
     warm = min(int(round(WARMUP_S / traj.dt)), int(np.min(starts - traj.seg_start[starts])))
     k_all, thr, steer, motor_scale = _stack(setups, traj, starts - warm, warm + horizon, n_sub)
     idx = np.tile(starts, len(setups))
-    state = _measured_state(traj, idx - warm)
-    out = np.empty((idx.size, horizon + 1, 4))
+    # The state as separate contiguous arrays [x, y, heading, vx, vy, yaw rate]; the inputs' terms are
+    # computed once per sub-step (they are held over it), the state's for each RK4 stage.
+    at = idx - warm
+    x, y, th, vx, vy, r = (a[at] for a in (traj.xs, traj.ys, traj.headings, traj.vx, traj.vy, traj.yaw_rate))
+    out = np.empty((4, horizon + 1, idx.size))
+    hh, h6 = 0.5 * h, h / 6.0
 
     def record(j: int) -> None:
-        speed = np.hypot(state[:, 3], state[:, 4]) * np.sign(state[:, 3])
-        out[:, j] = np.stack([state[:, 0], state[:, 1], state[:, 2], speed], axis=-1)
+        out[0, j], out[1, j], out[2, j] = x, y, th
+        out[3, j] = np.sqrt(vx * vx + vy * vy) * np.sign(vx)
 
     for j in range(warm + horizon):
         if j == warm:
-            state[:, :4] = _measured_state(traj, idx)[:, :4]
+            x, y, th, vx = traj.xs[idx], traj.ys[idx], traj.headings[idx], traj.vx[idx]
             record(0)
-        k = _with_motor_scale(k_all, None if motor_scale is None else motor_scale[:, j])
+        k = _with_motor_scale(k_all, None if motor_scale is None else motor_scale[j])
         for q in range(n_sub):
-            throttle, steering = thr[:, j, q], steer[:, j, q]
-            u = np.stack([throttle, steering], axis=-1)
-            if extra:
-                delta = k.steering_gain * steering + k.steering_offset
+            inp = input_terms(thr[j, q], steer[j, q], k)
 
-                def f(s):
-                    xdot = derivative(s, u, k)
-                    dv, dth = extra_rates(s[:, 3], throttle, delta, extra)
-                    xdot[:, 3] += dv
-                    xdot[:, 2] += dth
-                    return xdot
-            else:
+            def f(th_, vx_, vy_, r_, inp=inp, k=k):
+                dx, dy, dth = pose_rates(th_, vx_, vy_, r_)
+                dvx, dvy, dr = body_rates(vx_, vy_, r_, inp, k)
+                if extra:
+                    dv, dth_extra = extra_rates(vx_, inp.throttle, inp.delta, extra)
+                    dvx, dth = dvx + dv, dth + dth_extra
+                return dx, dy, dth, dvx, dvy, dr
 
-                def f(s):
-                    return derivative(s, u, k)
-
-            k1 = f(state)
-            k2 = f(state + 0.5 * h * k1)
-            k3 = f(state + 0.5 * h * k2)
-            k4 = f(state + h * k3)
-            state = state + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+            # RK4 with the input held; x and y do not enter the rates, so only their slopes are kept.
+            k1 = f(th, vx, vy, r)
+            k2 = f(th + hh * k1[2], vx + hh * k1[3], vy + hh * k1[4], r + hh * k1[5])
+            k3 = f(th + hh * k2[2], vx + hh * k2[3], vy + hh * k2[4], r + hh * k2[5])
+            k4 = f(th + h * k3[2], vx + h * k3[3], vy + h * k3[4], r + h * k3[5])
+            x, y, th, vx, vy, r = (s + h6 * (a + 2 * b + 2 * c + d)
+                                   for s, a, b, c, d in zip((x, y, th, vx, vy, r), k1, k2, k3, k4))
         if j >= warm:
             record(j - warm + 1)
-    return out.reshape(len(setups), starts.size, horizon + 1, 4)
+    return out.transpose(2, 1, 0).reshape(len(setups), starts.size, horizon + 1, 4)
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ approach of two cars is 2.0 m to within 1e-6, i.e. a collision constraint is act
 import numpy as np
 import pytest
 
+from bench.families import family_problem
 from bench.merging import MIN_DISTANCE, merging_problem
 from bench.verify import (best_response_gap, collision_gaps_m, dynamics_defect, max_collision_violation_m,
                           player_cost, stationarity_residual, verify_equilibrium)
@@ -150,6 +151,21 @@ def test_polish_rescues_a_stalled_merge():
     assert result.converged
     assert result.attempts == 1
     # The answer is checked independently of the solver: dynamics, collisions, per-player stationarity.
+    report = verify_equilibrium(problem, result.x, result.u, best_response_starts=0)
+    assert report.passed, report.failures
+
+
+def test_rho_progress_and_non_monotone_violation_test_rescue_a_dense_crossing():
+    # crossing, 5 cars, seed 3 (bench/families.py): with the paper's rules (the defaults: rho reduced every
+    # iteration, total violation never allowed to grow) rho reaches its floor while the start is still far from
+    # feasible and every attempt makes tiny steps along the barrier; reducing rho only once its subproblem is
+    # nearly solved (or stalls) and comparing a trial's violation with the last 4 iterates' converges.
+    problem = family_problem("crossing", 5, 3)
+    paper = solve(problem, max_iter=150)
+    assert not paper.converged
+    result = solve(problem, max_iter=150, rho_progress=10.0, rho_on_stall=True, violation_memory=4)
+    assert result.converged
+    assert np.all(result.second_order > 0)
     report = verify_equilibrium(problem, result.x, result.u, best_response_starts=0)
     assert report.passed, report.failures
 

@@ -185,12 +185,18 @@ def test_kinematic_prediction_matches_solver_cpp_kinematic_bicycle_at_fine_steps
     assert abs(ours[-1, 2] - x[3]) < 1e-3 and abs(ours[-1, 3] - x[2]) < 1e-3
 
 
-def test_dynamic_prediction_reproduces_a_noise_free_simulation():
+@pytest.fixture(scope="module")
+def noise_free_traj():
+    """15 s of the nominal car, no measurement noise (shared by the predictor tests)."""
+    log = generate_log(CAR, {}, 0.25, seed=5, position_noise_m=0.0, heading_noise_rad=0.0, physics_dt=0.002)
+    return build_trajectory(log)
+
+
+def test_dynamic_prediction_reproduces_a_noise_free_simulation(noise_free_traj):
     # Generated with the nominal car: the predictor's dynamic model is the simulator's physics, so
     # one-second predictions from the estimated states land within millimetres (actuator rate limits
     # and state estimation from poses are the only differences).
-    log = generate_log(CAR, {}, 0.25, seed=5, position_noise_m=0.0, heading_noise_rad=0.0, physics_dt=0.002)
-    traj = build_trajectory(log)
+    traj = noise_free_traj
     starts = np.arange(10, 190, 5)
     pred = predict(traj, starts, 30, ModelSetup(CAR, dynamic=True))
     err = np.hypot(pred[:, -1, 0] - traj.x[starts + 30], pred[:, -1, 1] - traj.y[starts + 30])
@@ -198,6 +204,69 @@ def test_dynamic_prediction_reproduces_a_noise_free_simulation():
     err_kin = np.hypot(kin[:, -1, 0] - traj.x[starts + 30], kin[:, -1, 1] - traj.y[starts + 30])
     assert np.sqrt(np.mean(err**2)) < 0.01
     assert np.sqrt(np.mean(err_kin**2)) > 5 * np.sqrt(np.mean(err**2))  # the planner's model misses tyre slip
+
+
+def test_hot_path_rates_and_batched_setups_equal_the_model_one_at_a_time(noise_free_traj):
+    """The predictor's rates (input terms once per sub-step, vx/vy/yaw-rate rates without the pose) equal
+    vehicles.dynamic_bicycle.derivative in all three speed regimes, and stacked setups (different delays,
+    play, asymmetry, drift, gain) predict what each predicts alone."""
+    from vehicles.dynamic_bicycle import body_rates, derivative, input_terms
+
+    rng = np.random.default_rng(6)
+    for lo, hi in ((-0.5, 0.14), (0.16, 0.34), (0.4, 3.5), (-0.5, 3.5)):  # kinematic, blend, dynamic, mixed
+        n = 400
+        state = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-4, 4, n),
+                                 rng.uniform(lo, hi, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-6, 6, n)])
+        u = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-0.47, 0.47, n)])
+        k = ModelCoefficients.from_params(CAR)
+        want = derivative(state, u, k)[:, 3:]
+        got = np.column_stack(body_rates(state[:, 3], state[:, 4], state[:, 5], input_terms(u[:, 0], u[:, 1], k), k))
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+    traj = noise_free_traj
+    starts = np.arange(20, 180, 7)
+    cars = [dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, **c)) for c in (
+        {}, {"steering_delay_s": 0.03, "throttle_delay_s": 0.011}, {"steering_backlash_rad": 0.05},
+        {"steering_gain_asymmetry": 0.1, "steering_gain": 0.9}, {"motor_force_drift_per_s": 0.002})]
+    for dynamic in (True, False):
+        together = predict(traj, starts, 30, [ModelSetup(c, dynamic) for c in cars])
+        for c, pred in zip(cars, together):
+            np.testing.assert_allclose(pred, predict(traj, starts, 30, ModelSetup(c, dynamic)), rtol=0, atol=1e-12)
+
+
+def test_fits_side_by_side_equal_the_fits_alone(monkeypatch):
+    """sysid.lockstep runs independent fits with their predictions batched per round: the fitted values
+    are those of each fit run alone, and the rounds need fewer prediction calls than the fits alone."""
+    import sysid.model
+    from sysid.diagnose import CANDIDATES, SysidSettings, fit_candidates, split_starts
+    from sysid.lockstep import side_by_side
+
+    log = generate_log(CAR, parse_effects("actuation_delay=0.05"), 0.3, seed=9, physics_dt=0.002)
+    traj = build_trajectory(log)
+    settings = SysidSettings(fit_max_starts=30, heldout_max_starts=100)
+    split = split_starts(traj, 30, settings)
+    base = ModelSetup(CAR, dynamic=True)
+    cands = [c for c in CANDIDATES if c.effect in ("steering_offset", "actuation_delay", "steering_backlash")]
+    calls = []
+    real = sysid.model.predict
+    monkeypatch.setattr(sysid.model, "predict", lambda *a: calls.append(1) or real(*a))
+
+    def fits():
+        return [lambda c=c: fit_candidates(traj, split, 30, base, [c], settings) for c in cands]
+
+    sysid.model._PREDICTION_CACHE.clear()
+    alone = [f() for f in fits()]
+    n_alone = len(calls)
+    sysid.model._PREDICTION_CACHE.clear()
+    calls.clear()
+    together = side_by_side(fits())
+    assert len(calls) < 0.6 * n_alone
+    for a, b in zip(alone, together):
+        assert a.values.keys() == b.values.keys()
+        for name in a.values:
+            assert b.values[name] == pytest.approx(a.values[name], rel=1e-6, abs=1e-9), name
+    delay = next(f for f in alone if "steering_delay_s" in f.values)
+    assert delay.values["steering_delay_s"] == pytest.approx(0.05, rel=0.3)  # the fit itself worked
 
 
 # ----------------------------------------------------------------------------- sparse regression

@@ -62,6 +62,12 @@ class SegmentCenterline:
         x, y, th = _advance(self.x0[i], self.y0[i], self.th0[i], k, sigma)
         return CenterlineSample(x, y, th, k.copy(), np.zeros_like(s))
 
+    def curvature(self, s) -> np.ndarray:
+        """``evaluate(s).curvature`` without the poses (the planners look curvature up every step)."""
+        s = np.asarray(s, dtype=float)
+        i = np.clip(np.searchsorted(self.s_start, s, side="right") - 1, 0, len(self.lengths) - 1)
+        return self.curvatures[i]
+
 
 def _advance(x0, y0, th0, k, sigma):
     """Pose after driving arc length ``sigma`` (m) at constant curvature ``k`` (1/m); vectorised."""
@@ -121,6 +127,14 @@ class SplineCenterline:
     def parameter(self, s):
         """Spline parameter u (m of chord length) at arc length s (m)."""
         return np.clip(self.u_of_s(np.asarray(s, dtype=float)), 0.0, self.u_knots[-1])
+
+    def curvature(self, s) -> np.ndarray:
+        """``evaluate(s).curvature`` without the position and the curvature derivative."""
+        u = self.parameter(s)
+        r1, r2 = self.d1(u), self.d2(u)
+        xp, yp = r1[..., 0], r1[..., 1]
+        speed = np.sqrt(xp * xp + yp * yp)
+        return (xp * r2[..., 1] - yp * r2[..., 0]) / speed**3
 
     def evaluate(self, s) -> CenterlineSample:
         u = self.parameter(s)

@@ -179,7 +179,11 @@ class Track:
 
         Segment tracks: at a joint between segments the value of the segment starting there is returned.
         """
-        return self._sample(s).curvature
+        s = np.asarray(s, dtype=float)
+        if self.closed:
+            return self._centerline.curvature(self.wrap_s(s))
+        inside = np.clip(s, 0.0, self._length)
+        return np.where(s - inside == 0.0, self._centerline.curvature(inside), 0.0)  # 0 on the extensions (_sample)
 
     def curvature_derivative(self, s):
         """d(curvature)/ds (1/m^2) at arc length ``s`` (m); 0 inside straights/arcs of segment tracks."""

@@ -123,10 +123,10 @@ void KinematicBicycleFrenet::curvature(double s, double& kappa, double& dkappa) 
 }
 
 namespace {
-template <int K>
-void frenet_step(const Jet2<K> (&z)[6], double kappa0, double dkappa, double s0, double lf, double lr, double dt,
-                 Jet2<K> (&out)[4]) {
-  using J = Jet2<K>;
+// One Euler step on jets J (Jet2<6> for value, Jacobian and Hessian, Jet1<6> for value and Jacobian).
+template <class J>
+void frenet_step(const J (&z)[6], double kappa0, double dkappa, double s0, double lf, double lr, double dt,
+                 J (&out)[4]) {
   // kappa is linear in s within a table cell: kappa(s) = kappa0 + dkappa (s - s0).
   const J kap = J::constant(kappa0) + dkappa * (z[0] - s0);
   const J beta = atan((lr / (lf + lr)) * tan(z[5]));
@@ -139,8 +139,8 @@ void frenet_step(const Jet2<K> (&z)[6], double kappa0, double dkappa, double s0,
 }
 }  // namespace
 
-void KinematicBicycleFrenet::step_jets(const CVecRef& x, const CVecRef& u, Jet2<6> (&out)[4]) const {
-  using J = Jet2<6>;
+template <class J>
+void KinematicBicycleFrenet::step_jets(const CVecRef& x, const CVecRef& u, J (&out)[4]) const {
   J z[6];
   for (int i = 0; i < 4; ++i) z[i] = J::variable(x[i], i);
   z[4] = J::variable(u[0], 4);
@@ -151,7 +151,7 @@ void KinematicBicycleFrenet::step_jets(const CVecRef& x, const CVecRef& u, Jet2<
 }
 
 void KinematicBicycleFrenet::eval(const CVecRef& x, const CVecRef& u, VecRef xn, MatRef A, MatRef B) const {
-  Jet2<6> out[4];
+  Jet1<6> out[4];  // no Hessian needed here (line search, rollouts)
   step_jets(x, u, out);
   for (int r = 0; r < 4; ++r) {
     xn[r] = out[r].v;

@@ -6,14 +6,10 @@
 #include <cstdio>
 #include <stdexcept>
 
+#include "rd3g/clock.hpp"
 #include "rd3g/validate.hpp"
 
 namespace rd3g {
-
-namespace {
-using Clock = std::chrono::steady_clock;
-double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
-}  // namespace
 
 // -------------------------------------------------------------------------------------------------
 void LQGameSolver::setup(int n, const std::vector<int>& control_dims, int T) {

@@ -12,15 +12,12 @@
 #include <stdexcept>
 #include <string>
 
+#include "rd3g/clock.hpp"
 #include "rd3g/validate.hpp"
 
 namespace rd3g {
 
 namespace {
-using Clock = std::chrono::steady_clock;
-inline double seconds_since(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
 // LSCG iterations between deadline checks when a time limit is set.
 constexpr int kLscgChunk = 50;
 // Sparse factorisation speed assumed before this solver has measured its own (flop/s): low, so that a
@@ -126,6 +123,7 @@ void Solver::list_and_allocate() {
   trip_.clear();
   trip_.reserve(static_cast<size_t>(N_) * T_ * (3 * (nx_ + nu_) * (nx_ + nu_) + 4 * nx_) + 24 * C);
   merits_.reserve(static_cast<size_t>(settings_.max_iter) + 2);
+  violations_.reserve(static_cast<size_t>(settings_.max_iter) + 2);
   lu_analyzed_ = false;
   ++structure_version_;
 }
@@ -152,6 +150,7 @@ void Solver::update_settings(const Settings& s) {
   per_agent_multipliers_ = per_agent;
   settings_ = s;
   merits_.reserve(static_cast<size_t>(s.max_iter) + 2);
+  violations_.reserve(static_cast<size_t>(s.max_iter) + 2);
   finish_update(t0);
 }
 
@@ -691,9 +690,12 @@ void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out)
 }
 
 // Backtracking line search (paper, Algorithm 1), with the partition and rho of this iteration:
-// accept t when ||r(y + t dy)|| <= (1 - alpha t) ||r(y)|| and the total violation does not grow.
+// accept t when ||r(y + t dy)|| <= (1 - alpha t) ||r(y)|| and the total violation does not exceed the
+// largest of the last violation_memory iterates' (1: does not grow).
 double Solver::line_search(double merit0) {
-  const double hsum = violation_sum(h_);
+  double hsum = violation_sum(h_);
+  const int mem = std::min<int>(settings_.violation_memory, static_cast<int>(violations_.size()));
+  for (int q = 0; q < mem; ++q) hsum = std::max(hsum, violations_[violations_.size() - 1 - q]);
   double t = 1.0;
   if (barrier_ == BarrierMode::PrimalDual) {
     recover_dual_step(y_, h_, rc_, dy_, dz_);
@@ -922,6 +924,7 @@ bool Solver::converged(double rnorm) const {
 
 Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
   merits_.clear();
+  violations_.clear();
   bool first = true, stalled = false, polished = false;
   info.status = Status::MaxIterations;
   for (;; ++total_iter) {
@@ -931,6 +934,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     const double rnorm = merit(r_, rc_);
     info.residual_history.push_back(rnorm);
     merits_.push_back(rnorm);
+    violations_.push_back(violation_sum(h_));
     info.residual_norm = rnorm;
     info.iterations = total_iter;
     if (settings_.time_limit > 0 && rnorm < best_merit_) {
@@ -944,7 +948,18 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
     if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
     const int w = settings_.stall_window;
-    if (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]) {
+    const double rho_floor = settings_.tol * settings_.rho_floor_factor;
+    double merit_now = rnorm;
+    const bool stall = w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w];
+    if (stall && settings_.rho_on_stall && settings_.rho_progress > 0 && rho_ > rho_floor * (1 + 1e-9)) {
+      // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
+      // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).
+      rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
+      if (!evaluate(y_, h_, true, r_, rc_)) { info.status = Status::NumericalError; break; }
+      merit_now = merit(r_, rc_);
+      merits_.assign(1, merit_now);
+      if (settings_.verbose) std::printf("stall: rho lowered to %.2e\n", rho_);
+    } else if (stall) {
       // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per
       // attempt). A stall with rho at its floor is often the barrier's ill-conditioning around a contact
       // that the equilibrium needs; the equality form has no such curvature.
@@ -955,13 +970,12 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
       merits_.assign(1, merit(r_, rc_));
       if (settings_.verbose) std::printf("stall: %d nearly active constraints held as equalities\n", n_vars_ - n_primal_);
     }
-    const double t = take_step(rnorm, info);
+    const double t = take_step(merit_now, info);
     if (timed_out_) { info.status = Status::TimeLimit; break; }
     if (t < 0) { info.status = Status::NumericalError; break; }
     if (t == 0.0) { info.status = Status::LineSearchFailed; break; }
     info.step_history.push_back(t);
     if (settings_.rho_progress <= 0 || rnorm <= settings_.rho_progress * rho_) {
-      const double rho_floor = settings_.tol * settings_.rho_floor_factor;
       rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
     }
   }

@@ -91,8 +91,10 @@ class KinematicBicycleFrenet final : public Dynamics {
   void curvature(double s, double& kappa, double& dkappa) const;
 
  private:
-  /// The Euler step with exact first and second derivatives wrt (x, u): one place for eval and lambda_hessian.
-  void step_jets(const CVecRef& x, const CVecRef& u, Jet2<6> (&out)[4]) const;
+  /// The Euler step with exact derivatives wrt (x, u) on jets J (Jet1<6>: first, Jet2<6>: first and second):
+  /// one place for eval, eval_with_hessian and lambda_hessian.
+  template <class J>
+  void step_jets(const CVecRef& x, const CVecRef& u, J (&out)[4]) const;
   double lf_, lr_, dt_;
   Vec kappa_;
   double ds_;

@@ -107,7 +107,11 @@ struct Settings {
   double rho_beta = 1.5;
   /// 0: update rho every iteration (paper). > 0: update only once ||r|| <= rho_progress * rho, i.e. the
   /// barrier subproblem is nearly solved (IPOPT's monotone rule); keeps iterates near the central path.
+  /// docs/solver.md ("Globalisation experiments") has 10 measured on the game families (with rho_on_stall).
   double rho_progress = 0.0;
+  /// With rho_progress > 0: an attempt that stalls (stall_window) above rho's floor lowers rho instead of
+  /// polishing or restarting (its ||r|| may never reach rho_progress * rho).
+  bool rho_on_stall = false;
   double ls_alpha = 1e-2;        ///< sufficient decrease: ||r(y+t dy)|| <= (1 - alpha t) ||r(y)||
   double ls_beta = 0.5;          ///< step shrink factor
   int ls_max_steps = 30;         ///< backtracking steps before the line search fails
@@ -146,6 +150,9 @@ struct Settings {
   /// A converged attempt that fails the second-order test is kept aside and the restart schedule (restarts)
   /// goes on, looking for a point that passes; if none is found the kept saddle is returned (status saddle).
   bool restart_on_saddle = true;
+  /// Non-monotone violation test: a trial may not raise the total violation above the largest of the last
+  /// violation_memory iterates' (1 = monotone, the paper's rule; docs/solver.md, "Globalisation experiments").
+  int violation_memory = 1;
   bool verbose = false;
 };
 

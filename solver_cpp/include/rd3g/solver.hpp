@@ -11,6 +11,7 @@
 #include <random>
 #include <vector>
 
+#include "rd3g/clock.hpp"
 #include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/riccati.hpp"
@@ -71,7 +72,6 @@ class Solver {
  private:
   using SpMat = Eigen::SparseMatrix<double>;
   using Triplet = Eigen::Triplet<double>;
-  using Clock = std::chrono::steady_clock;
 
   struct Iterate {
     std::vector<Mat> x;    // per agent nx x (T+1), column k = x_k
@@ -159,6 +159,7 @@ class Solver {
   std::mt19937 rng_;                    // restart offsets: the same sequence in every solve
   std::normal_distribution<double> noise_{0.0, 1.0};
   std::vector<double> merits_;          // merit per iteration of the current attempt
+  std::vector<double> violations_;      // total violation per iteration of the current attempt
   bool timed_out_ = false;              // the deadline passed inside a step
   double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
   double ldlt_flop_rate_ = 0;           // measured speed of its last regularised LDLT factorisation (flop/s)
