@@ -23,14 +23,6 @@ constexpr int kLscgChunk = 50;
 // Sparse factorisation speed assumed before this solver has measured its own (flop/s): low, so that a
 // prediction errs towards not starting a factorisation that might overrun the time limit.
 constexpr double kDefaultFlopRate = 2e8;
-// Eigen's SparseQR takes up to this many times as long as a sparse LDLT of J'J (whose factor has R's
-// pattern): its Householder vectors fill in far more than R. Measured about 80 on the 10-car merging game
-// (0.45 s against 5.7 ms, verbose output of bench/time_limit.py); 200 leaves a margin.
-constexpr double kQrPerCholeskyFlop = 200.0;
-// The ratio above is far from universal: on a 4-agent, horizon-37 fuzz problem (bench/time_limit.py) a
-// QR predicted at 0.19 s took 0.36 s CPU (1800x its LDLT, whose 2e5 flops are too few for the ratio to
-// hold). A QR that this solver has not measured yet is started only when this many times its prediction fits.
-constexpr double kUnmeasuredQrMargin = 4.0;
 
 // Sparse LDLT that reports the flops of its numeric factorisation once its pattern is analysed, so the
 // cost of a factorisation is known before it starts (sum over columns of c^2 + c, c = entries below
@@ -517,12 +509,10 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
       return false;
     }
     const auto t_qr = Clock::now();
-    const double predicted = settings_.verbose && settings_.time_limit > 0 ? predicted_qr_seconds() : 0.0;
     Eigen::SparseQR<SpMat, Eigen::COLAMDOrdering<int>> qr;
     qr.compute(J_);
     last_qr_seconds_ = seconds_since(t_qr);
-    if (settings_.verbose && settings_.time_limit > 0)
-      std::printf("   SparseQR: predicted %.3g s, took %.3g s\n", predicted, last_qr_seconds_);
+    if (settings_.verbose) std::printf("   SparseQR took %.3g s\n", last_qr_seconds_);
     if (qr.info() != Eigen::Success) return false;
     dy.head(n) = qr.solve(rhs);
     info.qr_fallbacks++;
@@ -624,20 +614,11 @@ double Solver::normal_matrix_flops() const {
   return row_count_.squaredNorm();
 }
 
-double Solver::predicted_qr_seconds() {
-  if (last_qr_seconds_ > 0) return last_qr_seconds_;  // this solver's own measurement
-  // Never measured: from the pattern of R (that of the Cholesky factor of J'J), computed symbolically.
-  const double form = normal_matrix_flops() / flop_rate();
-  if (form > time_left()) return form;
-  SpMat JtJ = J_.transpose() * J_;
-  CountedLDLT ldlt;
-  ldlt.analyzePattern(JtJ);
-  return form + kQrPerCholeskyFlop * ldlt.factor_flops() / flop_rate();
-}
-
-bool Solver::qr_would_overrun() {
-  const double margin = last_qr_seconds_ > 0 ? 1.0 : kUnmeasuredQrMargin;
-  return margin * predicted_qr_seconds() > time_left();
+bool Solver::qr_would_overrun() const {
+  // SparseQR's duration cannot be predicted from the pattern: its Householder vectors fill in from about 80x
+  // (10-car merge) to 1800x (a 4-agent fuzz problem) the flops of an LDLT of J'J. Under a time limit it is
+  // started only when this solver's own last QR fits; otherwise the bounded least-squares step replaces it.
+  return last_qr_seconds_ <= 0 || last_qr_seconds_ > time_left();
 }
 
 bool Solver::bounded_least_squares(Vec& dy) {

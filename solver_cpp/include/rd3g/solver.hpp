@@ -104,13 +104,12 @@ class Solver {
   double take_step(double rnorm, Info& info);
   void write_result(Result& res, Info& info);
   bool past_deadline() const;
-  bool qr_would_overrun();  // with a time limit: SparseQR's predicted duration (with a margin) does not fit
+  bool qr_would_overrun() const;  // with a time limit: no QR of this solver measured yet, or the last one does not fit
   bool next_iteration_overruns();  // with a time limit: the deadline passed or the next iteration would pass it
   double time_left() const;  // (s) until the time limit (only meaningful with one)
   // Bounded linear-solve fallback under a time limit (see solve_linear).
   double flop_rate() const;
   double normal_matrix_flops() const;
-  double predicted_qr_seconds();
   bool bounded_least_squares(Vec& dy);
 
   void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const;
