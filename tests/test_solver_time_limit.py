@@ -61,7 +61,7 @@ def test_without_a_limit_the_same_problem_runs_past_it():
 
 
 def test_unmeasured_sparse_qr_is_replaced_by_the_bounded_least_squares_step(capfd):
-    """Under a time limit a SparseQR whose predicted duration does not fit is not started; the regularised
+    """Under a time limit a SparseQR this solver has not timed yet is not started; the regularised
     least-squares step (sparse LDLT of J'J, cost known before it starts) takes its place. Its steps reach
     the same equilibrium as the square system solved by sparse LU without any limit (the reference)."""
     problem = merging_problem(6, 0)

@@ -496,7 +496,7 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
   neg_rhs_.head(n) = -rhs_.head(n);
   const auto rhs = neg_rhs_.head(n);
   auto qr_solve = [&]() -> bool {
-    // SparseQR cannot be interrupted: with a time limit it is started only when its predicted duration
+    // SparseQR cannot be interrupted: with a time limit it is started only when this solver's last QR
     // fits into the time left; otherwise the bounded least-squares fallback takes its place.
     if (past_deadline()) {
       timed_out_ = true;

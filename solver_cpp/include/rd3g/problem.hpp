@@ -92,11 +92,11 @@ struct Settings {
   double tol = 5e-4;             ///< stop when ||r||_2 < tol (and the other conditions hold)
   int max_iter = 1000;           ///< Newton iterations, all restart attempts together (hard instances need several attempts)
   /// (s), 0 = none. Checked every iteration, between Levenberg-Marquardt tries, inside LSCG (in chunks of 50
-  /// iterations) and before a SparseQR factorisation, which is started only if its predicted duration (this
-  /// solver's previous one, or 200x a sparse LDLT of J'J counted symbolically) fits into the time left;
-  /// otherwise a regularised least-squares step (LDLT of J'J + delta I, also started only if its flop count
-  /// fits) takes its place. The overshoot is at most one line search, one LSCG chunk or one mispredicted
-  /// factorisation. On time_limit the result is the iterate with the lowest merit seen.
+  /// iterations) and before a SparseQR factorisation, which is started only if this solver's previous QR
+  /// took less than the time left (never before one was measured); otherwise a regularised least-squares step
+  /// (LDLT of J'J + delta I, started only if its flop count fits) takes its place. The overshoot is at most
+  /// one line search, one LSCG chunk or one factorisation. On time_limit the result is the iterate with the
+  /// lowest merit seen.
   double time_limit = 0.0;
   double rho_init = 0.01;        ///< initial barrier weight rho
   /// rho never goes below tol * rho_floor_factor (paper: 0.1; 0.01 was measured to pass the benchmark's
