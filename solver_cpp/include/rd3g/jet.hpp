@@ -48,20 +48,6 @@ inline Jet2<K> operator*(const Jet2<K>& a, const Jet2<K>& b) {
   r.h = a.v * b.h + b.v * a.h + a.g * b.g.transpose() + b.g * a.g.transpose();
   return r;
 }
-template <int K> inline Jet2<K> inv(const Jet2<K>& a) { const double i = 1.0 / a.v; return apply(a, i, -i * i, 2.0 * i * i * i); }
-template <int K> inline Jet2<K> operator/(const Jet2<K>& a, const Jet2<K>& b) { return a * inv(b); }
-template <int K> inline Jet2<K> sin(const Jet2<K>& a) { return apply(a, std::sin(a.v), std::cos(a.v), -std::sin(a.v)); }
-template <int K> inline Jet2<K> cos(const Jet2<K>& a) { return apply(a, std::cos(a.v), -std::sin(a.v), -std::cos(a.v)); }
-template <int K>
-inline Jet2<K> tan(const Jet2<K>& a) {
-  const double t = std::tan(a.v), s = 1.0 + t * t;
-  return apply(a, t, s, 2.0 * t * s);
-}
-template <int K>
-inline Jet2<K> atan(const Jet2<K>& a) {
-  const double d = 1.0 + a.v * a.v;
-  return apply(a, std::atan(a.v), 1.0 / d, -2.0 * a.v / (d * d));
-}
 
 // ---------------------------------------------------------------------------------------------
 template <int K>
@@ -98,17 +84,19 @@ inline Jet1<K> operator*(const Jet1<K>& a, const Jet1<K>& b) {
   r.g = a.v * b.g + b.v * a.g;
   return r;
 }
-template <int K> inline Jet1<K> inv(const Jet1<K>& a) { const double i = 1.0 / a.v; return apply(a, i, -i * i, 2.0 * i * i * i); }
-template <int K> inline Jet1<K> operator/(const Jet1<K>& a, const Jet1<K>& b) { return a * inv(b); }
-template <int K> inline Jet1<K> sin(const Jet1<K>& a) { return apply(a, std::sin(a.v), std::cos(a.v), -std::sin(a.v)); }
-template <int K> inline Jet1<K> cos(const Jet1<K>& a) { return apply(a, std::cos(a.v), -std::sin(a.v), -std::cos(a.v)); }
-template <int K>
-inline Jet1<K> tan(const Jet1<K>& a) {
+
+// Elementary functions of either jet, written once through its apply().
+template <template <int> class Jet, int K> inline Jet<K> inv(const Jet<K>& a) { const double i = 1.0 / a.v; return apply(a, i, -i * i, 2.0 * i * i * i); }
+template <template <int> class Jet, int K> inline Jet<K> operator/(const Jet<K>& a, const Jet<K>& b) { return a * inv(b); }
+template <template <int> class Jet, int K> inline Jet<K> sin(const Jet<K>& a) { return apply(a, std::sin(a.v), std::cos(a.v), -std::sin(a.v)); }
+template <template <int> class Jet, int K> inline Jet<K> cos(const Jet<K>& a) { return apply(a, std::cos(a.v), -std::sin(a.v), -std::cos(a.v)); }
+template <template <int> class Jet, int K>
+inline Jet<K> tan(const Jet<K>& a) {
   const double t = std::tan(a.v), s = 1.0 + t * t;
   return apply(a, t, s, 2.0 * t * s);
 }
-template <int K>
-inline Jet1<K> atan(const Jet1<K>& a) {
+template <template <int> class Jet, int K>
+inline Jet<K> atan(const Jet<K>& a) {
   const double d = 1.0 + a.v * a.v;
   return apply(a, std::atan(a.v), 1.0 / d, -2.0 * a.v / (d * d));
 }
