@@ -187,8 +187,12 @@ class SimWorld:
                 "lap_times_s": {name: list(status.lap_times[i]) for i, name in enumerate(CAR_NAMES)},
                 "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
                 "race_time_s": self.sim.time,
-                "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)},
-                "frames_dropped": 0, "render_ms": np.zeros(0), "events": []}
+                "off_track": self.off_track(), "frames_dropped": 0, "render_ms": np.zeros(0), "events": []}
+
+    def off_track(self) -> dict[str, int]:
+        """Off-track excursions per car so far."""
+        counts = self.sim.race_status().off_track_count
+        return {name: int(counts[i]) for i, name in enumerate(CAR_NAMES)}
 
     # ---- Link
     def set_commands(self, commands: dict) -> None:
@@ -251,7 +255,7 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
         winner=out.winner, lap_times_s=out.lap_times_s, min_gap_m=out.min_gap_m, collisions=out.collisions,
         solve_ms=out.solve_ms["rd3g"], opponent_solve_ms=out.solve_ms["opponent"],
         control_period_ms=1e3 * setup.control_period_s, race_time_s=out.race_time_s, fallbacks=out.fallbacks,
-        off_track=world.close()["off_track"], start_states=x0, trace_t=np.array(world.trace_t),
+        off_track=world.off_track(), start_states=x0, trace_t=np.array(world.trace_t),
         trace_states=np.array(world.trace_states).reshape(-1, 2, 6),
         trace_progress=np.array(world.trace_progress).reshape(-1, 2), prestart_ms=out.prestart_ms,
         planner_errors=out.planner_errors, interrupted=out.reason == "interrupted")

@@ -54,9 +54,13 @@ class SegmentCenterline:
         self.x0, self.y0, self.th0 = x0[:n], y0[:n], th0[:n]
         self.end_pose = (float(x0[n]), float(y0[n]), float(th0[n]))
 
+    def _segment(self, s: np.ndarray) -> np.ndarray:
+        """Index of the segment holding each arc length ``s`` (clamped to the chain)."""
+        return np.clip(np.searchsorted(self.s_start, s, side="right") - 1, 0, len(self.lengths) - 1)
+
     def evaluate(self, s) -> CenterlineSample:
         s = np.asarray(s, dtype=float)
-        i = np.clip(np.searchsorted(self.s_start, s, side="right") - 1, 0, len(self.lengths) - 1)
+        i = self._segment(s)
         sigma = s - self.s_start[i]
         k = self.curvatures[i]
         x, y, th = _advance(self.x0[i], self.y0[i], self.th0[i], k, sigma)
@@ -64,9 +68,7 @@ class SegmentCenterline:
 
     def curvature(self, s) -> np.ndarray:
         """``evaluate(s).curvature`` without the poses (the planners look curvature up every step)."""
-        s = np.asarray(s, dtype=float)
-        i = np.clip(np.searchsorted(self.s_start, s, side="right") - 1, 0, len(self.lengths) - 1)
-        return self.curvatures[i]
+        return self.curvatures[self._segment(np.asarray(s, dtype=float))]
 
 
 def _advance(x0, y0, th0, k, sigma):
