@@ -930,12 +930,13 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
     const int w = settings_.stall_window;
     const double rho_floor = settings_.tol * settings_.rho_floor_factor;
+    auto lower_rho = [&] { rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta))); };
     double merit_now = rnorm;
     const bool stall = w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w];
     if (stall && settings_.rho_on_stall && settings_.rho_progress > 0 && rho_ > rho_floor * (1 + 1e-9)) {
       // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
       // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).
-      rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
+      lower_rho();
       if (!evaluate(y_, h_, true, r_, rc_)) { info.status = Status::NumericalError; break; }
       merit_now = merit(r_, rc_);
       merits_.assign(1, merit_now);
@@ -957,7 +958,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (t == 0.0) { info.status = Status::LineSearchFailed; break; }
     info.step_history.push_back(t);
     if (settings_.rho_progress <= 0 || rnorm <= settings_.rho_progress * rho_) {
-      rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta)));
+      lower_rho();
     }
   }
   if (info.status == Status::Converged || info.status == Status::TimeLimit || info.status == Status::NumericalError ||
