@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from app.cli import build_parser, main as cli_main
+from bench.fuzz import toml_bytes  # the API fuzz's TOML renderer (hypothesis: installed with the test extra)
 from bench.merging import merging_problem
 from fileio import atomic_write_text
 from sim.camera import SyntheticCamera, overhead_camera
@@ -256,38 +257,11 @@ def _set(doc: Any, path: tuple, value: Any, delete: bool = False) -> Any:
     return d
 
 
-def _toml(doc: dict) -> bytes:
-    """TOML text of a document (tables, arrays of numbers/strings/booleans, and inline tables)."""
-    def value(v):
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, float):
-            return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
-        if isinstance(v, int):
-            return str(v)
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, list):
-            return "[" + ", ".join(value(x) for x in v) + "]"
-        if isinstance(v, dict):
-            return "{" + ", ".join(f"{json.dumps(k)} = {value(x)}" for k, x in v.items()) + "}"
-        raise TypeError(type(v))
-
-    lines, tables = [], []
-    for k, v in doc.items():
-        (tables if isinstance(v, dict) else lines).append((k, v))
-    out = [f"{json.dumps(k)} = {value(v)}" for k, v in lines if v is not None]
-    for name, table in tables:
-        out.append(f"\n[{json.dumps(name)}]")
-        out += [f"{json.dumps(k)} = {value(v)}" for k, v in table.items() if v is not None]
-    return ("\n".join(out) + "\n").encode()
-
-
 def _structured_cases(fmt: Format, data: bytes) -> list[Case]:
     if fmt.kind == "json":
         doc, render = json.loads(data), lambda d: json.dumps(d, indent=1).encode()
     else:
-        doc, render = tomllib.loads(data.decode()), _toml
+        doc, render = tomllib.loads(data.decode()), toml_bytes
     cases = []
     top = tuple(str(k) for k in doc) if isinstance(doc, dict) else ()  # a check of the whole table names it
     for path, old in _leaves(doc):
