@@ -192,14 +192,19 @@ def input_terms(throttle, steering, k: ModelCoefficients, xp=np) -> _Inputs:
 
     Computed once per held input and passed to :func:`body_rates` for each RK4 stage."""
     i = _Inputs()
-    i.throttle = throttle
     i.delta = delta = k.steering_gain * steering + k.steering_offset
     if xp is np:
         i.cos_d, i.sin_d = _cos_sin(delta, xp)
         i.tan_d = i.sin_d / i.cos_d
     else:
         i.cos_d, i.sin_d, i.tan_d = xp.cos(delta), xp.sin(delta), xp.tan(delta)
+    return _throttle_terms(i, throttle, k, xp)
+
+
+def _throttle_terms(i: _Inputs, throttle, k: ModelCoefficients, xp) -> _Inputs:
+    """Fill the throttle part of ``i``: the throttle, smoothed |throttle| (root, abs_u) and the motor force."""
     eps = k.throttle_smoothing
+    i.throttle = throttle
     i.root = xp.sqrt(throttle * throttle + eps * eps)
     i.abs_u = i.root - eps
     i.motor = k.motor_force * throttle
@@ -212,11 +217,7 @@ def drive_force(vx, throttle, k: ModelCoefficients, xp=np, partials: bool = True
     F = Cm1*u - Cm2*vx*|u| - Cr0*tanh(vx/v_s) - Cd*vx*|vx|, with |u| smoothed so the
     force is differentiable at zero throttle.
     """
-    eps = k.throttle_smoothing
-    i = _Inputs()
-    i.throttle, i.root, i.motor = throttle, xp.sqrt(throttle * throttle + eps * eps), k.motor_force * throttle
-    i.abs_u = i.root - eps
-    return _drive_force(vx, i, k, xp, partials)
+    return _drive_force(vx, _throttle_terms(_Inputs(), throttle, k, xp), k, xp, partials)
 
 
 def _drive_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
