@@ -109,6 +109,9 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"time_limit": -1.0}, "solver.time_limit"),  # accepted as "no limit"
     ({"polish_gap": -1.0}, "solver.polish_gap"),
     ({"violation_memory": 0}, "solver.violation_memory"),
+    ({"restart_violation_memory": 0}, "solver.restart_violation_memory"),
+    ({"restart_rho_progress": -1.0}, "solver.restart_rho_progress"),
+    ({"deep_overlap": -0.5}, "solver.deep_overlap"),
 ]
 
 

@@ -675,7 +675,7 @@ void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out)
 // largest of the last violation_memory iterates' (1: does not grow).
 double Solver::line_search(double merit0) {
   double hsum = violation_sum(h_);
-  const int mem = std::min<int>(settings_.violation_memory, static_cast<int>(violations_.size()));
+  const int mem = std::min<int>(rules_.violation_memory, static_cast<int>(violations_.size()));
   for (int q = 0; q < mem; ++q) hsum = std::max(hsum, violations_[violations_.size() - 1 - q]);
   double t = 1.0;
   if (barrier_ == BarrierMode::PrimalDual) {
@@ -870,12 +870,41 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
   // Restart schedule (measured on the merging games, each variant rescues different instances):
   // attempt 1: 10x rho_init; 2: the other barrier form; 3: both; >= 4: the same four with perturbed controls.
   const int variant = attempt % 4;
+  // Globalisation rules: the settings' own (by default the paper's) in attempt 0, unless its initial guess overlaps
+  // deeply; the restart rules (rho lowered only near the central path or on a stall, non-monotone violation test)
+  // in every later attempt. With a deep overlap the paper's rule puts rho at its floor within 3 iterations while
+  // the violation is still ~1 m, and the barrier then admits only tiny steps (crossing, docs/solver.md).
+  const bool restart_rules = attempt > 0 || deep_overlap();
+  rules_.rho_progress = restart_rules ? settings_.restart_rho_progress : settings_.rho_progress;
+  rules_.violation_memory = restart_rules ? settings_.restart_violation_memory : settings_.violation_memory;
+  rules_.rho_on_stall = restart_rules ? true : settings_.rho_on_stall;
   rho_ = settings_.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
   barrier_ = settings_.barrier;
   if (variant >= 2)
     barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
   // The LU's symbolic analysis is kept across attempts and solves: it depends only on the sparsity pattern,
   // i.e. on the partition (pattern_state_) and the constraint list, and is redone when either changes.
+}
+
+bool Solver::deep_overlap() const {
+  if (settings_.deep_overlap > 1) return false;
+  const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
+  for (const Constraint& cn : cons_) {
+    double dmin;
+    Eigen::Vector2d d;
+    if (cn.kind == Constraint::Kind::Pair) {
+      dmin = prob_.collision.at(cn.k);
+      d << y_.x[cn.i](px, cn.k) - y_.x[cn.j](px, cn.k), y_.x[cn.i](py, cn.k) - y_.x[cn.j](py, cn.k);
+    } else if (cn.kind == Constraint::Kind::Obstacle) {
+      const Obstacle& o = prob_.obstacles[cn.j];
+      dmin = o.at(cn.k);
+      d << y_.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y_.x[cn.i](py, cn.k) - o.positions(cn.k, 1);
+    } else {
+      continue;
+    }
+    if (d.norm() < (1.0 - settings_.deep_overlap) * dmin) return true;
+  }
+  return false;
 }
 
 bool Solver::assemble(bool first, Info& info) {
@@ -933,7 +962,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     auto lower_rho = [&] { rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta))); };
     double merit_now = rnorm;
     const bool stall = w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w];
-    if (stall && settings_.rho_on_stall && settings_.rho_progress > 0 && rho_ > rho_floor * (1 + 1e-9)) {
+    if (stall && rules_.rho_on_stall && rules_.rho_progress > 0 && rho_ > rho_floor * (1 + 1e-9)) {
       // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
       // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).
       lower_rho();
@@ -957,7 +986,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (t < 0) { info.status = Status::NumericalError; break; }
     if (t == 0.0) { info.status = Status::LineSearchFailed; break; }
     info.step_history.push_back(t);
-    if (settings_.rho_progress <= 0 || rnorm <= settings_.rho_progress * rho_) {
+    if (rules_.rho_progress <= 0 || rnorm <= rules_.rho_progress * rho_) {
       lower_rho();
     }
   }

@@ -179,6 +179,9 @@ void validate_settings(const Settings& s) {
   require(s.restart_u_std >= 0, "solver.restart_u_std must be >= 0");
   require(s.polish_gap >= 0, "solver.polish_gap must be >= 0 (0 = off)");
   require(s.violation_memory >= 1, "solver.violation_memory must be >= 1");
+  require(s.restart_violation_memory >= 1, "solver.restart_violation_memory must be >= 1");
+  require(s.restart_rho_progress >= 0, "solver.restart_rho_progress must be >= 0");
+  require(s.deep_overlap >= 0, "solver.deep_overlap must be >= 0");
   require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
   require(s.second_order_tol > 0, "solver.second_order_tol must be positive");
 }

@@ -105,13 +105,22 @@ struct Settings {
   double rho_floor_factor = 0.01;
   double rho_kappa = 0.2;        ///< rho <- max(tol * rho_floor_factor, min(kappa rho, rho^beta))
   double rho_beta = 1.5;
+  /// Globalisation rules of attempt 0 (docs/solver.md, "Globalisation"); restart attempts use the restart_* rules.
   /// 0: update rho every iteration (paper). > 0: update only once ||r|| <= rho_progress * rho, i.e. the
   /// barrier subproblem is nearly solved (IPOPT's monotone rule); keeps iterates near the central path.
-  /// docs/solver.md ("Globalisation experiments") has 10 measured on the game families (with rho_on_stall).
   double rho_progress = 0.0;
   /// With rho_progress > 0: an attempt that stalls (stall_window) above rho's floor lowers rho instead of
   /// polishing or restarting (its ||r|| may never reach rho_progress * rho).
   bool rho_on_stall = false;
+  /// The rules of every restart attempt (>= 1), and of attempt 0 when its initial guess overlaps deeply (below):
+  /// rho_progress = restart_rho_progress and violation_memory = restart_violation_memory, with rho_on_stall.
+  double restart_rho_progress = 10.0;
+  int restart_violation_memory = 4;
+  /// Attempt 0 uses the restart rules when the rolled-out initial guess brings two agents (or an agent and an
+  /// obstacle) closer than (1 - deep_overlap) * d_min at some step (dimensionless, a fraction of the collision
+  /// distance; > 1: never). The game families' zero-control starts overlap by up to 0.45 d_min (authors' merge)
+  /// and 0.9-0.96 d_min (crossing, head-on).
+  double deep_overlap = 0.75;
   double ls_alpha = 1e-2;        ///< sufficient decrease: ||r(y+t dy)|| <= (1 - alpha t) ||r(y)||
   double ls_beta = 0.5;          ///< step shrink factor
   int ls_max_steps = 30;         ///< backtracking steps before the line search fails
@@ -150,8 +159,8 @@ struct Settings {
   /// A converged attempt that fails the second-order test is kept aside and the restart schedule (restarts)
   /// goes on, looking for a point that passes; if none is found the kept saddle is returned (status saddle).
   bool restart_on_saddle = true;
-  /// Non-monotone violation test: a trial may not raise the total violation above the largest of the last
-  /// violation_memory iterates' (1 = monotone, the paper's rule; docs/solver.md, "Globalisation experiments").
+  /// Non-monotone violation test (attempt 0; restarts use restart_violation_memory): a trial may not raise the
+  /// total violation above the largest of the last violation_memory iterates' (1 = monotone, the paper's rule).
   int violation_memory = 1;
   bool verbose = false;
 };

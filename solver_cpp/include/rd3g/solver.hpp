@@ -97,6 +97,9 @@ class Solver {
   void load_initial_guess(const WarmStart* warm);
   void start_attempt(int attempt, const WarmStart* warm);
   AttemptEnd run_attempt(Info& info, int& total_iter);
+  /// The rolled-out iterate y_ brings two agents (or an agent and an obstacle) closer than
+  /// (1 - settings_.deep_overlap) times their collision distance at some step.
+  bool deep_overlap() const;
   /// Partition, multiplier numbering, residual and Jacobian at y_; false if the residual is undefined.
   bool assemble(bool first, Info& info);
   bool converged(double rnorm) const;
@@ -146,6 +149,14 @@ class Solver {
   int n_vars_ = 0;
   double rho_ = 0;
   BarrierMode barrier_ = BarrierMode::PrimalDual;  // barrier form of the current attempt
+  /// Globalisation rules of the current attempt (start_attempt): the settings' rho_progress, violation_memory and
+  /// rho_on_stall in attempt 0, the restart_* rules in later attempts.
+  struct AttemptRules {
+    double rho_progress = 0;
+    int violation_memory = 1;
+    bool rho_on_stall = false;
+  };
+  AttemptRules rules_;
 
   double setup_time_ = 0, update_time_ = 0;  // (s) last set-up; updates since the last solve
   int structure_version_ = 0;
