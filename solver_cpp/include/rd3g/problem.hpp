@@ -118,9 +118,9 @@ struct Settings {
   int restart_violation_memory = 4;
   /// Attempt 0 uses the restart rules when the rolled-out initial guess brings two agents (or an agent and an
   /// obstacle) closer than (1 - deep_overlap) * d_min at some step (dimensionless, a fraction of the collision
-  /// distance; > 1: never). The game families' zero-control starts overlap by up to 0.45 d_min (authors' merge)
-  /// and 0.9-0.96 d_min (crossing, head-on).
-  double deep_overlap = 0.75;
+  /// distance; > 1: never). The zero-control starts of bench/families.py, cars 2-8, seeds 0-7, overlap by at most
+  /// 0.45 d_min in the authors' merge, 0.25-0.96 d_min in crossing and up to 0.96 d_min in head-on.
+  double deep_overlap = 0.5;
   double ls_alpha = 1e-2;        ///< sufficient decrease: ||r(y+t dy)|| <= (1 - alpha t) ||r(y)||
   double ls_beta = 0.5;          ///< step shrink factor
   int ls_max_steps = 30;         ///< backtracking steps before the line search fails
@@ -140,10 +140,11 @@ struct Settings {
   double lscg_tol = 1e-10;       ///< LSCG relative tolerance
   int lscg_max_iter = 2000;
   /// Globalisation for nonconvex games: when an attempt stalls (merit down < 1% over stall_window
-  /// iterations; see polish_gap first) or its line search fails, restart from the initial guess with
-  /// rho_init * 10 (attempt 1), the other barrier form (2), both (3), then the same four again and again
-  /// from the initial controls plus a seeded constant offset per agent and control of std restart_u_std
-  /// (attempts 4..restarts). Every attempt counts towards iterations, max_iter and the reported time.
+  /// iterations; see polish_gap first) or its line search fails, restart from the initial guess with the other
+  /// barrier form and rho_init * 10 (attempt 1), the other barrier form (2), rho_init * 10 (3), then the same four
+  /// (attempt 0's first) again and again from the initial controls plus a seeded constant offset per agent and
+  /// control of std restart_u_std (attempts 4..restarts), all with the restart rules (restart_rho_progress).
+  /// Every attempt counts towards iterations, max_iter and the reported time.
   int restarts = 11;
   int stall_window = 8;
   /// On a stall, before restarting, barrier constraints with h >= -polish_gap (constraint units) are held as
