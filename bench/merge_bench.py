@@ -172,6 +172,8 @@ def summarize(records: list[RunRecord]) -> list[dict]:
             "mean_ms": float(t.mean()) if len(t) else nan, "median_ms": float(np.median(t)) if len(t) else nan,
             "p90_ms": float(np.percentile(t, 90)) if len(t) else nan,
             "median_cpu_ms": float(np.median(c)) if len(c) else nan,
+            "infeasible": sum(r.feasibility == "infeasible" for r in rs),
+            "feasibility_unknown": sum(r.feasibility == "unknown" for r in rs),
             "mean_iterations": float(np.mean([r.iterations for r in ok])) if ok else nan,
             "active_fraction": float(np.mean([r.active_collision for r in ok])) if ok else nan,
         })
@@ -242,9 +244,10 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
         "of all instances and of the solvable ones (all but the proven infeasible); "
         "2nd order = share of the solved results whose every player passes the solver's second-order test; "
         "'conv. rejected' = results reported converged at a point the test rejects (must be 0); "
-        "failures: infeasible = proven infeasible, unknown = neither proven infeasible nor shown feasible (docs/"
-        "benchmarks.md, 'Infeasible instances'). Wall and CPU times and iterations over all instances, failures "
-        "included; CPU = time.process_time of the worker around the solve (and any best-response guess).",
+        "failures: infeasible = proven infeasible, unknown = neither proven infeasible nor shown feasible "
+        "(docs/benchmarks.md, 'Budgets, CPU time and infeasible instances'). Wall and CPU times and iterations over "
+        "all instances, failures included; CPU = time.process_time of the worker around the solve (and any "
+        "best-response guess).",
         "",
         "| family | cars | solved (all / solvable) | 2nd order | conv. rejected | failures: infeasible / unknown | "
         "statuses | wall ms median / p90 / max | CPU ms median / p90 / max | iterations median / p90 / max |",
