@@ -678,8 +678,8 @@ def find_feasible_point(problem: GameProblem, starts=(), seeded_starts: int = 2,
     u = z_found.reshape(N, T, nu)
     x = np.stack([np.asarray(f.rollout(x0, u[i])) for i, (f, x0) in enumerate(zip(sp.fs, sp.x0))])
     viol = max(max_collision_violation_m(problem, x), max_bound_violation(problem, x, u))
-    return FeasibilityReport("feasible", f"{how}: largest violation {max(viol, 0.0):.1e} m", x=x, u=u,
-                             max_violation_m=float(viol))
+    verdict = "no constraint violated" if viol <= 0 else f"largest violation {viol:.1e}"
+    return FeasibilityReport("feasible", f"{how}: {verdict}", x=x, u=u, max_violation_m=float(viol))
 
 
 def problem_feasibility(problem: GameProblem, starts=(), tol_m: float = FEASIBILITY_TOL_M, **search) -> FeasibilityReport:
