@@ -460,9 +460,9 @@ def control_independent_states(problem: GameProblem, seed: int = 0) -> np.ndarra
     (nothing assumed about their form): from a zero and two seeded random control sequences (clipped to the control
     bounds), every control component at every step is moved by 1e-3 and by 1 (inside the bounds) and the rollout
     repeated; a component is control-independent if it stays bit-identical in every one of these rollouts. x_0 is
-    always independent. (Exact for models whose dependence does not vanish only on a measure-zero set of controls,
-    which is every model in solver_cpp: e.g. the kinematic bicycle's position at k = 1 is fixed exactly when v_0 =
-    0.)"""
+    always independent. A component marked independent could still depend on a control only if that dependence
+    vanished at every probe, which no model in solver_cpp allows (where a state depends on a control it does so for
+    an open set of controls); e.g. the kinematic bicycle's position at k = 1 is independent exactly when v_0 = 0."""
     N, T = problem.num_agents, int(problem.horizon)
     nx, nu = problem.agents[0].dynamics.nx, problem.agents[0].dynamics.nu
     rng = np.random.default_rng(seed)
