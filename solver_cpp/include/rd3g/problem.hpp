@@ -140,10 +140,10 @@ struct Settings {
   double lscg_tol = 1e-10;       ///< LSCG relative tolerance
   int lscg_max_iter = 2000;
   /// Globalisation for nonconvex games: when an attempt stalls (merit down < 1% over stall_window
-  /// iterations; see polish_gap first) or its line search fails, restart from the initial guess with the other
-  /// barrier form and rho_init * 10 (attempt 1), the other barrier form (2), rho_init * 10 (3), then the same four
-  /// (attempt 0's first) again and again from the initial controls plus a seeded constant offset per agent and
-  /// control of std restart_u_std (attempts 4..restarts), all with the restart rules (restart_rho_progress).
+  /// iterations; see polish_gap first) or its line search fails, restart from the initial guess with
+  /// rho_init * 10 (attempt 1), the other barrier form (2), both (3), then the same four again and again
+  /// from the initial controls plus a seeded constant offset per agent and control of std restart_u_std
+  /// (attempts 4..restarts), all with the restart rules (restart_rho_progress).
   /// Every attempt counts towards iterations, max_iter and the reported time.
   int restarts = 11;
   int stall_window = 8;
