@@ -74,10 +74,12 @@ class PlannerConfig:
     # restart's result can be worse than the first attempt's), no Levenberg-Marquardt steps, 8 line-search
     # steps; warm starts begin at a smaller barrier weight than a cold solve (with the default 0.01 most of
     # the 15 iterations went into the three barrier reductions; 1e-4 and below stalled: the barrier duals
-    # start at zero). deep_overlap > 1: the first attempt keeps these rules even when a warm start overlaps the
-    # other car deeply (with the solver's default 0.5, `python -m app race` took 11 fallbacks instead of 10).
+    # start at zero). The same rules in every attempt (restart_*) and from a deeply overlapping start (deep_overlap
+    # > 1: never switched): with the solver's default restart rules and deep_overlap 0.5, `python -m app race` took
+    # 11 fallbacks instead of 10, and tests/test_planning.py's closed loop behind a car left the track.
     solver: dict = field(default_factory=lambda: dict(
-        max_iter=15, rho_progress=1.0, restarts=0, ls_max_steps=8, lm_tries=0, rho_init=0.001, deep_overlap=2.0))
+        max_iter=15, rho_progress=1.0, restarts=0, ls_max_steps=8, lm_tries=0, rho_init=0.001,
+        deep_overlap=2.0, restart_rho_progress=1.0, restart_violation_memory=1, restart_rho_on_stall=False))
     # The first (cold) plan, computed before the start outside the real-time budget: `solver` with these
     # overrides; None = the solver's own default (here its full globalisation: restarts, Levenberg-Marquardt
     # steps, line-search steps, rho_init).

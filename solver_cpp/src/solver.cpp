@@ -877,7 +877,7 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
   const bool restart_rules = attempt > 0 || deep_overlap();
   rules_.rho_progress = restart_rules ? settings_.restart_rho_progress : settings_.rho_progress;
   rules_.violation_memory = restart_rules ? settings_.restart_violation_memory : settings_.violation_memory;
-  rules_.rho_on_stall = restart_rules ? true : settings_.rho_on_stall;
+  rules_.rho_on_stall = restart_rules ? settings_.restart_rho_on_stall : settings_.rho_on_stall;
   rho_ = settings_.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
   barrier_ = settings_.barrier;
   if (variant >= 2)

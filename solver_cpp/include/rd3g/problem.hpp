@@ -113,9 +113,11 @@ struct Settings {
   /// polishing or restarting (its ||r|| may never reach rho_progress * rho).
   bool rho_on_stall = false;
   /// The rules of every restart attempt (>= 1), and of attempt 0 when its initial guess overlaps deeply (below):
-  /// rho_progress = restart_rho_progress and violation_memory = restart_violation_memory, with rho_on_stall.
+  /// rho_progress = restart_rho_progress, violation_memory = restart_violation_memory and
+  /// rho_on_stall = restart_rho_on_stall.
   double restart_rho_progress = 10.0;
   int restart_violation_memory = 4;
+  bool restart_rho_on_stall = true;
   /// Attempt 0 uses the restart rules when the rolled-out initial guess brings two agents (or an agent and an
   /// obstacle) closer than (1 - deep_overlap) * d_min at some step (dimensionless, a fraction of the collision
   /// distance; > 1: never). The zero-control starts of bench/families.py, cars 2-8, seeds 0-7, overlap by at most
