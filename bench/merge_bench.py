@@ -78,6 +78,12 @@ def one_run(job: tuple) -> RunRecord:
     rounds = job[5] if len(job) > 5 else 0
     problem = family_problem(family, cars, seed)
     r, setup_s = run_solver(name, problem, time_limit, rounds)
+    return record(name, problem, r, setup_s, cars, seed, family)
+
+
+def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: str) -> RunRecord:
+    """The common test (dynamics, collision violation, per-player stationarity) and the second-order verdict of a
+    solver's result r on problem; setup_s = initial-guess time before the solve (s)."""
     x, u = np.asarray(r.x), np.asarray(r.u)
     failure = ""
     defect = verify.dynamics_defect(problem, x, u)
