@@ -21,10 +21,11 @@ from solver_cpp import solve
 
 # Solver settings of each method (on top of the C++ defaults, docs/solver.md "Second-order test").
 METHODS = {
-    "restart": {"saddle_escapes": 0, "saddle_inertia": 0.0},  # restart_on_saddle alone
-    "escape": {"saddle_escapes": 2, "saddle_inertia": 0.0},   # restart from the saddle along negative curvature
-    "inertia": {"saddle_escapes": 0, "saddle_inertia": 1.5},  # per-agent inertia correction after a saddle
-    "both": {"saddle_escapes": 2, "saddle_inertia": 1.5},
+    "restart": {"saddle_escapes": 0, "saddle_inertia": 0.0},  # restart_on_saddle alone (the schedule from the guess)
+    "escape": {"saddle_escapes": 2, "saddle_inertia": 0.0},   # + restart from the saddle along negative curvature
+    "inertia": {"saddle_escapes": 0, "saddle_inertia": 1.5, "saddle_inertia_restarts": True},  # + inertia correction
+    "both": {"saddle_escapes": 2, "saddle_inertia": 1.5},      # the default: inertia in the escape attempts only
+    "both+restarts": {"saddle_escapes": 2, "saddle_inertia": 1.5, "saddle_inertia_restarts": True},
 }
 
 Case = tuple[str, int, int]  # (family, cars, seed)
@@ -126,7 +127,7 @@ def markdown(summary: list[dict], runs: list[SaddleRun], command: str, machine: 
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in summary:
-        settings = ", ".join(f"{k} {v:g}" for k, v in s["settings"].items())
+        settings = ", ".join(f"{k} {v}" for k, v in s["settings"].items())
         lines.append(f"| {s['method']} | {settings} | {s['saddles_left']}/{s['cases']} | {s['other_failures']} | "
                      f"{s['equilibria']}/{s['cases']} | {s['converged_failing_common_test']} | "
                      f"{s['best_response_ok']}/{s['best_response_checked']} | {s['iterations_median']:.0f} / "

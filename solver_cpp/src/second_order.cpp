@@ -291,7 +291,7 @@ bool Solver::leave_saddle(int escapes) {
 }
 
 void Solver::add_inertia_correction(double rnorm) {
-  if (settings_.saddle_inertia <= 0 || inertia_delta_.empty() || merits_.empty()) return;
+  if (!inertia_on_ || settings_.saddle_inertia <= 0 || inertia_delta_.empty() || merits_.empty()) return;
   // Vanishes with the residual: superlinear convergence near the root is kept.
   const double scale = std::min(1.0, rnorm / std::max(merits_.front(), 1e-300));
   for (int a = 0; a < N_; ++a) {

@@ -803,6 +803,7 @@ Result Solver::solve(const WarmStart* warm) {
     info.attempts = attempt + 1 + escapes;
     info.saddle_escapes = escapes;
     if (!from_saddle) start_attempt(attempt, warm);
+    inertia_on_ = from_saddle || settings_.saddle_inertia_restarts;
     from_saddle = false;
     if (run_attempt(info, total_iter) == AttemptEnd::Finished) {
       // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.

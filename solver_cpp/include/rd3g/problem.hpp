@@ -159,16 +159,19 @@ struct Settings {
   /// variables and multipliers kept, rho = saddle_rho, barrier constraints on the central path) before the ordinary
   /// restart schedule goes on. At most saddle_escapes such attempts per solve (0 = off); they count in attempts,
   /// iterations, max_iter and time.
-  int saddle_escapes = 0;
+  int saddle_escapes = 2;
   double saddle_step = 1.0;  ///< (control units) first step length along the unit direction
   double saddle_rho = 1e-2;  ///< barrier weight rho at the restart from a saddle
-  /// Per-agent inertia correction after a saddle (IPOPT's, one agent at a time): once an agent has failed the
-  /// test, every later Newton matrix gets delta = saddle_inertia * |its smallest eigenvalue| (the largest seen in
-  /// this solve) on the agent's control rows, scaled by min(1, ||r|| / ||r|| at the attempt's first iteration):
-  /// a proximal term delta |u - u_k|^2 about the current iterate, which changes the step but not the residual
-  /// or its roots, and vanishes at convergence. With saddle_inertia > 1 the agent's reduced Hessian at the saddle
-  /// is positive definite after the shift. Dimensionless factor; 0 = off.
-  double saddle_inertia = 0.0;
+  /// Per-agent inertia correction in the attempts from a saddle (IPOPT's, one agent at a time): every agent that
+  /// has failed the test gets delta = saddle_inertia * |its smallest eigenvalue| (the largest seen in this solve)
+  /// added on its control rows of the Newton matrix, scaled by min(1, ||r|| / ||r|| at the attempt's first
+  /// iteration): a proximal term delta |u - u_k|^2 about the current iterate, which changes the step but not the
+  /// residual or its roots, and vanishes at convergence. With saddle_inertia > 1 the agent's reduced Hessian at the
+  /// saddle is positive definite after the shift. Dimensionless factor; 0 = off.
+  double saddle_inertia = 1.5;
+  /// Also in the ordinary restarts (from the initial guess) that follow a saddle (measured: rescues one more
+  /// merge-long instance, slows the authors' 4-car seed 15 by 76 %; docs/benchmarks.md "Saddles").
+  bool saddle_inertia_restarts = false;
   /// Non-monotone violation test: a trial may not raise the total violation above the largest of the last
   /// violation_memory iterates' (1 = monotone, the paper's rule; docs/solver.md, "Globalisation experiments").
   int violation_memory = 1;

@@ -202,6 +202,7 @@ class Solver {
   double agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const Vec& w_j, double& max_h) const;
   /// Adds the inertia correction (saddle_inertia) to this iteration's Newton matrix (trip_).
   void add_inertia_correction(double rnorm);
+  bool inertia_on_ = false;  // this attempt applies the inertia correction
   std::vector<double> inertia_delta_;  // per agent: delta of the inertia correction (cost units per control unit^2)
   std::shared_ptr<SecondOrderCheck> second_order_;
 };
