@@ -252,6 +252,8 @@ def run_saddles(args) -> int:
             raise UserError(f"--methods: unknown method {m!r} (choose from {', '.join(saddles.METHODS)})")
     if args.seeds < 1 or args.workers < 1 or args.best_response < 0:
         raise UserError("--seeds and --workers must be >= 1, --best-response >= 0")
+    if args.json:
+        check_output_path(args.json)  # fail before the long run, not after it
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     if args.cases:
