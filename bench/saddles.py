@@ -110,13 +110,15 @@ def summarize(runs: list[SaddleRun], methods: list[str]) -> list[dict]:
 
 
 def markdown(summary: list[dict], runs: list[SaddleRun], command: str, machine: str, seconds: float,
-             scanned: int) -> str:
+             scanned: int | None) -> str:
+    """scanned = instances the scan ran over, None if the cases were given."""
     lines = [
         "## Saddles: steering methods compared",
         "",
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
-        f"Cases: the {len({(r.family, r.cars, r.seed) for r in runs})} instances "
-        f"(of {scanned} scanned) whose first converged attempt is a saddle (`restart_on_saddle` off). Each solved with "
+        (f"Cases: the {len({(r.family, r.cars, r.seed) for r in runs})} instances (of {scanned} scanned) "
+         if scanned else "Cases: the instances given by --cases, ") +
+        "whose first converged attempt is a saddle (`restart_on_saddle` off). Each solved with "
         "`time_limit` 0 and the default `max_iter` (1000) per method (settings in bench/saddles.py, docs/solver.md "
         "'Second-order test'). equilibria = the common test of `app bench merge` and the solver's second-order test; "
         f"best response = SLSQP per player from the result and one perturbed start finds no gain above "

@@ -258,7 +258,7 @@ def run_saddles(args) -> int:
     t0 = time.perf_counter()
     if args.cases:
         cases = _parse_cases(args.cases)
-        scanned = len(cases)
+        scanned = None
     else:
         names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
         for n in names:
