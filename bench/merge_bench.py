@@ -35,17 +35,20 @@ BEST_RESPONSE_SETTINGS = dict(max_iter=100, restarts=1)
 SECOND_ORDER_TOL = 1e-6  # smallest reduced-Hessian eigenvalue accepted (the solver's own test is relative to scale)
 
 
-def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: int = 0):
-    """The solver's result and the wall time of any initial-guess work before it (s)."""
+def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: int = 0, max_iter: int | None = None):
+    """The solver's result and the wall time of any initial-guess work before it (s). time_limit_s <= 0: no time
+    limit; max_iter (RD3G only): its iteration budget (None: the solver's default)."""
     if name == "rd3g":
         import time
 
+        budget = {} if max_iter is None else {"max_iter": max_iter}
         if best_response_rounds <= 0:
-            return solve(problem, time_limit=time_limit_s), 0.0
+            return solve(problem, time_limit=max(time_limit_s, 0.0), **budget), 0.0
         t0 = time.perf_counter()
         guess = best_response_guess(problem, best_response_rounds, **BEST_RESPONSE_SETTINGS)
         setup_s = time.perf_counter() - t0
-        return solve(problem, time_limit=max(time_limit_s - setup_s, 1e-6), warm_start=guess), setup_s
+        left = max(time_limit_s - setup_s, 1e-6) if time_limit_s > 0 else 0.0
+        return solve(problem, time_limit=left, warm_start=guess, **budget), setup_s
 
     if name == "ilqgames":
         return baselines.solve_ilqgames(problem, time_limit=time_limit_s), 0.0
@@ -70,20 +73,52 @@ class RunRecord:
     # RD3G's second-order test (Info::second_order): every agent's reduced Hessian is positive definite there.
     # None for solvers that do not report it.
     second_order_ok: bool | None = None
+    # CPU time of this worker process (time.process_time) around the solve and any best-response guess: unlike
+    # solve_ms (wall), it does not grow with the machine's load.
+    cpu_ms: float = float("nan")
+    # Failures only (successes are feasible by their own point): verify.problem_feasibility's 'infeasible' (proven),
+    # 'feasible' (a verified point exists) or 'unknown', with its reason; "" for a success.
+    feasibility: str = ""
+    feasibility_detail: str = ""
 
 
-def one_run(job: tuple) -> RunRecord:
-    name, cars, seed, time_limit = job[:4]
-    family = job[4] if len(job) > 4 else "authors"
-    rounds = job[5] if len(job) > 5 else 0
-    problem = family_problem(family, cars, seed)
-    r, setup_s = run_solver(name, problem, time_limit, rounds)
-    return record(name, problem, r, setup_s, cars, seed, family)
+@dataclass(frozen=True)
+class Job:
+    solver: str
+    cars: int
+    seed: int
+    time_limit_s: float  # <= 0: none
+    family: str = "authors"
+    best_response_rounds: int = 0
+    max_iter: int | None = None  # RD3G's iteration budget; None: its default
 
 
-def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: str) -> RunRecord:
-    """The common test (dynamics, collision violation, per-player stationarity) and the second-order verdict of a
-    solver's result r on problem; setup_s = initial-guess time before the solve (s)."""
+def failure_feasibility(problem, x: np.ndarray, u: np.ndarray) -> tuple[str, str]:
+    """Feasibility of an instance a solver failed on (bench/verify.py, problem_feasibility): the solver's returned
+    point counts if it violates nothing by more than COLLISION_TOL_M; otherwise the exact fixed-state check, then
+    the SLSQP search from zero controls, the returned controls and two seeded starts."""
+    if np.all(np.isfinite(x)) and np.all(np.isfinite(u)) and verify.dynamics_defect(problem, x, u) <= DYNAMICS_TOL \
+            and max(verify.max_collision_violation_m(problem, x), verify.max_bound_violation(problem, x, u)) <= COLLISION_TOL_M:
+        return "feasible", "the solver's own point is feasible"
+    rep = verify.problem_feasibility(problem, starts=[u] if np.all(np.isfinite(u)) else [], tol_m=COLLISION_TOL_M)
+    return rep.status, rep.detail
+
+
+def one_run(job: Job) -> RunRecord:
+    import time
+
+    problem = family_problem(job.family, job.cars, job.seed)
+    cpu0 = time.process_time()
+    r, setup_s = run_solver(job.solver, problem, job.time_limit_s, job.best_response_rounds, job.max_iter)
+    cpu_ms = 1e3 * (time.process_time() - cpu0)
+    return record(job.solver, problem, r, setup_s, job.cars, job.seed, job.family, cpu_ms)
+
+
+def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: str,
+           cpu_ms: float = float("nan")) -> RunRecord:
+    """The common test (dynamics, collision violation, per-player stationarity), the feasibility of a failure and the
+    second-order verdict of a solver's result r on problem; setup_s = initial-guess wall time before the solve (s),
+    cpu_ms = the CPU time of both."""
     x, u = np.asarray(r.x), np.asarray(r.u)
     failure = ""
     defect = verify.dynamics_defect(problem, x, u)
@@ -99,20 +134,24 @@ def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: 
         stat = verify.stationarity_residual(problem, x, u, relative=True)
         if not np.all(stat <= STATIONARITY_REL_TOL):
             failure = f"stationarity {stat.max():.1e}"
+    feasibility, detail = failure_feasibility(problem, x, u) if failure else ("", "")
     # collision_gaps_m is h in metres (d_min - distance, positive = violated): slack = -h.
     min_slack = float(-np.max(gaps)) if np.size(gaps) else float("inf")
     so = getattr(r, "second_order", None)
     second_order_ok = None if so is None else bool(r.status != "saddle" and np.all(np.asarray(so) >= -SECOND_ORDER_TOL))
-    return RunRecord(name, cars, seed, r.status, 1e3 * (r.solve_time_s + setup_s), int(r.iterations), failure == "",
-                     failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack, family, second_order_ok)
+    return RunRecord(name, cars, seed, r.status, 1e3 * (r.solve_time_s + setup_s), int(r.iterations),
+                     failure == "", failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack, family,
+                     second_order_ok, cpu_ms, feasibility, detail)
 
 
-def run(solvers: list[str], cars: list[int], instances: int, workers: int, time_limit_s: float,
-        families: tuple[str, ...] = ("authors",), best_response_rounds: int = 0) -> list[RunRecord]:
-    """best_response_rounds > 0: RD3G starts from solver_cpp.best_response_guess (its time counts, within the
-    time limit)."""
-    jobs = [(s, n, seed, time_limit_s, f, best_response_rounds)
-            for f in families for n in cars for s in solvers for seed in range(instances)]
+def run(solvers: list[str], cars: list[int], instances, workers: int, time_limit_s: float,
+        families: tuple[str, ...] = ("authors",), best_response_rounds: int = 0,
+        max_iter: int | None = None) -> list[RunRecord]:
+    """instances: a count (seeds 0..instances-1) or the seeds themselves. best_response_rounds > 0: RD3G starts
+    from solver_cpp.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none."""
+    seeds = list(range(instances)) if isinstance(instances, int) else [int(s) for s in instances]
+    jobs = [Job(s, n, seed, time_limit_s, f, best_response_rounds, max_iter)
+            for f in families for n in cars for s in solvers for seed in seeds]
     records: list[RunRecord] = []
     with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:
         if workers <= 1:
@@ -134,11 +173,15 @@ def summarize(records: list[RunRecord]) -> list[dict]:
         rs = [r for r in records if r.solver == s and r.cars == n]
         ok = [r for r in rs if r.success]
         t = np.array([r.solve_ms for r in ok])
+        c = np.array([r.cpu_ms for r in ok])
         nan = None
         out.append({
             "solver": s, "cars": n, "instances": len(rs), "converged": len(ok),
             "mean_ms": float(t.mean()) if len(t) else nan, "median_ms": float(np.median(t)) if len(t) else nan,
             "p90_ms": float(np.percentile(t, 90)) if len(t) else nan,
+            "median_cpu_ms": float(np.median(c)) if len(c) else nan,
+            "infeasible": sum(r.feasibility == "infeasible" for r in rs),
+            "feasibility_unknown": sum(r.feasibility == "unknown" for r in rs),
             "mean_iterations": float(np.mean([r.iterations for r in ok])) if ok else nan,
             "active_fraction": float(np.mean([r.active_collision for r in ok])) if ok else nan,
         })
@@ -147,18 +190,22 @@ def summarize(records: list[RunRecord]) -> list[dict]:
 
 def summarize_families(records: list[RunRecord]) -> list[dict]:
     """Per family, solver and size: success by the common test, the share of successes the second-order test
-    confirms, statuses, and median / p90 / max time (ms) and iterations over all runs (failures included: they
-    cost time too)."""
+    confirms, statuses, median / p90 / max wall and CPU time (ms) and iterations over all runs (failures included:
+    they cost time too), and the failures split by feasibility (proven infeasible, feasible, unknown)."""
     out = []
     for f, s, n in sorted({(r.family, r.solver, r.cars) for r in records}, key=lambda k: (k[0], k[1], k[2])):
         rs = [r for r in records if (r.family, r.solver, r.cars) == (f, s, n)]
         ok = [r for r in rs if r.success]
         t = np.array([r.solve_ms for r in rs])
+        cpu = np.array([r.cpu_ms for r in rs])
         it = np.array([r.iterations for r in rs])
         so = [r.second_order_ok for r in ok if r.second_order_ok is not None]
         statuses: dict[str, int] = {}
         for r in rs:
             statuses[r.status] = statuses.get(r.status, 0) + 1
+        failed = [r for r in rs if not r.success]
+        infeasible = sum(r.feasibility == "infeasible" for r in failed)
+        solvable = len(rs) - infeasible  # instances not proven infeasible (unknown ones count as solvable)
         out.append({
             "family": f, "solver": s, "cars": n, "instances": len(rs), "solved": len(ok),
             "second_order_confirmed": int(sum(so)) if so else None,
@@ -168,35 +215,67 @@ def summarize_families(records: list[RunRecord]) -> list[dict]:
             "median_iterations": float(np.median(it)), "p90_iterations": float(np.percentile(it, 90)),
             "max_iterations": int(it.max()),
             "failures": [f"seed {r.seed}: {r.status}, {r.failure}" for r in rs if not r.success][:5],
+            "median_cpu_ms": float(np.median(cpu)), "p90_cpu_ms": float(np.percentile(cpu, 90)),
+            "max_cpu_ms": float(cpu.max()),
+            "infeasible": infeasible,
+            "failed_feasible": sum(r.feasibility == "feasible" for r in failed),
+            "feasibility_unknown": sum(r.feasibility == "unknown" for r in failed),
+            "solvable": solvable,
+            "success_rate": len(ok) / len(rs),
+            "success_rate_solvable": len(ok) / solvable if solvable else None,
+            "failed_instances": [failure_row(r) for r in failed],
         })
     return out
 
 
-def family_markdown(summary: list[dict], command: str, machine: str, seconds: float, best_response_rounds: int = 0) -> str:
+def failure_row(r: RunRecord) -> dict:
+    return {"family": r.family, "solver": r.solver, "cars": r.cars, "seed": r.seed, "status": r.status,
+            "failure": r.failure, "feasibility": r.feasibility, "feasibility_detail": r.feasibility_detail,
+            "iterations": r.iterations, "solve_ms": r.solve_ms, "cpu_ms": r.cpu_ms}
+
+
+def budget_text(max_iter: int | None, time_limit_s: float) -> str:
+    return (f"max_iter {'the solver default' if max_iter is None else max_iter}, "
+            f"time limit {'none' if time_limit_s <= 0 else f'{time_limit_s:g} s'}")
+
+
+def family_markdown(summary: list[dict], command: str, machine: str, seconds: float, best_response_rounds: int = 0,
+                    budget: str = "") -> str:
     guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
              if best_response_rounds else "")
     lines = [
         "## Game families: RD3G beyond the authors' merging benchmark" + guess,
         "",
-        f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
+        f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}." + (f" Budget per solve: {budget}." if budget else ""),
         "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "
-        f"collision violation <= {COLLISION_TOL_M:g} m, per-player stationarity <= {STATIONARITY_REL_TOL:g}); "
+        f"collision violation <= {COLLISION_TOL_M:g} m, per-player stationarity <= {STATIONARITY_REL_TOL:g}), as a share "
+        "of all instances and of the solvable ones (all but the proven infeasible); "
         "2nd order = share of the solved results whose every player passes the solver's second-order test; "
-        "'conv. rejected' = results reported converged at a point the test rejects (must be 0). Times and "
-        "iterations over all instances, failures included.",
+        "'conv. rejected' = results reported converged at a point the test rejects (must be 0); "
+        "failures: infeasible = proven infeasible, unknown = neither proven infeasible nor shown feasible "
+        "(docs/benchmarks.md, 'Budgets, CPU time and infeasible instances'). Wall and CPU times and iterations over "
+        "all instances, failures included; CPU = time.process_time of the worker around the solve (and any "
+        "best-response guess).",
         "",
-        "| family | cars | solved | 2nd order | conv. rejected | statuses | time median / p90 / max ms | "
-        "iterations median / p90 / max |",
-        "|---|---|---|---|---|---|---|---|",
+        "| family | cars | solved (all / solvable) | 2nd order | conv. rejected | failures: infeasible / unknown | "
+        "statuses | wall ms median / p90 / max | CPU ms median / p90 / max | iterations median / p90 / max |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in summary:
         so = "—" if r["second_order_confirmed"] is None or not r["solved"] else \
             f"{100 * r['second_order_confirmed'] / r['solved']:.0f}%"
         st = ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items()))
+        solvable = "—" if r["success_rate_solvable"] is None else f"{100 * r['success_rate_solvable']:.0f}%"
         lines.append(f"| {r['family']} ({r['solver']}) | {r['cars']} | {r['solved']}/{r['instances']} "
-                     f"({100 * r['solved'] / r['instances']:.0f}%) | {so} | {r['converged_but_rejected']} | {st} | "
+                     f"({100 * r['solved'] / r['instances']:.0f}% / {solvable}) | {so} | {r['converged_but_rejected']} | "
+                     f"{r['infeasible']} / {r['feasibility_unknown']} | {st} | "
                      f"{r['median_ms']:.1f} / {r['p90_ms']:.1f} / {r['max_ms']:.0f} | "
+                     f"{r['median_cpu_ms']:.1f} / {r['p90_cpu_ms']:.1f} / {r['max_cpu_ms']:.0f} | "
                      f"{r['median_iterations']:.0f} / {r['p90_iterations']:.0f} / {r['max_iterations']} |")
+    failed = [f for r in summary for f in r["failed_instances"]]
+    lines += ["", f"Failures ({len(failed)}): " + ("none" if not failed else "")]
+    lines += [f"- {f['family']} {f['cars']} cars seed {f['seed']} ({f['solver']}): {f['status']}, {f['failure']}; "
+              f"{f['feasibility']} ({f['feasibility_detail']})" for f in failed]
     return "\n".join(lines)
 
 
@@ -309,4 +388,4 @@ def records_json(summary: list[dict]) -> dict:
     return {"results": summary}
 
 
-__all__ = ["run", "summarize", "summarize_families", "family_markdown", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]
+__all__ = ["run", "summarize", "summarize_families", "family_markdown", "failure_feasibility", "Job", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]

@@ -68,7 +68,7 @@ def _run_one(job: tuple) -> SaddleRun:
     t0 = time.process_time()
     r = solve(problem, **METHODS[method])
     cpu = time.process_time() - t0
-    rec = merge_bench.record("rd3g", problem, r, 0.0, cars, seed, family)
+    rec = merge_bench.record("rd3g", problem, r, 0.0, cars, seed, family, 1e3 * cpu)
     gap = None
     if best_response:
         gap = max(verify.best_response_gap(problem, r.x, r.u, i, starts=1, seed=seed) for i in range(cars))

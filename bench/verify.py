@@ -255,6 +255,21 @@ def stationarity_residual(problem: GameProblem, x, u, active_tol: float = ACTIVE
 
 
 # ------------------------------------------------------------------------------------------------
+def _rollout_sensitivities(f, x0: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """States X (T+1, nx) of the rollout of controls U (T, nu) from x0 through the C++ model f, and the forward
+    sensitivities S (T+1, nx, T nu) = dX_k / dU (U flattened step-major)."""
+    T, nu = U.shape
+    nx = x0.size
+    X = np.empty((T + 1, nx))
+    S = np.zeros((T + 1, nx, T * nu))
+    X[0] = x0
+    for k in range(T):
+        X[k + 1], A, B = f.eval(X[k], U[k])
+        S[k + 1] = A @ S[k]
+        S[k + 1][:, k * nu:(k + 1) * nu] += B
+    return X, S
+
+
 class _ShootingProblem:
     """Player i's optimal-control problem over its controls alone (single shooting through the C++
     rollout, so the dynamics hold exactly), others fixed. Constraints c(U) >= 0 with analytic
@@ -280,16 +295,8 @@ class _ShootingProblem:
         key = z.tobytes()
         if key == self._key:
             return
-        T, nx, nu = self.T, self.nx, self.nu
-        U = z.reshape(T, nu)
-        X = np.empty((T + 1, nx))
-        S = np.zeros((T + 1, nx, T * nu))
-        X[0] = self.x0
-        for k in range(T):
-            X[k + 1], A, B = self.f.eval(X[k], U[k])
-            S[k + 1] = A @ S[k]
-            S[k + 1][:, k * nu:(k + 1) * nu] += B
-        self.X, self.S, self._key = X, S, key
+        self.X, self.S = _rollout_sensitivities(self.f, self.x0, z.reshape(self.T, self.nu))
+        self._key = key
 
     def trajectories(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         self._eval(z)
@@ -428,3 +435,258 @@ def verify_equilibrium(problem: GameProblem, result_x, result_u, *, dynamics_tol
     return EquilibriumReport(dynamics_defect=defect, max_collision_violation_m=coll, max_bound_violation=bnd,
                              stationarity=stat, stationarity_relative=stat_rel, best_response_gaps=gaps,
                              passed=not failures, failures=failures)
+
+
+# ------------------------------------------------------------------------------------------------
+# Is the game feasible at all? (The benchmark asks this of every instance a solver fails on.)
+FEASIBILITY_TOL_M = 1e-3  # m: a point violating no collision constraint by more than this counts as feasible
+
+
+@dataclass
+class FeasibilityReport:
+    """status: 'infeasible' (proven: states no control can change already violate a constraint), 'feasible' (x, u
+    hold a point whose rollout violates no constraint by more than the tolerance) or 'unknown' (neither found).
+    max_violation_m: of the best point the search saw (collision in m, bounds in their units; nan if none)."""
+
+    status: str
+    detail: str
+    x: np.ndarray | None = None
+    u: np.ndarray | None = None
+    max_violation_m: float = float("nan")
+
+
+def control_independent_states(problem: GameProblem, seed: int = 0) -> np.ndarray:
+    """(N, T+1, nx) bool: state components x^i_k that no control sequence changes. Decided on the models themselves
+    (nothing assumed about their form): from a zero and two seeded random control sequences (clipped to the control
+    bounds), every control component at every step is moved by 1e-3 and by 1 (inside the bounds) and the rollout
+    repeated; a component is control-independent if it stays bit-identical in every one of these rollouts. x_0 is
+    always independent. A component marked independent could still depend on a control only if that dependence
+    vanished at every probe, which no model in solver_cpp allows (where a state depends on a control it does so for
+    an open set of controls); e.g. the kinematic bicycle's position at k = 1 is independent exactly when v_0 = 0."""
+    N, T = problem.num_agents, int(problem.horizon)
+    nx, nu = problem.agents[0].dynamics.nx, problem.agents[0].dynamics.nu
+    rng = np.random.default_rng(seed)
+    fixed = np.ones((N, T + 1, nx), dtype=bool)
+    for i, a in enumerate(problem.agents):
+        f = a.dynamics.build(problem.dt)
+        x0 = np.asarray(a.x0, dtype=float)
+        lo, hi = _bounds(a.u_min, nu, -np.inf), _bounds(a.u_max, nu, np.inf)
+        bases = [np.zeros((T, nu))] + [rng.normal(0.0, scale, (T, nu)) for scale in (0.3, 3.0)]
+        for U in (np.clip(b, lo, hi) for b in bases):
+            X = np.asarray(f.rollout(x0, U))
+            for k in range(T):
+                for c in range(nu):
+                    for h in (1e-3, 1.0):
+                        Up = U.copy()
+                        # step inside the bounds (downwards if the upper bound is closer)
+                        Up[k, c] = U[k, c] + h if U[k, c] + h <= hi[c] else max(U[k, c] - h, lo[c])
+                        if Up[k, c] == U[k, c]:
+                            continue
+                        fixed[i] &= np.asarray(f.rollout(x0, Up)) == X
+    return fixed
+
+
+def fixed_state_infeasibility(problem: GameProblem, tol_m: float = FEASIBILITY_TOL_M) -> list[str]:
+    """Exact infeasibility certificates: constraints at steps k >= 1 whose every variable is control-independent
+    (control_independent_states) and that are violated by more than tol_m there (collision and obstacle gaps in m,
+    state bounds in their units). Empty if there is none (which does not prove feasibility)."""
+    N, T = problem.num_agents, int(problem.horizon)
+    nu = problem.agents[0].dynamics.nu
+    fixed = control_independent_states(problem)
+    x = np.stack([np.asarray(a.dynamics.build(problem.dt).rollout(np.asarray(a.x0, dtype=float), np.zeros((T, nu))))
+                  for a in problem.agents])
+    enabled, d_min, px, py = _collision_settings(problem)
+    pos_fixed = fixed[:, :, px] & fixed[:, :, py]  # (N, T+1)
+    reasons = []
+    for k in range(1, T + 1):
+        for i in range(N):
+            if not pos_fixed[i, k]:
+                continue
+            p = x[i, k, [px, py]]
+            for j in range(i + 1, N) if enabled else ():
+                gap = d_min[k - 1] - float(np.linalg.norm(p - x[j, k, [px, py]]))
+                if pos_fixed[j, k] and gap > tol_m:
+                    reasons.append(f"agents {i} and {j} at step {k}: positions no control changes are "
+                                   f"{d_min[k - 1] - gap:.3f} m apart < d_min {d_min[k - 1]:g} m")
+            for o, obs in enumerate(problem.obstacles):
+                dmin_o = _distance_steps(obs.min_distance, T)[k - 1]
+                gap = dmin_o - float(np.linalg.norm(p - np.asarray(obs.positions, dtype=float)[k]))
+                if gap > tol_m:
+                    reasons.append(f"agent {i} and obstacle {o} at step {k}: a position no control changes is "
+                                   f"{dmin_o - gap:.3f} m from it < {dmin_o:g} m")
+    nx = x.shape[2]
+    for i, a in enumerate(problem.agents):
+        for name, lim, sign in (("x_max", _bounds(a.x_max, nx, np.inf), 1.0), ("x_min", _bounds(a.x_min, nx, -np.inf), -1.0)):
+            with np.errstate(invalid="ignore"):
+                bad = fixed[i, 1:] & np.isfinite(lim) & (sign * (x[i, 1:] - lim) > tol_m)
+            for k, q in zip(*np.nonzero(bad)):
+                reasons.append(f"agent {i} at step {k + 1}: state component {q} = {x[i, k + 1, q]:.4g}, which no "
+                               f"control changes, violates {name} {lim[q]:g}")
+    return reasons
+
+
+class _FoundFeasible(Exception):
+    def __init__(self, z: np.ndarray):
+        self.z = z
+
+
+class _JointShooting:
+    """All players' controls U (N, T, nu) as one vector; states by rollout (so the dynamics hold exactly). Constraint
+    rows c >= 0 over a working set of (agent, other, step) collision/obstacle pairs, (|p - q|^2 - D^2) / (2 D) with D =
+    d_min + margin (about metres near the boundary, smooth), plus every finite state bound. Every evaluation checks the
+    whole problem and raises _FoundFeasible at the first point violating nothing (the search wants any such point)."""
+
+    def __init__(self, problem: GameProblem, margin_m: float):
+        self.problem = problem
+        self.N, self.T = problem.num_agents, int(problem.horizon)
+        self.nx, self.nu = problem.agents[0].dynamics.nx, problem.agents[0].dynamics.nu
+        self.fs = [a.dynamics.build(problem.dt) for a in problem.agents]
+        self.x0 = [np.asarray(a.x0, dtype=float) for a in problem.agents]
+        enabled, d_min, self.px, self.py = _collision_settings(problem)
+        # "others": agents 0..N-1 (moving with their controls), then obstacles (fixed positions), with D per step.
+        self.n_pairs_agents = self.N if enabled else 0
+        self.obs_pos = np.array([np.asarray(o.positions, dtype=float) for o in problem.obstacles]).reshape(-1, self.T + 1, 2)
+        self.D = np.vstack([np.tile(d_min + margin_m, (self.N, 1))]
+                           + [_distance_steps(o.min_distance, self.T)[None] + margin_m for o in problem.obstacles])
+        self.x_lo = [_bounds(a.x_min, self.nx, -np.inf) for a in problem.agents]
+        self.x_hi = [_bounds(a.x_max, self.nx, np.inf) for a in problem.agents]
+        self.work = np.zeros((0, 3), dtype=int)  # rows (agent a, other b, step k): b >= N is obstacle b - N
+        self._key = None
+        self.best = (np.inf, None)  # (violation, z) of the least-violating point seen
+
+    def _eval(self, z: np.ndarray) -> None:
+        key = z.tobytes()
+        if key == self._key:
+            return
+        U = z.reshape(self.N, self.T, self.nu)
+        out = [_rollout_sensitivities(f, x0, U[i]) for i, (f, x0) in enumerate(zip(self.fs, self.x0))]
+        self.X = np.stack([o[0] for o in out])
+        self.S = np.stack([o[1] for o in out])  # (N, T+1, nx, T nu)
+        self._key = key
+        x, u = self.X, U
+        viol = max(max_collision_violation_m(self.problem, x), max_bound_violation(self.problem, x, u))
+        if viol < self.best[0]:
+            self.best = (viol, z.copy())
+        if viol <= 0.0:
+            raise _FoundFeasible(z.copy())
+
+    def positions(self) -> np.ndarray:
+        """(N + obstacles, T+1, 2) at the last evaluated point."""
+        return np.concatenate([self.X[:, :, [self.px, self.py]], self.obs_pos], axis=0)
+
+    def gaps(self, z: np.ndarray) -> np.ndarray:
+        """D - distance for every (a, b > a, k) as an array (N, N + obstacles, T+1) (nan where no constraint)."""
+        self._eval(z)
+        P = self.positions()
+        g = self.D[None, :, :] - np.linalg.norm(P[None, :, 1:] - P[:self.N, None, 1:], axis=-1)  # (N, N+O, T)
+        mask = np.zeros(g.shape, dtype=bool)
+        mask[:, self.N:] = True
+        mask[:, :self.N] = np.triu(np.ones((self.N, self.N), dtype=bool), 1)[:, :, None] & (self.n_pairs_agents > 0)
+        return np.where(mask, g, np.nan)
+
+    def add_to_work(self, z: np.ndarray, within_m: float) -> None:
+        """Add every pair within within_m of its D (or violating it) at z to the working set."""
+        with np.errstate(invalid="ignore"):
+            a, b, k = np.nonzero(self.gaps(z) > -within_m)
+        new = np.stack([a, b, k + 1], axis=1)
+        self.work = np.unique(np.vstack([self.work, new]), axis=0)
+
+    def constraints(self, z: np.ndarray) -> np.ndarray:
+        self._eval(z)
+        P = self.positions()
+        a, b, k = self.work.T
+        d = self.D[b, k - 1]
+        c = [(np.sum((P[a, k] - P[b, k]) ** 2, axis=1) - d ** 2) / (2.0 * d)]
+        for i in range(self.N):
+            hi, lo = np.isfinite(self.x_hi[i]), np.isfinite(self.x_lo[i])
+            # component-major (q, then k), as in constraints_jac
+            c += [(self.x_hi[i][hi][:, None] - self.X[i, 1:][:, hi].T).ravel(),
+                  (self.X[i, 1:][:, lo].T - self.x_lo[i][lo][:, None]).ravel()]
+        return np.concatenate(c)
+
+    def constraints_jac(self, z: np.ndarray) -> np.ndarray:
+        self._eval(z)
+        P = self.positions()
+        a, b, k = self.work.T
+        n_z = self.T * self.nu
+        grad = (P[a, k] - P[b, k]) / self.D[b, k - 1][:, None]  # dc/dp_a; dc/dp_b = -grad
+        Sp = self.S[:, :, [self.px, self.py]]  # (N, T+1, 2, T nu)
+        J = np.zeros((len(a), self.N, n_z))
+        r = np.arange(len(a))
+        J[r, a] = np.einsum("rc,rcz->rz", grad, Sp[a, k])
+        moving = b < self.N
+        J[r[moving], b[moving]] -= np.einsum("rc,rcz->rz", grad[moving], Sp[b[moving], k[moving]])
+        rows = [J.reshape(len(a), -1)]
+        for i in range(self.N):
+            hi, lo = np.isfinite(self.x_hi[i]), np.isfinite(self.x_lo[i])
+            for sel, sign in ((hi, -1.0), (lo, 1.0)):
+                block = sign * self.S[i, 1:][:, sel].transpose(1, 0, 2).reshape(-1, n_z)  # rows (q, k)
+                full = np.zeros((block.shape[0], self.N, n_z))
+                full[:, i] = block
+                rows.append(full.reshape(block.shape[0], self.N * n_z))
+        return np.concatenate(rows, axis=0)
+
+
+def find_feasible_point(problem: GameProblem, starts=(), seeded_starts: int = 2, seed: int = 0,
+                        tol_m: float = FEASIBILITY_TOL_M, max_iter: int = 100, rounds: int = 3,
+                        margin_m: float = 1e-3, within_m: float = 1.0) -> FeasibilityReport:
+    """Search for a point of the joint single-shooting problem (all players' controls; states by rollout) that violates
+    no collision, obstacle or bound constraint by more than tol_m: SLSQP minimising the sum of squared controls
+    subject to every constraint (kept with a margin margin_m), from zero controls, then the given starts (each (N, T,
+    nu), e.g. a solver's failed answer), then `seeded_starts` Gaussian ones (std 0.3, seeded). Each start runs up to
+    `rounds` SLSQP solves of max_iter iterations over a working set of the pairs within within_m of their distance,
+    growing it by the pairs violated at the end of each. Stops at the first point that violates nothing. 'feasible'
+    (with x, u, verified by collision_gaps_m / max_bound_violation on the rollout) or 'unknown'; never 'infeasible'
+    (a local search proves nothing about infeasibility)."""
+    N, T = problem.num_agents, int(problem.horizon)
+    nu = problem.agents[0].dynamics.nu
+    lo = np.concatenate([np.tile(_bounds(a.u_min, nu, -np.inf), T) for a in problem.agents])
+    hi = np.concatenate([np.tile(_bounds(a.u_max, nu, np.inf), T) for a in problem.agents])
+    bounds = [(None if not np.isfinite(l) else l, None if not np.isfinite(h) else h) for l, h in zip(lo, hi)]
+    rng = np.random.default_rng(seed)
+    candidates = [("zero controls", np.zeros(N * T * nu))]
+    candidates += [(f"given start {n + 1}", np.asarray(s, dtype=float).reshape(-1)) for n, s in enumerate(starts)]
+    candidates += [(f"seeded start {n + 1}", rng.normal(0.0, 0.3, N * T * nu)) for n in range(seeded_starts)]
+    sp = _JointShooting(problem, margin_m)
+    z_found, how = None, ""
+    tried = 0
+    for label, z0 in candidates:
+        if z0.size != N * T * nu or not np.all(np.isfinite(z0)):
+            continue
+        tried += 1
+        z = np.clip(z0, lo, hi)
+        how = f"{label} (no SLSQP needed)"
+        try:
+            sp.work = np.zeros((0, 3), dtype=int)
+            for r in range(rounds):
+                sp.add_to_work(z, within_m)
+                how = f"SLSQP from {label} (round {r + 1})"
+                cons = [{"type": "ineq", "fun": sp.constraints, "jac": sp.constraints_jac}] if sp.constraints(z).size else []
+                res = minimize(lambda v: 0.5 * float(v @ v), z, jac=lambda v: v, method="SLSQP", bounds=bounds,
+                               constraints=cons, options={"maxiter": max_iter, "ftol": 1e-10})
+                z = np.clip(res.x, lo, hi)
+                sp._eval(z)
+        except _FoundFeasible as found:
+            z_found = found.z
+            break
+    best_viol, best_z = sp.best
+    if z_found is None and best_z is not None and best_viol <= tol_m:
+        z_found, how = best_z, "the least-violating point SLSQP visited"
+    if z_found is None:
+        return FeasibilityReport("unknown", f"no point violating at most {tol_m:g} m found from {tried} starts "
+                                            f"(least violation {best_viol:.3g} m)", max_violation_m=float(best_viol))
+    u = z_found.reshape(N, T, nu)
+    x = np.stack([np.asarray(f.rollout(x0, u[i])) for i, (f, x0) in enumerate(zip(sp.fs, sp.x0))])
+    viol = max(max_collision_violation_m(problem, x), max_bound_violation(problem, x, u))
+    verdict = "no constraint violated" if viol <= 0 else f"largest violation {viol:.1e}"
+    return FeasibilityReport("feasible", f"{how}: {verdict}", x=x, u=u, max_violation_m=float(viol))
+
+
+def problem_feasibility(problem: GameProblem, starts=(), tol_m: float = FEASIBILITY_TOL_M, **search) -> FeasibilityReport:
+    """Decide whether a game has a point violating no constraint by more than tol_m: first the exact certificate of
+    fixed_state_infeasibility ('infeasible'), otherwise find_feasible_point ('feasible' or 'unknown')."""
+    reasons = fixed_state_infeasibility(problem, tol_m)
+    if reasons:
+        more = f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else ""
+        return FeasibilityReport("infeasible", reasons[0] + more)
+    return find_feasible_point(problem, starts, tol_m=tol_m, **search)

@@ -83,3 +83,23 @@ def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw()
     assert stationarity_residual(alone, x[1:], guess.u[1:], relative=True)[0] < 1e-5
     with pytest.raises(ValueError, match="rounds"):
         best_response_guess(problem, rounds=0)
+
+
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_no_instance_is_degenerate_by_construction(name):
+    """The closest start pair is no closer than the family's geometry allows (the merges: two cars side by side in
+    the two lanes, at the lane spacing; crossing and head-on: docs/merging.md's 1.9 m), and no state at k >= 1 is out
+    of every control's reach (every car starts moving, so its steering moves its position at k = 1): the
+    benchmark's exact infeasibility check has nothing to prove here."""
+    from bench.verify import control_independent_states
+
+    spec = FAMILIES[name]
+    lane = getattr(spec, "main_lane_y", None)
+    floor = (lane - spec.merge_lane_y - spec.min_distance) if lane is not None else 1.9
+    for cars in range(2, 9):
+        for seed in range(200):
+            xy = _x0(family_problem(name, cars, seed))[:, :2]
+            gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(cars, 1)]
+            assert gaps.min() - spec.min_distance >= floor - 1e-9, (cars, seed)
+        fixed = control_independent_states(family_problem(name, cars, 0))
+        assert fixed[:, 0].all() and not fixed[:, 1:].any()

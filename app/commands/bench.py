@@ -42,13 +42,18 @@ def register(sub) -> None:
 
     m = kinds.add_parser("merge", help="RD3G vs iLQGames vs ALGames on the paper's merging games (Table I)")
     m.add_argument("--cars", default="2-8")
-    m.add_argument("--instances", type=int, default=100)
+    m.add_argument("--instances", type=int, help="seeds 0..N-1, or --seed-start..+N-1 (default 100)")
+    m.add_argument("--seeds", metavar="A:B", help="seeds A..B-1 (instead of --instances/--seed-start)")
+    m.add_argument("--seed-start", type=int, help="first seed of --instances (default 0)")
+    m.add_argument("--max-iter", type=int, help="RD3G's max_iter per solve (default: the solver's, "
+                                                 "solver_cpp/include/rd3g/problem.hpp)")
     m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
     m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "
                                     "from bench/families.py (docs/merging.md) or 'all'; reports success, second-order "
                                     "confirmation, time and iteration tails per family and size")
     m.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
-    m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver)")
+    m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver); 0 = "
+                                                                  "none, so results do not depend on machine load")
     m.add_argument("--best-response-rounds", type=int, default=0,
                    help="with --family: start RD3G from this many rounds of iterated best response "
                         "(solver_cpp/best_response.py; its time counts)")
@@ -104,17 +109,48 @@ def run_solver(args) -> int:
     return 0
 
 
-def _merge_options(args, default_solvers: str) -> list[str]:
-    """The solvers of a `bench merge` run, with its counts and --json path checked before the long run."""
+SEED_MAX = 2**32 - 1  # numpy RandomState's seed range
+
+
+def parse_seeds(args) -> list[int]:
+    """The seeds of a `bench merge` run: --seeds A:B (A..B-1), or --instances N from --seed-start S (default 100
+    from 0)."""
+    if args.seeds is not None:
+        if args.instances is not None or args.seed_start is not None:
+            raise UserError("--seeds replaces --instances and --seed-start; give one or the other")
+        try:
+            a, b = (int(v) for v in args.seeds.split(":"))
+        except ValueError:
+            raise UserError(f"--seeds must look like A:B (seeds A..B-1), got {args.seeds!r}") from None
+        if not 0 <= a < b <= SEED_MAX + 1:
+            raise UserError(f"--seeds A:B needs 0 <= A < B <= 2^32, got {args.seeds!r}")
+        return list(range(a, b))
+    n = 100 if args.instances is None else args.instances
+    start = 0 if args.seed_start is None else args.seed_start
+    if n < 1:
+        raise UserError("--instances must be at least 1")
+    if not 0 <= start <= SEED_MAX + 1 - n:
+        raise UserError(f"--seed-start must be in 0..2^32 - N (N = --instances), got {start}")
+    return list(range(start, start + n))
+
+
+def _merge_options(args, default_solvers: str) -> tuple[list[str], list[int]]:
+    """The solvers and seeds of a `bench merge` run, with its budgets, counts and --json path checked before the
+    long run."""
     solvers = [x.strip() for x in (args.solvers or default_solvers).split(",") if x.strip()]
     for s in solvers:
         if s not in merge_bench.SOLVERS:
             raise UserError(f"--solvers: unknown solver {s!r} (choose from {', '.join(merge_bench.SOLVERS)})")
-    if args.instances < 1 or args.workers < 1:
-        raise UserError("--instances and --workers must be at least 1")
+    seeds = parse_seeds(args)
+    if args.workers < 1:
+        raise UserError("--workers must be at least 1")
+    if not args.time_limit >= 0 or args.time_limit == float("inf"):
+        raise UserError(f"--time-limit must be a finite number of seconds >= 0 (0 = none), got {args.time_limit}")
+    if args.max_iter is not None and not 1 <= args.max_iter < 2**31:
+        raise UserError(f"--max-iter must be an integer from 1 to 2^31 - 1, got {args.max_iter}")
     if args.json:
         check_output_path(args.json)  # fail before the long run, not after it
-    return solvers
+    return solvers, seeds
 
 
 def run_merge(args) -> int:
@@ -124,9 +160,9 @@ def run_merge(args) -> int:
     cars = parse_range(args.cars)
     if args.family:
         return _run_families(args, cars)
-    solvers = _merge_options(args, default_solvers="rd3g,ilqgames,algames")
+    solvers, seeds = _merge_options(args, default_solvers="rd3g,ilqgames,algames")
     t0 = time.perf_counter()
-    records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit)
+    records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, max_iter=args.max_iter)
     summary = merge_bench.summarize(records)
     fig_dir = Path(args.figures)
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -200,22 +236,28 @@ def _run_families(args, cars: list[int]) -> int:
     for n in names:
         if n not in FAMILIES:
             raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
-    solvers = _merge_options(args, default_solvers="rd3g")
+    solvers, seeds = _merge_options(args, default_solvers="rd3g")
     import os
 
-    load0 = os.getloadavg()[0]
-    t0 = time.perf_counter()
     if args.best_response_rounds < 0:
         raise UserError("--best-response-rounds must be >= 0")
-    records = merge_bench.run(solvers, cars, args.instances, args.workers, args.time_limit, tuple(names),
-                              args.best_response_rounds)
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, tuple(names),
+                              args.best_response_rounds, max_iter=args.max_iter)
     summary = merge_bench.summarize_families(records)
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
-    md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0, args.best_response_rounds)
+    budget = merge_bench.budget_text(args.max_iter, args.time_limit)
+    md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0, args.best_response_rounds,
+                                     budget)
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps({"results": summary}, indent=1))
+        failed = [f for r in summary for f in r["failed_instances"]]
+        meta = {"max_iter": args.max_iter, "time_limit_s": args.time_limit, "seeds": [seeds[0], seeds[-1] + 1],
+                "load_average_start": load0, "load_average_end": os.getloadavg()[0]}
+        atomic_write_text(args.json, json.dumps({"results": summary, "budget": meta, "failed_instances": failed},
+                                                indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
         section = "merge-families" + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")
