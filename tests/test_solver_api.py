@@ -112,6 +112,10 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"restart_violation_memory": 0}, "solver.restart_violation_memory"),
     ({"restart_rho_progress": -1.0}, "solver.restart_rho_progress"),
     ({"deep_overlap": -0.5}, "solver.deep_overlap"),
+    ({"saddle_escapes": -1}, "solver.saddle_escapes"),
+    ({"saddle_step": 0.0}, "solver.saddle_step"),
+    ({"saddle_rho": -1e-3}, "solver.saddle_rho"),
+    ({"saddle_inertia": -1.0}, "solver.saddle_inertia"),
 ]
 
 
