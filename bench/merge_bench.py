@@ -111,6 +111,14 @@ def one_run(job: Job) -> RunRecord:
     cpu0 = time.process_time()
     r, setup_s = run_solver(job.solver, problem, job.time_limit_s, job.best_response_rounds, job.max_iter)
     cpu_ms = 1e3 * (time.process_time() - cpu0)
+    return record(job.solver, problem, r, setup_s, job.cars, job.seed, job.family, cpu_ms)
+
+
+def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: str,
+           cpu_ms: float = float("nan")) -> RunRecord:
+    """The common test (dynamics, collision violation, per-player stationarity), the feasibility of a failure and the
+    second-order verdict of a solver's result r on problem; setup_s = initial-guess wall time before the solve (s),
+    cpu_ms = the CPU time of both."""
     x, u = np.asarray(r.x), np.asarray(r.u)
     failure = ""
     defect = verify.dynamics_defect(problem, x, u)
@@ -131,8 +139,8 @@ def one_run(job: Job) -> RunRecord:
     min_slack = float(-np.max(gaps)) if np.size(gaps) else float("inf")
     so = getattr(r, "second_order", None)
     second_order_ok = None if so is None else bool(r.status != "saddle" and np.all(np.asarray(so) >= -SECOND_ORDER_TOL))
-    return RunRecord(job.solver, job.cars, job.seed, r.status, 1e3 * (r.solve_time_s + setup_s), int(r.iterations),
-                     failure == "", failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack, job.family,
+    return RunRecord(name, cars, seed, r.status, 1e3 * (r.solve_time_s + setup_s), int(r.iterations),
+                     failure == "", failure, bool(np.size(gaps) and min_slack < ACTIVE_GAP_M), min_slack, family,
                      second_order_ok, cpu_ms, feasibility, detail)
 
 

@@ -88,7 +88,8 @@ class GameResult:
     line_search_time_s: float
     active_constraints: int
     symbolic_factorizations: int
-    attempts: int = 1  # 1 + restarts used
+    attempts: int = 1  # 1 + restarts used (escapes from saddles included)
+    saddle_escapes: int = 0  # attempts started from a saddle along negative curvature (setting saddle_escapes)
     # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
     # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
     second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -187,7 +188,7 @@ class Solver:
             residual_history=np.asarray(i.residual_history), solve_time_s=i.timings.total,
             assembly_time_s=i.timings.assembly, linear_solve_time_s=i.timings.linear_solve,
             line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
-            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, constraints=self.constraints,
+            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, saddle_escapes=i.saddle_escapes, constraints=self.constraints,
             setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups,
             second_order=np.asarray(i.second_order, dtype=float))
 

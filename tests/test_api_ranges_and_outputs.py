@@ -41,6 +41,7 @@ def test_out_of_range_settings_name_the_field(call, field):
 @pytest.mark.parametrize("argv", [
     ["bench", "merge", "--family", "all", "--cars", "2", "--instances", "1", "--no-docs"],
     ["bench", "merge", "--cars", "2", "--instances", "1", "--no-docs"],
+    ["bench", "saddles", "--cases", "head-on:2:2", "--no-docs"],
 ])
 def test_bench_json_path_is_checked_before_the_run(tmp_path, capsys, argv):
     blocker = tmp_path / "a-file"

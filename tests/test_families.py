@@ -55,6 +55,16 @@ def test_bench_rejects_an_unknown_family():
         args.func(args)
 
 
+@pytest.mark.parametrize("cases, message", [("nope:2:0", "unknown family 'nope'"), ("head-on:2", "is not FAMILY:CARS:SEED"),
+                                            ("head-on:1:0", "at least 2 cars")])
+def test_bench_saddles_rejects_bad_cases(cases, message):
+    from app.cli import UserError, build_parser
+
+    args = build_parser().parse_args(["bench", "saddles", "--cases", cases, "--no-docs"])
+    with pytest.raises(UserError, match=message):
+        args.func(args)
+
+
 def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw():
     """The last player of the last sweep solved against the others' final plans: its controls are a KKT point of its
     own problem with them fixed (bench/verify.py's stationarity on that one-player problem, the other car as a moving

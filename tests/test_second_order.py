@@ -174,11 +174,67 @@ def test_restart_on_saddle_finds_a_local_equilibrium():
 
 
 def test_restart_on_saddle_returns_the_saddle_when_no_attempt_does_better():
-    """The disc game (R 1, F 2) from zero controls: every attempt ends at the saddle in front of the discs, so
-    after the whole restart schedule the kept saddle is returned, unchanged, with the work of all attempts."""
+    """The disc game (R 1, F 2) from zero controls: every attempt ends at the saddle in front of the discs (its
+    minimum is behind the disc, at (1, 0): not reachable by sliding along it), the two escapes along negative
+    curvature included, so after the whole restart schedule the kept saddle is returned, unchanged, with the work
+    of all attempts."""
     problem = _disc_game(1.0, 2.0)
     off = solve(problem, tol=1e-9, restart_on_saddle=False)
     on = solve(problem, tol=1e-9, restarts=3)
-    assert on.status == "saddle" and on.attempts == 4 and on.iterations > off.iterations
+    assert on.status == "saddle" and on.saddle_escapes == 2 and on.attempts == 4 + 2
+    assert on.iterations > off.iterations
     np.testing.assert_allclose(on.x[:, 1], [[-1.0, 0.0], [-1.0, 100.0]], atol=1e-6)
     np.testing.assert_allclose(on.second_order, [6 * 1.0 - 4 * 2.0] * 2, rtol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------------------------
+def _slide_game() -> GameProblem:
+    """Two single integrators, one step, each with a disc of radius 1 (squared form) in its way, 100 m apart (their
+    pair constraint slack). Player 0's cost R |u|^2 + F |p - r|^2 with u = p - (-3, 0), R = (0.5, 0.25),
+    F = (1.5, 0.25), r = (1/3, 0) is W |p - c|^2 + const with W = R + F = (2, 0.5) per axis and c = (-1/2, 0)
+    inside the disc. On the circle p = (cos t, sin t) its derivative is 2 sin t ((W_y - W_x) cos t + W_x c_x):
+    - t = pi, p = (-1, 0): first-order point (multiplier 1) with curvature 2 W_y - 2 = -1 along the circle: a saddle;
+    - cos t = W_x c_x / (W_x - W_y) = -2/3, p = (-2/3, +-sqrt(5)/3): the two minima (multiplier 1/2, curvature
+      3 * sin^2 t = 5/3 along the circle). Player 1 is the same game shifted by 100 m in y."""
+    def agent(y):
+        return Agent(LinearModel(np.eye(2), np.eye(2)), (-3.0, y),
+                     QuadraticCost(x_ref=(1.0 / 3.0, y), Q_ref=(1.5, 0.25), R=(0.5, 0.25)))
+    discs = [Obstacle(np.array([[0.0, y], [0.0, y]]), min_distance=1.0) for y in (0.0, 100.0)]
+    return GameProblem(dt=1.0, horizon=1, agents=[agent(0.0), agent(100.0)], collision=Collision(1.0, form="squared"),
+                       obstacles=discs)
+
+
+def test_escape_along_negative_curvature_reaches_the_analytic_minima():
+    """From zero controls every attempt converges to the symmetric saddle p = (-1, 0) (eigenvalue -1), which SLSQP
+    on each player's own problem improves by ~3.6 %. With saddle_escapes each player moves along its negative
+    curvature and Newton from there reaches a minimum p = (-2/3, +-sqrt(5)/3) with eigenvalue 5/3, where SLSQP
+    finds no profitable deviation; the escape's iterations are counted."""
+    problem = _slide_game()
+    kept = solve(problem, tol=1e-9, restarts=3, saddle_escapes=0)
+    assert kept.status == "saddle" and kept.saddle_escapes == 0
+    np.testing.assert_allclose(kept.x[:, 1], [[-1.0, 0.0], [-1.0, 100.0]], atol=1e-6)
+    np.testing.assert_allclose(kept.second_order, [-1.0, -1.0], rtol=1e-5)
+    assert min(best_response_gap(problem, kept.x, kept.u, i) for i in range(2)) > 1e-2
+
+    first = solve(problem, tol=1e-9, restart_on_saddle=False)
+    r = solve(problem, tol=1e-9, restarts=3, saddle_escapes=1)
+    assert r.status == "converged" and r.saddle_escapes == 1 and r.attempts == 2
+    assert r.iterations > first.iterations  # the saddle's attempt and the escape, counted together
+    np.testing.assert_allclose(np.abs(r.x[:, 1] - [[0.0, 0.0], [0.0, 100.0]]), [[2 / 3, np.sqrt(5) / 3]] * 2, atol=1e-6)
+    np.testing.assert_allclose(r.second_order, [5 / 3, 5 / 3], rtol=1e-5)
+    assert max(best_response_gap(problem, r.x, r.u, i) for i in range(2)) <= 1e-6
+    assert np.all(stationarity_residual(problem, r.x, r.u, relative=True) <= 1e-6)
+
+
+def test_inertia_correction_keeps_the_roots():
+    """The inertia correction only changes the Newton matrix: on the head-on instance whose first attempt is a
+    saddle, the solve with it (and without escapes) still ends at a point that passes the second-order test and,
+    independently, SLSQP's best responses."""
+    from bench.families import family_problem
+
+    problem = family_problem("head-on", 2, 2)
+    r = solve(problem, saddle_escapes=0, saddle_inertia=1.5)
+    assert r.status == "converged" and r.saddle_escapes == 0
+    assert np.all(r.second_order > 0)
+    assert np.all(stationarity_residual(problem, r.x, r.u, relative=True) <= 1e-3)
+    assert max(best_response_gap(problem, r.x, r.u, i) for i in range(2)) <= 1e-4

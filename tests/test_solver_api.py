@@ -109,6 +109,10 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"time_limit": -1.0}, "solver.time_limit"),  # accepted as "no limit"
     ({"polish_gap": -1.0}, "solver.polish_gap"),
     ({"violation_memory": 0}, "solver.violation_memory"),
+    ({"saddle_escapes": -1}, "solver.saddle_escapes"),
+    ({"saddle_step": 0.0}, "solver.saddle_step"),
+    ({"saddle_rho": -1e-3}, "solver.saddle_rho"),
+    ({"saddle_inertia": -1.0}, "solver.saddle_inertia"),
 ]
 
 

@@ -7,7 +7,7 @@ import time
 
 from app.cli import UserError
 from fileio import atomic_write_text, check_output_path
-from bench import merge_bench, problem_size, solver_bench
+from bench import merge_bench, problem_size, saddles, solver_bench
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
 
@@ -61,6 +61,19 @@ def register(sub) -> None:
     m.add_argument("--figures", default="docs/figures", help="folder for the PNG figures")
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     m.set_defaults(func=run_merge)
+
+    d = kinds.add_parser("saddles", help="steering away from saddles: the methods compared on the family instances "
+                                         "that converge to a saddle")
+    d.add_argument("--family", default="all", help="comma-separated names from bench/families.py, or 'all'")
+    d.add_argument("--cars", default="2-8")
+    d.add_argument("--seeds", type=int, default=16, help="seeds 0..N-1 per family and size")
+    d.add_argument("--cases", help="skip the scan: FAMILY:CARS:SEED,... (e.g. head-on:2:2)")
+    d.add_argument("--methods", default=",".join(saddles.METHODS), help="comma-separated, from bench/saddles.py")
+    d.add_argument("--best-response", type=int, default=6, help="SLSQP best-response test on the first N cases")
+    d.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
+    d.add_argument("--json", help="write the per-run records here")
+    d.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    d.set_defaults(func=run_saddles)
 
     z = kinds.add_parser("size", help="measured memory and time per iteration vs the problem-size estimate")
     z.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
@@ -249,4 +262,66 @@ def _run_families(args, cars: list[int]) -> int:
     if not args.no_docs:
         section = "merge-families" + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")
         print(f"recorded in {write_section(section, md)}")
+    return 0
+
+
+def _parse_cases(text: str) -> list[tuple[str, int, int]]:
+    cases = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        try:
+            family, cars, seed = part.split(":")
+            case = (family, int(cars), int(seed))
+        except ValueError:
+            raise UserError(f"--cases: {part!r} is not FAMILY:CARS:SEED") from None
+        if family not in FAMILIES:
+            raise UserError(f"--cases: unknown family {family!r} (choose from {', '.join(FAMILIES)})")
+        if case[1] < 2 or case[2] < 0:
+            raise UserError(f"--cases: {part!r} needs at least 2 cars and a seed >= 0")
+        cases.append(case)
+    if not cases:
+        raise UserError("--cases is empty")
+    return cases
+
+
+def run_saddles(args) -> int:
+    import dataclasses
+    import json
+    import os
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    for m in methods:
+        if m not in saddles.METHODS:
+            raise UserError(f"--methods: unknown method {m!r} (choose from {', '.join(saddles.METHODS)})")
+    if args.seeds < 1 or args.workers < 1 or args.best_response < 0:
+        raise UserError("--seeds and --workers must be >= 1, --best-response >= 0")
+    if args.json:
+        check_output_path(args.json)  # fail before the long run, not after it
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    if args.cases:
+        cases = _parse_cases(args.cases)
+        scanned = None
+    else:
+        names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
+        for n in names:
+            if n not in FAMILIES:
+                raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
+        grid = [(f, n, s) for f in names for n in parse_range(args.cars) for s in range(args.seeds)]
+        scanned = len(grid)
+        cases = saddles.scan(grid, args.workers)
+        print("cases:", ",".join(f"{f}:{n}:{s}" for f, n, s in cases))
+    if not cases:
+        print("no instance converged to a saddle")
+        return 0
+    runs = saddles.compare(cases, methods, args.workers, args.best_response)
+    summary = saddles.summarize(runs, methods)
+    command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
+    md = saddles.markdown(summary, runs, command, machine, time.perf_counter() - t0, scanned)
+    print(md)
+    if args.json:
+        atomic_write_text(args.json, json.dumps([dataclasses.asdict(r) for r in runs], indent=1))
+        print(f"wrote {args.json}")
+    if not args.no_docs:
+        print(f"recorded in {write_section('saddles', md)}")
     return 0

@@ -70,6 +70,7 @@ void bind_solver(py::module_& m) {
       .def_readonly("riccati_solves", &Info::riccati_solves)
       .def_readonly("lm_steps", &Info::lm_steps)
       .def_readonly("attempts", &Info::attempts)
+      .def_readonly("saddle_escapes", &Info::saddle_escapes)
       .def_readonly("setups", &Info::setups)
       .def_readonly("second_order", &Info::second_order)
       .def_readonly("residual_history", &Info::residual_history)

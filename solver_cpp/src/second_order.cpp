@@ -4,6 +4,7 @@
 #include <Eigen/QR>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 
 namespace rd3g {
 
@@ -132,9 +133,14 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
   return out_;
 }
 
+bool SecondOrderCheck::agent_passes(int a, double tol) const {
+  const SecondOrderAgent& s = out_[a];
+  return s.min_eigenvalue >= -tol * std::max(1.0, s.max_abs_eigenvalue);
+}
+
 bool SecondOrderCheck::passes(double tol) const {
-  for (const SecondOrderAgent& a : out_)
-    if (!(a.min_eigenvalue >= -tol * std::max(1.0, a.max_abs_eigenvalue))) return false;
+  for (int a = 0; a < static_cast<int>(out_.size()); ++a)
+    if (!agent_passes(a, tol)) return false;
   return true;
 }
 
@@ -144,9 +150,10 @@ bool SecondOrderCheck::passes(double tol) const {
 // released), then the test.
 namespace rd3g {
 
-bool Solver::check_second_order(Info& info) {
+void Solver::constraint_weights(Vec& w_i, Vec& w_j) const {
   const int C = static_cast<int>(cons_.size());
-  Vec w_i = Vec::Zero(C), w_j = Vec::Zero(C);
+  w_i = Vec::Zero(C);
+  w_j = Vec::Zero(C);
   for (int c = 0; c < C; ++c) {
     if (state_[c] == ConstraintState::Active) {
       w_i[c] = y_.mu[c];
@@ -155,12 +162,144 @@ bool Solver::check_second_order(Info& info) {
       w_i[c] = w_j[c] = barrier_ == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h_[c];
     }
   }
+}
+
+bool Solver::check_second_order(Info& info) {
+  Vec w_i, w_j;
+  constraint_weights(w_i, w_j);
   const auto& agents = second_order_->check(
       prob_, cons_, [&](int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) { eval_constraint(y_, c, h, g, H); },
       y_.x, y_.u, y_.lam, w_i, w_j, settings_.second_order_gap);
   info.second_order.resize(N_);
   for (int a = 0; a < N_; ++a) info.second_order[a] = agents[a].min_eigenvalue;
   return second_order_->passes(settings_.second_order_tol);
+}
+
+}  // namespace rd3g
+
+// Steering away from a saddle: a restart along negative curvature (Settings::saddle_escapes) and the per-agent
+// inertia correction (Settings::saddle_inertia).
+namespace rd3g {
+
+double Solver::agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const Vec& w_j, double& max_h) const {
+  // J^a as in QuadraticCost / LeadCost (problem.hpp); the dynamics hold by rollout, so their multiplier term is 0.
+  const QuadraticCost& c = prob_.costs[a];
+  const Mat& x = y.x[a];
+  double J = 0;
+  for (int k = 0; k < T_; ++k) J += c.R.dot(y.u[a].col(k).cwiseAbs2());
+  for (int k = 1; k < T_; ++k)
+    J += c.Q_ref.dot((x.col(k) - c.x_ref).cwiseAbs2()) + c.Q.dot(x.col(k).cwiseAbs2());
+  J += c.Qf_ref.dot((x.col(T_) - c.x_ref).cwiseAbs2()) + c.Qf.dot(x.col(T_).cwiseAbs2());
+  const LeadCost& lead = prob_.lead[a];
+  if (lead.weight != 0.0)
+    for (int j = 0; j < N_; ++j)
+      if (j != a)
+        for (int k = 1; k <= T_; ++k) J += lead.weight * (y.x[j](lead.index, k) - x(lead.index, k));
+  max_h = -kInf;
+  Eigen::Vector2d g;
+  Eigen::Matrix2d H;
+  double h;
+  for (int ci = 0; ci < static_cast<int>(cons_.size()); ++ci) {
+    const Constraint& cn = cons_[ci];
+    const bool own = cn.i == a;
+    if (!own && !(cn.kind == Constraint::Kind::Pair && cn.j == a)) continue;
+    eval_constraint(y, ci, h, g, H);
+    J += (own ? w_i[ci] : w_j[ci]) * h;
+    max_h = std::max(max_h, h);
+  }
+  return J;
+}
+
+bool Solver::leave_saddle(int escapes) {
+  const auto& agents = second_order_->agents();
+  const double tol = settings_.second_order_tol;
+  if (settings_.saddle_inertia > 0)
+    for (int a = 0; a < N_; ++a)
+      if (!second_order_->agent_passes(a, tol) && std::isfinite(agents[a].min_eigenvalue))
+        inertia_delta_[a] = std::max(inertia_delta_[a], settings_.saddle_inertia * std::abs(agents[a].min_eigenvalue));
+  if (escapes >= settings_.saddle_escapes) return false;
+
+  Vec w_i, w_j;
+  constraint_weights(w_i, w_j);
+  const Vec h0 = h_;  // the saddle's constraint values (write_result evaluated them at y_)
+  const double margin = settings_.barrier_margin;
+  trial_ = y_;
+  auto rollout = [&](int a) {
+    for (int k = 0; k < T_; ++k) {
+      prob_.dynamics[a]->eval(trial_.x[a].col(k), trial_.u[a].col(k), fx_.col(0), Atmp_, Btmp_);
+      trial_.x[a].col(k + 1) = fx_.col(0);
+    }
+  };
+  // Agent a's constraints stay feasible: those inside by more than the barrier margin stay so (the restart hands
+  // them to the barrier), the nearly active ones (the test's null space, moved along to first order only) may
+  // not become violated.
+  auto feasible = [&](int a) {
+    Eigen::Vector2d g;
+    Eigen::Matrix2d H;
+    double h;
+    for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+      const Constraint& cn = cons_[c];
+      if (cn.i != a && !(cn.kind == Constraint::Kind::Pair && cn.j == a)) continue;
+      eval_constraint(trial_, c, h, g, H);
+      if (h0[c] < -margin ? !(h < -margin) : !(h <= std::max(0.0, h0[c]))) return false;
+    }
+    return true;
+  };
+  bool moved = false;
+  for (int a = 0; a < N_; ++a) {
+    const SecondOrderAgent& ag = agents[a];
+    if (second_order_->agent_passes(a, tol) || !(ag.min_eigenvalue < 0) || ag.direction.cols() != T_) continue;
+    double max_h;
+    const double L0 = agent_lagrangian(a, trial_, w_i, w_j, max_h);
+    const Mat u0 = trial_.u[a];
+    double step = settings_.saddle_step, best_sign = 0;
+    for (int q = 0; q < settings_.ls_max_steps && best_sign == 0; ++q, step *= settings_.ls_beta) {
+      // Along +-d the quadratic model predicts L0 + 0.5 step^2 lambda_min; ask for a tenth of that decrease.
+      double best_L = L0 + 0.05 * step * step * ag.min_eigenvalue;
+      for (const double sign : {1.0, -1.0}) {
+        trial_.u[a] = u0 + sign * step * ag.direction;
+        rollout(a);
+        const double L = agent_lagrangian(a, trial_, w_i, w_j, max_h);
+        if (L <= best_L && feasible(a)) { best_L = L; best_sign = sign; }
+      }
+      if (best_sign != 0) {
+        trial_.u[a] = u0 + best_sign * step * ag.direction;
+        if (settings_.verbose)
+          std::printf("saddle: agent %d moves %.3g along %s its negative curvature (eigenvalue %.3e), L %.6e -> %.6e\n",
+                      a, step, best_sign > 0 ? "+" : "-", ag.min_eigenvalue, L0, best_L);
+      }
+    }
+    if (best_sign == 0) trial_.u[a] = u0;  // no acceptable move: this agent stays
+    else moved = true;
+    rollout(a);
+  }
+  if (!moved) return false;
+  std::swap(y_, trial_);
+  // Multipliers: the others' kept; constraints now inside the margin go to the barrier on the central path of a
+  // moderate rho (at rho's floor the barrier would hold the moved agent near the saddle's contacts).
+  rho_ = settings_.saddle_rho;
+  eval_all_constraints(y_, h_);
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    if (h_[c] < -margin) {
+      y_.mu[c] = y_.mu2[c] = 0;
+      y_.z[c] = rho_ / -h_[c];
+    } else {
+      y_.z[c] = 0;
+    }
+  }
+  return true;
+}
+
+void Solver::add_inertia_correction(double rnorm) {
+  if (!inertia_on_ || settings_.saddle_inertia <= 0 || inertia_delta_.empty() || merits_.empty()) return;
+  // Vanishes with the residual: superlinear convergence near the root is kept.
+  const double scale = std::min(1.0, rnorm / std::max(merits_.front(), 1e-300));
+  for (int a = 0; a < N_; ++a) {
+    const double d = inertia_delta_[a] * scale;
+    if (d <= 0) continue;
+    for (int k = 0; k < T_; ++k)
+      for (int q = 0; q < nu_; ++q) trip_.emplace_back(col_u(a, k) + q, col_u(a, k) + q, d);
+  }
 }
 
 }  // namespace rd3g

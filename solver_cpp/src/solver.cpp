@@ -799,19 +799,31 @@ Result Solver::solve(const WarmStart* warm) {
   int total_iter = 0;
   Result saddle;  // the first converged attempt the second-order test rejected (restart_on_saddle)
   bool have_saddle = false;
+  int escapes = 0;           // attempts started from a saddle (leave_saddle); they do not use up the schedule
+  bool from_saddle = false;  // the next attempt starts where leave_saddle left y_
+  inertia_delta_.assign(N_, 0.0);
   for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
-    info.attempts = attempt + 1;
-    start_attempt(attempt, warm);
+    info.attempts = attempt + 1 + escapes;
+    info.saddle_escapes = escapes;
+    if (!from_saddle) start_attempt(attempt, warm);
+    inertia_on_ = from_saddle || settings_.saddle_inertia_restarts;
+    from_saddle = false;
     if (run_attempt(info, total_iter) == AttemptEnd::Finished) {
       // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.
       if (!(settings_.restart_on_saddle && info.status == Status::Converged && settings_.second_order_gap >= 0 &&
-            attempt < settings_.restarts && total_iter < settings_.max_iter && !past_deadline()))
+            (attempt < settings_.restarts || escapes < settings_.saddle_escapes) && total_iter < settings_.max_iter &&
+            !past_deadline()))
         break;
       Result cand = res;
       write_result(cand, cand.info);
       if (cand.info.status != Status::Saddle) return cand;
       if (settings_.verbose) std::printf("converged to a saddle, restarting\n");
       if (!have_saddle) { saddle = std::move(cand); have_saddle = true; }
+      if (leave_saddle(escapes)) {
+        ++escapes;
+        from_saddle = true;
+        --attempt;  // same place in the restart schedule
+      }
     }
     ++total_iter;
   }
@@ -820,6 +832,7 @@ Result Solver::solve(const WarmStart* warm) {
     // No later attempt found an equilibrium: the saddle (feasible, first-order stationary) beats a failure.
     saddle.info.iterations = info.iterations;
     saddle.info.attempts = info.attempts;
+    saddle.info.saddle_escapes = info.saddle_escapes;
     saddle.info.timings.total = seconds_since(t_start_);
     return saddle;
   }
@@ -975,6 +988,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
 }
 
 double Solver::take_step(double rnorm, Info& info) {
+  add_inertia_correction(rnorm);
   auto t0 = Clock::now();
   const bool solved = solve_linear(dy_, info);
   info.timings.linear_solve += seconds_since(t0);

@@ -181,6 +181,10 @@ void validate_settings(const Settings& s) {
   require(s.violation_memory >= 1, "solver.violation_memory must be >= 1");
   require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
   require(s.second_order_tol > 0, "solver.second_order_tol must be positive");
+  require(s.saddle_escapes >= 0, "solver.saddle_escapes must be >= 0 (0 = off)");
+  require(std::isfinite(s.saddle_step) && s.saddle_step > 0, "solver.saddle_step must be positive and finite (control units)");
+  require(std::isfinite(s.saddle_rho) && s.saddle_rho > 0, "solver.saddle_rho must be positive and finite");
+  require(std::isfinite(s.saddle_inertia) && s.saddle_inertia >= 0, "solver.saddle_inertia must be finite and >= 0 (0 = off)");
 }
 
 }  // namespace rd3g

@@ -150,6 +150,28 @@ struct Settings {
   /// A converged attempt that fails the second-order test is kept aside and the restart schedule (restarts)
   /// goes on, looking for a point that passes; if none is found the kept saddle is returned (status saddle).
   bool restart_on_saddle = true;
+  /// Restart from a saddle along negative curvature (with restart_on_saddle; docs/solver.md, "Second-order test"):
+  /// each agent that fails the test moves its controls from the saddle along +-its unit eigenvector of the smallest
+  /// eigenvalue (SecondOrderAgent::direction), the others fixed: steps saddle_step, saddle_step * ls_beta, ... (at
+  /// most ls_max_steps), the first at which either sign lowers the agent's shooting Lagrangian by at least a tenth
+  /// of the quadratic model's 0.5 step^2 |eigenvalue| while every one of its constraints keeps h < -barrier_margin
+  /// (the better sign if both do). Its states are rolled out and Newton runs again from there (the other agents'
+  /// variables and multipliers kept, rho = saddle_rho, barrier constraints on the central path) before the ordinary
+  /// restart schedule goes on. At most saddle_escapes such attempts per solve (0 = off); they count in attempts,
+  /// iterations, max_iter and time.
+  int saddle_escapes = 2;
+  double saddle_step = 1.0;  ///< (control units) first step length along the unit direction
+  double saddle_rho = 1e-2;  ///< barrier weight rho at the restart from a saddle
+  /// Per-agent inertia correction in the attempts from a saddle (IPOPT's, one agent at a time): every agent that
+  /// has failed the test gets delta = saddle_inertia * |its smallest eigenvalue| (the largest seen in this solve)
+  /// added on its control rows of the Newton matrix, scaled by min(1, ||r|| / ||r|| at the attempt's first
+  /// iteration): a proximal term delta |u - u_k|^2 about the current iterate, which changes the step but not the
+  /// residual or its roots, and vanishes at convergence. With saddle_inertia > 1 the agent's reduced Hessian at the
+  /// saddle is positive definite after the shift. Dimensionless factor; 0 = off.
+  double saddle_inertia = 1.5;
+  /// Also in the ordinary restarts (from the initial guess) that follow a saddle (measured: rescues one more
+  /// merge-long instance, slows the authors' 4-car seed 15 by 76 %; docs/benchmarks.md "Saddles").
+  bool saddle_inertia_restarts = false;
   /// Non-monotone violation test: a trial may not raise the total violation above the largest of the last
   /// violation_memory iterates' (1 = monotone, the paper's rule; docs/solver.md, "Globalisation experiments").
   int violation_memory = 1;
@@ -182,7 +204,8 @@ struct Info {
   int qr_fallbacks = 0;        ///< linear solves that fell back to SparseQR
   int riccati_solves = 0;      ///< Newton steps solved by the stage-wise Riccati recursion
   int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
-  int attempts = 0;            ///< 1 + restarts used
+  int attempts = 0;            ///< 1 + restarts used (escapes from saddles included)
+  int saddle_escapes = 0;      ///< attempts started from a saddle along negative curvature (Settings::saddle_escapes)
   int setups = 0;              ///< set-ups since the previous solve (setup, or an update that changed the constraint list)
   /// Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
   /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.

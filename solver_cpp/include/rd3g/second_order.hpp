@@ -47,6 +47,10 @@ class SecondOrderCheck {
                                              const Vec& w_j, double active_gap);
   /// True if every agent's min_eigenvalue >= -tol * max(1, max_abs_eigenvalue) (relative test; tol > 0).
   bool passes(double tol) const;
+  /// The last check's agents.
+  const std::vector<SecondOrderAgent>& agents() const { return out_; }
+  /// Whether agent a passed the last check (as in passes).
+  bool agent_passes(int a, double tol) const;
 
  private:
   int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0;

@@ -194,6 +194,20 @@ class Solver {
   /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
   bool check_second_order(Info& info);
   bool second_order_wanted(const Info& info) const;  // whether write_result runs check_second_order
+  /// Each constraint's multiplier for its agent i (w_i) and its other agent j (w_j) at y_: equality multiplier,
+  /// barrier dual (or -rho/h), 0 if released.
+  void constraint_weights(Vec& w_i, Vec& w_j) const;
+  /// Steering away from the saddle in y_, whose second-order test just failed (second_order.cpp): records the
+  /// inertia correction of the failing agents (saddle_inertia) and, if an escape is left (escapes <
+  /// saddle_escapes), moves them along negative curvature and prepares y_, rho_ and the partition for an attempt
+  /// from there. Returns true if it did (y_ is unchanged otherwise).
+  bool leave_saddle(int escapes);
+  /// Agent a's shooting Lagrangian J^a + sum_c w_c h_c at y (its constraints only) and the largest of their h.
+  double agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const Vec& w_j, double& max_h) const;
+  /// Adds the inertia correction (saddle_inertia) to this iteration's Newton matrix (trip_).
+  void add_inertia_correction(double rnorm);
+  bool inertia_on_ = false;  // this attempt applies the inertia correction
+  std::vector<double> inertia_delta_;  // per agent: delta of the inertia correction (cost units per control unit^2)
   std::shared_ptr<SecondOrderCheck> second_order_;
 };
 
