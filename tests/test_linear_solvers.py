@@ -72,3 +72,13 @@ def test_levenberg_marquardt_ldlt_against_dense_solve():
         np.testing.assert_array_equal(x, y)
         ref = np.linalg.solve(A, b)
         np.testing.assert_allclose(x, ref, rtol=1e-8 * np.linalg.cond(A), atol=0)
+
+
+def test_levenberg_marquardt_ldlt_refuses_another_pattern():
+    import scipy.sparse as sp
+    from solver_cpp import _core
+
+    A = sp.csc_matrix(np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]]))
+    B = sp.csc_matrix(np.array([[4.0, 0.0, 1.0], [0.0, 3.0, 1.0], [1.0, 1.0, 2.0]]))  # same count, other entries
+    with pytest.raises(ValueError, match="pattern"):
+        _core.debug_shifted_ldlt([A, B], [0.0], np.ones(3))

@@ -717,10 +717,9 @@ bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
     eye.setIdentity();
     lm_JtJ_ = lm_JtJ_ + 0.0 * eye;  // every diagonal entry stored: the shift nu lands on stored entries
     lm_JtJ_.makeCompressed();
-    if (!lm_analyzed_ || lm_pattern_state_ != state_) {
+    if (!lm_analyzed_ || !lm_ldlt_.same_pattern(lm_JtJ_)) {
       lm_analyzed_ = false;
       if (!lm_ldlt_.analyze(lm_JtJ_)) return false;
-      lm_pattern_state_ = state_;
       lm_analyzed_ = true;
     }
     lm_ldlt_.load(lm_JtJ_);

@@ -7,6 +7,7 @@
 // are bit for bit those of SimplicialLDLT::compute(A + shift I) when A stores its whole diagonal.
 #pragma once
 #include <Eigen/SparseCholesky>
+#include <algorithm>
 #include <vector>
 
 namespace rd3g {
@@ -28,9 +29,19 @@ class ShiftedLDLT : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Ei
     ap_.selfadjointView<Eigen::Upper>() = idx.selfadjointView<Eigen::Lower>().twistedBy(m_P);
     map_.resize(ap_.nonZeros());
     for (Eigen::Index q = 0; q < ap_.nonZeros(); ++q) map_[q] = static_cast<int>(ap_.valuePtr()[q]);
+    outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + A.outerSize() + 1);
+    inner_.assign(A.innerIndexPtr(), A.innerIndexPtr() + A.nonZeros());
     return true;
   }
-  /// Loads the values of A (the analysed pattern) into the permuted copy; once per A.
+  /// True if A (compressed) has exactly the pattern of the last analyze(): then load() and factorize_shifted()
+  /// may be used on it. O(nnz), against the O(nnz(L) * column length) of a factorisation.
+  bool same_pattern(const SpMat& A) const {
+    return A.isCompressed() && A.outerSize() + 1 == static_cast<Eigen::Index>(outer_.size()) &&
+           A.nonZeros() == static_cast<Eigen::Index>(inner_.size()) &&
+           std::equal(outer_.begin(), outer_.end(), A.outerIndexPtr()) &&
+           std::equal(inner_.begin(), inner_.end(), A.innerIndexPtr());
+  }
+  /// Loads the values of A (the analysed pattern, see same_pattern) into the permuted copy; once per A.
   void load(const SpMat& A) {
     const double* a = A.valuePtr();
     double* v = ap_.valuePtr();
@@ -46,6 +57,7 @@ class ShiftedLDLT : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Ei
  private:
   SpMat ap_;              // P A P', upper triangle, as factorize() would build it
   std::vector<int> map_;  // entry q of ap_ is entry map_[q] of A
+  std::vector<int> outer_, inner_;  // the analysed pattern
 };
 
 }  // namespace rd3g

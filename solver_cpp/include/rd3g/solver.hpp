@@ -181,14 +181,13 @@ class Solver {
   bool lu_analyzed_ = false;
   bool J_built_ = false;  // J_ holds this iteration's matrix (the Riccati path does not need it)
   // Levenberg-Marquardt tries of one iteration share J'J (diagonal stored explicitly) and J'r; only the numeric
-  // factorisation depends on nu. Invalidated with J_built_. The ordering and symbolic LDLT depend only on J's
-  // pattern, i.e. on the partition: kept while it is lm_pattern_state_ (like the LU's pattern_state_).
+  // factorisation depends on nu. Invalidated with J_built_. The ordering and symbolic LDLT depend only on J'J's
+  // pattern (in practice on the partition) and are kept while it is unchanged (checked entry by entry).
   SpMat lm_JtJ_;
   Vec lm_Jtr_;
   ShiftedLDLT lm_ldlt_;
   bool lm_ready_ = false;
   bool lm_analyzed_ = false;
-  std::vector<ConstraintState> lm_pattern_state_;
   StageRiccati riccati_;
   void build_J();
   /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
