@@ -41,3 +41,44 @@ def test_riccati_with_active_bounds_matches_sparse_lu(cars, seed):
     np.testing.assert_allclose(np.stack(ric.x), np.stack(lu.x), atol=1e-9, rtol=0)
     for i, c in enumerate(cap):  # the converged plan keeps the caps (k >= 1; x_0 is given)
         assert np.max(np.stack(ric.x)[i][1:, 2]) <= c + 1e-6
+
+
+def test_levenberg_marquardt_ldlt_against_dense_solve():
+    # The LM tries factorise J'J + nu I for several nu, analysing J'J's pattern once and reusing it while the
+    # partition is unchanged. Reference: numpy's dense solve of the same shifted system; and the factors must
+    # be Eigen's own SimplicialLDLT of the explicitly shifted matrix, bit for bit (the solver's iterates
+    # do not depend on the reuse).
+    import scipy.sparse as sp
+    from solver_cpp import _core
+
+    rng = np.random.default_rng(3)
+    n = 60
+    pattern = (sp.random(n, n, density=0.08, random_state=4, format="csc") + sp.identity(n)).tocsc()
+    pattern.data[:] = 1.0  # a stored diagonal: J'J is nonsingular and stores its whole diagonal
+    mats = []
+    for _ in range(3):  # same pattern, new values (successive iterations)
+        J = pattern.copy()
+        J.data = rng.normal(size=J.nnz)
+        A = (J.T @ J).tocsc()
+        A.sort_indices()
+        mats.append(A)
+    assert all(m.nnz == mats[0].nnz for m in mats)
+    shifts = [1e-6, 1e-5, 1e-3, 1.0]
+    b = rng.normal(size=n)
+    ours, eigen = _core.debug_shifted_ldlt(mats, shifts, b)
+    assert len(ours) == len(eigen) == len(mats) * len(shifts)
+    for q, (x, y) in enumerate(zip(ours, eigen)):
+        A = mats[q // len(shifts)].toarray() + shifts[q % len(shifts)] * np.eye(n)
+        np.testing.assert_array_equal(x, y)
+        ref = np.linalg.solve(A, b)
+        np.testing.assert_allclose(x, ref, rtol=1e-8 * np.linalg.cond(A), atol=0)
+
+
+def test_levenberg_marquardt_ldlt_refuses_another_pattern():
+    import scipy.sparse as sp
+    from solver_cpp import _core
+
+    A = sp.csc_matrix(np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]]))
+    B = sp.csc_matrix(np.array([[4.0, 0.0, 1.0], [0.0, 3.0, 1.0], [1.0, 1.0, 2.0]]))  # same count, other entries
+    with pytest.raises(ValueError, match="pattern"):
+        _core.debug_shifted_ldlt([A, B], [0.0], np.ones(3))

@@ -1,7 +1,9 @@
 #include <pybind11/eigen.h>
+#include <Eigen/SparseCholesky>
 #include <pybind11/stl.h>
 
 #include "bindings.hpp"
+#include "rd3g/shifted_ldlt.hpp"
 #include "rd3g/solver.hpp"
 #include "rd3g/validate.hpp"
 
@@ -20,6 +22,35 @@ void bind_solver(py::module_& m) {
   m.def("validate_problem", &validate_problem, py::arg("problem"),
         "Checks every field of a problem (the validation Solver.setup and the baselines run); ValueError names the field.");
   m.def("validate_settings", &validate_settings, py::arg("settings"));
+  m.def(
+      "debug_shifted_ldlt",
+      [](const std::vector<Eigen::SparseMatrix<double>>& mats, const std::vector<double>& shifts, const Vec& b) {
+        // For tests: the Levenberg-Marquardt factorisation (analysed on mats[0], reused for the others, which must
+        // share its pattern) solving (A + shift I) x = b for every A and shift, and Eigen's SimplicialLDLT
+        // computed afresh on the explicitly shifted matrix, in the same order.
+        using SpMat = Eigen::SparseMatrix<double>;
+        if (mats.empty()) throw std::invalid_argument("mats must not be empty");
+        std::vector<Vec> ours, eigen;
+        ShiftedLDLT ldlt;
+        SpMat a0 = mats[0];
+        a0.makeCompressed();
+        if (!ldlt.analyze(a0)) throw std::runtime_error("analysis failed");
+        for (const SpMat& m : mats) {
+          SpMat a = m;
+          a.makeCompressed();
+          if (!ldlt.same_pattern(a)) throw std::invalid_argument("every matrix must have mats[0]'s pattern");
+          ldlt.load(a);
+          for (double s : shifts) {
+            ours.push_back(ldlt.factorize_shifted(s) ? Vec(ldlt.solve(b)) : Vec());
+            SpMat shifted = a;
+            for (int d = 0; d < a.rows(); ++d) shifted.coeffRef(d, d) += s;
+            Eigen::SimplicialLDLT<SpMat> ref(shifted);
+            eigen.push_back(ref.info() == Eigen::Success ? Vec(ref.solve(b)) : Vec());
+          }
+        }
+        return py::make_tuple(ours, eigen);
+      },
+      py::arg("mats"), py::arg("shifts"), py::arg("b"));
   py::class_<Timings>(m, "Timings")
       .def_readonly("total", &Timings::total)
       .def_readonly("assembly", &Timings::assembly)

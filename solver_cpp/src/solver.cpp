@@ -117,6 +117,7 @@ void Solver::list_and_allocate() {
   merits_.reserve(static_cast<size_t>(settings_.max_iter) + 2);
   violations_.reserve(static_cast<size_t>(settings_.max_iter) + 2);
   lu_analyzed_ = false;
+  lm_analyzed_ = false;
   ++structure_version_;
 }
 
@@ -138,7 +139,7 @@ void Solver::update_settings(const Settings& s) {
   const auto t0 = Clock::now();
   validate_settings(s);
   const bool per_agent = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
-  if (per_agent != per_agent_multipliers_) lu_analyzed_ = false;  // another multiplier layout
+  if (per_agent != per_agent_multipliers_) lu_analyzed_ = lm_analyzed_ = false;  // another multiplier layout
   per_agent_multipliers_ = per_agent;
   settings_ = s;
   merits_.reserve(static_cast<size_t>(s.max_iter) + 2);
@@ -714,17 +715,18 @@ bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
     lm_JtJ_ = J_.transpose() * J_;
     SpMat eye(n_vars_, n_vars_);
     eye.setIdentity();
-    lm_JtJ_ = lm_JtJ_ + 0.0 * eye;  // every diagonal entry stored, so J'J + nu I keeps the analysed pattern
+    lm_JtJ_ = lm_JtJ_ + 0.0 * eye;  // every diagonal entry stored: the shift nu lands on stored entries
     lm_JtJ_.makeCompressed();
-    lm_ldlt_.analyzePattern(lm_JtJ_);
-    if (lm_ldlt_.info() != Eigen::Success) return false;
+    if (!lm_analyzed_ || !lm_ldlt_.same_pattern(lm_JtJ_)) {
+      lm_analyzed_ = false;
+      if (!lm_ldlt_.analyze(lm_JtJ_)) return false;
+      lm_analyzed_ = true;
+    }
+    lm_ldlt_.load(lm_JtJ_);
     lm_Jtr_ = J_.transpose() * rhs_.head(n_vars_);
     lm_ready_ = true;
   }
-  SpMat A = lm_JtJ_;
-  for (int d = 0; d < n_vars_; ++d) A.coeffRef(d, d) += nu;
-  lm_ldlt_.factorize(A);
-  if (lm_ldlt_.info() != Eigen::Success) return false;
+  if (!lm_ldlt_.factorize_shifted(nu)) return false;
   dy.head(n_vars_) = lm_ldlt_.solve(-lm_Jtr_);
   if (settings_.verbose) std::printf("   Levenberg-Marquardt step, nu %.2e\n", nu);
   return lm_ldlt_.info() == Eigen::Success && dy.head(n_vars_).allFinite();

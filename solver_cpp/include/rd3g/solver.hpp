@@ -15,6 +15,7 @@
 #include "rd3g/constraints.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/riccati.hpp"
+#include "rd3g/shifted_ldlt.hpp"
 #include "rd3g/stage_terms.hpp"
 
 namespace rd3g {
@@ -190,12 +191,14 @@ class Solver {
   Eigen::SparseLU<SpMat, Eigen::COLAMDOrdering<int>> lu_;
   bool lu_analyzed_ = false;
   bool J_built_ = false;  // J_ holds this iteration's matrix (the Riccati path does not need it)
-  // Levenberg-Marquardt tries of one iteration share J'J (diagonal stored explicitly), its symbolic LDLT and J'r;
-  // only the numeric factorisation depends on nu. Invalidated with J_built_.
+  // Levenberg-Marquardt tries of one iteration share J'J (diagonal stored explicitly) and J'r; only the numeric
+  // factorisation depends on nu. Invalidated with J_built_. The ordering and symbolic LDLT depend only on J'J's
+  // pattern (in practice on the partition) and are kept while it is unchanged (checked entry by entry).
   SpMat lm_JtJ_;
   Vec lm_Jtr_;
-  Eigen::SimplicialLDLT<SpMat> lm_ldlt_;
+  ShiftedLDLT lm_ldlt_;
   bool lm_ready_ = false;
+  bool lm_analyzed_ = false;
   StageRiccati riccati_;
   void build_J();
   /// Second-order test of y_ (defined in second_order.cpp): fills info.second_order; true if every agent passes.
