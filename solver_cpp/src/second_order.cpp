@@ -62,8 +62,7 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
     int na = 0;
     for (int c = 0; c < static_cast<int>(cons.size()); ++c) {
       const Constraint& cn = cons[c];
-      const bool pair = cn.kind == K::Pair;
-      if (cn.i != a && !(pair && cn.j == a)) continue;
+      if (!cn.involves(a)) continue;
       eval(c, h, g, H);
       const bool own = cn.i == a;
       const double w = own ? w_i[c] : w_j[c];
@@ -201,8 +200,8 @@ double Solver::agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const V
   double h;
   for (int ci = 0; ci < static_cast<int>(cons_.size()); ++ci) {
     const Constraint& cn = cons_[ci];
+    if (!cn.involves(a)) continue;
     const bool own = cn.i == a;
-    if (!own && !(cn.kind == Constraint::Kind::Pair && cn.j == a)) continue;
     eval_constraint(y, ci, h, g, H);
     J += (own ? w_i[ci] : w_j[ci]) * h;
     max_h = std::max(max_h, h);
@@ -224,12 +223,6 @@ bool Solver::leave_saddle(int escapes) {
   const Vec h0 = h_;  // the saddle's constraint values (write_result evaluated them at y_)
   const double margin = settings_.barrier_margin;
   trial_ = y_;
-  auto rollout = [&](int a) {
-    for (int k = 0; k < T_; ++k) {
-      prob_.dynamics[a]->eval(trial_.x[a].col(k), trial_.u[a].col(k), fx_.col(0), Atmp_, Btmp_);
-      trial_.x[a].col(k + 1) = fx_.col(0);
-    }
-  };
   // Agent a's constraints stay feasible: those inside by more than the barrier margin stay so (the restart hands
   // them to the barrier), the nearly active ones (the test's null space, moved along to first order only) may
   // not become violated.
@@ -239,7 +232,7 @@ bool Solver::leave_saddle(int escapes) {
     double h;
     for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
       const Constraint& cn = cons_[c];
-      if (cn.i != a && !(cn.kind == Constraint::Kind::Pair && cn.j == a)) continue;
+      if (!cn.involves(a)) continue;
       eval_constraint(trial_, c, h, g, H);
       if (h0[c] < -margin ? !(h < -margin) : !(h <= std::max(0.0, h0[c]))) return false;
     }
@@ -258,7 +251,7 @@ bool Solver::leave_saddle(int escapes) {
       double best_L = L0 + 0.05 * step * step * ag.min_eigenvalue;
       for (const double sign : {1.0, -1.0}) {
         trial_.u[a] = u0 + sign * step * ag.direction;
-        rollout(a);
+        roll_out(trial_, a);
         const double L = agent_lagrangian(a, trial_, w_i, w_j, max_h);
         if (L <= best_L && feasible(a)) { best_L = L; best_sign = sign; }
       }
@@ -271,7 +264,7 @@ bool Solver::leave_saddle(int escapes) {
     }
     if (best_sign == 0) trial_.u[a] = u0;  // no acceptable move: this agent stays
     else moved = true;
-    rollout(a);
+    roll_out(trial_, a);
   }
   if (!moved) return false;
   std::swap(y_, trial_);

@@ -873,10 +873,7 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
       }
     if (attempt == 0) y_.lam[i] = lam_init_[i];
     else y_.lam[i].setZero();
-    for (int k = 0; k < T_; ++k) {
-      prob_.dynamics[i]->eval(y_.x[i].col(k), y_.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
-      y_.x[i].col(k + 1) = fx_.col(0);
-    }
+    roll_out(y_, i);
   }
   y_.mu.setZero();
   y_.mu2.setZero();
@@ -899,6 +896,13 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
     barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
   // The LU's symbolic analysis is kept across attempts and solves: it depends only on the sparsity pattern,
   // i.e. on the partition (pattern_state_) and the constraint list, and is redone when either changes.
+}
+
+void Solver::roll_out(Iterate& y, int i) {
+  for (int k = 0; k < T_; ++k) {
+    prob_.dynamics[i]->eval(y.x[i].col(k), y.u[i].col(k), fx_.col(0), Atmp_, Btmp_);
+    y.x[i].col(k + 1) = fx_.col(0);
+  }
 }
 
 bool Solver::deep_overlap() const {

@@ -16,6 +16,8 @@ struct Constraint {
   int j;    ///< other agent (Pair) or obstacle index (Obstacle), else -1
   int k;    ///< time step: states k = 1..T, controls k = 0..T-1
   int idx;  ///< state/control component for bounds, else -1
+  /// True if the constraint is one of agent a's: its own (i == a) or a pair with a as the other agent.
+  bool involves(int a) const { return i == a || (kind == Kind::Pair && j == a); }
 };
 
 /// The constraints of a validated problem with its defaults filled in (rd3g::with_defaults), in time order

@@ -97,6 +97,8 @@ class Solver {
   // Solve steps, in the order solve() calls them.
   void load_initial_guess(const WarmStart* warm);
   void start_attempt(int attempt, const WarmStart* warm);
+  /// States x_1..x_T of agent i in y from x_0 and its controls (the dynamics then hold exactly).
+  void roll_out(Iterate& y, int i);
   AttemptEnd run_attempt(Info& info, int& total_iter);
   /// The rolled-out iterate y_ brings two agents (or an agent and an obstacle) closer than
   /// (1 - settings_.deep_overlap) times their collision distance at some step.
