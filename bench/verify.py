@@ -493,8 +493,7 @@ def fixed_state_infeasibility(problem: GameProblem, tol_m: float = FEASIBILITY_T
     N, T = problem.num_agents, int(problem.horizon)
     nu = problem.agents[0].dynamics.nu
     fixed = control_independent_states(problem)
-    x = np.stack([np.asarray(a.dynamics.build(problem.dt).rollout(np.asarray(a.x0, dtype=float), np.zeros((T, nu))))
-                  for a in problem.agents])
+    x = problem.rollout(np.zeros((N, T, nu)))
     enabled, d_min, px, py = _collision_settings(problem)
     pos_fixed = fixed[:, :, px] & fixed[:, :, py]  # (N, T+1)
     reasons = []
@@ -676,7 +675,7 @@ def find_feasible_point(problem: GameProblem, starts=(), seeded_starts: int = 2,
         return FeasibilityReport("unknown", f"no point violating at most {tol_m:g} m found from {tried} starts "
                                             f"(least violation {best_viol:.3g} m)", max_violation_m=float(best_viol))
     u = z_found.reshape(N, T, nu)
-    x = np.stack([np.asarray(f.rollout(x0, u[i])) for i, (f, x0) in enumerate(zip(sp.fs, sp.x0))])
+    x = problem.rollout(u)
     viol = max(max_collision_violation_m(problem, x), max_bound_violation(problem, x, u))
     verdict = "no constraint violated" if viol <= 0 else f"largest violation {viol:.1e}"
     return FeasibilityReport("feasible", f"{how}: {verdict}", x=x, u=u, max_violation_m=float(viol))

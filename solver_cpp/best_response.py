@@ -20,8 +20,7 @@ def best_response_guess(problem: GameProblem, rounds: int = 2, **settings) -> Wa
     nu = problem.agents[0].dynamics.nu
     col = problem.collision
     u = np.zeros((N, T, nu))
-    x = np.stack([np.asarray(a.dynamics.build(problem.dt).rollout(np.asarray(a.x0, float), u[i]))
-                  for i, a in enumerate(problem.agents)])
+    x = problem.rollout(u)
     px, py = (col.pos_x, col.pos_y) if col is not None else (0, 1)
     for _ in range(rounds):
         for i, agent in enumerate(problem.agents):

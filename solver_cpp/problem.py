@@ -129,6 +129,11 @@ class GameProblem:
     def num_agents(self) -> int:
         return len(self.agents)
 
+    def rollout(self, u) -> np.ndarray:
+        """States (N, T+1, nx) of every agent from its x0 under controls u (N, T, nu), through the C++ models."""
+        return np.stack([np.asarray(a.dynamics.build(self.dt).rollout(np.asarray(a.x0, dtype=float), u[i]))
+                         for i, a in enumerate(self.agents)])
+
     def to_core(self, validate: bool = True, models: bool = True) -> _core.Problem:
         """The C++ problem. validate: run the C++ validation now (Solver.setup runs it anyway);
         models=False leaves the dynamics list empty (Solver.update keeps the set-up's models)."""

@@ -75,8 +75,7 @@ def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw()
 
     problem = family_problem("head-on", 2, 0)
     guess = best_response_guess(problem, rounds=1, tol=1e-8)
-    x = np.stack([a.dynamics.build(problem.dt).rollout(np.asarray(a.x0, float), guess.u[i])
-                  for i, a in enumerate(problem.agents)])
+    x = problem.rollout(guess.u)
     assert max_collision_violation_m(problem, x) <= 1e-6
     alone = GameProblem(dt=problem.dt, horizon=problem.horizon, agents=[problem.agents[1]],
                         obstacles=[Obstacle(x[0, :, :2], problem.collision.min_distance)])

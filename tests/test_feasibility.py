@@ -23,11 +23,6 @@ def _double_integrator(dt=0.2):
     return LinearModel(A, B)
 
 
-def _rollout(problem, u):
-    return np.stack([np.asarray(a.dynamics.build(problem.dt).rollout(np.asarray(a.x0, float), u[i]))
-                     for i, a in enumerate(problem.agents)])
-
-
 def test_control_independent_states_match_the_double_integrator_by_hand():
     model = _double_integrator()
     cost = QuadraticCost(x_ref=(0, 0, 0, 0), Q_ref=(0, 0, 0, 0), R=(1.0, 1.0))
@@ -80,14 +75,14 @@ def test_separable_cars_are_found_feasible_with_a_point_verify_accepts(cars, u_b
     p = _head_on(cars, u_bounds)
     T, nu = p.horizon, 2
     # The zero-control start collides (so the search had work to do), by bench/verify.py on the plain rollout.
-    assert verify.max_collision_violation_m(p, _rollout(p, np.zeros((cars, T, nu)))) > 1.0
+    assert verify.max_collision_violation_m(p, p.rollout(np.zeros((cars, T, nu)))) > 1.0
     assert verify.fixed_state_infeasibility(p) == []
     rep = verify.problem_feasibility(p)
     assert rep.status == "feasible", rep.detail
     assert verify.dynamics_defect(p, rep.x, rep.u) <= 1e-9
     assert verify.max_collision_violation_m(p, rep.x) <= verify.FEASIBILITY_TOL_M
     assert verify.max_bound_violation(p, rep.x, rep.u) <= 0.0
-    np.testing.assert_array_equal(rep.x, _rollout(p, rep.u))
+    np.testing.assert_array_equal(rep.x, p.rollout(rep.u))
 
 
 def test_a_search_that_finds_nothing_says_unknown_not_infeasible():
