@@ -116,6 +116,8 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"saddle_step": 0.0}, "solver.saddle_step"),
     ({"saddle_rho": -1e-3}, "solver.saddle_rho"),
     ({"saddle_inertia": -1.0}, "solver.saddle_inertia"),
+    ({"domain_fraction": 1.0}, "solver.domain_fraction"),
+    ({"domain_fraction": -0.1}, "solver.domain_fraction"),
 ]
 
 
