@@ -1,6 +1,7 @@
 """`python -m app bench ...`: benchmarks (results in docs/benchmarks.md)."""
 from __future__ import annotations
 
+import json
 import shlex
 import sys
 import time
@@ -10,6 +11,7 @@ from fileio import atomic_write_text, check_output_path
 from bench import merge_bench, problem_size, saddles, solver_bench
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
+from solver_cpp import make_settings
 
 
 def parse_range(text: str) -> list[int]:
@@ -160,10 +162,6 @@ def _merge_options(args, default_solvers: str) -> tuple[list[str], list[int]]:
 def _rd3g_settings(items: list[str]) -> tuple:
     """--rd3g-setting NAME=VALUE items as (name, value) pairs, checked by solver_cpp.make_settings (values parsed as
     JSON where they can be: numbers, true/false; else kept as strings, e.g. enum names)."""
-    import json
-
-    from solver_cpp import make_settings
-
     pairs = []
     for item in items:
         name, sep, text = item.partition("=")
