@@ -121,7 +121,8 @@ def one_run(job: Job) -> RunRecord:
 
 def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: str,
            cpu_ms: float = float("nan")) -> RunRecord:
-    """The common test (dynamics, collision violation, per-player stationarity), the feasibility of a failure and the
+    """The common test (dynamics, controls inside their models' domains, collision violation, per-player
+    stationarity), the feasibility of a failure and the
     second-order verdict of a solver's result r on problem; setup_s = initial-guess wall time before the solve (s),
     cpu_ms = the CPU time of both."""
     x, u = np.asarray(r.x), np.asarray(r.u)
@@ -133,6 +134,8 @@ def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: 
         failure = "non-finite trajectory"
     elif defect > DYNAMICS_TOL:
         failure = f"dynamics defect {defect:.1e}"
+    elif not (margin := verify.control_domain_margin(problem, u)) > 0:
+        failure = f"control outside its model's domain by {-margin:.1e}"
     elif viol > COLLISION_TOL_M:
         failure = f"collision violation {viol:.1e} m"
     else:

@@ -97,6 +97,25 @@ def dynamics_defect(problem: GameProblem, x, u) -> float:
     return worst
 
 
+def control_domain_margin(problem: GameProblem, u) -> float:
+    """The smallest distance (control units) of any control to the edge of its model's domain, the open box on which
+    the model is smooth (`control_domain()`; the bicycles: |delta| < pi/2, where the slip angle jumps by pi).
+    Positive inside, <= 0 at or beyond the edge, inf for models without limits."""
+    u = np.asarray(u, dtype=float)
+    N, T, nu = problem.num_agents, int(problem.horizon), problem.agents[0].dynamics.nu
+    if u.shape != (N, T, nu):
+        raise ValueError(f"u must have shape ({N}, {T}, {nu}), got {u.shape}")
+    worst = float("inf")
+    for i, agent in enumerate(problem.agents):
+        lo, hi = (np.asarray(b, dtype=float) for b in agent.dynamics.build(problem.dt).control_domain())
+        ui = u[i]
+        with np.errstate(invalid="ignore"):
+            margin = np.minimum(ui - lo, hi - ui)
+        if margin.size:
+            worst = min(worst, float(np.min(np.where(np.isnan(margin), -np.inf, margin))))
+    return worst
+
+
 def collision_gaps_m(problem: GameProblem, x) -> np.ndarray:
     """d_min - distance (m) of every pair (i < j) and every agent-obstacle pair at k = 1..T, flattened;
     positive = violated. Empty if the problem has no such constraint."""
@@ -388,6 +407,7 @@ class EquilibriumReport:
     best_response_gaps: np.ndarray | None  # per player, relative cost decrease; None if not run
     passed: bool
     failures: list[str] = field(default_factory=list)
+    control_domain_margin: float = float("inf")  # control units; <= 0: a control outside its model's domain
 
 
 def verify_equilibrium(problem: GameProblem, result_x, result_u, *, dynamics_tol: float = DYNAMICS_TOL,
@@ -415,6 +435,7 @@ def verify_equilibrium(problem: GameProblem, result_x, result_u, *, dynamics_tol
     defect = dynamics_defect(problem, x, u)
     coll = max_collision_violation_m(problem, x)
     bnd = max_bound_violation(problem, x, u)
+    domain = control_domain_margin(problem, u)
     stat = stationarity_residual(problem, x, u, active_tol)
     stat_rel = stat / max(cost_gradient_scale(problem, x, u), 1e-300)
     if not np.isfinite(defect) or defect > dynamics_tol:
@@ -423,6 +444,8 @@ def verify_equilibrium(problem: GameProblem, result_x, result_u, *, dynamics_tol
         failures.append(f"collision violation {coll:.3e} m > {violation_tol_m:.1e} m")
     if not bnd <= violation_tol_m:
         failures.append(f"bound violation {bnd:.3e} > {violation_tol_m:.1e}")
+    if not domain > 0:
+        failures.append(f"a control is outside its model's domain by {-domain:.3e} (control units)")
     for i in np.flatnonzero(~(stat_rel <= stationarity_tol)):
         failures.append(f"player {i}: stationarity residual {stat[i]:.3e} "
                         f"({stat_rel[i]:.3e} of the cost-gradient scale) > {stationarity_tol:.1e}")
@@ -434,7 +457,7 @@ def verify_equilibrium(problem: GameProblem, result_x, result_u, *, dynamics_tol
             failures.append(f"player {i}: unilateral deviation lowers its cost by {gaps[i]:.3e} (relative)")
     return EquilibriumReport(dynamics_defect=defect, max_collision_violation_m=coll, max_bound_violation=bnd,
                              stationarity=stat, stationarity_relative=stat_rel, best_response_gaps=gaps,
-                             passed=not failures, failures=failures)
+                             passed=not failures, failures=failures, control_domain_margin=domain)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -86,3 +86,29 @@ def test_family_bench_passes_the_setting_to_rd3g(tmp_path, capsys):
     (row,) = data["results"]
     assert row["solved"] == 1 and row["statuses"] == {"converged": 1}
     assert data["budget"]["rd3g_settings"] == {"domain_fraction": 0.99}
+
+
+def test_common_test_rejects_controls_outside_the_domain():
+    """A hand-built point: zero controls of an authors' merge, with one steering angle set by hand. The margin is
+    pi/2 - |delta| (hand-worked), and the verifier and the benchmark's common test reject delta beyond the edge
+    whatever the rest of the point looks like."""
+    from bench import merge_bench
+    problem = family_problem("authors", 3, 0)
+    u = np.zeros((3, problem.horizon, 2))
+    assert verify.control_domain_margin(problem, u) == pytest.approx(HALF_PI, abs=1e-15)
+    for delta, inside in ((1.2, True), (-1.5, True), (HALF_PI + 0.3, False), (-7.55, False)):
+        u[1, 5, 1] = delta
+        margin = verify.control_domain_margin(problem, u)
+        assert margin == pytest.approx(HALF_PI - abs(delta), abs=1e-12)
+        x = problem.rollout(u)
+        report = verify.verify_equilibrium(problem, x, u, best_response=False)
+        assert any("outside its model's domain" in f for f in report.failures) == (not inside)
+        if not inside:
+            class Result:  # the fields merge_bench.record reads from a solver result
+                pass
+            r = Result()
+            r.x, r.u, r.status, r.solve_time_s, r.iterations = x, u, "converged", 0.0, 1
+            rec = merge_bench.record("rd3g", problem, r, 0.0, 3, 0, "authors")
+            assert not rec.success and "outside its model's domain" in rec.failure
+    with pytest.raises(ValueError, match="u must have shape"):
+        verify.control_domain_margin(problem, np.zeros((2, problem.horizon, 2)))
