@@ -257,7 +257,7 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
         "",
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}." + (f" Budget per solve: {budget}." if budget else ""),
         "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "
-        f"collision violation <= {COLLISION_TOL_M:g} m, per-player stationarity <= {STATIONARITY_REL_TOL:g}), as a share "
+        f"controls inside their models' domains, collision violation <= {COLLISION_TOL_M:g} m, per-player stationarity <= {STATIONARITY_REL_TOL:g}), as a share "
         "of all instances and of the solvable ones (all but the proven infeasible); "
         "2nd order = share of the solved results whose every player passes the solver's second-order test; "
         "'conv. rejected' = results reported converged at a point the test rejects (must be 0); "
@@ -302,7 +302,8 @@ def markdown(summary: list[dict], command: str, machine: str, seconds: float, fi
         "",
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
         "All solvers in C++ sharing the models and derivatives, run on the same instances with the same time limit.",
-        f"Success = the common test on the returned trajectories: dynamics defect <= {DYNAMICS_TOL:g}, collision violation <= "
+        f"Success = the common test on the returned trajectories: dynamics defect <= {DYNAMICS_TOL:g}, every control inside "
+        f"its model's domain (bench/verify.py), collision violation <= "
         f"{COLLISION_TOL_M:g} m, every player's stationarity residual (least-squares multipliers, bench/verify.py) <= "
         f"{STATIONARITY_REL_TOL:g} of the cost-gradient scale. Times over successful runs. 'active' = share of successful runs "
         f"with a collision constraint within {ACTIVE_GAP_M:g} m of active.",
