@@ -33,13 +33,17 @@ ACTIVE_GAP_M = 1e-2  # a collision constraint counts as active when the gap is w
 SECOND_ORDER_TOL = 1e-6  # smallest reduced-Hessian eigenvalue accepted (the solver's own test is relative to scale)
 
 
-def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: int = 0, max_iter: int | None = None):
+def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: int = 0, max_iter: int | None = None,
+               settings: tuple = ()):
     """The solver's result and the wall time of any initial-guess work before it (s). time_limit_s <= 0: no time
-    limit; max_iter (RD3G only): its iteration budget (None: the solver's default)."""
+    limit; max_iter (RD3G only): its iteration budget (None: the solver's default); settings (RD3G only): (name, value)
+    overrides of its other settings."""
     if name == "rd3g":
         import time
 
-        budget = {} if max_iter is None else {"max_iter": max_iter}
+        budget = dict(settings)
+        if max_iter is not None:
+            budget["max_iter"] = max_iter
         if best_response_rounds <= 0:
             return solve(problem, time_limit=max(time_limit_s, 0.0), **budget), 0.0
         t0 = time.perf_counter()
@@ -91,6 +95,7 @@ class Job:
     family: str = "authors"
     best_response_rounds: int = 0
     max_iter: int | None = None  # RD3G's iteration budget; None: its default
+    settings: tuple = ()  # RD3G's setting overrides, (name, value) pairs
 
 
 def failure_feasibility(problem, x: np.ndarray, u: np.ndarray) -> tuple[str, str]:
@@ -109,7 +114,7 @@ def one_run(job: Job) -> RunRecord:
 
     problem = family_problem(job.family, job.cars, job.seed)
     cpu0 = time.process_time()
-    r, setup_s = run_solver(job.solver, problem, job.time_limit_s, job.best_response_rounds, job.max_iter)
+    r, setup_s = run_solver(job.solver, problem, job.time_limit_s, job.best_response_rounds, job.max_iter, job.settings)
     cpu_ms = 1e3 * (time.process_time() - cpu0)
     return record(job.solver, problem, r, setup_s, job.cars, job.seed, job.family, cpu_ms)
 
@@ -146,11 +151,12 @@ def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: 
 
 def run(solvers: list[str], cars: list[int], instances, workers: int, time_limit_s: float,
         families: tuple[str, ...] = ("authors",), best_response_rounds: int = 0,
-        max_iter: int | None = None) -> list[RunRecord]:
+        max_iter: int | None = None, settings: tuple = ()) -> list[RunRecord]:
     """instances: a count (seeds 0..instances-1) or the seeds themselves. best_response_rounds > 0: RD3G starts
-    from solver_cpp.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none."""
+    from solver_cpp.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none.
+    settings: RD3G setting overrides, (name, value) pairs."""
     seeds = list(range(instances)) if isinstance(instances, int) else [int(s) for s in instances]
-    jobs = [Job(s, n, seed, time_limit_s, f, best_response_rounds, max_iter)
+    jobs = [Job(s, n, seed, time_limit_s, f, best_response_rounds, max_iter, tuple(settings))
             for f in families for n in cars for s in solvers for seed in seeds]
     records: list[RunRecord] = []
     with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:

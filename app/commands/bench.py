@@ -1,6 +1,7 @@
 """`python -m app bench ...`: benchmarks (results in docs/benchmarks.md)."""
 from __future__ import annotations
 
+import json
 import shlex
 import sys
 import time
@@ -10,6 +11,7 @@ from fileio import atomic_write_text, check_output_path
 from bench import merge_bench, problem_size, saddles, solver_bench
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
+from solver_cpp import make_settings
 
 
 def parse_range(text: str) -> list[int]:
@@ -47,6 +49,9 @@ def register(sub) -> None:
     m.add_argument("--seed-start", type=int, help="first seed of --instances (default 0)")
     m.add_argument("--max-iter", type=int, help="RD3G's max_iter per solve (default: the solver's, "
                                                  "solver_cpp/include/rd3g/problem.hpp)")
+    m.add_argument("--rd3g-setting", action="append", default=[], metavar="NAME=VALUE",
+                   help="override one RD3G setting (solver_cpp/include/rd3g/problem.hpp), e.g. domain_fraction=0.99; "
+                        "repeatable")
     m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
     m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "
                                     "from bench/families.py (docs/merging.md) or 'all'; reports success, second-order "
@@ -149,9 +154,30 @@ def _merge_options(args, default_solvers: str) -> tuple[list[str], list[int]]:
         raise UserError(f"--time-limit must be a finite number of seconds >= 0 (0 = none), got {args.time_limit}")
     if args.max_iter is not None and not 1 <= args.max_iter < 2**31:
         raise UserError(f"--max-iter must be an integer from 1 to 2^31 - 1, got {args.max_iter}")
+    args.rd3g_settings = _rd3g_settings(args.rd3g_setting)
     if args.json:
         check_output_path(args.json)  # fail before the long run, not after it
     return solvers, seeds
+
+
+def _rd3g_settings(items: list[str]) -> tuple:
+    """--rd3g-setting NAME=VALUE items as (name, value) pairs, checked by solver_cpp.make_settings (values parsed as
+    JSON where they can be: numbers, true/false; else kept as strings, e.g. enum names)."""
+    pairs = []
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name.strip():
+            raise UserError(f"--rd3g-setting: {item!r} is not NAME=VALUE")
+        try:
+            value = json.loads(text)
+        except ValueError:
+            value = text
+        pairs.append((name.strip(), value))
+    try:
+        make_settings(**dict(pairs))
+    except ValueError as exc:
+        raise UserError(f"--rd3g-setting: {exc}") from None
+    return tuple(pairs)
 
 
 def run_merge(args) -> int:
@@ -163,7 +189,8 @@ def run_merge(args) -> int:
         return _run_families(args, cars)
     solvers, seeds = _merge_options(args, default_solvers="rd3g,ilqgames,algames")
     t0 = time.perf_counter()
-    records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, max_iter=args.max_iter)
+    records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, max_iter=args.max_iter,
+                              settings=args.rd3g_settings)
     summary = merge_bench.summarize(records)
     fig_dir = Path(args.figures)
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -245,7 +272,7 @@ def _run_families(args, cars: list[int]) -> int:
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, tuple(names),
-                              args.best_response_rounds, max_iter=args.max_iter)
+                              args.best_response_rounds, max_iter=args.max_iter, settings=args.rd3g_settings)
     summary = merge_bench.summarize_families(records)
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
@@ -256,7 +283,8 @@ def _run_families(args, cars: list[int]) -> int:
     if args.json:
         failed = [f for r in summary for f in r["failed_instances"]]
         meta = {"max_iter": args.max_iter, "time_limit_s": args.time_limit, "seeds": [seeds[0], seeds[-1] + 1],
-                "load_average_start": load0, "load_average_end": os.getloadavg()[0]}
+                "load_average_start": load0, "load_average_end": os.getloadavg()[0],
+                "rd3g_settings": dict(args.rd3g_settings)}
         atomic_write_text(args.json, json.dumps({"results": summary, "budget": meta, "failed_instances": failed},
                                                 indent=1))
         print(f"wrote {args.json}")

@@ -32,6 +32,14 @@ void bind_dynamics(py::module_& m) {
           },
           py::arg("x"), py::arg("u"), py::arg("lam"), "Returns d^2(lam' f)/d(x,u)^2 ordered [x; u].")
       .def(
+          "control_domain",
+          [](const Dynamics& d) {
+            Vec lo(d.nu()), hi(d.nu());
+            d.control_domain(lo, hi);
+            return py::make_tuple(lo, hi);
+          },
+          "Returns (lo, hi): the open box of controls on which the model is smooth (+-inf: no limit).")
+      .def(
           "rollout",
           [](const Dynamics& d, const Vec& x0, const Mat& U) {
             // U: T x nu; returns (T+1) x nx. Batch helper for tools that replay logged commands.

@@ -21,6 +21,12 @@ void LinearDynamics::eval(const CVecRef& x, const CVecRef& u, VecRef x_next, Mat
 
 std::shared_ptr<Dynamics> make_linear(const Mat& A, const Mat& B) { return std::make_shared<LinearDynamics>(A, B); }
 
+void steering_domain(VecRef lo, VecRef hi) {
+  const double inf = std::numeric_limits<double>::infinity(), half_pi = 0.5 * M_PI;
+  lo << -inf, -half_pi;
+  hi << inf, half_pi;
+}
+
 // ---------------------------------------------------------------------------------------------
 KinematicBicycle::KinematicBicycle(double lf, double lr, double dt) : lf_(lf), lr_(lr), dt_(dt) {
   if (!(lf > 0) || !(lr > 0)) throw std::invalid_argument("lf and lr must be positive");

@@ -73,6 +73,8 @@ void Solver::setup(const Problem& p, const Settings& s) {
   fx_ = Mat::Zero(nx_, 1);
   Atmp_ = Mat::Zero(nx_, nx_);
   Btmp_ = Mat::Zero(nx_, nu_);
+  dom_lo_ = Vec::Zero(nu_);
+  dom_hi_ = Vec::Zero(nu_);
   u_init_.assign(N_, Mat::Zero(nu_, T_));
   lam_init_.assign(N_, Mat::Zero(nx_, T_));
   riccati_.setup(N_, T_, nx_, nu_);
@@ -692,6 +694,10 @@ double Solver::line_search(double merit0) {
   } else {
     dz_.setZero();
   }
+  if (settings_.domain_fraction > 0) {
+    t = domain_step(t);
+    if (t <= 0) return 0.0;  // a held control is at its box and the step points out of it
+  }
   for (int ls = 0; ls < settings_.ls_max_steps; ++ls, t *= settings_.ls_beta) {
     apply_step(y_, dy_, t, trial_);
     eval_all_constraints(trial_, h_trial_);
@@ -708,6 +714,36 @@ double Solver::line_search(double merit0) {
     if (settings_.verbose) std::printf("   t %.2e rejected: |r| %.3e vs %.3e\n", t, mt, merit0);
   }
   return 0.0;
+}
+
+// The models' control domains: a full Newton step can carry a steering angle across |delta| = pi/2, where the
+// bicycle's slip angle jumps by pi; the residual there is a different (wrong-way) car, and the iterates do not come
+// back (merge-long, docs/solver.md "Staying in the model's domain"). Each held control stays in its domain's box
+// shrunk about the centre to domain_fraction of its half-width (a fixed margin: a fraction of the distance left
+// would let a control creep to the singular point itself).
+bool Solver::domain_box(int q, double& lo, double& hi) const {
+  if (!std::isfinite(dom_lo_[q]) || !std::isfinite(dom_hi_[q])) return false;  // one-sided: not held
+  const double c = 0.5 * (dom_lo_[q] + dom_hi_[q]), w = 0.5 * settings_.domain_fraction * (dom_hi_[q] - dom_lo_[q]);
+  lo = c - w;
+  hi = c + w;
+  return true;
+}
+
+double Solver::domain_step(double t) {
+  for (int i = 0; i < N_; ++i) {
+    prob_.dynamics[i]->control_domain(dom_lo_, dom_hi_);
+    for (int q = 0; q < nu_; ++q) {
+      double lo, hi;
+      if (!domain_box(q, lo, hi)) continue;
+      for (int k = 0; k < T_; ++k) {
+        const double u = y_.u[i](q, k), du = dy_[col_u(i, k) + q];
+        if (!(u >= lo && u <= hi)) continue;  // outside already (a warm start): not held
+        if (du > 0) t = std::min(t, (hi - u) / du);
+        else if (du < 0) t = std::min(t, (lo - u) / du);
+      }
+    }
+  }
+  return std::max(t, 0.0);
 }
 
 // Levenberg-Marquardt direction on ||r||^2: (J'J + nu I) dy = -J' r, always a descent direction.

@@ -173,6 +173,7 @@ void validate_settings(const Settings& s) {
   require(s.multiplier_tol >= 0, "solver.multiplier_tol must be >= 0");
   require(s.barrier_margin >= 0, "solver.barrier_margin must be >= 0");
   require(s.fraction_to_boundary > 0 && s.fraction_to_boundary < 1, "solver.fraction_to_boundary must be in (0, 1)");
+  require(s.domain_fraction >= 0 && s.domain_fraction < 1, "solver.domain_fraction must be in [0, 1) (0 = off)");
   require(s.lm_tries >= 0 && s.lm_nu_init > 0, "solver.lm_tries must be >= 0 and solver.lm_nu_init positive");
   require(s.restarts >= 0, "solver.restarts must be >= 0");
   require(s.stall_window >= 0, "solver.stall_window must be >= 0 (0 = never)");

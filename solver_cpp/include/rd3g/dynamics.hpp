@@ -1,6 +1,7 @@
 // Discrete-time agent dynamics x_{k+1} = f(x_k, u_k) with analytic first and second derivatives.
 #pragma once
 #include <Eigen/Dense>
+#include <limits>
 #include <memory>
 #include <string>
 #include <vector>
@@ -34,7 +35,16 @@ class Dynamics {
     eval(x, u, x_next, A, B);
     lambda_hessian(x, u, lambda, H);
   }
+  /// The open box lo < u < hi of controls on which the model is smooth (control units; +-inf: no limit, the
+  /// default). The solver keeps its steps inside it (Settings::domain_fraction).
+  virtual void control_domain(VecRef lo, VecRef hi) const {
+    lo.setConstant(-std::numeric_limits<double>::infinity());
+    hi.setConstant(std::numeric_limits<double>::infinity());
+  }
 };
+
+/// Controls [a, delta] of the bicycle models: a free, |delta| < pi/2 (the slip angle's jump).
+void steering_domain(VecRef lo, VecRef hi);
 
 /// x_{k+1} = A x_k + B u_k (for linear-quadratic games).
 class LinearDynamics final : public Dynamics {
@@ -63,6 +73,8 @@ class KinematicBicycle final : public Dynamics {
   std::string name() const override { return "kinematic_bicycle"; }
   void eval(const CVecRef& x, const CVecRef& u, VecRef x_next, MatRef A, MatRef B) const override;
   void lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, MatRef H) const override;
+  /// |delta| < pi/2: beta = atan(c tan(delta)) jumps by pi there (sin(beta) from +1 to -1).
+  void control_domain(VecRef lo, VecRef hi) const override { steering_domain(lo, hi); }
   double lf() const { return lf_; }
   double lr() const { return lr_; }
   double dt() const { return dt_; }
@@ -87,6 +99,8 @@ class KinematicBicycleFrenet final : public Dynamics {
   void lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, MatRef H) const override;
   void eval_with_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, VecRef x_next, MatRef A,
                          MatRef B, MatRef H) const override;
+  /// |delta| < pi/2, as KinematicBicycle.
+  void control_domain(VecRef lo, VecRef hi) const override { steering_domain(lo, hi); }
   /// kappa(s) and dkappa/ds (piecewise constant slope of the linear interpolation).
   void curvature(double s, double& kappa, double& dkappa) const;
 

@@ -148,6 +148,10 @@ class Solver {
   /// Backtracking line search along dy_ from y_ into trial_; returns the accepted t or 0.
   double line_search(double merit0);
   void apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const;
+  /// The largest t' <= t at which y_'s held controls stay in their models' domain boxes along dy_ (domain_fraction).
+  double domain_step(double t);
+  /// Control component q's box from dom_lo_/dom_hi_ (one agent's domain); false if the domain is one-sided or free.
+  bool domain_box(int q, double& lo, double& hi) const;
   double violation_sum(const Vec& h) const;
   /// On a stall: barrier constraints with h >= -polish_gap become equalities, their multiplier the barrier's
   /// estimate. Returns false if there is none.
@@ -198,6 +202,7 @@ class Solver {
   StageLayout layout_;
   StageWorkspace stage_;
   Mat fx_, Atmp_, Btmp_;
+  Vec dom_lo_, dom_hi_;  // one agent's control domain (domain_step)
   Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_, neg_rhs_, lin_res_;
   std::vector<Triplet> trip_;
   SpMat J_;

@@ -1,0 +1,88 @@
+"""Keeping the controls in the models' domains (Settings::domain_fraction, docs/solver.md "Staying in the model's
+domain"), against independent references:
+- the domain the bicycles report is where their discrete step is discontinuous: on either side of |delta| = pi/2 the
+  lateral step dt v sin(theta + beta) jumps from +dt v to -dt v (the slip angle atan(c tan delta) wraps by pi), and
+  inside it the step is continuous and matches finite differences of itself;
+- the Newton iterates of a merge-long game whose full steps carry a steering angle past pi/2 (6 cars, seed 7, at
+  iteration 12 with the setting off) stay in the box |delta| <= domain_fraction pi/2 at every iteration;
+- a merge-long instance that the defaults do not solve (7 cars, seed 4: `stalled` after 730 iterations with
+  `max_iter` 1000) converges with the setting, checked by bench.verify's common test (dynamics, collisions,
+  per-player stationarity) and the solver's second-order test."""
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from bench import verify
+from bench.families import family_problem
+from bench.merge_bench import COLLISION_TOL_M, DYNAMICS_TOL, STATIONARITY_REL_TOL
+from solver_cpp import _core, solve
+
+HALF_PI = 0.5 * np.pi
+
+
+@pytest.mark.parametrize("lf, lr", [(1.0, 1.0), (1.3, 1.3), (0.8, 1.2)])
+def test_bicycle_domain_is_where_the_step_jumps(lf, lr):
+    model = _core.KinematicBicycle(lf, lr, 0.1)
+    lo, hi = model.control_domain()
+    assert lo[0] == -np.inf and hi[0] == np.inf
+    np.testing.assert_allclose([lo[1], hi[1]], [-HALF_PI, HALF_PI], rtol=0, atol=1e-15)
+    x, v, dt = np.array([0.0, 0.0, 2.0, 0.0]), 2.0, 0.1
+    below = model.eval(x, np.array([0.0, HALF_PI - 1e-7]))[0]
+    above = model.eval(x, np.array([0.0, HALF_PI + 1e-7]))[0]
+    # Slip angle -> +pi/2 from below (the car moves sideways to the left), -pi/2 from above (to the right).
+    np.testing.assert_allclose([below[1], above[1]], [dt * v, -dt * v], atol=1e-6)
+    # Inside the domain the step is smooth: central differences of eval agree with its own B.
+    for delta in (-1.5, -0.7, 0.0, 0.9, 1.5):
+        u, e = np.array([0.3, delta]), 1e-6
+        fd = (model.eval(x, u + [0, e])[0] - model.eval(x, u - [0, e])[0]) / (2 * e)
+        np.testing.assert_allclose(fd, model.eval(x, u)[2][:, 1], atol=1e-6)
+
+
+def test_frenet_and_linear_domains():
+    frenet = _core.KinematicBicycleFrenet(0.05, 0.05, 0.05, np.zeros(4), 1.0, True)
+    lo, hi = frenet.control_domain()
+    np.testing.assert_allclose([lo[1], hi[1]], [-HALF_PI, HALF_PI], rtol=0, atol=1e-15)
+    lo, hi = _core.LinearDynamics(np.eye(2), np.eye(2)).control_domain()
+    assert np.all(np.isneginf(lo)) and np.all(np.isposinf(hi))
+
+
+def test_iterates_stay_in_the_steering_box():
+    problem = family_problem("merge-long", 6, 7)
+    off = solve(problem, time_limit=0, max_iter=12, restarts=0, domain_fraction=0.0)
+    assert np.abs(off.u[..., 1]).max() > HALF_PI  # the full Newton step crosses the jump
+    for fraction in (0.99, 0.9):
+        for it in (5, 12, 20, 40):
+            r = solve(problem, time_limit=0, max_iter=it, restarts=0, domain_fraction=fraction)
+            assert np.abs(r.u[..., 1]).max() <= fraction * HALF_PI + 1e-12
+
+
+def test_merge_long_failure_converges_in_the_domain():
+    problem = family_problem("merge-long", 7, 4)
+    r = solve(problem, time_limit=0, max_iter=1000, domain_fraction=0.99)
+    assert r.status == "converged"  # the solver's second-order test passed
+    assert np.all(np.asarray(r.second_order) >= -1e-6)
+    assert np.abs(r.u[..., 1]).max() <= 0.99 * HALF_PI + 1e-12
+    assert verify.dynamics_defect(problem, r.x, r.u) <= DYNAMICS_TOL
+    assert verify.max_collision_violation_m(problem, r.x) <= COLLISION_TOL_M
+    assert np.all(verify.stationarity_residual(problem, r.x, r.u, relative=True) <= STATIONARITY_REL_TOL)
+
+
+@pytest.mark.parametrize("item", ["domain_fraction=1.5", "no_such_setting=1", "domain_fraction", "=0.5"])
+def test_bad_rd3g_setting_flag_exits_2_naming_it(capsys, item):
+    assert main(["bench", "merge", "--family", "authors", "--cars", "2", "--no-docs", "--rd3g-setting", item]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "--rd3g-setting" in err, err
+
+
+def test_family_bench_passes_the_setting_to_rd3g(tmp_path, capsys):
+    out = tmp_path / "fam.json"
+    argv = ["bench", "merge", "--family", "merge-long", "--cars", "7", "--seeds", "4:5", "--max-iter", "1000",
+            "--time-limit", "0", "--workers", "1", "--no-docs", "--json", str(out),
+            "--rd3g-setting", "domain_fraction=0.99"]
+    assert main(argv) == 0
+    data = json.loads(out.read_text())
+    (row,) = data["results"]
+    assert row["solved"] == 1 and row["statuses"] == {"converged": 1}
+    assert data["budget"]["rd3g_settings"] == {"domain_fraction": 0.99}
