@@ -47,9 +47,9 @@ def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: in
         if best_response_rounds <= 0:
             return solve(problem, time_limit=max(time_limit_s, 0.0), **budget), 0.0
         t0 = time.perf_counter()
-        # The solver's own sweeps with its defaults: single-agent solves of at most best_response_max_iter iterations
+        # The solver's own sweeps with its settings: single-agent solves of at most best_response_max_iter iterations
         # and one restart each (a guess, not an answer).
-        guess = best_response_guess(problem, best_response_rounds)
+        guess = best_response_guess(problem, best_response_rounds, **dict(settings))
         setup_s = time.perf_counter() - t0
         left = max(time_limit_s - setup_s, 1e-6) if time_limit_s > 0 else 0.0
         return solve(problem, time_limit=left, warm_start=guess, **budget), setup_s
