@@ -113,6 +113,26 @@ def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
     np.testing.assert_allclose(guess.u, u, atol=1e-9, rtol=0)
 
 
+def test_best_response_sub_solvers_follow_updates():
+    """The single-agent sub-solvers copy the problem at first use: after Solver.update (new initial states and
+    collision distance) the sweeps must be those of a fresh set-up on the new problem, bit for bit."""
+    from dataclasses import replace
+
+    from solver_cpp import Solver
+
+    problem = family_problem("head-on", 3, 0)
+    moved = replace(problem, agents=[replace(a, x0=np.asarray(a.x0, dtype=float) + [0.0, 0.3, 0.0, 0.0])
+                                     for a in problem.agents],
+                    collision=replace(problem.collision, min_distance=1.2 * problem.collision.min_distance))
+    solver = Solver(problem)
+    before = solver.best_response(1)
+    solver.update(moved)
+    after = solver.best_response(1)
+    fresh = Solver(moved).best_response(1)
+    assert np.abs(after.u - before.u).max() > 1e-3
+    np.testing.assert_array_equal(after.u, fresh.u)
+
+
 def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     """merge-long 7 cars seed 4: attempt 0 stalls; without the best-response restart the other eleven restarts stall too
     (730 iterations, status stalled), with it the attempt from the best-response guess converges. Both results are

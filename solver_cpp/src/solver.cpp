@@ -863,7 +863,7 @@ Result Solver::solve(const WarmStart* warm) {
     if (run_attempt(info, total_iter) == AttemptEnd::Finished) {
       // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.
       if (!(settings_.restart_on_saddle && info.status == Status::Converged && settings_.second_order_gap >= 0 &&
-            (attempt < settings_.restarts || escapes < settings_.saddle_escapes) && total_iter < settings_.max_iter &&
+            (attempt < settings_.restarts || br_now || escapes < settings_.saddle_escapes) && total_iter < settings_.max_iter &&
             !past_deadline()))
         break;
       Result cand = res;
