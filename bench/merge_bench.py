@@ -30,8 +30,6 @@ DYNAMICS_TOL = 1e-6  # state units
 COLLISION_TOL_M = 1e-3  # m
 STATIONARITY_REL_TOL = 1e-3  # per-player KKT residual / cost-gradient scale (bench/verify.py)
 ACTIVE_GAP_M = 1e-2  # a collision constraint counts as active when the gap is within this of d_min
-# Single-agent solves of the iterated-best-response guess: a short budget, one restart (a guess, not an answer).
-BEST_RESPONSE_SETTINGS = dict(max_iter=100, restarts=1)
 SECOND_ORDER_TOL = 1e-6  # smallest reduced-Hessian eigenvalue accepted (the solver's own test is relative to scale)
 
 
@@ -49,7 +47,9 @@ def run_solver(name: str, problem, time_limit_s: float, best_response_rounds: in
         if best_response_rounds <= 0:
             return solve(problem, time_limit=max(time_limit_s, 0.0), **budget), 0.0
         t0 = time.perf_counter()
-        guess = best_response_guess(problem, best_response_rounds, **BEST_RESPONSE_SETTINGS)
+        # The solver's own sweeps with its settings: single-agent solves of at most best_response_max_iter iterations
+        # and one restart each (a guess, not an answer).
+        guess = best_response_guess(problem, best_response_rounds, **dict(settings))
         setup_s = time.perf_counter() - t0
         left = max(time_limit_s - setup_s, 1e-6) if time_limit_s > 0 else 0.0
         return solve(problem, time_limit=left, warm_start=guess, **budget), setup_s

@@ -90,6 +90,8 @@ class GameResult:
     symbolic_factorizations: int
     attempts: int = 1  # 1 + restarts used (escapes from saddles included)
     saddle_escapes: int = 0  # attempts started from a saddle along negative curvature (setting saddle_escapes)
+    best_response_attempts: int = 0    # attempts started from an iterated-best-response guess (best_response_rounds)
+    best_response_iterations: int = 0  # Newton iterations of its single-agent sub-solves (1/N each in iterations)
     # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
     # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
     second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -188,9 +190,17 @@ class Solver:
             residual_history=np.asarray(i.residual_history), solve_time_s=i.timings.total,
             assembly_time_s=i.timings.assembly, linear_solve_time_s=i.timings.linear_solve,
             line_search_time_s=i.timings.line_search, active_constraints=i.active_constraints,
-            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, saddle_escapes=i.saddle_escapes, constraints=self.constraints,
+            symbolic_factorizations=i.symbolic_factorizations, attempts=i.attempts, saddle_escapes=i.saddle_escapes,
+            best_response_attempts=i.best_response_attempts, best_response_iterations=i.best_response_iterations,
+            constraints=self.constraints,
             setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups,
             second_order=np.asarray(i.second_order, dtype=float))
+
+    def best_response(self, rounds: int, warm_start: WarmStart | None = None) -> WarmStart:
+        """Controls (N, T, nu) after `rounds` (>= 1) Gauss-Seidel sweeps of iterated best response from the warm
+        start's controls (zero without), with the C++ sweeps of the best-response restart (best_response_rounds)."""
+        ws = None if warm_start is None else _to_core_warm(warm_start, self._sizes, len(self.constraints))
+        return WarmStart(u=np.stack(self._solver.best_response(int(rounds), ws).u))
 
 
 def _same_model(a, b) -> bool:

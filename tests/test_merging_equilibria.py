@@ -14,8 +14,9 @@ from bench.verify import (best_response_gap, collision_gaps_m, dynamics_defect, 
 from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, Obstacle, QuadraticCost, solve
 
 INSTANCES = [(3, 2), (3, 4), (3, 10), (5, 3)]  # (cars, seed)
-# The paper's globalisation rules in every attempt (rho lowered every iteration, monotone violation test).
-PAPER_RULES = dict(deep_overlap=2.0, restart_rho_progress=0.0, restart_violation_memory=1)
+# The paper's globalisation rules in every attempt (rho lowered every iteration, monotone violation test) and its
+# restart schedule (no attempt from a best-response guess).
+PAPER_RULES = dict(deep_overlap=2.0, restart_rho_progress=0.0, restart_violation_memory=1, best_response_rounds=0)
 SOLVE_TOL = 1e-8
 _solutions = {}
 
@@ -146,7 +147,8 @@ def test_polish_rescues_a_stalled_merge():
     # merging_problem(7, 12): the first attempt stalls with rho at its floor and 13 collision constraints
     # within 1e-3 of contact inside the barrier. Without the polish the four restart variants with the paper's
     # rules stall too (with the default restart rules the fourth converges, after 212 iterations in all);
-    # holding those constraints as equalities converges in the first attempt.
+    # holding those constraints as equalities converges in the first attempt. (PAPER_RULES has no best-response
+    # attempt: from its guess this merge converges without the polish.)
     problem = merging_problem(7, 12)
     without = solve(problem, polish_gap=0.0, restarts=3, **PAPER_RULES)
     assert without.status == "stalled"

@@ -176,12 +176,13 @@ def test_restart_on_saddle_finds_a_local_equilibrium():
 def test_restart_on_saddle_returns_the_saddle_when_no_attempt_does_better():
     """The disc game (R 1, F 2) from zero controls: every attempt ends at the saddle in front of the discs (its
     minimum is behind the disc, at (1, 0): not reachable by sliding along it), the two escapes along negative
-    curvature included, so after the whole restart schedule the kept saddle is returned, unchanged, with the work
-    of all attempts."""
+    curvature and the attempt from the best-response guess (each player alone ends at the same saddle) included, so
+    after the whole restart schedule the kept saddle is returned, unchanged, with the work of all attempts."""
     problem = _disc_game(1.0, 2.0)
     off = solve(problem, tol=1e-9, restart_on_saddle=False)
     on = solve(problem, tol=1e-9, restarts=3)
-    assert on.status == "saddle" and on.saddle_escapes == 2 and on.attempts == 4 + 2
+    assert on.status == "saddle" and on.saddle_escapes == 2 and on.best_response_attempts == 1
+    assert on.attempts == 4 + 2 + 1
     assert on.iterations > off.iterations
     np.testing.assert_allclose(on.x[:, 1], [[-1.0, 0.0], [-1.0, 100.0]], atol=1e-6)
     np.testing.assert_allclose(on.second_order, [6 * 1.0 - 4 * 2.0] * 2, rtol=1e-5)

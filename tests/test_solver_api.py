@@ -116,6 +116,9 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"saddle_step": 0.0}, "solver.saddle_step"),
     ({"saddle_rho": -1e-3}, "solver.saddle_rho"),
     ({"saddle_inertia": -1.0}, "solver.saddle_inertia"),
+    ({"best_response_rounds": -1}, "solver.best_response_rounds"),
+    ({"best_response_attempt": 0}, "solver.best_response_attempt"),  # attempt 0 keeps the initial guess
+    ({"best_response_max_iter": 0}, "solver.best_response_max_iter"),
     ({"domain_fraction": 1.0}, "solver.domain_fraction"),
     ({"domain_fraction": -0.1}, "solver.domain_fraction"),
 ]

@@ -61,7 +61,8 @@ def register(sub) -> None:
                                                                   "none, so results do not depend on machine load")
     m.add_argument("--best-response-rounds", type=int, default=0,
                    help="with --family: start RD3G from this many rounds of iterated best response "
-                        "(solver_cpp/best_response.py; its time counts)")
+                        "(solver_cpp/best_response.py, the C++ sweeps of the solver's best_response_rounds restart; its time "
+                        "counts; the restarts start from it too)")
     m.add_argument("--json", help="write the per-solver, per-size figures here")
     m.add_argument("--figures", default="docs/figures", help="folder for the PNG figures")
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")

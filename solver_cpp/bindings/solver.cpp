@@ -71,6 +71,8 @@ void bind_solver(py::module_& m) {
       .def_readonly("lm_steps", &Info::lm_steps)
       .def_readonly("attempts", &Info::attempts)
       .def_readonly("saddle_escapes", &Info::saddle_escapes)
+      .def_readonly("best_response_attempts", &Info::best_response_attempts)
+      .def_readonly("best_response_iterations", &Info::best_response_iterations)
       .def_readonly("setups", &Info::setups)
       .def_readonly("second_order", &Info::second_order)
       .def_readonly("residual_history", &Info::residual_history)
@@ -117,6 +119,9 @@ void bind_solver(py::module_& m) {
       .def(
           "solve", [](Solver& s, const WarmStart* w) { return s.solve(w); }, py::arg("warm_start") = nullptr,
           py::call_guard<py::gil_scoped_release>())
+      .def(
+          "best_response", [](Solver& s, int rounds, const WarmStart* w) { return s.best_response(rounds, w); },
+          py::arg("rounds"), py::arg("warm_start") = nullptr, py::call_guard<py::gil_scoped_release>())
       .def("constraints", &Solver::constraints)
       .def("structure_version", &Solver::structure_version)
       .def("column_of", &Solver::column_of, py::arg("i"), py::arg("k"), py::arg("kind"))

@@ -81,6 +81,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   if (!second_order_) second_order_ = std::make_shared<SecondOrderCheck>();
   second_order_->setup(N_, T_, nx_, nu_);
   list_and_allocate();
+  br_stale_ = true;
   setups_ = 1;
   setup_time_ = seconds_since(t0);
   update_time_ = 0;
@@ -134,7 +135,10 @@ bool same_finite_pattern(const Vec& a, const Vec& b) {
 }
 }  // namespace
 
-void Solver::finish_update(Clock::time_point t0) { update_time_ += seconds_since(t0); }
+void Solver::finish_update(Clock::time_point t0) {
+  br_stale_ = true;  // the best response's sub-solvers copy the problem and the settings
+  update_time_ += seconds_since(t0);
+}
 
 void Solver::update_settings(const Settings& s) {
   if (N_ == 0) throw std::logic_error("setup() must be called before update_settings()");
@@ -836,17 +840,30 @@ Result Solver::solve(const WarmStart* warm) {
   bool have_saddle = false;
   int escapes = 0;           // attempts started from a saddle (leave_saddle); they do not use up the schedule
   bool from_saddle = false;  // the next attempt starts where leave_saddle left y_
+  int br_attempts = 0;       // attempts from the best-response guess (inserted, as the escapes)
   inertia_delta_.assign(N_, 0.0);
   for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
-    info.attempts = attempt + 1 + escapes;
+    const bool br_now = !from_saddle && br_attempts == 0 && settings_.best_response_rounds > 0 &&
+                        attempt == settings_.best_response_attempt;
+    bool repeat = br_now;  // an inserted attempt: the schedule resumes at this attempt afterwards
+    info.attempts = attempt + 1 + escapes + br_attempts;
     info.saddle_escapes = escapes;
-    if (!from_saddle) start_attempt(attempt, warm);
+    if (br_now) {
+      ++br_attempts;
+      info.best_response_attempts = br_attempts;
+      // A sub-solve iteration (one agent's Newton system, N times smaller) counts 1/N of a game iteration.
+      const int used = start_best_response_attempt(N_ * (settings_.max_iter - total_iter));
+      total_iter += (used + N_ - 1) / N_;
+      info.best_response_iterations += used;
+    } else if (!from_saddle) {
+      start_attempt(attempt, warm);
+    }
     inertia_on_ = from_saddle || settings_.saddle_inertia_restarts;
     from_saddle = false;
     if (run_attempt(info, total_iter) == AttemptEnd::Finished) {
       // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.
       if (!(settings_.restart_on_saddle && info.status == Status::Converged && settings_.second_order_gap >= 0 &&
-            (attempt < settings_.restarts || escapes < settings_.saddle_escapes) && total_iter < settings_.max_iter &&
+            (attempt < settings_.restarts || br_now || escapes < settings_.saddle_escapes) && total_iter < settings_.max_iter &&
             !past_deadline()))
         break;
       Result cand = res;
@@ -857,10 +874,11 @@ Result Solver::solve(const WarmStart* warm) {
       if (leave_saddle(escapes)) {
         ++escapes;
         from_saddle = true;
-        --attempt;  // same place in the restart schedule
+        repeat = true;  // same place in the restart schedule
       }
     }
     ++total_iter;
+    if (repeat) --attempt;
   }
   write_result(res, info);
   if (have_saddle && info.status != Status::Converged) {
@@ -868,6 +886,8 @@ Result Solver::solve(const WarmStart* warm) {
     saddle.info.iterations = info.iterations;
     saddle.info.attempts = info.attempts;
     saddle.info.saddle_escapes = info.saddle_escapes;
+    saddle.info.best_response_attempts = info.best_response_attempts;
+    saddle.info.best_response_iterations = info.best_response_iterations;
     saddle.info.timings.total = seconds_since(t_start_);
     return saddle;
   }

@@ -185,6 +185,9 @@ void validate_settings(const Settings& s) {
   require(s.deep_overlap >= 0, "solver.deep_overlap must be >= 0");
   require(s.lscg_tol > 0 && s.lscg_max_iter >= 1, "solver.lscg_tol must be positive and solver.lscg_max_iter >= 1");
   require(s.second_order_tol > 0, "solver.second_order_tol must be positive");
+  require(s.best_response_rounds >= 0, "solver.best_response_rounds must be >= 0 (0 = off)");
+  require(s.best_response_attempt >= 1, "solver.best_response_attempt must be >= 1 (attempt 0 keeps the initial guess)");
+  require(s.best_response_max_iter >= 1, "solver.best_response_max_iter must be >= 1");
   require(s.saddle_escapes >= 0, "solver.saddle_escapes must be >= 0 (0 = off)");
   require(std::isfinite(s.saddle_step) && s.saddle_step > 0, "solver.saddle_step must be positive and finite (control units)");
   require(std::isfinite(s.saddle_rho) && s.saddle_rho > 0, "solver.saddle_rho must be positive and finite");

@@ -152,7 +152,8 @@ struct Settings {
   /// iterations; see polish_gap first) or its line search fails, restart from the initial guess with
   /// rho_init * 10 (attempt 1), the other barrier form (2), both (3), then the same four again and again
   /// from the initial controls plus a seeded constant offset per agent and control of std restart_u_std
-  /// (attempts 4..restarts), all with the restart rules (restart_rho_progress).
+  /// (attempts 4..restarts), all with the restart rules (restart_rho_progress). Before attempt
+  /// best_response_attempt an extra attempt from an iterated-best-response guess runs (best_response_rounds, below).
   /// Every attempt counts towards iterations, max_iter and the reported time.
   int restarts = 11;
   int stall_window = 8;
@@ -191,6 +192,22 @@ struct Settings {
   /// Also in the ordinary restarts (from the initial guess) that follow a saddle (measured: rescues one more
   /// merge-long instance, slows the authors' 4-car seed 15 by 76 %; docs/benchmarks.md "Saddles").
   bool saddle_inertia_restarts = false;
+  /// Iterated best response as a restart variant (docs/solver.md, "Restarts"): an extra attempt, inserted before
+  /// attempt best_response_attempt of the schedule (>= 1: attempt 0 is never changed; the schedule then goes on
+  /// where it was), starts from the controls that best_response_rounds Gauss-Seidel sweeps over the agents reach from
+  /// the initial controls: each agent in turn solves its own problem alone (a single-agent sub-solver built once,
+  /// with its dynamics, cost, bounds, the problem's obstacles and the others' current rolled-out positions as moving
+  /// obstacles at the collision distance), warm-started from its current controls, and keeps the controls the
+  /// sub-solve returns if they are finite (converged or not). Each sub-solve has these settings with at most
+  /// best_response_max_iter iterations (and what is left of the budget and time_limit), one restart and no best
+  /// response of its own. A sub-solve iteration (one agent's Newton system) counts 1/N of a game iteration in
+  /// Info::iterations and max_iter (rounded up per attempt); Info::best_response_iterations reports them unscaled;
+  /// their time is the solve's. The attempt itself runs from rho_init with attempt 0's rules (the first-attempt
+  /// rules, or the restart rules if the guess overlaps deeply). Rounds 0 = off; an attempt past restarts never runs
+  /// (restarts = 0: never).
+  int best_response_rounds = 1;
+  int best_response_attempt = 1;
+  int best_response_max_iter = 100;  ///< per single-agent sub-solve (Newton iterations)
   /// Non-monotone violation test (attempt 0; restarts use restart_violation_memory): a trial may not raise the
   /// total violation above the largest of the last violation_memory iterates' (1 = monotone, the paper's rule).
   int violation_memory = 1;
@@ -225,6 +242,9 @@ struct Info {
   int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
   int attempts = 0;            ///< 1 + restarts used (escapes from saddles included)
   int saddle_escapes = 0;      ///< attempts started from a saddle along negative curvature (Settings::saddle_escapes)
+  int best_response_attempts = 0;    ///< attempts started from an iterated-best-response guess (0 or 1)
+  /// Newton iterations of its single-agent sub-solves, unscaled (iterations includes them divided by N, rounded up)
+  int best_response_iterations = 0;
   int setups = 0;              ///< set-ups since the previous solve (setup, or an update that changed the constraint list)
   /// Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
   /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.

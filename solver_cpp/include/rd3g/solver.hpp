@@ -56,6 +56,12 @@ class Solver {
   /// Solves from zero controls or from a warm start; the initial states are the rollout of the controls.
   Result solve(const WarmStart* warm = nullptr);
 
+  /// Iterated best response alone (the guess of Settings::best_response_rounds): `rounds` (>= 1) Gauss-Seidel sweeps
+  /// from the warm start's controls (zero without), the sub-solves' iterations together at most N max_iter (max_iter
+  /// game-iteration equivalents, as in the restart). Result: x, u and info (iterations = best_response_iterations,
+  /// timings.total); no multipliers.
+  Result best_response(int rounds, const WarmStart* warm = nullptr);
+
   const std::vector<Constraint>& constraints() const { return cons_; }
   /// Changes whenever the constraint list does (set-up, or an update that made a bound finite or infinite).
   int structure_version() const { return structure_version_; }
@@ -91,6 +97,11 @@ class Solver {
   /// Why an attempt (one pass of Newton iterations from the initial guess) ended.
   enum class AttemptEnd { Finished, Restart };
 
+  /// Attempt from an iterated-best-response guess (Settings::best_response_rounds): y_ from the initial controls,
+  /// the sweeps (at most `budget` sub-solve iterations), then rho_init and attempt 0's rules. Returns the iterations.
+  int start_best_response_attempt(int budget);
+  /// Gauss-Seidel sweeps on y_'s controls (best_response.cpp); returns the sub-solves' iterations (<= budget).
+  int best_response_sweeps(int rounds, int budget);
   // Set-up steps.
   void list_and_allocate();  // constraint list of prob_ and every buffer sized by it
   void finish_update(Clock::time_point t0);
@@ -226,6 +237,12 @@ class Solver {
   bool inertia_on_ = false;  // this attempt applies the inertia correction
   std::vector<double> inertia_delta_;  // per agent: delta of the inertia correction (cost units per control unit^2)
   std::shared_ptr<SecondOrderCheck> second_order_;
+  /// Single-agent sub-solvers of the best response, one per agent, built at first use after a set-up or an update
+  /// (br_stale_); each has the problem's obstacles followed by the N-1 others' positions (best_response.cpp).
+  std::vector<std::unique_ptr<Solver>> br_;
+  bool br_stale_ = true;
+  Eigen::MatrixXd br_positions_;  // (T+1) x 2 buffer: one other agent's rolled-out positions
+  WarmStart br_warm_;             // the sub-solve's warm start (its agent's current controls)
 };
 
 }  // namespace rd3g
