@@ -143,9 +143,9 @@ struct Settings {
   /// slip angle jumps by pi): a step (Newton or Levenberg-Marquardt) is shortened so that no control leaves its
   /// domain's box shrunk about the centre to domain_fraction of its half-width (the bicycles at 0.99: |delta| <=
   /// 1.555 rad); a step that points out of the box from its edge fails the line search. Dimensionless, in [0, 1);
-  /// 0 = off (the default: docs/solver.md, "Staying in the model's domain"). Controls outside the box (a warm
+  /// 0 = off (docs/solver.md, "Staying in the model's domain"). Controls outside the box (a warm
   /// start) and components whose domain is one-sided are not held.
-  double domain_fraction = 0.0;
+  double domain_fraction = 0.99;
   double lscg_tol = 1e-10;       ///< LSCG relative tolerance
   int lscg_max_iter = 2000;
   /// Globalisation for nonconvex games: when an attempt stalls (merit down < 1% over stall_window
