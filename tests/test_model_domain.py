@@ -5,7 +5,8 @@ domain"), against independent references:
   inside it the step is continuous and matches finite differences of itself;
 - the Newton iterates of a merge-long game whose full steps carry a steering angle past pi/2 (6 cars, seed 7, at
   iteration 12 with the setting off) stay in the box |delta| <= domain_fraction pi/2 at every iteration;
-- a merge-long instance that the defaults do not solve (7 cars, seed 4: `stalled` after 730 iterations with
+- a merge-long instance that the solver without the setting and without the best-response restart does not solve
+  (7 cars, seed 4: `stalled` after 730 iterations with
   `max_iter` 1000) converges with the setting, checked by bench.verify's common test (dynamics, collisions,
   per-player stationarity) and the solver's second-order test."""
 import json
@@ -60,7 +61,7 @@ def test_iterates_stay_in_the_steering_box():
 
 def test_merge_long_failure_converges_in_the_domain():
     problem = family_problem("merge-long", 7, 4)
-    r = solve(problem, time_limit=0, max_iter=1000, domain_fraction=0.99)
+    r = solve(problem, time_limit=0, max_iter=1000, domain_fraction=0.99, best_response_rounds=0)
     assert r.status == "converged"  # the solver's second-order test passed
     assert np.all(np.asarray(r.second_order) >= -1e-6)
     assert np.abs(r.u[..., 1]).max() <= 0.99 * HALF_PI + 1e-12
