@@ -99,9 +99,7 @@ int Solver::start_best_response_attempt(int budget) {
   // Attempt 0's choice of rules: the guess is usually collision free, and from there the first-attempt rules are
   // faster (measured: the restart rules here lost merge-long 7 cars seed 4, docs/solver.md).
   const bool restart_rules = deep_overlap();
-  rules_.rho_progress = restart_rules ? settings_.restart_rho_progress : settings_.rho_progress;
-  rules_.violation_memory = restart_rules ? settings_.restart_violation_memory : settings_.violation_memory;
-  rules_.rho_on_stall = restart_rules ? settings_.restart_rho_on_stall : settings_.rho_on_stall;
+  use_rules(restart_rules);
   rho_ = settings_.rho_init;
   barrier_ = settings_.barrier;
   return used;

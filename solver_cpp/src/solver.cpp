@@ -943,15 +943,19 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
   // in every later attempt. With a deep overlap the paper's rule puts rho at its floor within 3 iterations while
   // the violation is still ~1 m, and the barrier then admits only tiny steps (crossing, docs/solver.md).
   const bool restart_rules = attempt > 0 || deep_overlap();
-  rules_.rho_progress = restart_rules ? settings_.restart_rho_progress : settings_.rho_progress;
-  rules_.violation_memory = restart_rules ? settings_.restart_violation_memory : settings_.violation_memory;
-  rules_.rho_on_stall = restart_rules ? settings_.restart_rho_on_stall : settings_.rho_on_stall;
+  use_rules(restart_rules);
   rho_ = settings_.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
   barrier_ = settings_.barrier;
   if (variant >= 2)
     barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
   // The LU's symbolic analysis is kept across attempts and solves: it depends only on the sparsity pattern,
   // i.e. on the partition (pattern_state_) and the constraint list, and is redone when either changes.
+}
+
+void Solver::use_rules(bool restart_rules) {
+  rules_.rho_progress = restart_rules ? settings_.restart_rho_progress : settings_.rho_progress;
+  rules_.violation_memory = restart_rules ? settings_.restart_violation_memory : settings_.violation_memory;
+  rules_.rho_on_stall = restart_rules ? settings_.restart_rho_on_stall : settings_.rho_on_stall;
 }
 
 void Solver::roll_out(Iterate& y, int i) {

@@ -114,6 +114,8 @@ class Solver {
   /// The rolled-out iterate y_ brings two agents (or an agent and an obstacle) closer than
   /// (1 - settings_.deep_overlap) times their collision distance at some step.
   bool deep_overlap() const;
+  /// The globalisation rules of an attempt: the settings' first-attempt ones or the restart ones (rules_).
+  void use_rules(bool restart_rules);
   /// Partition, multiplier numbering, residual and Jacobian at y_; false if the residual is undefined.
   bool assemble(bool first, Info& info);
   bool converged(double rnorm) const;
