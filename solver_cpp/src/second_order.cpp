@@ -195,15 +195,11 @@ double Solver::agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const V
       if (j != a)
         for (int k = 1; k <= T_; ++k) J += lead.weight * (y.x[j](lead.index, k) - x(lead.index, k));
   max_h = -kInf;
-  Eigen::Vector2d g;
-  Eigen::Matrix2d H;
-  double h;
   for (int ci = 0; ci < static_cast<int>(cons_.size()); ++ci) {
     const Constraint& cn = cons_[ci];
     if (!cn.involves(a)) continue;
-    const bool own = cn.i == a;
-    eval_constraint(y, ci, h, g, H);
-    J += (own ? w_i[ci] : w_j[ci]) * h;
+    const double h = constraint_value(y, ci);
+    J += (cn.i == a ? w_i[ci] : w_j[ci]) * h;
     max_h = std::max(max_h, h);
   }
   return J;
@@ -227,13 +223,9 @@ bool Solver::leave_saddle(int escapes) {
   // them to the barrier), the nearly active ones (the test's null space, moved along to first order only) may
   // not become violated.
   auto feasible = [&](int a) {
-    Eigen::Vector2d g;
-    Eigen::Matrix2d H;
-    double h;
     for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-      const Constraint& cn = cons_[c];
-      if (!cn.involves(a)) continue;
-      eval_constraint(trial_, c, h, g, H);
+      if (!cons_[c].involves(a)) continue;
+      const double h = constraint_value(trial_, c);
       if (h0[c] < -margin ? !(h < -margin) : !(h <= std::max(0.0, h0[c]))) return false;
     }
     return true;

@@ -284,10 +284,16 @@ void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d
   }
 }
 
-void Solver::eval_all_constraints(const Iterate& y, Vec& h) const {
+double Solver::constraint_value(const Iterate& y, int c) const {
   Eigen::Vector2d g;
   Eigen::Matrix2d H;
-  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) eval_constraint(y, c, h[c], g, H);
+  double h;
+  eval_constraint(y, c, h, g, H);
+  return h;
+}
+
+void Solver::eval_all_constraints(const Iterate& y, Vec& h) const {
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) h[c] = constraint_value(y, c);
 }
 
 double Solver::violation_sum(const Vec& h) const { return h.cwiseMax(0.0).sum(); }
