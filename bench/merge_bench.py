@@ -122,9 +122,8 @@ def one_run(job: Job) -> RunRecord:
 def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: str,
            cpu_ms: float = float("nan")) -> RunRecord:
     """The common test (dynamics, controls inside their models' domains, collision violation, per-player
-    stationarity), the feasibility of a failure and the
-    second-order verdict of a solver's result r on problem; setup_s = initial-guess wall time before the solve (s),
-    cpu_ms = the CPU time of both."""
+    stationarity), the feasibility of a failure and the second-order verdict of a solver's result r on problem;
+    setup_s = initial-guess wall time before the solve (s), cpu_ms = the CPU time of both."""
     x, u = np.asarray(r.x), np.asarray(r.u)
     failure = ""
     defect = verify.dynamics_defect(problem, x, u)

@@ -181,7 +181,6 @@ def _rd3g_settings(items: list[str]) -> tuple:
 
 
 def run_merge(args) -> int:
-    import json
     from pathlib import Path
 
     cars = parse_range(args.cars)
@@ -257,7 +256,6 @@ def run_size(args) -> int:
 
 
 def _run_families(args, cars: list[int]) -> int:
-    import json
     from pathlib import Path
 
     names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
@@ -314,7 +312,6 @@ def _parse_cases(text: str) -> list[tuple[str, int, int]]:
 
 def run_saddles(args) -> int:
     import dataclasses
-    import json
     import os
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
