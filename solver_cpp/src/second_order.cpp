@@ -15,20 +15,27 @@ void SecondOrderCheck::setup(int num_agents, int horizon, int nx, int nu) {
   nu_ = nu;
   const int m = T_ * nu_;
   S_.assign(T_ + 1, Mat::Zero(nx_, m));
+  A_.assign(T_, Mat::Zero(nx_, nx_));
+  B_.assign(T_, Mat::Zero(nx_, nu_));
+  Q_.assign(T_ + 1, Mat::Zero(nx_, nx_));
+  M_.assign(T_, Mat::Zero(nx_, nu_));
+  R_.assign(T_, Mat::Zero(nu_, nu_));
   Hr_ = Mat::Zero(m, m);
   Hl_ = Mat::Zero(nx_ + nu_, nx_ + nu_);
-  A_ = Mat::Zero(nx_, nx_);
-  B_ = Mat::Zero(nx_, nu_);
-  G_ = Mat::Zero(nx_ + nu_, m);
+  P_ = Mat::Zero(nx_, nx_);
+  PA_ = Mat::Zero(nx_, nx_);
+  PB_ = Mat::Zero(nx_, nu_);
+  W_ = Mat::Zero(nx_, nu_);
   C_ = Mat::Zero(0, m);
   fx_ = Vec::Zero(nx_);
+  es_ = Eigen::SelfAdjointEigenSolver<Mat>(m);
   out_.assign(N_, SecondOrderAgent{});
 }
 
 const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, const std::vector<Constraint>& cons,
                                                              const ConstraintEval& eval, const std::vector<Mat>& x,
                                                              const std::vector<Mat>& u, const std::vector<Mat>& lam,
-                                                             const Vec& w_i, const Vec& w_j, double active_gap) {
+                                                             const Vec& w_i, const Vec& w_j, double active_gap, double tol) {
   using K = Constraint::Kind;
   const int m = T_ * nu_;
   const int px = p.collision.pos_x, py = p.collision.pos_y;
@@ -38,25 +45,24 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
   for (int a = 0; a < N_; ++a) {
     const Dynamics& f = *p.dynamics[a];
     const QuadraticCost& cost = p.costs[a];
-    Hr_.setZero();
     S_[0].setZero();
-    // Stages k = 0..T-1: d2L/d(x_k,u_k)^2 = lambda_k' d2f + cost; x_T's cost after the loop.
+    // Stages k = 0..T-1: d2L/d(x_k,u_k)^2 = lambda_k' d2f + cost, split into Q_k (xx), M_k (xu), R_k (uu); x_0 is
+    // fixed, so Q_0 never enters. Q_T is x_T's cost.
     for (int k = 0; k < T_; ++k) {
-      const int n = (k + 1) * nu_;  // S_k and E_k only touch the controls u_0..u_k
-      f.eval(x[a].col(k), u[a].col(k), fx_, A_, B_);
+      const int n = (k + 1) * nu_;  // S_{k+1} only touches the controls u_0..u_k
+      f.eval(x[a].col(k), u[a].col(k), fx_, A_[k], B_[k]);
       f.lambda_hessian(x[a].col(k), u[a].col(k), lam[a].col(k), Hl_);
-      Hl_.bottomRightCorner(nu_, nu_).diagonal() += 2.0 * cost.R;
-      if (k >= 1) Hl_.topLeftCorner(nx_, nx_).diagonal() += 2.0 * (cost.Q_ref + cost.Q);
-      G_.topLeftCorner(nx_, n) = S_[k].leftCols(n);
-      G_.bottomLeftCorner(nu_, n).setZero();
-      G_.block(nx_, k * nu_, nu_, nu_).setIdentity();
-      Hr_.topLeftCorner(n, n).noalias() += G_.leftCols(n).transpose() * Hl_ * G_.leftCols(n);
+      Q_[k] = Hl_.topLeftCorner(nx_, nx_);
+      if (k >= 1) Q_[k].diagonal() += 2.0 * (cost.Q_ref + cost.Q);
+      M_[k] = Hl_.topRightCorner(nx_, nu_);
+      R_[k] = Hl_.bottomRightCorner(nu_, nu_);
+      R_[k].diagonal() += 2.0 * cost.R;
       S_[k + 1].setZero();
-      S_[k + 1].leftCols(n).noalias() = A_ * S_[k].leftCols(n);
-      S_[k + 1].block(0, k * nu_, nx_, nu_) += B_;
+      S_[k + 1].leftCols(n).noalias() = A_[k] * S_[k].leftCols(n);
+      S_[k + 1].block(0, k * nu_, nx_, nu_) += B_[k];
     }
-    const Vec qT = 2.0 * (cost.Qf_ref + cost.Qf);
-    Hr_.noalias() += S_[T_].transpose() * qT.asDiagonal() * S_[T_];
+    Q_[T_].setZero();
+    Q_[T_].diagonal() = 2.0 * (cost.Qf_ref + cost.Qf);
 
     // Constraints of agent a: curvature w_c d2h_c, and the Jacobian rows of the ones held as equalities.
     int na = 0;
@@ -74,9 +80,11 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
           // h depends on d = p_i - p_j (or p_i - o): dh/dp_j = -g, d2h/dp_j^2 = H.
           const Mat& S = S_[cn.k];
           const double s = own ? 1.0 : -1.0;
-          if (w != 0.0) {
-            const Mat P = (Mat(2, m) << S.row(px), S.row(py)).finished();
-            Hr_.noalias() += w * P.transpose() * H * P;
+          if (w != 0.0) {  // curvature on the agent's position at stage k
+            Q_[cn.k](px, px) += w * H(0, 0);
+            Q_[cn.k](px, py) += w * H(0, 1);
+            Q_[cn.k](py, px) += w * H(1, 0);
+            Q_[cn.k](py, py) += w * H(1, 1);
           }
           if (active) C_.row(na++) = s * (g[0] * S.row(px) + g[1] * S.row(py));
           break;
@@ -94,39 +102,60 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
           break;
       }
     }
+    // H_U by a backward recursion (single shooting's condensed Hessian, O(T^2 nx nu^2) instead of O(T^3)):
+    // with P_{j+1} = sum_{k>j} Phi(k,j+1)' Q_k Phi(k,j+1) (Phi the state transition), block (j, j) is
+    // R_j + B_j' P_{j+1} B_j and block (i, j), i < j, is (dx_j/du_i)' (A_j' P_{j+1} B_j + M_j).
+    P_ = Q_[T_];
+    for (int j = T_ - 1; j >= 0; --j) {
+      PB_.noalias() = P_ * B_[j];
+      W_ = M_[j];
+      W_.noalias() += A_[j].transpose() * PB_;
+      Hr_.block(j * nu_, j * nu_, nu_, nu_) = R_[j];
+      Hr_.block(j * nu_, j * nu_, nu_, nu_).noalias() += B_[j].transpose() * PB_;
+      if (j > 0) {
+        Hr_.block(0, j * nu_, j * nu_, nu_).noalias() = S_[j].leftCols(j * nu_).transpose() * W_;
+        Hr_.block(j * nu_, 0, nu_, j * nu_) = Hr_.block(0, j * nu_, j * nu_, nu_).transpose();
+      }
+      PA_.noalias() = P_ * A_[j];
+      P_ = Q_[j];
+      P_.noalias() += A_[j].transpose() * PA_;
+    }
     Hr_ = 0.5 * (Hr_ + Hr_.transpose()).eval();
 
     // Orthonormal basis Z of the active rows' null space, then the spectrum of Z' H_U Z.
     SecondOrderAgent& out = out_[a];
     out.active = na;
-    Mat Z;
-    if (na == 0) {
-      Z = Mat::Identity(m, m);
-    } else {
+    Mat Z;  // empty if na == 0 (Z = I)
+    if (na > 0) {
       Eigen::ColPivHouseholderQR<Mat> qr(C_.topRows(na).transpose());
       qr.setThreshold(1e-9);
       const int r = static_cast<int>(qr.rank());
       const Mat Q = qr.householderQ();
       Z = Q.rightCols(m - r);
     }
-    out.free_directions = static_cast<int>(Z.cols());
-    if (Z.cols() == 0) {
+    out.free_directions = na > 0 ? static_cast<int>(Z.cols()) : m;
+    if (out.free_directions == 0) {
       out.min_eigenvalue = kInf;
       out.max_abs_eigenvalue = 0;
-      out.direction = Mat::Zero(nu_, T_);
+      out.direction.resize(0, 0);
       continue;
     }
-    const Mat R = Z.transpose() * Hr_ * Z;
-    Eigen::SelfAdjointEigenSolver<Mat> es(R);
-    if (es.info() != Eigen::Success) {
+    // Eigenvalues only: the eigenvectors cost about four times as much and are needed only by an agent that fails.
+    if (na > 0) Rz_.noalias() = Z.transpose() * Hr_ * Z;
+    const Mat& R = na > 0 ? Rz_ : Hr_;
+    es_.compute(R, Eigen::EigenvaluesOnly);
+    out.direction.resize(0, 0);
+    if (es_.info() != Eigen::Success) {
       out.min_eigenvalue = std::numeric_limits<double>::quiet_NaN();
       out.max_abs_eigenvalue = 0;
-      out.direction = Mat::Zero(nu_, T_);
       continue;
     }
-    out.min_eigenvalue = es.eigenvalues()[0];
-    out.max_abs_eigenvalue = es.eigenvalues().cwiseAbs().maxCoeff();
-    const Vec d = Z * es.eigenvectors().col(0);
+    out.min_eigenvalue = es_.eigenvalues()[0];
+    out.max_abs_eigenvalue = es_.eigenvalues().cwiseAbs().maxCoeff();
+    if (agent_passes(a, tol)) continue;
+    es_.compute(R);
+    if (es_.info() != Eigen::Success) continue;
+    const Vec d = na > 0 ? Vec(Z * es_.eigenvectors().col(0)) : Vec(es_.eigenvectors().col(0));
     out.direction = Eigen::Map<const Mat>(d.data(), nu_, T_);
   }
   return out_;
@@ -168,7 +197,7 @@ bool Solver::check_second_order(Info& info) {
   constraint_weights(w_i, w_j);
   const auto& agents = second_order_->check(
       prob_, cons_, [&](int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) { eval_constraint(y_, c, h, g, H); },
-      y_.x, y_.u, y_.lam, w_i, w_j, settings_.second_order_gap);
+      y_.x, y_.u, y_.lam, w_i, w_j, settings_.second_order_gap, settings_.second_order_tol);
   info.second_order.resize(N_);
   for (int a = 0; a < N_; ++a) info.second_order[a] = agents[a].min_eigenvalue;
   return second_order_->passes(settings_.second_order_tol);

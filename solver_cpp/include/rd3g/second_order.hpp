@@ -11,6 +11,7 @@
 // constraint's multiplier-weighted curvature w_c d2h_c enters H_U (the barrier's own rho/h^2 term does not: the
 // question is about the agent's constrained problem, not the barrier's approximation of it).
 #pragma once
+#include <Eigen/Eigenvalues>
 #include <functional>
 #include <vector>
 
@@ -26,7 +27,8 @@ struct SecondOrderAgent {
   double max_abs_eigenvalue = 0;  ///< largest |eigenvalue| of Z' H_U Z, the scale of the relative test
   int free_directions = 0;        ///< dim N
   int active = 0;                 ///< constraints held as equalities in the test
-  /// Unit eigenvector of min_eigenvalue as controls, nu x T (a direction of negative curvature when the test fails).
+  /// Unit eigenvector of min_eigenvalue as controls, nu x T: a direction of negative curvature, computed only when
+  /// the agent fails the test (empty otherwise).
   Mat direction;
 };
 
@@ -40,11 +42,11 @@ class SecondOrderCheck {
   void setup(int num_agents, int horizon, int nx, int nu);
   /// x per agent nx x (T+1) (column k = x_k), u per agent nu x T, lam per agent nx x T (dynamics multipliers, sign
   /// as above); w_i[c] / w_j[c] is the multiplier of constraint c for its agent i / its other agent j (pairs).
-  /// Returns one entry per agent.
+  /// tol is the relative test's (passes). Returns one entry per agent.
   const std::vector<SecondOrderAgent>& check(const Problem& p, const std::vector<Constraint>& cons,
                                              const ConstraintEval& eval, const std::vector<Mat>& x,
                                              const std::vector<Mat>& u, const std::vector<Mat>& lam, const Vec& w_i,
-                                             const Vec& w_j, double active_gap);
+                                             const Vec& w_j, double active_gap, double tol);
   /// True if every agent's min_eigenvalue >= -tol * max(1, max_abs_eigenvalue) (relative test; tol > 0).
   bool passes(double tol) const;
   /// The last check's agents.
@@ -55,8 +57,10 @@ class SecondOrderCheck {
  private:
   int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0;
   std::vector<Mat> S_;  // S_k = dx_k/dU, nx x (T nu), k = 0..T
-  Mat Hr_, Hl_, A_, B_, G_, C_;
+  std::vector<Mat> A_, B_, Q_, M_, R_;  // per stage: dynamics Jacobians; Lagrangian Hessian blocks xx, xu, uu
+  Mat Hr_, Rz_, Hl_, P_, PA_, PB_, W_, C_;
   Vec fx_;
+  Eigen::SelfAdjointEigenSolver<Mat> es_;
   std::vector<SecondOrderAgent> out_;
 };
 
