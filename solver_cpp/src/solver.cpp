@@ -595,8 +595,7 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
 bool Solver::second_order_wanted(const Info& info) const {
   if (settings_.second_order_gap < 0 || info.status == Status::NumericalError) return false;
   // A converged point always gets the test (it decides converged vs saddle). Any other iterate only
-  // reports its eigenvalues, which is not worth passing the deadline for: the test costs a dense
-  // eigen-decomposition per agent (20 ms on the 8-car merge, a quarter of a 50 ms limit).
+  // reports its eigenvalues, which is not worth passing the deadline for (a dense eigenvalue problem per agent).
   return info.status == Status::Converged || !(info.status == Status::TimeLimit || past_deadline());
 }
 
