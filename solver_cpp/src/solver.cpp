@@ -260,10 +260,14 @@ void Solver::update(const Problem& p) {
 void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const {
   // The 2-variable form of rd3g::eval_constraint (g, H with respect to agent i's own position or component;
   // for pairs dh/dp_j = -g), without its 4 x 4 Hessian: this runs for every constraint at every evaluation.
+  eval_constraint(y, c, h, g, &H);
+}
+
+void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d* H) const {
   const Constraint& cn = cons_[c];
   using K = Constraint::Kind;
   g.setZero();
-  H.setZero();
+  if (H) H->setZero();
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   switch (cn.kind) {
     case K::Pair: {
@@ -285,11 +289,25 @@ void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d
 }
 
 double Solver::constraint_value(const Iterate& y, int c) const {
-  Eigen::Vector2d g;
-  Eigen::Matrix2d H;
-  double h;
-  eval_constraint(y, c, h, g, H);
-  return h;
+  const Constraint& cn = cons_[c];
+  using K = Constraint::Kind;
+  const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
+  switch (cn.kind) {
+    case K::Pair: {
+      const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
+      return distance_value(prob_.collision.form, d, prob_.collision.at(cn.k));
+    }
+    case K::Obstacle: {
+      const Obstacle& o = prob_.obstacles[cn.j];
+      const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y.x[cn.i](py, cn.k) - o.positions(cn.k, 1));
+      return distance_value(prob_.collision.form, d, o.at(cn.k));
+    }
+    case K::StateMax: return y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx];
+    case K::StateMin: return prob_.x_min[cn.i][cn.idx] - y.x[cn.i](cn.idx, cn.k);
+    case K::ControlMax: return y.u[cn.i](cn.idx, cn.k) - prob_.u_max[cn.i][cn.idx];
+    case K::ControlMin: return prob_.u_min[cn.i][cn.idx] - y.u[cn.i](cn.idx, cn.k);
+  }
+  return 0.0;
 }
 
 void Solver::eval_all_constraints(const Iterate& y, Vec& h) const {
@@ -370,7 +388,7 @@ bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc)
     const ConstraintState st = state_[c];
     if (st == ConstraintState::Free) continue;
     const Constraint& cn = cons_[c];
-    eval_constraint(y, c, hv, g, H);
+    eval_constraint(y, c, hv, g, jac ? &H : nullptr);
     if (st == ConstraintState::Barrier && !(hv < 0)) return false;
     const bool pos = cn.kind == Kd::Pair || cn.kind == Kd::Obstacle;
     const bool on_u = cn.kind == Kd::ControlMax || cn.kind == Kd::ControlMin;
@@ -665,20 +683,25 @@ bool Solver::bounded_least_squares(Vec& dy) {
 }
 
 void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const {
+  // Plain loops over the stage blocks (this runs for every line-search trial; Eigen's expressions on 2- and
+  // 4-element dynamic columns cost several times the arithmetic).
+  const double* d = dy.data();
   for (int i = 0; i < N_; ++i) {
-    out.x[i].col(0) = y.x[i].col(0);
+    const double *yu = y.u[i].data(), *yl = y.lam[i].data(), *yx = y.x[i].data();
+    double *ou = out.u[i].data(), *ol = out.lam[i].data(), *ox = out.x[i].data();
+    for (int q = 0; q < nx_; ++q) ox[q] = yx[q];
     for (int k = 0; k < T_; ++k) {
-      out.u[i].col(k) = y.u[i].col(k) + t * dy.segment(col_u(i, k), nu_);
-      out.lam[i].col(k) = y.lam[i].col(k) + t * dy.segment(col_lam(i, k), nx_);
-      out.x[i].col(k + 1) = y.x[i].col(k + 1) + t * dy.segment(col_x(i, k + 1), nx_);
+      const double *du = d + col_u(i, k), *dl = d + col_lam(i, k), *dx = d + col_x(i, k + 1);
+      for (int q = 0; q < nu_; ++q) ou[k * nu_ + q] = yu[k * nu_ + q] + t * du[q];
+      for (int q = 0; q < nx_; ++q) ol[k * nx_ + q] = yl[k * nx_ + q] + t * dl[q];
+      for (int q = 0; q < nx_; ++q) ox[(k + 1) * nx_ + q] = yx[(k + 1) * nx_ + q] + t * dx[q];
     }
   }
-  out.mu = y.mu;
-  out.mu2 = y.mu2;
-  out.z = y.z + t * dz_;
-  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    if (mu_col_[c] >= 0) out.mu[c] = y.mu[c] + t * dy[mu_col_[c]];
-    if (mu2_col_[c] >= 0) out.mu2[c] = y.mu2[c] + t * dy[mu2_col_[c]];
+  const int C = static_cast<int>(cons_.size());
+  for (int c = 0; c < C; ++c) {
+    out.mu[c] = mu_col_[c] >= 0 ? y.mu[c] + t * d[mu_col_[c]] : y.mu[c];
+    out.mu2[c] = mu2_col_[c] >= 0 ? y.mu2[c] + t * d[mu2_col_[c]] : y.mu2[c];
+    out.z[c] = y.z[c] + t * dz_[c];
   }
 }
 
