@@ -9,6 +9,8 @@ void StageWorkspace::resize(int nx, int nu) {
   Huu = Mat::Zero(nu, nu);
   Hc = Mat::Zero(nx, nx);
   fx = Vec::Zero(nx);
+  Btl = Vec::Zero(nu);
+  Atl = Vec::Zero(nx);
 }
 
 void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& f, const QuadraticCost& cost,
@@ -19,7 +21,8 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   if (trip) f.eval_with_hessian(x.col(k), u.col(k), lk, w.fx, w.A, w.B, w.Hl);
   else f.eval(x.col(k), u.col(k), w.fx, w.A, w.B);
   // dL/du_k = 2 R u_k + B' lambda_k
-  r.segment(ru, nu) = 2.0 * cost.R.cwiseProduct(u.col(k)) + w.B.transpose() * lk;
+  w.Btl.noalias() = w.B.transpose() * lk;
+  r.segment(ru, nu) = 2.0 * cost.R.cwiseProduct(u.col(k)) + w.Btl;
   // F_k = f(x_k, u_k) - x_{k+1}
   r.segment(rf, nx) = w.fx - x.col(k + 1);
   // dL/dx_{k+1}: cost gradient - lambda_k (+ A_{k+1}' lambda_{k+1}, added at stage k+1)
@@ -29,7 +32,10 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   const auto x1 = x.col(k + 1);
   r.segment(rx1, nx) += 2.0 * (qr.cwiseProduct(x1 - cost.x_ref) + q.cwiseProduct(x1)) - lk;
   if (lead.weight != 0.0 && L.N > 1) r[rx1 + lead.index] += -lead.weight * (L.N - 1);
-  if (k >= 1) r.segment(L.col_x(i, k), nx) += w.A.transpose() * lk;
+  if (k >= 1) {
+    w.Atl.noalias() = w.A.transpose() * lk;
+    r.segment(L.col_x(i, k), nx) += w.Atl;
+  }
   if (!trip) return;
 
   auto add_block = [&](int r0, int c0, const auto& M) {

@@ -24,6 +24,7 @@ struct StageLayout {
 struct StageWorkspace {
   Mat A, B, Hl, Huu, Hc;
   Vec fx;
+  Vec Btl, Atl;  // B' lambda_k and A' lambda_k (products into these instead of temporaries: no allocation)
   void resize(int nx, int nu);
 };
 
