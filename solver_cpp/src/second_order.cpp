@@ -28,7 +28,6 @@ void SecondOrderCheck::setup(int num_agents, int horizon, int nx, int nu) {
   W_ = Mat::Zero(nx_, nu_);
   C_ = Mat::Zero(0, m);
   fx_ = Vec::Zero(nx_);
-  es_ = Eigen::SelfAdjointEigenSolver<Mat>(m);
   out_.assign(N_, SecondOrderAgent{});
 }
 
