@@ -33,28 +33,25 @@ std::vector<Constraint> list_constraints(const Problem& p, bool with_bounds) {
   return out;
 }
 
-void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d& g,
+void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d* g,
                          Eigen::Matrix2d* H) {
   if (form == CollisionForm::Squared) {
     h = dmin * dmin - d.squaredNorm();
-    g = -2.0 * d;
+    if (g) *g = -2.0 * d;
     if (H) *H = -2.0 * Eigen::Matrix2d::Identity();
   } else {
     const double n = std::max(d.norm(), 1e-12);
-    const Eigen::Vector2d e = d / n;
     h = dmin - n;
-    g = -e;
+    if (!g && !H) return;
+    const Eigen::Vector2d e = d / n;
+    if (g) *g = -e;
     if (H) *H = -(Eigen::Matrix2d::Identity() - e * e.transpose()) / n;
   }
 }
 
 void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d& g,
                          Eigen::Matrix2d& H) {
-  distance_constraint(form, d, dmin, h, g, &H);
-}
-
-double distance_value(CollisionForm form, const Eigen::Vector2d& d, double dmin) {
-  return form == CollisionForm::Squared ? dmin * dmin - d.squaredNorm() : dmin - std::max(d.norm(), 1e-12);
+  distance_constraint(form, d, dmin, h, &g, &H);
 }
 
 void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Mat>& x, const std::vector<Mat>& u,

@@ -260,54 +260,40 @@ void Solver::update(const Problem& p) {
 void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const {
   // The 2-variable form of rd3g::eval_constraint (g, H with respect to agent i's own position or component;
   // for pairs dh/dp_j = -g), without its 4 x 4 Hessian: this runs for every constraint at every evaluation.
-  eval_constraint(y, c, h, g, &H);
+  eval_constraint(y, c, h, &g, &H);
 }
 
-void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d* H) const {
+void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d* g, Eigen::Matrix2d* H) const {
   const Constraint& cn = cons_[c];
   using K = Constraint::Kind;
-  g.setZero();
+  if (g) g->setZero();
   if (H) H->setZero();
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
+  double sign = 0;  // dh/d(component) of a bound
   switch (cn.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
       distance_constraint(prob_.collision.form, d, prob_.collision.at(cn.k), h, g, H);
-      break;
+      return;
     }
     case K::Obstacle: {
       const Obstacle& o = prob_.obstacles[cn.j];
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y.x[cn.i](py, cn.k) - o.positions(cn.k, 1));
       distance_constraint(prob_.collision.form, d, o.at(cn.k), h, g, H);
-      break;
+      return;
     }
-    case K::StateMax: h = y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx]; g[0] = 1; break;
-    case K::StateMin: h = prob_.x_min[cn.i][cn.idx] - y.x[cn.i](cn.idx, cn.k); g[0] = -1; break;
-    case K::ControlMax: h = y.u[cn.i](cn.idx, cn.k) - prob_.u_max[cn.i][cn.idx]; g[0] = 1; break;
-    case K::ControlMin: h = prob_.u_min[cn.i][cn.idx] - y.u[cn.i](cn.idx, cn.k); g[0] = -1; break;
+    case K::StateMax: h = y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx]; sign = 1; break;
+    case K::StateMin: h = prob_.x_min[cn.i][cn.idx] - y.x[cn.i](cn.idx, cn.k); sign = -1; break;
+    case K::ControlMax: h = y.u[cn.i](cn.idx, cn.k) - prob_.u_max[cn.i][cn.idx]; sign = 1; break;
+    case K::ControlMin: h = prob_.u_min[cn.i][cn.idx] - y.u[cn.i](cn.idx, cn.k); sign = -1; break;
   }
+  if (g) (*g)[0] = sign;
 }
 
 double Solver::constraint_value(const Iterate& y, int c) const {
-  const Constraint& cn = cons_[c];
-  using K = Constraint::Kind;
-  const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
-  switch (cn.kind) {
-    case K::Pair: {
-      const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
-      return distance_value(prob_.collision.form, d, prob_.collision.at(cn.k));
-    }
-    case K::Obstacle: {
-      const Obstacle& o = prob_.obstacles[cn.j];
-      const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y.x[cn.i](py, cn.k) - o.positions(cn.k, 1));
-      return distance_value(prob_.collision.form, d, o.at(cn.k));
-    }
-    case K::StateMax: return y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx];
-    case K::StateMin: return prob_.x_min[cn.i][cn.idx] - y.x[cn.i](cn.idx, cn.k);
-    case K::ControlMax: return y.u[cn.i](cn.idx, cn.k) - prob_.u_max[cn.i][cn.idx];
-    case K::ControlMin: return prob_.u_min[cn.i][cn.idx] - y.u[cn.i](cn.idx, cn.k);
-  }
-  return 0.0;
+  double h = 0;
+  eval_constraint(y, c, h, nullptr, nullptr);
+  return h;
 }
 
 void Solver::eval_all_constraints(const Iterate& y, Vec& h) const {
@@ -388,7 +374,7 @@ bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc)
     const ConstraintState st = state_[c];
     if (st == ConstraintState::Free) continue;
     const Constraint& cn = cons_[c];
-    eval_constraint(y, c, hv, g, jac ? &H : nullptr);
+    eval_constraint(y, c, hv, &g, jac ? &H : nullptr);
     if (st == ConstraintState::Barrier && !(hv < 0)) return false;
     const bool pos = cn.kind == Kd::Pair || cn.kind == Kd::Obstacle;
     const bool on_u = cn.kind == Kd::ControlMax || cn.kind == Kd::ControlMin;

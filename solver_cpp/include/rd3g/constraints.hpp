@@ -29,11 +29,9 @@ std::vector<Constraint> list_constraints(const Problem& p, bool with_bounds = tr
 /// g = dh/dd and H = d2h/dd2.
 void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d& g,
                          Eigen::Matrix2d& H);
-/// As above; H only if non-null (the line search's residuals need no Hessian).
-void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d& g,
+/// As above; g and H only where non-null (the line search's trials need h alone, or h and g).
+void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d* g,
                          Eigen::Matrix2d* H);
-/// h alone.
-double distance_value(CollisionForm form, const Eigen::Vector2d& d, double dmin);
 
 /// A constraint's value and derivatives with respect to the (at most 4) scalar variables it touches:
 /// variable a is component comp[a] of agent agent[a]'s state x_k (or control u_k if on_u).

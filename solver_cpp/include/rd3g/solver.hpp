@@ -132,8 +132,8 @@ class Solver {
   bool bounded_least_squares(Vec& dy);
 
   void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const;
-  /// As above; H (set, not added to) only if non-null.
-  void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d* H) const;
+  /// As above; g and H (set, not added to) only where non-null.
+  void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d* g, Eigen::Matrix2d* H) const;
   /// h of constraint c at y alone (eval_constraint without its derivatives).
   double constraint_value(const Iterate& y, int c) const;
   void eval_all_constraints(const Iterate& y, Vec& h) const;
