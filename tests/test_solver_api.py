@@ -108,6 +108,7 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"violation_tol": -1.0}, "solver.violation_tol"),  # accepted: can never converge
     ({"time_limit": -1.0}, "solver.time_limit"),  # accepted as "no limit"
     ({"polish_gap": -1.0}, "solver.polish_gap"),
+    ({"stall_floor_window": -1}, "solver.stall_floor_window"),
     ({"violation_memory": 0}, "solver.violation_memory"),
     ({"restart_violation_memory": 0}, "solver.restart_violation_memory"),
     ({"restart_rho_progress": -1.0}, "solver.restart_rho_progress"),

@@ -62,12 +62,22 @@ def test_stalled():
 
 
 def test_line_search_failed():
-    # The same instance with stall detection and restarts off runs into a point where neither the Newton
-    # step nor the Levenberg-Marquardt fallbacks decrease the merit.
-    result = solve(merging_problem(4, 36), restarts=0, stall_window=0)
+    # The same instance with stall detection (both rules) and restarts off runs into a point where neither the
+    # Newton step nor the Levenberg-Marquardt fallbacks decrease the merit.
+    result = solve(merging_problem(4, 36), restarts=0, stall_window=0, stall_floor_window=0)
     assert result.status == "line_search_failed"
     assert result.residual_norm > 5e-4
     assert result.iterations < 100
+
+
+def test_stall_at_rho_floor():
+    # The floor rule alone (stall_window off) recognises the point where test_line_search_failed ends: ||r|| no longer
+    # falls with rho at its floor. It stops there as stalled, with the same residual, before the line search fails.
+    failed = solve(merging_problem(4, 36), restarts=0, stall_window=0, stall_floor_window=0)
+    stalled = solve(merging_problem(4, 36), restarts=0, stall_window=0, stall_floor_window=3)
+    assert failed.status == "line_search_failed" and stalled.status == "stalled"
+    assert stalled.iterations < failed.iterations
+    assert abs(stalled.residual_norm - failed.residual_norm) <= 1e-4 * failed.residual_norm
 
 
 def test_numerical_error():

@@ -1054,7 +1054,11 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     const double rho_floor = settings_.tol * settings_.rho_floor_factor;
     auto lower_rho = [&] { rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta))); };
     double merit_now = rnorm;
-    const bool stall = w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w];
+    const int wf = settings_.stall_floor_window;
+    const bool stuck_at_floor = wf > 0 && rho_ <= rho_floor * (1 + 1e-9) && static_cast<int>(merits_.size()) > wf &&
+                                rnorm > (1.0 - 1e-4) * merits_[merits_.size() - 1 - wf];
+    const bool stall =
+        stuck_at_floor || (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]);
     if (stall && rules_.rho_on_stall && rules_.rho_progress > 0 && rho_ > rho_floor * (1 + 1e-9)) {
       // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
       // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).

@@ -157,6 +157,10 @@ struct Settings {
   /// Every attempt counts towards iterations, max_iter and the reported time.
   int restarts = 11;
   int stall_window = 8;
+  /// A quicker stall with rho at its floor: an attempt whose ||r|| fell by less than 1e-4 of itself over
+  /// stall_floor_window iterations there has stalled too (polish, then restart), since no rho decrease is left to
+  /// help it (0 = off).
+  int stall_floor_window = 3;
   /// On a stall, before restarting, barrier constraints with h >= -polish_gap (constraint units) are held as
   /// equalities (once per attempt); the usual partition rules release them again. 0 = off.
   double polish_gap = 1e-3;
