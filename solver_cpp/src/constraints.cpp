@@ -49,11 +49,6 @@ void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dm
   }
 }
 
-void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d& g,
-                         Eigen::Matrix2d& H) {
-  distance_constraint(form, d, dmin, h, &g, &H);
-}
-
 void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Mat>& x, const std::vector<Mat>& u,
                      ConstraintValue& out) {
   using K = Constraint::Kind;
@@ -65,7 +60,7 @@ void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Ma
   switch (c.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(x[c.i](px, c.k) - x[c.j](px, c.k), x[c.i](py, c.k) - x[c.j](py, c.k));
-      distance_constraint(p.collision.form, d, p.collision.at(c.k), out.h, gd, Hd);
+      distance_constraint(p.collision.form, d, p.collision.at(c.k), out.h, &gd, &Hd);
       out.n = 4;
       const int ag[4] = {c.i, c.i, c.j, c.j}, cp[4] = {px, py, px, py};
       const double gg[4] = {gd[0], gd[1], -gd[0], -gd[1]};
@@ -79,7 +74,7 @@ void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Ma
     case K::Obstacle: {
       const Obstacle& o = p.obstacles[c.j];
       const Eigen::Vector2d d(x[c.i](px, c.k) - o.positions(c.k, 0), x[c.i](py, c.k) - o.positions(c.k, 1));
-      distance_constraint(p.collision.form, d, o.at(c.k), out.h, gd, Hd);
+      distance_constraint(p.collision.form, d, o.at(c.k), out.h, &gd, &Hd);
       out.n = 2;
       out.agent[0] = out.agent[1] = c.i;
       out.comp[0] = px;

@@ -195,7 +195,7 @@ bool Solver::check_second_order(Info& info) {
   Vec w_i, w_j;
   constraint_weights(w_i, w_j);
   const auto& agents = second_order_->check(
-      prob_, cons_, [&](int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) { eval_constraint(y_, c, h, g, H); },
+      prob_, cons_, [&](int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) { eval_constraint(y_, c, h, &g, &H); },
       y_.x, y_.u, y_.lam, w_i, w_j, settings_.second_order_gap, settings_.second_order_tol);
   info.second_order.resize(N_);
   for (int a = 0; a < N_; ++a) info.second_order[a] = agents[a].min_eigenvalue;

@@ -257,13 +257,9 @@ void Solver::update(const Problem& p) {
 }
 
 // -------------------------------------------------------------------------------------------------
-void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const {
+void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d* g, Eigen::Matrix2d* H) const {
   // The 2-variable form of rd3g::eval_constraint (g, H with respect to agent i's own position or component;
   // for pairs dh/dp_j = -g), without its 4 x 4 Hessian: this runs for every constraint at every evaluation.
-  eval_constraint(y, c, h, &g, &H);
-}
-
-void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d* g, Eigen::Matrix2d* H) const {
   const Constraint& cn = cons_[c];
   using K = Constraint::Kind;
   if (g) g->setZero();
@@ -461,13 +457,12 @@ void Solver::recover_dual_step(const Iterate& y, const Vec& h, const Vec& rc, co
   using Kd = Constraint::Kind;
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   Eigen::Vector2d g;
-  Eigen::Matrix2d H;
   double hv;
   dz.setZero();
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
     if (state_[c] != ConstraintState::Barrier) continue;
     const Constraint& cn = cons_[c];
-    eval_constraint(y, c, hv, g, H);
+    eval_constraint(y, c, hv, &g, nullptr);
     double gdp;
     if (cn.kind == Kd::Pair || cn.kind == Kd::Obstacle) {
       const int bi = col_x(cn.i, cn.k);

@@ -26,10 +26,7 @@ struct Constraint {
 std::vector<Constraint> list_constraints(const Problem& p, bool with_bounds = true);
 
 /// h = dmin - |d| (Distance) or dmin^2 - |d|^2 (Squared) with d the separation (p_i - p_j or p_i - o_k),
-/// g = dh/dd and H = d2h/dd2.
-void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d& g,
-                         Eigen::Matrix2d& H);
-/// As above; g and H only where non-null (the line search's trials need h alone, or h and g).
+/// g = dh/dd and H = d2h/dd2, each only where non-null (the line search's trials need h alone, or h and g).
 void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d* g,
                          Eigen::Matrix2d* H);
 

@@ -131,8 +131,8 @@ class Solver {
   double normal_matrix_flops() const;
   bool bounded_least_squares(Vec& dy);
 
-  void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) const;
-  /// As above; g and H (set, not added to) only where non-null.
+  /// h of constraint c at y; g = dh/d(own position or component) and H = its Hessian (set, not added to) where
+  /// non-null.
   void eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d* g, Eigen::Matrix2d* H) const;
   /// h of constraint c at y alone (eval_constraint without its derivatives).
   double constraint_value(const Iterate& y, int c) const;
