@@ -5,6 +5,7 @@ A family is a small frozen spec plus a generator `problem(num_cars, seed)`; inst
 cars, seed) alone. `FAMILIES` maps the names `python -m app bench merge --family NAME` accepts to the specs."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,8 @@ class MergeFamily:
     weights (x, y, v, theta) about x_ref = (-, y_ref, v_ref, 0); R weights (a, delta). Cars: floor(N/2) (at most
     N-1) in the main lane at y = main_lane_y, the rest at y = merge_lane_y. Draws: main-lane x = linspace(0,
     spacing (n_main - 1)) + U[0,1) each; one draw o; merging-lane x = spacing/2 + 5 (o - 0.5) + linspace(0, spacing
-    (n_merge - 1)) + U[0,1) each; main-lane speeds 2 + U[0,1) each; merging-lane speeds 2 + U[0,1) each."""
+    (n_merge - 1)) + U[0,1) each; main-lane speeds 2 + U[0,1) each; merging-lane speeds 2 + U[0,1) each.
+    steering_bound (rad): every car's |delta| <= steering_bound (inf: no control bounds, as in the authors' game)."""
 
     description: str
     dt: float = merging.DT
@@ -35,11 +37,14 @@ class MergeFamily:
     min_distance: float = merging.MIN_DISTANCE
     form: str = "squared"
     spacing: float = merging.CAR_SPACING
+    steering_bound: float = math.inf
 
     def problem(self, num_cars: int, seed: int) -> GameProblem:
         x0 = merging.initial_states(num_cars, seed, self.spacing, self.main_lane_y, self.merge_lane_y)
         cost = QuadraticCost(x_ref=(0.0, self.y_ref, self.v_ref, 0.0), Q_ref=self.Q_ref, R=self.R, Q=(0.0,) * 4)
-        agents = [Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x, cost) for x in x0]
+        bounds = {} if math.isinf(self.steering_bound) else {
+            "u_min": (-math.inf, -self.steering_bound), "u_max": (math.inf, self.steering_bound)}
+        agents = [Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x, cost, **bounds) for x in x0]
         return GameProblem(dt=self.dt, horizon=self.horizon, agents=agents,
                            collision=Collision(min_distance=self.min_distance, form=self.form))
 
@@ -133,9 +138,10 @@ FAMILIES = {
                                 main_lane_y=0.9, merge_lane_y=-0.9, y_ref=0.8, min_distance=1.7, lf=0.8, lr=1.2,
                                 dt=0.15, horizon=30, spacing=4.6, Q_ref=(0.0, 0.3, 0.05, 2.0), R=(0.1, 0.5)),
     "merge-long": MergeFamily("long cars (lf = lr = 1.3 m), lanes at +-1.3 m, d_min 2.4 m distance form, dt 0.1 s, "
-                              "horizon 40, v_ref 2.5 m/s, R (0.5, 0.2)",
-                              lf=1.3, lr=1.3, main_lane_y=1.3, merge_lane_y=-1.3, y_ref=1.2, min_distance=2.4, form="distance", dt=0.1, horizon=40, v_ref=2.5,
-                              spacing=5.8, R=(0.5, 0.2)),
+                              "horizon 40, v_ref 2.5 m/s, R (0.5, 0.2), steering bounded at +-0.6 rad as on a real car",
+                              lf=1.3, lr=1.3, main_lane_y=1.3, merge_lane_y=-1.3, y_ref=1.2, min_distance=2.4,
+                              form="distance", dt=0.1, horizon=40, v_ref=2.5, spacing=5.8, R=(0.5, 0.2),
+                              steering_bound=0.6),
     "crossing": CrossingFamily("two perpendicular streams through an intersection, d_min 1.6 m distance form"),
     "head-on": HeadOnFamily("opposite streams on one road, swerving to pass, d_min 1.6 m distance form"),
 }

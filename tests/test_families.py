@@ -42,6 +42,16 @@ def test_crossing_and_head_on_geometry():
     assert np.all(np.abs(head[:, 1]) <= 0.3)
 
 
+def test_merge_long_bounds_steering_only():
+    """merge-long's cars have |delta| <= 0.6 rad and free acceleration; the other merges have no control bounds, and
+    every zero-control start lies strictly inside the bounds (the barrier's first iterate is interior)."""
+    for cars, seed in ((2, 0), (8, 3)):
+        for a in family_problem("merge-long", cars, seed).agents:
+            assert tuple(a.u_min) == (-np.inf, -0.6) and tuple(a.u_max) == (np.inf, 0.6)
+    for name in ("authors", "merge-dense", "merge-narrow"):
+        assert all(a.u_min is None and a.u_max is None for a in family_problem(name, 4, 0).agents)
+
+
 def test_unknown_family_is_named():
     with pytest.raises(ValueError, match="unknown family 'nope'"):
         family_problem("nope", 3, 0)

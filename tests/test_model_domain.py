@@ -3,24 +3,28 @@ domain"), against independent references:
 - the domain the bicycles report is where their discrete step is discontinuous: on either side of |delta| = pi/2 the
   lateral step dt v sin(theta + beta) jumps from +dt v to -dt v (the slip angle atan(c tan delta) wraps by pi), and
   inside it the step is continuous and matches finite differences of itself;
-- the Newton iterates of a merge-long game whose full steps carry a steering angle past pi/2 (6 cars, seed 7, at
+- the Newton iterates of a merge-long game (without its steering bound) whose full steps carry a steering angle past pi/2 (6 cars, seed 7, at
   iteration 12 with the setting off) stay in the box |delta| <= domain_fraction pi/2 at every iteration;
-- a merge-long instance that the solver without the setting and without the best-response restart does not solve
+- a merge-long instance (without its steering bound) that the solver without the setting and without the best-response restart does not solve
   (7 cars, seed 4: `stalled` after 730 iterations with
   `max_iter` 1000) converges with the setting, checked by bench.verify's common test (dynamics, collisions,
   per-player stationarity) and the solver's second-order test."""
 import json
+import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from app.cli import main
 from bench import verify
-from bench.families import family_problem
+from bench.families import FAMILIES, family_problem
 from bench.merge_bench import COLLISION_TOL_M, DYNAMICS_TOL, STATIONARITY_REL_TOL
 from solver_cpp import _core, solve
 
 HALF_PI = 0.5 * np.pi
+# The family bounds steering at 0.6 rad; these games need the unbounded model to reach its domain's edge.
+UNBOUNDED_MERGE_LONG = replace(FAMILIES["merge-long"], steering_bound=math.inf)
 
 
 @pytest.mark.parametrize("lf, lr", [(1.0, 1.0), (1.3, 1.3), (0.8, 1.2)])
@@ -50,7 +54,7 @@ def test_frenet_and_linear_domains():
 
 
 def test_iterates_stay_in_the_steering_box():
-    problem = family_problem("merge-long", 6, 7)
+    problem = UNBOUNDED_MERGE_LONG.problem(6, 7)
     off = solve(problem, time_limit=0, max_iter=12, restarts=0, domain_fraction=0.0)
     assert np.abs(off.u[..., 1]).max() > HALF_PI  # the full Newton step crosses the jump
     for fraction in (0.99, 0.9):
@@ -60,7 +64,7 @@ def test_iterates_stay_in_the_steering_box():
 
 
 def test_merge_long_failure_converges_in_the_domain():
-    problem = family_problem("merge-long", 7, 4)
+    problem = UNBOUNDED_MERGE_LONG.problem(7, 4)
     r = solve(problem, time_limit=0, max_iter=1000, domain_fraction=0.99, best_response_rounds=0)
     assert r.status == "converged"  # the solver's second-order test passed
     assert np.all(np.asarray(r.second_order) >= -1e-6)
