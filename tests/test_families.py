@@ -184,3 +184,57 @@ def test_no_instance_is_degenerate_by_construction(name):
             assert gaps.min() - spec.min_distance >= floor - 1e-9, (cars, seed)
         fixed = control_independent_states(family_problem(name, cars, 0))
         assert fixed[:, 0].all() and not fixed[:, 1:].any()
+
+
+class _FakeRuns:
+    """run_solver stand-in: one real solve, then the same result with the CPU time of each run scripted (ms)."""
+
+    def __init__(self, cpu_ms, iterations=None):
+        import solver_cpp
+
+        self.cpu_ms, self.iterations, self.calls = list(cpu_ms), iterations, 0
+        self.result = solver_cpp.solve(family_problem("authors", 2, 0), time_limit=0, max_iter=1000)
+        self.clock = 0.0
+
+    def process_time(self):
+        return self.clock
+
+    def run_solver(self, *args):
+        from dataclasses import replace
+
+        self.clock += self.cpu_ms[self.calls] / 1e3
+        r = self.result if self.iterations is None else replace(self.result, iterations=self.iterations[self.calls])
+        self.calls += 1
+        return r, 0.0
+
+
+@pytest.mark.parametrize("cpu_ms, time_limit, calls, kept", [
+    ((5.0, 3.0, 4.0), 0.0, 3, 3.0),      # short, deterministic: the fastest of 3 runs
+    ((250.0, 1.0, 1.0), 0.0, 1, 250.0),  # over REPEAT_BELOW_MS: run once
+    ((5.0, 3.0, 4.0), 2.0, 1, 5.0),      # a time limit makes the result depend on timing: run once
+])
+def test_family_bench_keeps_the_fastest_of_repeated_short_solves(monkeypatch, cpu_ms, time_limit, calls, kept):
+    from bench import merge_bench
+
+    fake = _FakeRuns(cpu_ms)
+    monkeypatch.setattr(merge_bench, "run_solver", fake.run_solver)
+    monkeypatch.setattr("time.process_time", fake.process_time)
+    rec = merge_bench.one_run(merge_bench.Job("rd3g", 2, 0, time_limit, "authors", repeats=3))
+    assert fake.calls == calls and rec.cpu_ms == pytest.approx(kept)
+    assert rec.success and rec.iterations == fake.result.iterations
+
+
+def test_family_bench_names_a_solve_whose_repeats_differ(monkeypatch):
+    from bench import merge_bench
+
+    fake = _FakeRuns((1.0, 1.0), iterations=(5, 6))
+    monkeypatch.setattr(merge_bench, "run_solver", fake.run_solver)
+    monkeypatch.setattr("time.process_time", fake.process_time)
+    with pytest.raises(RuntimeError, match="authors 2 cars seed 0 is not deterministic: run 2 ended converged after 6"):
+        merge_bench.one_run(merge_bench.Job("rd3g", 2, 0, 0.0, "authors", repeats=2))
+
+
+def test_bench_merge_rejects_repeat_below_one():
+    from app.cli import main
+
+    assert main(["bench", "merge", "--family", "authors", "--cars", "2", "--repeat", "0", "--no-docs"]) == 2

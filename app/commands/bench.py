@@ -63,6 +63,9 @@ def register(sub) -> None:
                    help="with --family: start RD3G from this many rounds of iterated best response "
                         "(solver_cpp/best_response.py, the C++ sweeps of the solver's best_response_rounds restart; its time "
                         "counts; the restarts start from it too)")
+    m.add_argument("--repeat", type=int, default=3,
+                   help="with --time-limit 0: run each solve faster than 200 ms CPU up to this many times and report "
+                        "its fastest run's times (the results are identical; the noise of a shared machine is not)")
     m.add_argument("--json", help="write the per-solver, per-size figures here")
     m.add_argument("--figures", default="docs/figures", help="folder for the PNG figures")
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
@@ -180,6 +183,13 @@ def _rd3g_settings(items: list[str]) -> tuple:
     return tuple(pairs)
 
 
+def _repeats(args) -> int:
+    """Runs per short solve: --repeat without a time limit (deterministic solves), else 1."""
+    if args.repeat < 1:
+        raise UserError("--repeat must be >= 1")
+    return args.repeat if args.time_limit <= 0 else 1
+
+
 def run_merge(args) -> int:
     from pathlib import Path
 
@@ -189,7 +199,7 @@ def run_merge(args) -> int:
     solvers, seeds = _merge_options(args, default_solvers="rd3g,ilqgames,algames")
     t0 = time.perf_counter()
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, max_iter=args.max_iter,
-                              settings=args.rd3g_settings)
+                              settings=args.rd3g_settings, repeats=_repeats(args))
     summary = merge_bench.summarize(records)
     fig_dir = Path(args.figures)
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -269,20 +279,22 @@ def _run_families(args, cars: list[int]) -> int:
         raise UserError("--best-response-rounds must be >= 0")
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
+    repeats = _repeats(args)
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, tuple(names),
-                              args.best_response_rounds, max_iter=args.max_iter, settings=args.rd3g_settings)
+                              args.best_response_rounds, max_iter=args.max_iter, settings=args.rd3g_settings,
+                              repeats=repeats)
     summary = merge_bench.summarize_families(records)
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
     budget = merge_bench.budget_text(args.max_iter, args.time_limit)
     md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0, args.best_response_rounds,
-                                     budget)
+                                     budget, repeats)
     print(md)
     if args.json:
         failed = [f for r in summary for f in r["failed_instances"]]
         meta = {"max_iter": args.max_iter, "time_limit_s": args.time_limit, "seeds": [seeds[0], seeds[-1] + 1],
                 "load_average_start": load0, "load_average_end": os.getloadavg()[0],
-                "rd3g_settings": dict(args.rd3g_settings)}
+                "rd3g_settings": dict(args.rd3g_settings), "repeats": repeats}
         atomic_write_text(args.json, json.dumps({"results": summary, "budget": meta, "failed_instances": failed},
                                                 indent=1))
         print(f"wrote {args.json}")
