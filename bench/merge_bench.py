@@ -304,11 +304,31 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
                      f"{r['median_ms']:.1f} / {r['p90_ms']:.1f} / {r['max_ms']:.0f} | "
                      f"{r['median_cpu_ms']:.1f} / {r['p90_cpu_ms']:.1f} / {r['max_cpu_ms']:.0f} | "
                      f"{r['median_iterations']:.0f} / {r['p90_iterations']:.0f} / {r['max_iterations']} |")
+    lines += family_comparison(summary)
     failed = [f for r in summary for f in r["failed_instances"]]
     lines += ["", f"Failures ({len(failed)}): " + ("none" if not failed else "")]
     lines += [f"- {f['family']} {f['cars']} cars seed {f['seed']} ({f['solver']}): {f['status']}, {f['failure']}; "
               f"{f['feasibility']} ({f['feasibility_detail']})" for f in failed]
     return "\n".join(lines)
+
+
+def family_comparison(summary: list[dict]) -> list[str]:
+    """With more than one solver: per family and size, each solver's solved count and median / p90 CPU ms side by
+    side (the same runs as the table above); nothing for one solver."""
+    solvers = [s for s in SOLVERS if any(r["solver"] == s for r in summary)]
+    if len(solvers) < 2:
+        return []
+    by = {(r["family"], r["cars"], r["solver"]): r for r in summary}
+    lines = ["", "Side by side (solved; CPU ms median / p90, failures included):", "",
+             "| family | cars | " + " | ".join(solvers) + " |", "|---|---|" + "---|" * len(solvers)]
+    for f, n in sorted({(r["family"], r["cars"]) for r in summary}):
+        cells = []
+        for s in solvers:
+            r = by.get((f, n, s))
+            cells.append("—" if r is None else
+                         f"{r['solved']}/{r['instances']}; {r['median_cpu_ms']:.1f} / {r['p90_cpu_ms']:.1f}")
+        lines.append(f"| {f} | {n} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _fmt(v, spec=".1f"):

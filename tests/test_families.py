@@ -238,3 +238,18 @@ def test_bench_merge_rejects_repeat_below_one():
     from app.cli import main
 
     assert main(["bench", "merge", "--family", "authors", "--cars", "2", "--repeat", "0", "--no-docs"]) == 2
+
+
+def test_family_comparison_puts_solvers_side_by_side():
+    from bench.merge_bench import family_comparison
+
+    def row(solver, cars, solved, med, p90):
+        return {"family": "crossing", "solver": solver, "cars": cars, "solved": solved, "instances": 8,
+                "median_cpu_ms": med, "p90_cpu_ms": p90}
+
+    summary = [row("rd3g", 2, 8, 16.84, 23.0), row("algames", 2, 1, 99.2, 110.46), row("rd3g", 3, 7, 25.0, 37.0)]
+    lines = family_comparison(summary)
+    assert lines[3] == "| family | cars | rd3g | algames |"
+    assert lines[5] == "| crossing | 2 | 8/8; 16.8 / 23.0 | 1/8; 99.2 / 110.5 |"
+    assert lines[6] == "| crossing | 3 | 7/8; 25.0 / 37.0 | — |"
+    assert family_comparison([row("rd3g", 2, 8, 1.0, 2.0)]) == []
