@@ -274,7 +274,9 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
     guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
              if best_response_rounds else "")
     lines = [
-        "## Game families: RD3G beyond the authors' merging benchmark" + guess,
+        ("## Game families: RD3G beyond the authors' merging benchmark" if len({r["solver"] for r in summary}) < 2 else
+         "## Game families: " + ", ".join(s for s in SOLVERS if any(r["solver"] == s for r in summary)) + " side by side")
+        + guess,
         "",
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}." + (f" Budget per solve: {budget}." if budget else ""),
         "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "

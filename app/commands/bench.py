@@ -299,7 +299,9 @@ def _run_families(args, cars: list[int]) -> int:
                                                 indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
-        section = "merge-families" + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")
+        # The RD3G-only table and a comparison with the baselines are kept as separate sections.
+        section = ("merge-families" + ("" if solvers == ["rd3g"] else "-" + "-".join(solvers))
+                   + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else ""))
         print(f"recorded in {write_section(section, md)}")
     return 0
 
