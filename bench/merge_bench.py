@@ -270,13 +270,15 @@ def budget_text(max_iter: int | None, time_limit_s: float) -> str:
 
 def family_markdown(summary: list[dict], command: str, machine: str, seconds: float, best_response_rounds: int = 0,
                     budget: str = "", repeats: int = 1) -> str:
-    """repeats: the runs per short solve (Job.repeats) when there was no time limit, else 1."""
+    """One solver: the detailed table and every failure. Several: the side-by-side table (family_comparison) and the
+    failures counted per solver and feasibility verdict (each one is in the JSON's failed_instances).
+    repeats: the runs per short solve (Job.repeats) when there was no time limit, else 1."""
+    solvers = [s for s in SOLVERS if any(r["solver"] == s for r in summary)]
     guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
              if best_response_rounds else "")
     lines = [
-        ("## Game families: RD3G beyond the authors' merging benchmark" if len({r["solver"] for r in summary}) < 2 else
-         "## Game families: " + ", ".join(s for s in SOLVERS if any(r["solver"] == s for r in summary)) + " side by side")
-        + guess,
+        ("## Game families: RD3G beyond the authors' merging benchmark" if len(solvers) < 2 else
+         "## Game families: " + ", ".join(solvers) + " side by side") + guess,
         "",
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}." + (f" Budget per solve: {budget}." if budget else ""),
         "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "
@@ -290,6 +292,18 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
         "best-response guess)." + (f" Without a time limit, a solve under {REPEAT_BELOW_MS:g} ms CPU ran up to {repeats} "
                                    "times (the same result each time) and its fastest run's times are shown."
                                    if repeats > 1 else ""),
+    ]
+    failed = [f for r in summary for f in r["failed_instances"]]
+    if len(solvers) > 1:
+        lines += family_comparison(summary)
+        lines += ["", "Failures per solver (infeasible / feasible / unknown; each with its verdict in the JSON's "
+                      "failed_instances):"]
+        for s in solvers:
+            fs = [f for f in failed if f["solver"] == s]
+            lines.append(f"- {s}: {len(fs)} (" + " / ".join(str(sum(f['feasibility'] == v for f in fs))
+                                                         for v in ("infeasible", "feasible", "unknown")) + ")")
+        return "\n".join(lines)
+    lines += [
         "",
         "| family | cars | solved (all / solvable) | 2nd order | conv. rejected | failures: infeasible / unknown | "
         "statuses | wall ms median / p90 / max | CPU ms median / p90 / max | iterations median / p90 / max |",
@@ -306,8 +320,6 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
                      f"{r['median_ms']:.1f} / {r['p90_ms']:.1f} / {r['max_ms']:.0f} | "
                      f"{r['median_cpu_ms']:.1f} / {r['p90_cpu_ms']:.1f} / {r['max_cpu_ms']:.0f} | "
                      f"{r['median_iterations']:.0f} / {r['p90_iterations']:.0f} / {r['max_iterations']} |")
-    lines += family_comparison(summary)
-    failed = [f for r in summary for f in r["failed_instances"]]
     lines += ["", f"Failures ({len(failed)}): " + ("none" if not failed else "")]
     lines += [f"- {f['family']} {f['cars']} cars seed {f['seed']} ({f['solver']}): {f['status']}, {f['failure']}; "
               f"{f['feasibility']} ({f['feasibility_detail']})" for f in failed]
@@ -316,7 +328,7 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
 
 def family_comparison(summary: list[dict]) -> list[str]:
     """With more than one solver: per family and size, each solver's solved count and median / p90 CPU ms side by
-    side (the same runs as the table above); nothing for one solver."""
+    side; nothing for one solver."""
     solvers = [s for s in SOLVERS if any(r["solver"] == s for r in summary)]
     if len(solvers) < 2:
         return []
