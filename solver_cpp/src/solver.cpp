@@ -1015,10 +1015,13 @@ bool Solver::converged(double rnorm) const {
   double max_defect = 0;
   for (int i = 0; i < N_; ++i)
     for (int k = 0; k < T_; ++k) max_defect = std::max(max_defect, r_.segment(col_lam(i, k), nx_).cwiseAbs().maxCoeff());
-  const double rho_floor = settings_.tol * settings_.rho_floor_factor;
   return rnorm < settings_.tol && maxviol <= settings_.violation_tol && max_defect <= settings_.dynamics_tol &&
-         (C == 0 || rho_ <= rho_floor * (1 + 1e-9));
+         (C == 0 || at_rho_floor());
 }
+
+double Solver::rho_floor() const { return settings_.tol * settings_.rho_floor_factor; }
+
+bool Solver::at_rho_floor() const { return rho_ <= rho_floor() * (1 + 1e-9); }
 
 Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
   merits_.clear();
@@ -1046,15 +1049,14 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
     if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
     const int w = settings_.stall_window;
-    const double rho_floor = settings_.tol * settings_.rho_floor_factor;
-    auto lower_rho = [&] { rho_ = std::max(rho_floor, std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta))); };
+    auto lower_rho = [&] { rho_ = std::max(rho_floor(), std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta))); };
     double merit_now = rnorm;
     const int wf = settings_.stall_floor_window;
-    const bool stuck_at_floor = wf > 0 && rho_ <= rho_floor * (1 + 1e-9) && static_cast<int>(merits_.size()) > wf &&
+    const bool stuck_at_floor = wf > 0 && at_rho_floor() && static_cast<int>(merits_.size()) > wf &&
                                 rnorm > (1.0 - 1e-4) * merits_[merits_.size() - 1 - wf];
     const bool stall =
         stuck_at_floor || (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]);
-    if (stall && rules_.rho_on_stall && rules_.rho_progress > 0 && rho_ > rho_floor * (1 + 1e-9)) {
+    if (stall && rules_.rho_on_stall && rules_.rho_progress > 0 && !at_rho_floor()) {
       // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
       // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).
       lower_rho();

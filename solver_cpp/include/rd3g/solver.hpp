@@ -119,6 +119,9 @@ class Solver {
   /// Partition, multiplier numbering, residual and Jacobian at y_; false if the residual is undefined.
   bool assemble(bool first, Info& info);
   bool converged(double rnorm) const;
+  /// rho's floor, tol * rho_floor_factor, and whether rho has reached it (to rounding).
+  double rho_floor() const;
+  bool at_rho_floor() const;
   /// Newton (or Levenberg-Marquardt) step from y_ into y_ with the line search; the accepted t, or 0.
   double take_step(double rnorm, Info& info);
   void write_result(Result& res, Info& info);
