@@ -273,7 +273,7 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
     """One solver: the detailed table and every failure. Several: the side-by-side table (family_comparison) and the
     failures counted per solver and feasibility verdict (each one is in the JSON's failed_instances).
     repeats: the runs per short solve (Job.repeats) when there was no time limit, else 1."""
-    solvers = [s for s in SOLVERS if any(r["solver"] == s for r in summary)]
+    solvers = solvers_in(summary)
     guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
              if best_response_rounds else "")
     lines = [
@@ -326,10 +326,15 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
     return "\n".join(lines)
 
 
+def solvers_in(summary: list[dict]) -> list[str]:
+    """The solvers a summary has rows for, in SOLVERS order."""
+    return [s for s in SOLVERS if any(r["solver"] == s for r in summary)]
+
+
 def family_comparison(summary: list[dict]) -> list[str]:
     """With more than one solver: per family and size, each solver's solved count and median / p90 CPU ms side by
     side; nothing for one solver."""
-    solvers = [s for s in SOLVERS if any(r["solver"] == s for r in summary)]
+    solvers = solvers_in(summary)
     if len(solvers) < 2:
         return []
     by = {(r["family"], r["cars"], r["solver"]): r for r in summary}

@@ -48,6 +48,7 @@ def test_merge_long_bounds_steering_only():
     for cars, seed in ((2, 0), (8, 3)):
         for a in family_problem("merge-long", cars, seed).agents:
             assert tuple(a.u_min) == (-np.inf, -0.6) and tuple(a.u_max) == (np.inf, 0.6)
+            assert np.all(np.asarray(a.u_min) < 0) and np.all(np.asarray(a.u_max) > 0)  # zero controls interior
     for name in ("authors", "merge-dense", "merge-narrow"):
         assert all(a.u_min is None and a.u_max is None for a in family_problem(name, 4, 0).agents)
 
