@@ -52,6 +52,15 @@ def test_bench_json_path_is_checked_before_the_run(tmp_path, capsys, argv):
     assert sorted(os.listdir(tmp_path)) == ["a-file"]
 
 
+def test_bench_merge_no_docs_writes_no_figures(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "merge", "--cars", "2", "--instances", "1", "--solvers", "rd3g", "--no-docs"]) == 0
+    assert os.listdir(tmp_path) == []
+    assert main(["bench", "merge", "--cars", "2", "--instances", "1", "--solvers", "rd3g", "--no-docs",
+                 "--figures", "figs"]) == 0
+    assert sorted(os.listdir(tmp_path / "figs")) == ["merge_3cars.png", "merge_8cars.png", "merge_times.png"]
+
+
 def test_write_section_replaces_the_block_and_leaves_no_temporary(tmp_path):
     path = tmp_path / "bench.md"
     write_section("x", "first", path)

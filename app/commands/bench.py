@@ -67,7 +67,7 @@ def register(sub) -> None:
                    help="with --time-limit 0: run each solve faster than 200 ms CPU up to this many times and report "
                         "its fastest run's times (the results are identical; the noise of a shared machine is not)")
     m.add_argument("--json", help="write the per-solver, per-size figures here")
-    m.add_argument("--figures", default="docs/figures", help="folder for the PNG figures")
+    m.add_argument("--figures", help="folder for the PNG figures (default: docs/figures, none with --no-docs)")
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     m.set_defaults(func=run_merge)
 
@@ -201,11 +201,14 @@ def run_merge(args) -> int:
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, max_iter=args.max_iter,
                               settings=args.rd3g_settings, repeats=_repeats(args))
     summary = merge_bench.summarize(records)
-    fig_dir = Path(args.figures)
-    fig_dir.mkdir(parents=True, exist_ok=True)
-    figures = [merge_bench.plot_times(summary, str(fig_dir / "merge_times.png")),
-               merge_bench.plot_merge(3, 1, str(fig_dir / "merge_3cars.png")),
-               merge_bench.plot_merge(8, 1, str(fig_dir / "merge_8cars.png"))]
+    # --no-docs leaves the repository untouched, the committed figures included.
+    fig_dir = Path(args.figures) if args.figures else None if args.no_docs else Path("docs/figures")
+    figures = []
+    if fig_dir is not None:
+        fig_dir.mkdir(parents=True, exist_ok=True)
+        figures = [merge_bench.plot_times(summary, str(fig_dir / "merge_times.png")),
+                   merge_bench.plot_merge(3, 1, str(fig_dir / "merge_3cars.png")),
+                   merge_bench.plot_merge(8, 1, str(fig_dir / "merge_8cars.png"))]
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     docs_rel = [str(Path(f).resolve().relative_to(Path("docs").resolve())) if Path(f).resolve().is_relative_to(Path("docs").resolve()) else f
                 for f in figures]
