@@ -1105,17 +1105,20 @@ double Solver::take_step(double rnorm, Info& info) {
   double t = line_search(rnorm);
   if (t > 0 && t < settings_.lm_below_step) {
     // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
-    // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it.
+    // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it: from the
+    // largest nu down (it wins most often), until a smaller nu no longer lowers the merit; each try
+    // costs a factorisation.
     best_ = trial_;
     double best_m = merit(r_trial_, rc_trial_);
+    double last_m = HUGE_VAL;
     bool lm_won = false;
-    for (int q = 0; q < settings_.lm_tries && !past_deadline(); ++q) {
+    for (int q = settings_.lm_tries - 1; q >= 0 && !past_deadline(); --q) {
       if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
       const double tl = line_search(rnorm);
-      if (tl > 0) {
-        const double m = merit(r_trial_, rc_trial_);
-        if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
-      }
+      const double m = tl > 0 ? merit(r_trial_, rc_trial_) : HUGE_VAL;
+      if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
+      if (m >= last_m) break;
+      last_m = m;
     }
     std::swap(trial_, best_);
     if (lm_won) info.lm_steps++;

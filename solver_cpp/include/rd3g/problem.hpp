@@ -131,7 +131,9 @@ struct Settings {
   double multiplier_tol = 1e-6;  ///< active constraints need mu >= -multiplier_tol (true equilibrium)
   double barrier_margin = 1e-4;  ///< released constraints re-enter the barrier once h < -barrier_margin
   /// When the Newton step fails the line search (near-singular Jacobian), try Levenberg-Marquardt steps
-  /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = lm_nu_init * 10^q, q = 0..lm_tries-1.
+  /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = lm_nu_init * 10^q ||r||, q = 0..lm_tries-1
+  /// (the first that passes the line search is taken). After a Newton step shorter than lm_below_step they compete
+  /// with it instead: q from lm_tries-1 down while the merit keeps falling, the best step taken.
   int lm_tries = 4;
   double lm_below_step = 1e-2;  ///< also try LM when the accepted Newton step t is below this
   double lm_nu_init = 1e-6;
