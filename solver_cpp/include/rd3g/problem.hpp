@@ -156,8 +156,9 @@ struct Settings {
   /// from the initial controls plus a seeded constant offset per agent and control of std restart_u_std
   /// (attempts 4..restarts), all with the restart rules (restart_rho_progress). Before attempt
   /// best_response_attempt an extra attempt from an iterated-best-response guess runs (best_response_rounds, below).
-  /// Every attempt counts towards iterations, max_iter and the reported time.
-  int restarts = 11;
+  /// Every attempt counts towards iterations, max_iter and the reported time. More restarts change only
+  /// solves that would otherwise end with every restart used (a failure or a saddle).
+  int restarts = 19;
   int stall_window = 8;
   /// A quicker stall with rho at its floor: an attempt whose ||r|| fell by less than 1e-4 of itself over
   /// stall_floor_window iterations there has stalled too (polish, then restart), since no rho decrease is left to
