@@ -2,6 +2,7 @@
 (not pybind11's "Invoked with"), and benchmark outputs are written atomically and checked before the run."""
 import dataclasses
 import os
+import re
 
 import numpy as np
 import pytest
@@ -59,6 +60,13 @@ def test_bench_merge_no_docs_writes_no_figures(tmp_path, monkeypatch):
     assert main(["bench", "merge", "--cars", "2", "--instances", "1", "--solvers", "rd3g", "--no-docs",
                  "--figures", "figs"]) == 0
     assert sorted(os.listdir(tmp_path / "figs")) == ["merge_3cars.png", "merge_8cars.png", "merge_times.png"]
+
+
+def test_benchmarks_md_holds_each_generated_block_once():
+    # write_section rewrites every copy of a block, so a second copy would silently repeat the first.
+    from bench.report import BENCHMARKS_MD
+    starts = re.findall(r"<!-- ([\w-]+):start -->", BENCHMARKS_MD.read_text())
+    assert starts and len(starts) == len(set(starts)), sorted(n for n in starts if starts.count(n) > 1)
 
 
 def test_write_section_replaces_the_block_and_leaves_no_temporary(tmp_path):
