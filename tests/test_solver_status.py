@@ -104,3 +104,16 @@ def test_warm_start_from_shifted_solution_needs_fewer_iterations():
     assert warm.iterations < cold.iterations
     # Same equilibrium either way.
     np.testing.assert_allclose(warm.x, cold.x, atol=1e-5, rtol=0)
+
+
+def test_more_restarts_change_only_solves_that_used_every_restart():
+    from bench.families import family_problem
+
+    problem = family_problem("head-on", 2, 8)  # converges in restart 3 (attempt 5, the best-response one included)
+    assert solve(problem, time_limit=0, restarts=2).status != "converged"
+    enough = solve(problem, time_limit=0, restarts=3)
+    assert enough.status == "converged"
+    for restarts in (4, 19, 40):
+        more = solve(problem, time_limit=0, restarts=restarts)
+        assert (more.status, more.iterations, more.attempts) == (enough.status, enough.iterations, enough.attempts)
+        assert np.array_equal(more.u, enough.u)
