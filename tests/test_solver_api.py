@@ -109,6 +109,9 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"time_limit": -1.0}, "solver.time_limit"),  # accepted as "no limit"
     ({"polish_gap": -1.0}, "solver.polish_gap"),
     ({"stall_floor_window": -1}, "solver.stall_floor_window"),
+    ({"crawl_window": -1}, "solver.crawl_window"),
+    ({"crawl_ratio": 0.0}, "solver.crawl_ratio"),
+    ({"crawl_ratio": 1.5}, "solver.crawl_ratio"),
     ({"violation_memory": 0}, "solver.violation_memory"),
     ({"restart_violation_memory": 0}, "solver.restart_violation_memory"),
     ({"restart_rho_progress": -1.0}, "solver.restart_rho_progress"),

@@ -1054,8 +1054,11 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     const int wf = settings_.stall_floor_window;
     const bool stuck_at_floor = wf > 0 && at_rho_floor() && static_cast<int>(merits_.size()) > wf &&
                                 rnorm > (1.0 - 1e-4) * merits_[merits_.size() - 1 - wf];
-    const bool stall =
-        stuck_at_floor || (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]);
+    const int wc = settings_.crawl_window;
+    const bool crawling =
+        wc > 0 && static_cast<int>(merits_.size()) > wc && rnorm > settings_.crawl_ratio * merits_[merits_.size() - 1 - wc];
+    const bool stall = stuck_at_floor || crawling ||
+                       (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]);
     if (stall && rules_.rho_on_stall && rules_.rho_progress > 0 && !at_rho_floor()) {
       // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
       // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).

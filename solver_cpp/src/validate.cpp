@@ -178,6 +178,8 @@ void validate_settings(const Settings& s) {
   require(s.restarts >= 0, "solver.restarts must be >= 0");
   require(s.stall_window >= 0, "solver.stall_window must be >= 0 (0 = never)");
   require(s.stall_floor_window >= 0, "solver.stall_floor_window must be >= 0 (0 = never)");
+  require(s.crawl_window >= 0, "solver.crawl_window must be >= 0 (0 = never)");
+  require(s.crawl_ratio > 0 && s.crawl_ratio <= 1, "solver.crawl_ratio must be in (0, 1]");
   require(s.restart_u_std >= 0, "solver.restart_u_std must be >= 0");
   require(s.polish_gap >= 0, "solver.polish_gap must be >= 0 (0 = off)");
   require(s.violation_memory >= 1, "solver.violation_memory must be >= 1");

@@ -164,6 +164,11 @@ struct Settings {
   /// stall_floor_window iterations there has stalled too (polish, then restart), since no rho decrease is left to
   /// help it (0 = off).
   int stall_floor_window = 3;
+  /// A crawl is a stall too: an attempt whose ||r|| is still above crawl_ratio times its value crawl_window
+  /// iterations earlier (0 = never). Barrier subproblems that accept tiny steps for hundreds of iterations, each
+  /// lowering ||r|| by a fraction of a percent, then lower rho or end the attempt as a stall does.
+  int crawl_window = 40;
+  double crawl_ratio = 0.5;  ///< in (0, 1]
   /// On a stall, before restarting, barrier constraints with h >= -polish_gap (constraint units) are held as
   /// equalities (once per attempt); the usual partition rules release them again. 0 = off.
   double polish_gap = 1e-3;
