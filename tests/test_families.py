@@ -149,8 +149,8 @@ def test_best_response_sub_solvers_follow_updates():
 def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     """merge-dense 8 cars seed 15 (with every other default, domain_fraction included): attempt 0 fails; without the
     best-response restart the rest of the schedule does not converge within 300 iterations (nor within 1000: its line
-    search fails after 19 restarts), with it the attempt from the best-response guess converges (165 iterations). Both results are judged by the
-    benchmark's common test (dynamics, controls in the model's domain, collisions, per-player stationarity,
+    search fails after 19 restarts), with it the attempt from the best-response guess converges (165 iterations).
+    Both results are judged by the benchmark's common test (dynamics, controls in the model's domain, collisions, per-player stationarity,
     bench/verify.py) and the second-order test, not by the solver's status."""
     from bench import merge_bench
     from solver_cpp import solve

@@ -129,7 +129,7 @@ def test_a_crawl_counts_as_a_stall():
     crawled = solve(problem, time_limit=0, crawl_window=0)
     assert crawled.status == "max_iterations"
     history = np.asarray(crawled.residual_history)
-    assert np.all(history[-41:][40:] > 0.5 * history[-41:][:1])  # the final 40 iterations did not halve ||r||
+    assert history[-1] > 0.5 * history[-41]  # the final 40 iterations did not halve ||r||
     result = solve(problem, time_limit=0)
     assert result.status == "converged" and result.iterations < 1000
     report = verify_equilibrium(problem, result.x, result.u, best_response=False)

@@ -1048,17 +1048,14 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (converged(rnorm)) { info.status = Status::Converged; break; }
     if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
     if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
-    const int w = settings_.stall_window;
     auto lower_rho = [&] { rho_ = std::max(rho_floor(), std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta))); };
     double merit_now = rnorm;
-    const int wf = settings_.stall_floor_window;
-    const bool stuck_at_floor = wf > 0 && at_rho_floor() && static_cast<int>(merits_.size()) > wf &&
-                                rnorm > (1.0 - 1e-4) * merits_[merits_.size() - 1 - wf];
-    const int wc = settings_.crawl_window;
-    const bool crawling =
-        wc > 0 && static_cast<int>(merits_.size()) > wc && rnorm > settings_.crawl_ratio * merits_[merits_.size() - 1 - wc];
-    const bool stall = stuck_at_floor || crawling ||
-                       (w > 0 && static_cast<int>(merits_.size()) > w && rnorm > 0.99 * merits_[merits_.size() - 1 - w]);
+    // ||r|| is still above `ratio` times its value `window` iterations ago (window 0: never).
+    auto fell_less = [&](int window, double ratio) {
+      return window > 0 && static_cast<int>(merits_.size()) > window && rnorm > ratio * merits_[merits_.size() - 1 - window];
+    };
+    const bool stall = (at_rho_floor() && fell_less(settings_.stall_floor_window, 1.0 - 1e-4)) ||
+                       fell_less(settings_.crawl_window, settings_.crawl_ratio) || fell_less(settings_.stall_window, 0.99);
     if (stall && rules_.rho_on_stall && rules_.rho_progress > 0 && !at_rho_floor()) {
       // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
       // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).
