@@ -87,7 +87,7 @@ def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw()
     # Seed 1: the sub-solves converge within best_response_max_iter (at seed 0 with domain_fraction 0.99 agent 1's
     # does not, against agent 0's plan steering at 1.3 rad, and the guess keeps its unconverged controls).
     problem = family_problem("head-on", 2, 1)
-    guess = best_response_guess(problem, rounds=1, tol=1e-8)
+    guess = best_response_guess(problem, rounds=1, tol=1e-8, best_response_margin=0.0)
     x = problem.rollout(guess.u)
     assert max_collision_violation_m(problem, x) <= 1e-6
     alone = GameProblem(dt=problem.dt, horizon=problem.horizon, agents=[problem.agents[1]],
@@ -102,26 +102,28 @@ def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
     i alone, the problem's obstacles plus the others' current rolled-out positions as moving discs at d_min, solved
     from its current controls with the sub-solve settings (best_response_max_iter iterations, one restart, no best
     response of its own), agents in order, each new plan rolled out before the next agent solves. Three cars head-on,
-    two rounds: every agent's sub-problem has two moving obstacles and the second round starts from the first one's
-    plans."""
+    two rounds: every agent's sub-problem has two moving obstacles (at the margin beyond d_min) and the second round
+    starts from the first one's plans."""
     from solver_cpp import GameProblem, Obstacle, WarmStart, solve
     from solver_cpp.best_response import best_response_guess
 
     problem = family_problem("head-on", 3, 0)
     N, T, nu = problem.num_agents, problem.horizon, problem.agents[0].dynamics.nu
     col = problem.collision
+    margin = 0.15  # the others are kept at (1 + margin) d_min
     u = np.zeros((N, T, nu))
     x = problem.rollout(u)
     for _ in range(2):
         for i in range(N):
-            others = [Obstacle(x[j][:, [col.pos_x, col.pos_y]], col.min_distance) for j in range(N) if j != i]
+            others = [Obstacle(x[j][:, [col.pos_x, col.pos_y]], (1 + margin) * col.min_distance)
+                      for j in range(N) if j != i]
             alone = GameProblem(dt=problem.dt, horizon=T, agents=[problem.agents[i]], collision=col,
                                 obstacles=list(problem.obstacles) + others)
             r = solve(alone, warm_start=WarmStart(u=u[i:i + 1]), max_iter=100, restarts=1, best_response_rounds=0)
             assert np.all(np.isfinite(r.u))
             u[i] = r.u[0]
             x = problem.rollout(u)
-    guess = best_response_guess(problem, rounds=2)
+    guess = best_response_guess(problem, rounds=2, best_response_margin=margin)
     assert np.abs(u).max() > 0.1  # the sub-solves moved the cars
     np.testing.assert_allclose(guess.u, u, atol=1e-9, rtol=0)
 
@@ -165,6 +167,45 @@ def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     assert new[1].success and new[1].second_order_ok, new[1].failure
     assert new[0].best_response_attempts == 1 and new[0].best_response_iterations > 0
     assert new[0].attempts == 2  # attempt 0 (as without), then the attempt from the guess
+
+
+def test_best_response_guess_keeps_every_pair_beyond_the_margin():
+    """With every sub-solve converged, each agent's last plan avoided every other agent's plan as it then was, and a
+    later agent's plan avoided the earlier one's final plan: after a sweep every pair is at least (1 + margin) d_min
+    apart at every step k >= 1 (pairwise distances of the rolled-out guess, numpy). The guess therefore starts
+    strictly inside the game's collision constraints."""
+    for name, cars, seed in (("crossing", 3, 1), ("head-on", 3, 0)):  # instances whose sub-solves all converge
+        _assert_pairs_beyond_margin(family_problem(name, cars, seed))
+
+
+def _assert_pairs_beyond_margin(problem):
+    from solver_cpp.best_response import best_response_guess
+
+    col = problem.collision
+    for margin in (0.0, 0.1, 0.25):
+        guess = best_response_guess(problem, rounds=1, best_response_margin=margin)
+        xy = problem.rollout(guess.u)[:, 1:, [col.pos_x, col.pos_y]]
+        gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(problem.num_agents, 1)]
+        assert gaps.min() >= (1 + margin) * col.min_distance - 1e-4, margin  # sub-solve tolerance (m)
+        if margin > 0:  # the margin binds: some pair sits on it
+            assert gaps.min() <= (1 + margin) * col.min_distance + 1e-2, margin
+
+
+def test_best_response_margin_rescues_an_attempt_stuck_at_a_contact():
+    """merge-narrow 4 cars seed 34: without the margin the guess has cars exactly at d_min, the attempt from it stalls
+    within five iterations and no attempt of the schedule converges (1000 iterations); with the default margin the
+    attempt from the guess converges to a point that the benchmark's common test and the second-order test accept
+    (bench/verify.py, not the solver's status)."""
+    from bench import merge_bench
+    from solver_cpp import solve
+
+    problem = family_problem("merge-narrow", 4, 34)
+    stuck = solve(problem, time_limit=0, max_iter=1000, best_response_margin=0.0)
+    freed = solve(problem, time_limit=0, max_iter=1000)
+    assert stuck.status == "max_iterations"
+    assert freed.status == "converged" and freed.attempts == 2
+    record = merge_bench.record("rd3g", problem, freed, 0.0, 4, 34, "merge-narrow")
+    assert record.success and record.second_order_ok, record.failure
 
 
 @pytest.mark.parametrize("name", list(FAMILIES))

@@ -123,6 +123,8 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"best_response_rounds": -1}, "solver.best_response_rounds"),
     ({"best_response_attempt": 0}, "solver.best_response_attempt"),  # attempt 0 keeps the initial guess
     ({"best_response_max_iter": 0}, "solver.best_response_max_iter"),
+    ({"best_response_margin": -0.1}, "solver.best_response_margin"),
+    ({"best_response_margin": float("inf")}, "solver.best_response_margin"),
     ({"domain_fraction": 1.0}, "solver.domain_fraction"),
     ({"domain_fraction": -0.1}, "solver.domain_fraction"),
 ]

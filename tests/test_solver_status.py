@@ -109,11 +109,11 @@ def test_warm_start_from_shifted_solution_needs_fewer_iterations():
 def test_more_restarts_change_only_solves_that_used_every_restart():
     from bench.families import family_problem
 
-    problem = family_problem("head-on", 2, 8)  # converges in restart 5 (attempt 7, the best-response one included)
-    assert solve(problem, time_limit=0, restarts=4).status != "converged"
-    enough = solve(problem, time_limit=0, restarts=5)
+    problem = family_problem("crossing", 2, 21)  # converges in restart 4 (attempt 6, the best-response one included)
+    assert solve(problem, time_limit=0, restarts=3).status != "converged"
+    enough = solve(problem, time_limit=0, restarts=4)
     assert enough.status == "converged"
-    for restarts in (6, 19, 40):
+    for restarts in (5, 19, 40):
         more = solve(problem, time_limit=0, restarts=restarts)
         assert (more.status, more.iterations, more.attempts) == (enough.status, enough.iterations, enough.attempts)
         assert np.array_equal(more.u, enough.u)
@@ -123,9 +123,9 @@ def test_a_crawl_counts_as_a_stall():
     from bench.families import family_problem
     from bench.verify import verify_equilibrium
 
-    # Without the crawl rule the last attempt spends its ~800 iterations in barrier subproblems whose ||r||
-    # falls by a fraction of a percent per iteration, and max_iter ends it.
-    problem = family_problem("merge-narrow", 4, 24)
+    # Without the crawl rule an attempt spends hundreds of iterations in barrier subproblems whose ||r|| falls by a
+    # fraction of a percent per iteration, and max_iter ends the solve.
+    problem = family_problem("head-on", 7, 20)
     crawled = solve(problem, time_limit=0, crawl_window=0)
     assert crawled.status == "max_iterations"
     history = np.asarray(crawled.residual_history)

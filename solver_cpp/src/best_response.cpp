@@ -1,7 +1,7 @@
 // Iterated best response (Settings::best_response_rounds): each agent in turn solves its own problem alone, the
-// others' current rolled-out positions as moving obstacles, with the same solver (one agent). Used as the initial
-// guess of one restart attempt (docs/solver.md, "Restarts") and, through Solver::best_response, by
-// solver_cpp.best_response_guess.
+// others' current rolled-out positions as moving obstacles (best_response_margin beyond the collision distance),
+// with the same solver (one agent). Used as the initial guess of one restart attempt (docs/solver.md, "Restarts")
+// and, through Solver::best_response, by solver_cpp.best_response_guess.
 #include <algorithm>
 #include <string>
 #include <stdexcept>
@@ -15,9 +15,13 @@ namespace rd3g {
 int Solver::best_response_sweeps(int rounds, int budget) {
   const bool others = prob_.collision.enabled && N_ > 1;  // the others are obstacles only if collisions count
   const int n_obs = static_cast<int>(prob_.obstacles.size());
+  // The others are kept at the collision distance plus the margin: the guess then starts strictly inside.
+  const double inflate = 1.0 + settings_.best_response_margin;
+  const double keep_distance = inflate * prob_.collision.min_distance;
+  const Vec keep_distance_steps = inflate * prob_.collision.min_distance_steps;
   if (br_stale_ || static_cast<int>(br_.size()) != N_) {
     // One single-agent problem per agent: its model, cost, bounds and the problem's obstacles, then one moving
-    // obstacle per other agent at the collision distance (positions filled before each sub-solve). The lead term
+    // obstacle per other agent at the inflated distance (positions filled before each sub-solve). The lead term
     // sums over the other agents and is absent from a one-agent problem: being linear in their states, it does not
     // change agent i's best response except through its own -(N-1) weight x_i[index] term, which the guess omits.
     Settings sub = settings_;
@@ -46,8 +50,8 @@ int Solver::best_response_sweeps(int rounds, int budget) {
         for (int j = 0; j < N_ - 1; ++j) {
           Obstacle o;
           o.positions = br_positions_;
-          o.min_distance = prob_.collision.min_distance;
-          o.min_distance_steps = prob_.collision.min_distance_steps;
+          o.min_distance = keep_distance;
+          o.min_distance_steps = keep_distance_steps;
           p.obstacles.push_back(std::move(o));
         }
       if (!br_[i]) br_[i] = std::make_unique<Solver>();
@@ -69,7 +73,7 @@ int Solver::best_response_sweeps(int rounds, int budget) {
           if (j == i) continue;
           br_positions_.col(0) = y_.x[j].row(px).transpose();
           br_positions_.col(1) = y_.x[j].row(py).transpose();
-          s.update_obstacle(o++, br_positions_, prob_.collision.min_distance, prob_.collision.min_distance_steps);
+          s.update_obstacle(o++, br_positions_, keep_distance, keep_distance_steps);
         }
       s.settings_.max_iter = std::min(settings_.best_response_max_iter, left);
       s.settings_.time_limit = time;

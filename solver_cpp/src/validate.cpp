@@ -191,6 +191,8 @@ void validate_settings(const Settings& s) {
   require(s.best_response_rounds >= 0, "solver.best_response_rounds must be >= 0 (0 = off)");
   require(s.best_response_attempt >= 1, "solver.best_response_attempt must be >= 1 (attempt 0 keeps the initial guess)");
   require(s.best_response_max_iter >= 1, "solver.best_response_max_iter must be >= 1");
+  require(std::isfinite(s.best_response_margin) && s.best_response_margin >= 0,
+          "solver.best_response_margin must be finite and >= 0 (a fraction of the collision distance)");
   require(s.saddle_escapes >= 0, "solver.saddle_escapes must be >= 0 (0 = off)");
   require(std::isfinite(s.saddle_step) && s.saddle_step > 0, "solver.saddle_step must be positive and finite (control units)");
   require(std::isfinite(s.saddle_rho) && s.saddle_rho > 0, "solver.saddle_rho must be positive and finite");

@@ -209,8 +209,8 @@ struct Settings {
   /// where it was), starts from the controls that best_response_rounds Gauss-Seidel sweeps over the agents reach from
   /// the initial controls: each agent in turn solves its own problem alone (a single-agent sub-solver built once,
   /// with its dynamics, cost, bounds, the problem's obstacles and the others' current rolled-out positions as moving
-  /// obstacles at the collision distance), warm-started from its current controls, and keeps the controls the
-  /// sub-solve returns if they are finite (converged or not). Each sub-solve has these settings with at most
+  /// obstacles at (1 + best_response_margin) times the collision distance), warm-started from its current controls,
+  /// and keeps the controls the sub-solve returns if they are finite (converged or not). Each sub-solve has these settings with at most
   /// best_response_max_iter iterations (and what is left of the budget and time_limit), one restart and no best
   /// response of its own. A sub-solve iteration (one agent's Newton system) counts 1/N of a game iteration in
   /// Info::iterations and max_iter (rounded up per attempt); Info::best_response_iterations reports them unscaled;
@@ -220,6 +220,10 @@ struct Settings {
   int best_response_rounds = 1;
   int best_response_attempt = 1;
   int best_response_max_iter = 100;  ///< per single-agent sub-solve (Newton iterations)
+  /// The sub-solves keep the others at (1 + best_response_margin) times the collision distance (per step too), so
+  /// that the guess starts strictly inside every collision constraint: a guess whose contacts sit exactly at d_min
+  /// leaves the barrier no room, and the attempt from it stalls within a few iterations (docs/solver.md).
+  double best_response_margin = 0.1;  ///< fraction of the collision distance, >= 0
   /// Non-monotone violation test (attempt 0; restarts use restart_violation_memory): a trial may not raise the
   /// total violation above the largest of the last violation_memory iterates' (1 = monotone, the paper's rule).
   int violation_memory = 1;
