@@ -99,11 +99,11 @@ def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw()
 
 def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
     """The C++ sweeps (the best-response restart's) against single-agent games built here with the Python API: agent
-    i alone, the problem's obstacles plus the others' current rolled-out positions as moving discs at d_min, solved
-    from its current controls with the sub-solve settings (best_response_max_iter iterations, one restart, no best
-    response of its own), agents in order, each new plan rolled out before the next agent solves. Three cars head-on,
-    two rounds: every agent's sub-problem has two moving obstacles (at the margin beyond d_min) and the second round
-    starts from the first one's plans."""
+    i alone, the problem's obstacles plus the others' current rolled-out positions as moving discs at (1 + margin)
+    d_min, solved from its current controls with the sub-solve settings (best_response_max_iter iterations, one
+    restart, no best response of its own), agents in order, each new plan rolled out before the next agent solves.
+    Three cars head-on, two rounds: every agent's sub-problem has two moving obstacles and the second round starts
+    from the first one's plans."""
     from solver_cpp import GameProblem, Obstacle, WarmStart, solve
     from solver_cpp.best_response import best_response_guess
 
@@ -151,9 +151,9 @@ def test_best_response_sub_solvers_follow_updates():
 def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     """merge-dense 8 cars seed 15 (with every other default, domain_fraction included): attempt 0 fails; without the
     best-response restart the rest of the schedule does not converge within 300 iterations (nor within 1000: its line
-    search fails after 19 restarts), with it the attempt from the best-response guess converges (165 iterations).
-    Both results are judged by the benchmark's common test (dynamics, controls in the model's domain, collisions, per-player stationarity,
-    bench/verify.py) and the second-order test, not by the solver's status."""
+    search fails after 19 restarts), with it the attempt from the best-response guess converges (155 iterations).
+    Both results are judged by the benchmark's common test (dynamics, controls in the model's domain, collisions,
+    per-player stationarity, bench/verify.py) and the second-order test, not by the solver's status."""
     from bench import merge_bench
     from solver_cpp import solve
 
@@ -174,21 +174,18 @@ def test_best_response_guess_keeps_every_pair_beyond_the_margin():
     later agent's plan avoided the earlier one's final plan: after a sweep every pair is at least (1 + margin) d_min
     apart at every step k >= 1 (pairwise distances of the rolled-out guess, numpy). The guess therefore starts
     strictly inside the game's collision constraints."""
-    for name, cars, seed in (("crossing", 3, 1), ("head-on", 3, 0)):  # instances whose sub-solves all converge
-        _assert_pairs_beyond_margin(family_problem(name, cars, seed))
-
-
-def _assert_pairs_beyond_margin(problem):
     from solver_cpp.best_response import best_response_guess
 
-    col = problem.collision
-    for margin in (0.0, 0.1, 0.25):
-        guess = best_response_guess(problem, rounds=1, best_response_margin=margin)
-        xy = problem.rollout(guess.u)[:, 1:, [col.pos_x, col.pos_y]]
-        gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(problem.num_agents, 1)]
-        assert gaps.min() >= (1 + margin) * col.min_distance - 1e-4, margin  # sub-solve tolerance (m)
-        if margin > 0:  # the margin binds: some pair sits on it
-            assert gaps.min() <= (1 + margin) * col.min_distance + 1e-2, margin
+    for name, cars, seed in (("crossing", 3, 1), ("head-on", 3, 0)):  # instances whose sub-solves all converge
+        problem = family_problem(name, cars, seed)
+        col = problem.collision
+        for margin in (0.0, 0.1, 0.25):
+            guess = best_response_guess(problem, rounds=1, best_response_margin=margin)
+            xy = problem.rollout(guess.u)[:, 1:, [col.pos_x, col.pos_y]]
+            gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(cars, 1)]
+            assert gaps.min() >= (1 + margin) * col.min_distance - 1e-4, (name, margin)  # sub-solve tolerance (m)
+            if margin > 0:  # the margin binds: some pair sits on it
+                assert gaps.min() <= (1 + margin) * col.min_distance + 1e-2, (name, margin)
 
 
 def test_best_response_margin_rescues_an_attempt_stuck_at_a_contact():

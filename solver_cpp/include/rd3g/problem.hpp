@@ -210,9 +210,9 @@ struct Settings {
   /// the initial controls: each agent in turn solves its own problem alone (a single-agent sub-solver built once,
   /// with its dynamics, cost, bounds, the problem's obstacles and the others' current rolled-out positions as moving
   /// obstacles at (1 + best_response_margin) times the collision distance), warm-started from its current controls,
-  /// and keeps the controls the sub-solve returns if they are finite (converged or not). Each sub-solve has these settings with at most
-  /// best_response_max_iter iterations (and what is left of the budget and time_limit), one restart and no best
-  /// response of its own. A sub-solve iteration (one agent's Newton system) counts 1/N of a game iteration in
+  /// and keeps the controls the sub-solve returns if they are finite (converged or not). Each sub-solve has these
+  /// settings with at most best_response_max_iter iterations (and what is left of the budget and time_limit), one
+  /// restart and no best response of its own. A sub-solve iteration (one agent's Newton system) counts 1/N of a game iteration in
   /// Info::iterations and max_iter (rounded up per attempt); Info::best_response_iterations reports them unscaled;
   /// their time is the solve's. The attempt itself runs from rho_init with attempt 0's rules (the first-attempt
   /// rules, or the restart rules if the guess overlaps deeply). Rounds 0 = off; an attempt past restarts never runs
