@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 
 import fileio
-from tracking.calibration import CalibrationError, Intrinsics
+from tracking.calibration import CalibrationError, Intrinsics, aruco_dictionary_id
 from tracking.camera import CameraSource, EndOfStream
-from vehicles.aruco_dictionary import DEFAULT_DICTIONARY, UnknownDictionaryError, dictionary_id, dictionary_size
+from vehicles.params import MARKER_DICTIONARY, aruco_dictionary_size
 
 MIN_VIEWS = 3  # Zhang's method: 3 views of a plane fix fx, fy, cx, cy; 10-20 varied views are better
 MIN_CORNERS = 6  # a homography needs 4 points; 6 keep one view from being decided by a single marker
@@ -43,7 +43,7 @@ class CharucoBoardSpec:
     squares_y: int
     square_length_m: float
     marker_length_m: float
-    dictionary: str = DEFAULT_DICTIONARY
+    dictionary: str = MARKER_DICTIONARY
     legacy_pattern: bool = False
 
     def __post_init__(self):
@@ -58,10 +58,9 @@ class CharucoBoardSpec:
         if not self.marker_length_m < self.square_length_m:
             raise ValueError(f"marker_length_m: must be smaller than square_length_m ({self.marker_length_m} >= "
                              f"{self.square_length_m})")
-        try:
-            size = dictionary_size(self.dictionary)
-        except UnknownDictionaryError as exc:
-            raise ValueError(str(exc)) from None
+        size = aruco_dictionary_size(self.dictionary)
+        if size is None:
+            aruco_dictionary_id(self.dictionary)  # raises, naming the field
         if self.markers > size:
             raise ValueError(f"dictionary: {self.dictionary} has {size} markers, a {self.squares_x} x "
                              f"{self.squares_y} board needs {self.markers}")
@@ -73,7 +72,7 @@ class CharucoBoardSpec:
     def board(self) -> cv2.aruco.CharucoBoard:
         board = cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), float(self.square_length_m),
                                        float(self.marker_length_m),
-                                       cv2.aruco.getPredefinedDictionary(dictionary_id(self.dictionary)))
+                                       cv2.aruco.getPredefinedDictionary(aruco_dictionary_id(self.dictionary)))
         board.setLegacyPattern(bool(self.legacy_pattern))
         return board
 

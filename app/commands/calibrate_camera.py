@@ -14,7 +14,7 @@ from tracking.calibration import CalibrationError, save_intrinsics
 from tracking.camera import CameraError, OpenCVCamera
 from tracking.charuco import (MAX_BLUR_PX, MIN_VIEWS, BoardDetector, BoardView, CharucoBoardSpec, IntrinsicsCalibration,
                               calibrate_intrinsics, capture_views, load_board_file)
-from vehicles.aruco_dictionary import DEFAULT_DICTIONARY
+from vehicles.params import MARKER_DICTIONARY
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 MAX_IMAGE_BYTES = 256 * 2**20
@@ -42,7 +42,7 @@ def register(sub):
     p.add_argument("--squares-y", type=int, help="squares along the board's y axis (rows)")
     p.add_argument("--square-length", type=float, help="chessboard square side (m)")
     p.add_argument("--marker-length", type=float, help="marker side (m)")
-    p.add_argument("--dictionary", help=f"ArUco dictionary, OpenCV name (default {DEFAULT_DICTIONARY})")
+    p.add_argument("--dictionary", help=f"ArUco dictionary, OpenCV name (default {MARKER_DICTIONARY})")
     p.add_argument("--legacy-pattern", action="store_true",
                    help="board printed with OpenCV up to 4.5 (or bought): other chessboard colour when "
                         "--squares-y is even")
@@ -73,7 +73,7 @@ def board_spec(args) -> CharucoBoardSpec:
                         "(and the other --squares-x/--squares-y/--square-length/--marker-length)")
     try:
         return CharucoBoardSpec(args.squares_x, args.squares_y, args.square_length, args.marker_length,
-                                args.dictionary or DEFAULT_DICTIONARY, args.legacy_pattern)
+                                args.dictionary or MARKER_DICTIONARY, args.legacy_pattern)
     except ValueError as exc:  # "square_length_m: ..." -> "--square-length: ..."
         name, _, problem = str(exc).partition(": ")
         raise UserError(f"--{name.removesuffix('_m').replace('_', '-')}: {problem}") from None

@@ -10,7 +10,7 @@ import numpy as np
 from app.cli import UserError
 from fileio import atomic_path, check_output_path
 from tracking.charuco import CharucoBoardSpec, PrintedBoard, save_board_file
-from vehicles.aruco_dictionary import DEFAULT_DICTIONARY
+from vehicles.params import MARKER_DICTIONARY
 
 PAPER_MM = {"A5": (148.0, 210.0), "A4": (210.0, 297.0), "A3": (297.0, 420.0), "A2": (420.0, 594.0),
             "letter": (215.9, 279.4), "legal": (215.9, 355.6), "tabloid": (279.4, 431.8)}
@@ -32,7 +32,7 @@ def register(sub):
     p.add_argument("--squares-y", type=int, default=5, help="squares along y (default 5)")
     p.add_argument("--square-length", type=float, help="square side (m; default: the largest whole mm that fits)")
     p.add_argument("--marker-length", type=float, help="marker side (m; default 0.75 of the square)")
-    p.add_argument("--dictionary", default=DEFAULT_DICTIONARY, help=f"ArUco dictionary (default {DEFAULT_DICTIONARY})")
+    p.add_argument("--dictionary", default=MARKER_DICTIONARY, help=f"ArUco dictionary (default {MARKER_DICTIONARY})")
     p.add_argument("--legacy-pattern", action="store_true", help="OpenCV <= 4.5 chessboard colouring")
     p.set_defaults(func=run)
 
