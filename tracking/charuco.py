@@ -56,8 +56,8 @@ class CharucoBoardSpec:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 10:
                 raise ValueError(f"{name}: must be a length in metres in (0, 10), got {value!r}")
         if not self.marker_length_m < self.square_length_m:
-            raise ValueError(f"marker_length_m: must be smaller than square_length_m ({self.marker_length_m} >= "
-                             f"{self.square_length_m})")
+            raise ValueError(f"marker_length_m: must be smaller than the square ({1000 * self.marker_length_m:.4g} mm "
+                             f">= {1000 * self.square_length_m:.4g} mm)")
         size = aruco_dictionary_size(self.dictionary)
         if size is None:
             aruco_dictionary_id(self.dictionary)  # raises, naming the field

@@ -74,9 +74,14 @@ def board_spec(args) -> CharucoBoardSpec:
     try:
         return CharucoBoardSpec(args.squares_x, args.squares_y, args.square_length, args.marker_length,
                                 args.dictionary or MARKER_DICTIONARY, args.legacy_pattern)
-    except ValueError as exc:  # "square_length_m: ..." -> "--square-length: ..."
-        name, _, problem = str(exc).partition(": ")
-        raise UserError(f"--{name.removesuffix('_m').replace('_', '-')}: {problem}") from None
+    except ValueError as exc:
+        raise geometry_option_error(exc) from None
+
+
+def geometry_option_error(exc: ValueError) -> UserError:
+    """A board geometry error as the option that set the field: "square_length_m: ..." -> "--square-length: ..."."""
+    name, _, problem = str(exc).partition(": ")
+    return UserError(f"--{name.removesuffix('_m').replace('_', '-')}: {problem}")
 
 
 def image_files(arguments: list[str]) -> list[Path]:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import UserError
+from app.commands.calibrate_camera import geometry_option_error
 from fileio import atomic_path, check_output_path
 from tracking.charuco import CharucoBoardSpec, PrintedBoard, save_board_file
 from vehicles.params import MARKER_DICTIONARY
@@ -76,8 +77,7 @@ def layout(args) -> tuple[CharucoBoardSpec, tuple[float, float], int, int]:
         spec = CharucoBoardSpec(args.squares_x, args.squares_y, square_px / px_per_m, marker_px / px_per_m,
                                 args.dictionary, args.legacy_pattern)
     except ValueError as exc:
-        name, _, problem = str(exc).partition(": ")
-        raise UserError(f"--{name.removesuffix('_m').replace('_', '-')}: {problem}") from None
+        raise geometry_option_error(exc) from None
     if spec.squares_x * square_px > usable[0] * px_per_m + 1 or spec.squares_y * square_px > usable[1] * px_per_m + 1:
         raise UserError(f"a {spec.squares_x} x {spec.squares_y} board of {1000 * spec.square_length_m:.1f} mm squares "
                         f"does not fit on {args.paper} inside a {args.margin_mm:g} mm margin")
