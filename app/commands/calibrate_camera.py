@@ -191,7 +191,8 @@ def run(args) -> int:
     try:
         result = calibrate_intrinsics(views, size, args.min_views)
     except CalibrationError as exc:
-        raise UserError(f"{exc} (board: {spec.describe()})") from None
+        source = f" from --board {args.board}" if args.board else ""
+        raise UserError(f"{exc} (board: {spec.describe()}{source})") from None
     report(result)
     save_intrinsics(args.out, result.intrinsics)
     print(f"wrote {args.out} ({size[0]}x{size[1]})")
