@@ -24,9 +24,11 @@ class BoardRenderer:
     """Images of the board at a pose (rvec, tvec of the board frame in the camera frame)."""
 
     def __init__(self, squares: tuple[int, int], square_m: float, marker_m: float, dictionary: str,
-                 camera_matrix=CAMERA_MATRIX, dist_coeffs=DIST_COEFFS, size=SIZE, supersample: int = 3):
+                 camera_matrix=CAMERA_MATRIX, dist_coeffs=DIST_COEFFS, size=SIZE, supersample: int = 3,
+                 legacy_pattern: bool = False):
         board = cv2.aruco.CharucoBoard(squares, square_m, marker_m,
                                        cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)))
+        board.setLegacyPattern(legacy_pattern)  # OpenCV <= 4.5's colouring when squares[1] is even
         picture = board.generateImage((round(squares[0] * square_m * PX_PER_M), round(squares[1] * square_m * PX_PER_M)))
         self.pad = int(0.015 * PX_PER_M)  # white paper around the board
         self.paper = cv2.copyMakeBorder(picture, *[self.pad] * 4, cv2.BORDER_CONSTANT, value=255)

@@ -11,6 +11,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -141,6 +142,14 @@ def test_cli_bad_input_names_the_file(render, tmp_path, capsys):
     assert main(["calibrate-camera", str(good), "--squares-x", "5", "--out", str(out)]) == 2
     assert "--squares-y" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_legacy_pattern_boards_need_the_option():
+    legacy = BoardRenderer((6, 4), 0.03, 0.022, "DICT_4X4_50", supersample=2, legacy_pattern=True)
+    image = legacy(*legacy.random_poses(1, np.random.default_rng(8), depth_m=(0.4, 0.4))[0])
+    spec = CharucoBoardSpec(6, 4, 0.03, 0.022, "DICT_4X4_50")
+    assert BoardDetector(dataclasses.replace(spec, legacy_pattern=True)).detect(image, "v").corners == 15
+    assert BoardDetector(spec).detect(image, "v").corners < 6  # a board printed by OpenCV <= 4.5 without the option
 
 
 class MovingBoard:
