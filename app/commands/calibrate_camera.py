@@ -163,7 +163,8 @@ def report(result: IntrinsicsCalibration) -> None:
     print(f"reprojection error: rms {result.rms_px:.3f} px over {sum(v.corners for v in result.used)} corners")
     s = result.std_px
     print(f"fx {k[0, 0]:.2f} +- {s['fx']:.2f} px, fy {k[1, 1]:.2f} +- {s['fy']:.2f} px, "
-          f"cx {k[0, 2]:.2f} +- {s['cx']:.2f} px, cy {k[1, 2]:.2f} +- {s['cy']:.2f} px (one standard deviation)")
+          f"cx {k[0, 2]:.2f} +- {s['cx']:.2f} px, cy {k[1, 2]:.2f} +- {s['cy']:.2f} px (one standard deviation; "
+          "3 of them bound the error, docs/tracking.md)")
     print("distortion (k1, k2, p1, p2, k3): " + ", ".join(f"{d:.5g}" for d in result.intrinsics.dist_coeffs))
     for warning in result.warnings:
         print(f"warning: {warning}")
