@@ -187,6 +187,19 @@ def test_live_capture_keeps_views_once_the_board_moved(render):
         assert abs(estimate - true) < 0.02 * true, (name, estimate, true)
 
 
+def test_cli_live_camera_path(render, tmp_path, monkeypatch, capsys):
+    import app.commands.calibrate_camera as command
+
+    camera = MovingBoard(render, render.random_poses(9, np.random.default_rng(21)), steps=3)
+    opened = []
+    monkeypatch.setattr(command, "OpenCVCamera", lambda source: opened.append(source) or camera)
+    out = tmp_path / "intrinsics.json"
+    assert main(["calibrate-camera", "--camera", "2", "--every", "2", "--views", "5", *_cli_board(),
+                 "--out", str(out)]) == 0
+    assert opened == [2] and "views: 5 used, 0 rejected" in capsys.readouterr().out
+    assert abs(load_intrinsics(out).camera_matrix[0, 0] - K_TRUE[0, 0]) < 0.02 * K_TRUE[0, 0]
+
+
 def test_live_capture_waits_for_the_board_to_move(render):
     still = render(*render.random_poses(1, np.random.default_rng(4))[0])
     camera = MovingBoard(None, [])
