@@ -26,6 +26,7 @@ import fileio
 from fileio import unknown_key_message
 
 from tracking.geometry import PinholeCamera
+from vehicles.params import MARKER_DICTIONARY
 
 CALIBRATION_FORMAT_VERSION = 1
 
@@ -86,7 +87,8 @@ def marker_corners_track(x, y, heading, size, z=0.0) -> np.ndarray:
 def aruco_dictionary_id(name: str, field_name: str = "dictionary") -> int:
     value = getattr(cv2.aruco, str(name), None)
     if not isinstance(name, str) or not name.startswith("DICT_") or not isinstance(value, int):
-        raise CalibrationError(f"{field_name}: unknown ArUco dictionary {name!r} (e.g. 'DICT_4X4_50')")
+        raise CalibrationError(f"{field_name}: unknown ArUco dictionary {name!r} (an OpenCV name such as "
+                               f"{MARKER_DICTIONARY!r} or 'DICT_6X6_250')")
     return value
 
 
@@ -106,7 +108,7 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
     for key in data:
         if key not in ("dictionary", "markers", "description"):
             raise CalibrationError(f"{source}: {key}: {unknown_key_message(key, ('dictionary', 'markers', 'description'))}")
-    dictionary = data.get("dictionary", "DICT_4X4_50")
+    dictionary = data.get("dictionary", MARKER_DICTIONARY)
     dict_id = aruco_dictionary_id(dictionary, f"{source}: dictionary")
     n_ids = cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0]
     raw = data.get("markers")
@@ -261,7 +263,7 @@ class CameraCalibration:
     the track plane (or to the plane of a raised marker) with ``camera.pixels_to_plane``."""
 
     camera: PinholeCamera
-    dictionary: str = "DICT_4X4_50"
+    dictionary: str = MARKER_DICTIONARY
     intrinsics_source: str = "file"  # "file" or "estimated" (single-view, see docs/tracking.md)
     focal_std_px: float | None = None  # estimated focal length: standard deviation, both sources below combined
     focal_std_markers_px: float | None = None  # spread over marker bootstrap resamples (noise, lens misfit)
@@ -521,7 +523,7 @@ def load_calibration(path) -> CameraCalibration:
     for name, shape in (("camera_position_m", (3,)), ("homography_track_to_image", (3, 3))):
         if name in data:
             _matrix(data[name], shape, f"{src}: {name}")
-    dictionary = data.get("dictionary", "DICT_4X4_50")
+    dictionary = data.get("dictionary", MARKER_DICTIONARY)
     aruco_dictionary_id(dictionary, f"{src}: dictionary")
     source = data.get("intrinsics_source", "file")
     if source not in ("file", "estimated"):
