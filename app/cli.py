@@ -26,6 +26,7 @@ COMMAND_MODULES = [
     "app.commands.link_decode",
     "app.commands.check",
     "app.commands.sysid",
+    "app.commands.track",
 ]
 
 
