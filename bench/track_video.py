@@ -116,7 +116,7 @@ def main(argv=None) -> int:
                 w.writerow([f"{t:.6f}", marker, f"{x:.6f}", f"{y:.6f}", f"{h:.6f}"])
     tracker = ArucoTracker(CameraCalibration(clip.camera), APPEARANCE.marker_size_m, APPEARANCE.roof_height_m,
                            car_ids=list(CARS), full_search_every=10 ** 9)
-    source = ReadAhead(VideoFileCamera(video, clock="container"))  # as python -m app track
+    source = ReadAhead(VideoFileCamera(video, clock="container", grey=True))  # as python -m app track
     load = os.getloadavg()[0]
     start, cpu = time.perf_counter(), time.process_time()
     result = track_video(source, tracker, [TrackedCar(m) for m in CARS], None if args.raw else MultiCarEstimator())

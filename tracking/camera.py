@@ -84,9 +84,11 @@ class VideoFileCamera:
     container's position in milliseconds if it reports no frame rate); ``clock="container"``: the
     frame's own timestamp (``CAP_PROP_POS_MSEC`` after the read: its presentation time), which must
     increase from frame to frame (CameraError naming the frame otherwise). ``frame_count`` is what the
-    container announces (None if it does not), so a reader can tell a cut file from its end."""
+    container announces (None if it does not), so a reader can tell a cut file from its end.
+    ``grey``: frames as one channel; an MJPEG video's JPEG frames are then decoded straight to grey
+    (half the decoding time of OpenCV's colour frames), a frame that does not decode is a CameraError."""
 
-    def __init__(self, path, clock: Literal["index", "container"] = "index"):
+    def __init__(self, path, clock: Literal["index", "container"] = "index", grey: bool = False):
         self.path = str(path)
         if clock not in ("index", "container"):
             raise ValueError(f"VideoFileCamera clock: 'index' or 'container', got {clock!r}")
@@ -102,6 +104,10 @@ class VideoFileCamera:
         self.fps = fps if fps and fps > 0 else None
         count = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
         self.frame_count = int(count) if count and count > 0 else None
+        self.grey = bool(grey)
+        fourcc = int(self._cap.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little").upper()
+        # Undecoded packets (CAP_PROP_FORMAT -1) of an MJPEG stream are JPEG images.
+        self._jpeg = self.grey and fourcc == b"MJPG" and self._cap.set(cv2.CAP_PROP_FORMAT, -1)
         self._index = 0
         self._last_t: float | None = None
 
@@ -109,6 +115,13 @@ class VideoFileCamera:
         ok, image = self._cap.read()
         if not ok:
             raise EndOfStream(f"{self.path}: end of video after {self._index} frames")
+        if self._jpeg:
+            image = cv2.imdecode(image, cv2.IMREAD_GRAYSCALE)
+            if image is None:
+                raise CameraError(f"{self.path}: frame {self._index}: the JPEG image does not decode (damaged or "
+                                  f"truncated video)")
+        elif self.grey and image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if self.clock == "container":
             t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
             if self._last_t is not None and not t > self._last_t:

@@ -118,7 +118,7 @@ def _source(args):
         return ReadAhead(ImageFolderCamera(args.video, args.fps))
     if args.fps is not None:
         raise UserError("--fps: only for an image folder; a video's own timestamps are used")
-    return ReadAhead(VideoFileCamera(args.video, clock="container"))  # decoding overlaps tracking
+    return ReadAhead(VideoFileCamera(args.video, clock="container", grey=True))  # decoding overlaps tracking
 
 
 def run(args) -> int:
