@@ -260,3 +260,30 @@ def test_capture_without_the_cars_radio_id(clip, tmp_path, capsys):
                     "--out", str(tmp_path / "x.csv"), "--link-capture", str(tmp_path / "cap.txt"),
                     "--link-protocol", "rd3g", "--no-progress"], capsys)
     assert str(tmp_path / "cap.txt") in err and "radio id 7" in err
+
+
+def _car_file(tmp_path: Path, marker: int, modem: int) -> Path:
+    """vehicles/buzzracer.toml with its own marker id and FHSS slot (one file per physical car)."""
+    text = (Path(__file__).resolve().parents[1] / "vehicles" / "buzzracer.toml").read_text()
+    text = re.sub(r"(?m)^aruco_id = \d+$", f"aruco_id = {marker}", text)
+    path = tmp_path / f"car{marker}.toml"
+    path.write_text(text + f"\n[radio]\nmodem_id = {modem}\n")
+    return path
+
+
+def test_car_files_give_markers_and_fhss_slots(clip, tmp_path):
+    video, _, made = clip
+    files = [_car_file(tmp_path, 3, 1), _car_file(tmp_path, 7, 4)]
+    cals = [servo_calibration(load_car_params(f)) for f in files]
+    plan = _capture(tmp_path / "cap.txt", "buzzracer-fhss", {3: 1, 7: 4}, cals)
+    out = tmp_path / "log.csv"
+    assert main(["track", str(video), "--calibration", str(made.calibration), "--car-params", *map(str, files),
+                 "--out", str(out), "--link-capture", str(tmp_path / "cap.txt"), "--no-progress"]) == 0
+    _, rows = _read(out)
+    assert set(rows[:, 1]) == {3, 7}
+    _check_against_truth(rows, made.truth)
+    mid = rows[np.abs(rows[:, 0] - 0.45) < 0.05]  # no offset: capture time 0.40-0.50 s, the first commands
+    full = load_car_params(files[0]).actuators.max_steering_rad
+    for _, marker, *_, thr, steer in mid.tolist():
+        assert thr == pytest.approx(plan[int(marker)][0][0], abs=0.003)
+        assert steer == pytest.approx(plan[int(marker)][0][1] * full, abs=0.003 * full)
