@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import time
+from functools import partial
 
 from app.cli import UserError
 from fileio import check_output_path
@@ -84,6 +85,16 @@ def _car_files(args) -> tuple[list[int], list]:
     return ids, files
 
 
+def _from_pulses(calibration, steering_us: float, throttle_us: float) -> tuple[float, float]:
+    """FHSS pulse widths -> (throttle, wheel angle rad), as the car's receiver turns them."""
+    return calibration.throttle(throttle_us), calibration.steering_rad(steering_us)
+
+
+def _from_normalised(car, steering: float, throttle: float) -> tuple[float, float]:
+    """rd3g normalised values -> (throttle, wheel angle rad)."""
+    return physical_command(car, CarCommand(steering, throttle))
+
+
 def _link_cars(args, ids, files) -> list[TrackedCar]:
     protocol = args.link_protocol
     if args.radio_ids:
@@ -101,12 +112,11 @@ def _link_cars(args, ids, files) -> list[TrackedCar]:
     for marker, radio, car in zip(ids, radios, files):
         if protocol == "buzzracer-fhss":
             try:
-                cal = servo_calibration(car, radio)
+                convert = partial(_from_pulses, servo_calibration(car, radio))
             except ProtocolError as exc:
                 raise UserError(f"--radio-ids: {exc}") from None
-            convert = lambda s, t, cal=cal: (cal.throttle(t), cal.steering_rad(s))  # noqa: E731
         else:
-            convert = lambda s, t, car=car: physical_command(car, CarCommand(s, t))  # noqa: E731
+            convert = partial(_from_normalised, car)
         cars.append(TrackedCar(marker, radio, convert))
     return cars
 
