@@ -58,7 +58,8 @@ def render_clip(out: Path, frames: int, fps: float = 60.0, image_size=(1280, 800
     track = load_track("oval")
     left, right = track.boundaries(0.01)
     camera = overhead_camera(image_size=image_size)
-    synth = SyntheticCamera(camera, TrackDrawing(left, right), car=APPEARANCE, effects=RenderEffects(seed=seed), fps=fps)
+    synth = SyntheticCamera(camera, TrackDrawing(left, right), car=APPEARANCE, effects=RenderEffects(seed=seed),
+                            fps=fps)
     out.parent.mkdir(parents=True, exist_ok=True)
     writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"MJPG"), fps, image_size, isColor=False)
     if not writer.isOpened():

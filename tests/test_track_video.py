@@ -150,7 +150,8 @@ def test_link_capture_commands_at_the_right_times(clip, tmp_path, protocol):
         # the frames' resolution (rd3g int16 steps of 1/32767, FHSS whole microseconds: 1 us of 500 is
         # 0.002) and the CSV's 6 decimals
         tol = (0.5 / 32767 if protocol == "rd3g" else 0.003) + 1e-6
-        assert thr == pytest.approx(expected[0], abs=tol) and steer == pytest.approx(expected[1], abs=tol * full + 1e-6), (t, marker)
+        assert thr == pytest.approx(expected[0], abs=tol), (t, marker)
+        assert steer == pytest.approx(expected[1], abs=tol * full + 1e-6), (t, marker)
     assert {round(v, 3) for v in rows[:, 5]} >= {0.0, 0.2, 0.6, -0.2, -0.6}
     # sysid reads it (docs/sysid.md format)
     log = read_log(out)
@@ -241,7 +242,8 @@ def test_calibration_of_another_image_size(clip, tmp_path, capsys):
 
 def test_folder_inputs(clip, tmp_path, capsys):
     _, folder, made = clip
-    common = ["--calibration", str(made.calibration), "--markers", "3,7", "--out", str(tmp_path / "x.csv"), "--no-progress"]
+    common = ["--calibration", str(made.calibration), "--markers", "3,7", "--out", str(tmp_path / "x.csv"),
+              "--no-progress"]
     err = _run_bad(["track", str(folder), *common], capsys)
     assert "--fps" in err
     broken = tmp_path / "broken"

@@ -32,7 +32,8 @@ def register(sub) -> None:
     p.add_argument("video", metavar="VIDEO_OR_FOLDER", help="video file (any OpenCV can read) or folder of images")
     p.add_argument("--calibration", required=True, help="calibration JSON of the camera (python -m app calibrate)")
     cars = p.add_mutually_exclusive_group(required=True)
-    cars.add_argument("--markers", help=f"car marker ids, comma-separated (marker geometry from vehicles/{DEFAULT_CAR}.toml)")
+    cars.add_argument("--markers", help="car marker ids, comma-separated (marker geometry from "
+                                        f"vehicles/{DEFAULT_CAR}.toml)")
     cars.add_argument("--car-params", nargs="+", metavar="FILE", help="car files: their marker ids and geometry")
     p.add_argument("--out", required=True, help="CSV to write")
     p.add_argument("--fps", type=float, default=None,
