@@ -25,9 +25,10 @@ import pytest
 
 from app.cli import main
 from bench.track_video import CARS, HIDDEN_S, errors, render_clip
+from race.video_tracking import TrackedCar, commands_at
 from sysid.log import read_log
 from vehicles.fhss import servo_calibration
-from vehicles.link_capture import LinkCapture
+from vehicles.link_capture import CaptureDecode, CapturedFrame, LinkCapture
 from vehicles.link_protocols import make_encoder
 from vehicles.params import load_car_params
 from vehicles.protocol import CarCommand
@@ -289,3 +290,17 @@ def test_car_files_give_markers_and_fhss_slots(clip, tmp_path):
     for _, marker, *_, thr, steer in mid.tolist():
         assert thr == pytest.approx(plan[int(marker)][0][0], abs=0.003)
         assert steer == pytest.approx(plan[int(marker)][0][1] * full, abs=0.003 * full)
+
+
+def test_commands_hold_until_the_failsafe():
+    """Hand-worked: frames at 0, 0.05 and 0.3 s, a 0.1 s failsafe, offset 0.01 s."""
+    frames = [CapturedFrame(t, -1, {5: (0.0, v)}) for t, v in ((0.0, 0.1), (0.05, 0.2), (0.3, 0.3))]
+    decode = CaptureDecode("rd3g", frames, {}, [])
+    car = TrackedCar(2, 5, lambda steering, throttle: (throttle, steering))
+    t = np.array([0.0, 0.03, 0.11, 0.17, 0.32, 0.5])
+    rows = np.column_stack([t, np.full(len(t), 2.0), np.zeros((len(t), 3))])
+    values, notes = commands_at(decode, [car], rows, offset_s=0.01, failsafe_timeout_s=0.1)
+    # video times of the frames: 0.01, 0.06, 0.31
+    assert values[:, 0].tolist() == [0.0, 0.1, 0.2, 0.0, 0.3, 0.0]
+    assert notes == ["car 2: 1 row(s) before the capture's first frame and 1 after its last (neutral commands; "
+                     "check --link-offset)"]
