@@ -89,7 +89,7 @@ def main(argv=None) -> int:
             rec[mode]["steal_s"] = None if steal0 is None else steal_seconds() - steal0
             print(f"seed {seed} {mode}: winner {rec[mode]['winner']}", flush=True)
         rows.append(rec)
-    atomic_write_text(args.json, json.dumps(rows, indent=2) + "\n")
+    atomic_write_text(args.json, json.dumps(rows, indent=2) + "\n", stream=True)
     body = report(rows, args, machine_description())
     print(body)
     print(plot(rows, args.figure))
