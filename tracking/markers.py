@@ -20,7 +20,7 @@ import numpy as np
 
 from tracking.calibration import CameraCalibration, FixedMarker, marker_corners_track
 from tracking.camera import Frame
-from vehicles.params import MarkerParams
+from vehicles.params import MARKER_DICTIONARY, MarkerParams
 
 
 def default_detector_parameters() -> cv2.aruco.DetectorParameters:
@@ -79,7 +79,7 @@ class MarkerDetector:
     ``pattern_mismatches``.
     """
 
-    def __init__(self, dictionary: int = cv2.aruco.DICT_4X4_50,
+    def __init__(self, dictionary: int = getattr(cv2.aruco, MARKER_DICTIONARY),
                  parameters: cv2.aruco.DetectorParameters | None = None, downscale: float = 1.0,
                  refine: str = "ecc", min_pattern_correlation: float = MIN_PATTERN_CORRELATION):
         if not 0 < downscale <= 1:
@@ -311,6 +311,10 @@ class ArucoTracker:
             if bad:  # an id the dictionary does not have is never seen: the car would be "lost" forever
                 raise ValueError(f"{what}: marker id {bad[0]} is not in the ArUco dictionary "
                                  f"in use (ids 0..{n_ids - 1})")
+        shared = sorted(set(int(i) for i in car_ids or ()) & set(int(i) for i in fixed_ids))
+        if shared:  # a car wearing a fixed marker's id would be taken for the fixed marker, or move it
+            raise ValueError(f"car_ids: marker id {shared[0]} is also a fixed marker of the track "
+                             f"(fixed ids {', '.join(map(str, sorted(int(i) for i in fixed_ids)))})")
         self.calibration = calibration
         self.marker_size_m = float(marker_size_m)
         self.marker_height_m = float(marker_height_m)

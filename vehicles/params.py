@@ -114,9 +114,20 @@ class ModelParams:
     kinematic_relax_time_s: float = _num(0.02, doc="time constant pulling vy, r to kinematic values")
 
 
+# The ArUco dictionary of the cars' markers: the simulated camera's (sim/camera.py) and the default of
+# fixed-marker files and calibrations (tracking/calibration.py). An id it lacks is never detected.
+MARKER_DICTIONARY = "DICT_4X4_50"
+MARKER_DICTIONARY_IDS = 50
+
+
+def _marker_id(v: float) -> str | None:
+    return None if 0 <= v < MARKER_DICTIONARY_IDS else \
+        f"must be an id of the ArUco dictionary {MARKER_DICTIONARY} (0..{MARKER_DICTIONARY_IDS - 1})"
+
+
 @dataclass(frozen=True)
 class MarkerParams:
-    aruco_id: int = _int(0, _between(0, 999))
+    aruco_id: int = _int(0, _marker_id)
     height_m: float = _num(0.045, _non_negative, doc="marker plane above the ground")
     size_m: float = _num(0.055, doc="side of the printed ArUco marker (outer black border)")
 
