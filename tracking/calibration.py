@@ -544,6 +544,10 @@ def load_calibration(path) -> CameraCalibration:
     missing = data.get("markers_missing", [])
     if not isinstance(missing, list) or not all(isinstance(m, int) and not isinstance(m, bool) for m in missing):
         raise CalibrationError(f"{src}: markers_missing: expected a list of marker ids")
+    used_and_missing = sorted(set(missing) & {int(k) for k in errors})
+    if used_and_missing:  # calibrate lists a marker in one or the other
+        raise CalibrationError(f"{src}: markers_missing: marker id {used_and_missing[0]} is also in marker_errors_px "
+                               f"(a marker the calibration used)")
 
     def number(value, where):  # the stored quality figures may be NaN (no estimate)
         if value is None or (isinstance(value, float) and math.isnan(value)):
