@@ -201,6 +201,8 @@ def atomic_path(path: str | os.PathLike, create_parent: bool = True, *, stream: 
             os.fsync(f.fileno())
         os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give what open() would
         os.replace(tmp_path, target.file)
+    except OutputFileError:
+        raise
     except OSError as exc:
         raise OutputFileError(_message(target.path, exc)) from None
     finally:
