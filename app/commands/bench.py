@@ -246,6 +246,7 @@ def run_fuzz(args) -> int:
         return 0
     if args.examples < 1:
         raise UserError("--examples must be at least 1")
+    check_output_dir(args.out)
     report = fuzz.campaign(args.target, args.examples, args.seed, Path(args.out))
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else \
         f"python -m app bench fuzz --target {args.target} --examples {args.examples} --seed {args.seed}"
