@@ -244,15 +244,17 @@ def test_solve_streams_its_result_to_a_fifo(tmp_path, problem, capsys):
 
 
 def test_outputs_read_back_refuse_a_fifo_before_the_work(tmp_path, capsys):
-    """Problem files, recordings, link captures and drive logs are refused (exit 2, no wait for a reader)."""
+    """Problem files, recordings, link captures and drive logs are refused (exit 2, no wait for a reader),
+    before the race, the HIL world or the generator starts."""
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)
     runs = [["scenario", "merge", "--out", str(fifo)],
             ["race", "--out", str(tmp_path / "r.rrd"), "--link-capture", str(fifo)],
+            ["check", "--hil", "--link-capture", str(fifo)],
             ["sysid-generate", "--minutes", "0.1", "--out", str(fifo)]]
     rrd_fifo = tmp_path / "pipe.rrd"
     os.mkfifo(rrd_fifo)
-    runs.append(["race", "--out", str(rrd_fifo)])
+    runs += [["race", "--out", str(rrd_fifo)], ["race", "--hil", "--out", str(rrd_fifo)]]
     for argv in runs:
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
