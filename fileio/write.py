@@ -119,7 +119,7 @@ def output_target(path: str | os.PathLike, create_parent: bool = True, *, stream
     try:
         mode = os.stat(path).st_mode
     except OSError as exc:  # a link to nothing, or links in a loop
-        why = (f"a symbolic link to {os.readlink(path)}, which does not exist" if isinstance(exc, FileNotFoundError)
+        why = (f"a symbolic link to {os.readlink(path)}, which does not exist" if link and isinstance(exc, FileNotFoundError)
                else exc.strerror or str(exc))
         raise OutputFileError(f"cannot write {path}: {why}") from None
     what = f"a symbolic link to {file_kind(mode)}" if link else file_kind(mode)
