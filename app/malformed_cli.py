@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from app.cli import build_parser, main as cli_main
+from bench.charuco_views import BoardRenderer
 from bench.fuzz import toml_bytes  # the API fuzz's TOML renderer (hypothesis: installed with the test extra)
 from bench.merging import merging_problem
 from fileio import atomic_write_text
@@ -50,6 +51,7 @@ from solver_cpp.problem_file import problem_to_dict
 from sysid.generate import generate_log
 from sysid.log import write_log_csv
 from tracking.calibration import Intrinsics, load_fixed_markers, save_intrinsics
+from tracking.charuco import load_board_file
 from vehicles.fhss import FhssEncoder, ServoCalibration
 from vehicles.link_capture import LinkCapture
 from vehicles.params import load_car_params
@@ -86,6 +88,7 @@ class Seeds:
     folder: Path
     files: dict[str, bytes] = field(default_factory=dict)
     arena_png: Path | None = None
+    board_views: list[Path] = field(default_factory=list)  # rendered views of the board file's board
     intrinsics: Path | None = None
     fixed_markers: Path = ROOT / "tracking" / "data" / "oval_fixed_markers.json"
 
@@ -108,6 +111,8 @@ FORMATS = {f.name: f for f in [
                                                             "--serial", os.devnull], accepted_codes=(1,),
            nullable=("focal_std_px", "focal_std_markers_px", "focal_std_principal_point_px", "reprojection_rms_px",
                      "reprojection_max_px")),
+    Format("board", ".json", "json", lambda f, o, s: ["calibrate-camera", *s.board_views, "--board", f,
+                                                      "--out", o / "intrinsics.json"]),
     Format("sysid_csv", ".csv", "csv", lambda f, o, s: ["sysid", f, "--car-params", "buzzracer", "--report", o / "r.md",
                                                         "--json", o / "r.json", "--fit-windows", "20"]),
     # link-decode exits 1 when the capture holds bad frames (a decode report, not an error).
@@ -142,6 +147,18 @@ def make_seeds(folder: Path) -> Seeds:
     if code != 0:
         raise RuntimeError(f"calibrate on the rendered arena failed ({code}): {err}")
     s.files["calibration"] = cal.read_bytes()
+    board = folder / "board.png"
+    code, _, err = run_cli(["make-board", "--out", board, "--dpi", "100"], folder, 120)
+    if code != 0:
+        raise RuntimeError(f"make-board failed ({code}): {err}")
+    s.files["board"] = board.with_suffix(".json").read_bytes()
+    spec = load_board_file(board.with_suffix(".json")).board
+    render = BoardRenderer((spec.squares_x, spec.squares_y), spec.square_length_m, spec.marker_length_m,
+                           spec.dictionary, supersample=2)
+    rng = np.random.default_rng(0)
+    for i, (rvec, tvec) in enumerate(render.random_poses(4, rng, depth_m=(0.45, 0.55))):
+        s.board_views.append(folder / f"board_view{i}.png")
+        cv2.imwrite(str(s.board_views[-1]), render(rvec, tvec, rng=rng))
     log = folder / "drive.csv"
     write_log_csv(log, generate_log(load_car_params("buzzracer"), {}, 0.5, seed=1, physics_dt=0.002))
     s.files["sysid_csv"] = log.read_bytes()

@@ -87,7 +87,8 @@ def marker_corners_track(x, y, heading, size, z=0.0) -> np.ndarray:
 def aruco_dictionary_id(name: str, field_name: str = "dictionary") -> int:
     value = getattr(cv2.aruco, str(name), None)
     if not isinstance(name, str) or not name.startswith("DICT_") or not isinstance(value, int):
-        raise CalibrationError(f"{field_name}: unknown ArUco dictionary {name!r} (e.g. 'DICT_4X4_50')")
+        raise CalibrationError(f"{field_name}: unknown ArUco dictionary {name!r} (an OpenCV name such as "
+                               f"{MARKER_DICTIONARY!r} or 'DICT_6X6_250')")
     return value
 
 

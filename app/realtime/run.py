@@ -315,7 +315,7 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
         camera = world.camera
         fixed_ids = ()
         note = "calibration: true synthetic camera (no fixed markers for this track)"
-        calibration = CameraCalibration(camera)
+        calibration = CameraCalibration(camera, dictionary=setup.car.marker.dictionary)
         if info["fixed_markers"]:
             # Calibrate like on the real track: camera pose from the fixed markers in a grid frame,
             # with known intrinsics.
@@ -330,7 +330,8 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
             note = (f"calibration from {len(calibration.markers_used)} fixed markers: reprojection rms "
                     f"{calibration.reprojection_rms_px:.3f} px, camera position error {err:.1f} mm")
         tracker = ArucoTracker(calibration, info["marker_size_m"], info["marker_height_m"],
-                               car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9)
+                               car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9,
+                               car_dictionary=setup.car.marker.dictionary)
     except Exception:
         world.close()
         raise
@@ -353,7 +354,7 @@ def _open_hardware(args, setup, cars, config):
     except CameraError as exc:
         raise UserError(f"--camera: {exc}") from None
     tracker = ArucoTracker(calibration, setup.car.marker.size_m, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
-                           full_search_every=10 ** 9)
+                           full_search_every=10 ** 9, car_dictionary=setup.car.marker.dictionary)
     return None, CameraFeed(camera), tracker, MultiCarEstimator(), args.serial, None
 
 
