@@ -482,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
                   (load0, os.getloadavg()[0]))
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps(report, indent=1) + "\n")
+        atomic_write_text(args.json, json.dumps(report, indent=1) + "\n", stream=True)
     return 1 if report["failures"] else 0
 
 

@@ -28,6 +28,7 @@ from typing import Any, Callable
 from hypothesis import strategies as st
 
 from bench.merging import merging_problem
+from fileio import atomic_write_bytes
 from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, QuadraticCost, solve
 from solver_cpp.problem_file import ProblemFileError, load_problem, problem_to_dict
 from sysid.log import LogFormatError, read_log
@@ -628,9 +629,8 @@ def campaign(name: str, examples: int, seed: int, outdir: Path, progress: bool =
             except FuzzFailure as exc:
                 counts["failure"] += 1
                 if len(failures) < 10:
-                    outdir.mkdir(parents=True, exist_ok=True)
                     path = outdir / f"{name}-failure-{len(failures)}{target.suffix}"
-                    path.write_bytes(data)
+                    atomic_write_bytes(path, data)
                     failures.append(str(path))
                     messages.append(str(exc))
 

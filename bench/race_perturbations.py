@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fileio import atomic_write_text
+from fileio import OutputFileError, atomic_write_text, check_output_path
 
 from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
@@ -87,6 +87,11 @@ def main(argv=None) -> int:
     for name, p in (("--tail", args.tail[0]), ("--neutral", args.neutral[0])):
         if not 0 <= p <= 1:
             parser.error(f"{name}: the probability must be in [0, 1], got {p}")
+    try:
+        if args.json:
+            check_output_path(args.json, stream=True)
+    except OutputFileError as exc:
+        parser.error(str(exc))
     sim_cls = perturbed_simulator(args.late_ms, args.tail, args.neutral, seed_offset=args.rng_seed)
     winners = {}
     for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -105,7 +110,7 @@ def main(argv=None) -> int:
     wins = [s for s, w in winners.items() if w == "rd3g"]
     print(f"RD3G won {len(wins)} of {len(winners)}: seeds {wins}")
     if args.json:
-        atomic_write_text(args.json, json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n", stream=True)
     return 0
 
 

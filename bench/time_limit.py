@@ -123,7 +123,7 @@ def main() -> None:
                     print(f"{name:<13}  {limit:7.3f}  {seed:4d}  {status:<10}  {wall:6.3f}  {wall - limit:11.3f}")
         return
     if args.json:
-        check_output_path(args.json)
+        check_output_path(args.json, stream=True)
     names = [] if args.families is None else list(FAMILIES) if args.families == "all" else args.families.split(",")
     load0 = os.getloadavg()[0]
     fuzzed = fuzz_cases(args.fuzz, 0) if args.fuzz else []
@@ -134,7 +134,7 @@ def main() -> None:
                   (load0, os.getloadavg()[0]))
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps(result, indent=1) + "\n")
+        atomic_write_text(args.json, json.dumps(result, indent=1) + "\n", stream=True)
 
 
 if __name__ == "__main__":

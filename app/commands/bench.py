@@ -7,7 +7,7 @@ import sys
 import time
 
 from app.cli import UserError
-from fileio import atomic_write_text, check_output_path
+from fileio import atomic_write_text, check_output_dir, check_output_path
 from bench import merge_bench, problem_size, saddles, solver_bench
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
@@ -159,7 +159,9 @@ def _merge_options(args, default_solvers: str) -> tuple[list[str], list[int]]:
         raise UserError(f"--max-iter must be an integer from 1 to 2^31 - 1, got {args.max_iter}")
     args.rd3g_settings = _rd3g_settings(args.rd3g_setting)
     if args.json:
-        check_output_path(args.json)  # fail before the long run, not after it
+        check_output_path(args.json, stream=True)  # fail before the long run, not after it
+    if getattr(args, "figures", None):
+        check_output_dir(args.figures)
     return solvers, seeds
 
 
@@ -205,7 +207,7 @@ def run_merge(args) -> int:
     fig_dir = Path(args.figures) if args.figures else None if args.no_docs else Path("docs/figures")
     figures = []
     if fig_dir is not None:
-        fig_dir.mkdir(parents=True, exist_ok=True)
+        check_output_dir(fig_dir)
         figures = [merge_bench.plot_times(summary, str(fig_dir / "merge_times.png")),
                    merge_bench.plot_merge(3, 1, str(fig_dir / "merge_3cars.png")),
                    merge_bench.plot_merge(8, 1, str(fig_dir / "merge_8cars.png"))]
@@ -217,7 +219,7 @@ def run_merge(args) -> int:
     for r in summary:
         print(f"{r['solver']:9s} {r['cars']} cars: {r['converged']}/{r['instances']} successful")
     if args.json:
-        atomic_write_text(args.json, json.dumps(merge_bench.records_json(summary), indent=1))
+        atomic_write_text(args.json, json.dumps(merge_bench.records_json(summary), indent=1), stream=True)
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('merge-bench-' + '-'.join(solvers), md)}")
@@ -244,6 +246,7 @@ def run_fuzz(args) -> int:
         return 0
     if args.examples < 1:
         raise UserError("--examples must be at least 1")
+    check_output_dir(args.out)
     report = fuzz.campaign(args.target, args.examples, args.seed, Path(args.out))
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else \
         f"python -m app bench fuzz --target {args.target} --examples {args.examples} --seed {args.seed}"
@@ -338,7 +341,7 @@ def run_saddles(args) -> int:
     if args.seeds < 1 or args.workers < 1 or args.best_response < 0:
         raise UserError("--seeds and --workers must be >= 1, --best-response >= 0")
     if args.json:
-        check_output_path(args.json)  # fail before the long run, not after it
+        check_output_path(args.json, stream=True)  # fail before the long run, not after it
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     if args.cases:
@@ -363,7 +366,7 @@ def run_saddles(args) -> int:
     md = saddles.markdown(summary, runs, command, machine, time.perf_counter() - t0, scanned)
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps([dataclasses.asdict(r) for r in runs], indent=1))
+        atomic_write_text(args.json, json.dumps([dataclasses.asdict(r) for r in runs], indent=1), stream=True)
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('saddles', md)}")

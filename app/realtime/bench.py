@@ -17,7 +17,7 @@ import numpy as np
 
 from app.commands import race
 from bench.report import machine_description, write_section
-from fileio import atomic_write_text, atomic_write_with
+from fileio import OutputFileError, atomic_write_text, atomic_write_with, check_output_path
 
 
 def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = "",
@@ -69,6 +69,11 @@ def main(argv=None) -> int:
         print(plot(json.loads(Path(args.replot).read_text()), args.figure))
         return 0
 
+    try:  # before the races, not after them
+        check_output_path(args.json, stream=True)
+        check_output_path(args.figure)
+    except OutputFileError as exc:
+        parser.error(str(exc))
     runs = Path("runs/loop_bench")
     runs.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -89,7 +94,7 @@ def main(argv=None) -> int:
             rec[mode]["steal_s"] = None if steal0 is None else steal_seconds() - steal0
             print(f"seed {seed} {mode}: winner {rec[mode]['winner']}", flush=True)
         rows.append(rec)
-    atomic_write_text(args.json, json.dumps(rows, indent=2) + "\n")
+    atomic_write_text(args.json, json.dumps(rows, indent=2) + "\n", stream=True)
     body = report(rows, args, machine_description())
     print(body)
     print(plot(rows, args.figure))

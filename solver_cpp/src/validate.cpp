@@ -95,6 +95,9 @@ void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int
     try {
       check_index(c.pos_x, nx, "collision.pos_x");
       check_index(c.pos_y, nx, "collision.pos_y");
+      // One state for both coordinates would measure sqrt(2) |x_i - x_j| along a diagonal, not a distance.
+      require(c.pos_x != c.pos_y, "collision.pos_x and collision.pos_y must be different states, got " +
+                                      std::to_string(c.pos_x) + " for both");
     } catch (const std::invalid_argument& e) {
       if (pairs) throw;
       throw std::invalid_argument(std::string(e.what()) +
