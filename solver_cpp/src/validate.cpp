@@ -102,7 +102,26 @@ void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int
     }
   }
   require(c.form == CollisionForm::Distance || c.form == CollisionForm::Squared, "collision.form is not a known form");
-  if (pairs) validate_min_distance(c.min_distance, c.min_distance_steps, horizon, "collision.min_distance");
+  if (!pairs) return;
+  validate_min_distance(c.min_distance, c.min_distance_steps, horizon, "collision.min_distance");
+  const auto& pd = c.pair_distances;
+  for (size_t n = 0; n < pd.size(); ++n) {
+    const PairDistance& q = pd[n];
+    const std::string where = "collision.pair_distances[" + std::to_string(n) + "]";
+    const std::string agents = "[" + std::to_string(q.i) + ", " + std::to_string(q.j) + "]";
+    require(q.i >= 0 && q.i < num_agents && q.j >= 0 && q.j < num_agents,
+            where + ".agents must be two agent indices in [0, " + std::to_string(num_agents) + "), got " + agents);
+    require(q.i != q.j, where + ".agents must be two different agents, got " + agents);
+    for (size_t m = 0; m < n; ++m)
+      require(!((pd[m].i == q.i && pd[m].j == q.j) || (pd[m].i == q.j && pd[m].j == q.i)),
+              where + ".agents: the pair " + agents + " already has a distance in collision.pair_distances[" +
+                  std::to_string(m) + "]");
+    try {
+      validate_min_distance(q.min_distance, q.min_distance_steps, horizon, where + ".min_distance");
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(std::string(e.what()) + " (agents " + agents + ")");
+    }
+  }
 }
 
 void validate_problem(const Problem& p) {
