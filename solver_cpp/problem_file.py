@@ -84,7 +84,8 @@ def problem_from_dict(data, source: str = "<problem>") -> tuple[GameProblem, dic
         agents.append(Agent(dynamics=model, cost=QuadraticCost(**a.pop("cost")), **a))
     collision = None
     if "collision" in d:
-        pairs = [PairDistance(**q) for q in d["collision"].pop("pair_distances", [])]
+        pairs = [PairDistance(agents=tuple(q["agents"]), min_distance=q["min_distance"])
+                 for q in d["collision"].pop("pair_distances", [])]
         collision = Collision(**d["collision"], pair_distances=pairs)
     obstacles = [Obstacle(positions=np.asarray(o["positions"], float), min_distance=o["min_distance"])
                  for o in d.get("obstacles", [])]
