@@ -6,5 +6,6 @@ from .solve import GameResult, Solver, WarmStart, make_settings, settings_dict, 
 
 __all__ = [
     "_core", "KinematicBicycle", "KinematicBicycleFrenet", "LinearModel", "Agent", "Collision", "GameProblem",
-    "Obstacle", "PairDistance", "QuadraticCost", "GameResult", "Solver", "WarmStart", "make_settings", "settings_dict", "solve",
+    "Obstacle", "PairDistance", "QuadraticCost", "GameResult", "Solver", "WarmStart", "make_settings", "settings_dict",
+    "solve",
 ]
