@@ -28,7 +28,8 @@ from typing import Any, Callable
 from hypothesis import strategies as st
 
 from bench.merging import merging_problem
-from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, QuadraticCost, solve
+from solver_cpp import (Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, PairDistance,
+                        QuadraticCost, solve)
 from solver_cpp.problem_file import ProblemFileError, load_problem, problem_to_dict
 from sysid.log import LogFormatError, read_log
 from tracking import calibration
@@ -215,7 +216,8 @@ def problem_seeds() -> list:
     for a in merge["agents"]:
         a["u_init"] = [[0.0, 0.0]] * 5
     T = 4
-    linear = {"dt": 0.1, "horizon": T, "collision": {"min_distance": [1.0] * T, "form": "squared", "enabled": True},
+    linear = {"dt": 0.1, "horizon": T, "collision": {"min_distance": [1.0] * T, "form": "squared", "enabled": True,
+                                                     "pair_distances": [{"agents": [1, 0], "min_distance": 0.8}]},
               "agents": [{"dynamics": {"type": "linear", "A": [[1, 0.1], [0, 1]], "B": [[0], [0.1]]},
                           "x0": [0, 0], "cost": {"x_ref": [1, 0], "Q_ref": [1, 0.1], "R": [0.01], "Qf": [1, 1]},
                           "u_min": [-1], "u_max": [1], "x_min": [-float("inf"), -2], "x_max": [float("inf"), 2],
@@ -519,6 +521,11 @@ def game_problems(draw, valid: bool = False):
     if draw(st.booleans()):
         collision = Collision(min_distance=draw(numbers(0.01, 3.0)), form=pick(["distance"] * 5 + ["squared"] * 5 + ["x"], ["distance", "squared"]),
                               pos_x=pick([0] * 8 + [-1, nx], [0]), pos_y=pick([min(1, nx - 1)] * 8 + [-1, nx], [min(1, nx - 1)]))
+        # A pair with its own distance, its agent indices possibly out of range or equal (not drawn with valid=True,
+        # whose draws bench/time_limit.py's numbers depend on).
+        if not valid and N >= 2 and draw(st.booleans()):
+            pair = (draw(st.sampled_from([0] * 4 + [-1, N])), draw(st.sampled_from([N - 1] * 4 + [0, N])))
+            collision.pair_distances = [PairDistance(agents=pair, min_distance=draw(numbers(0.01, 3.0)))]
     obstacles = []
     # Obstacles with no collision block use state indices 0 and 1 unchecked: the C++ core's index
     # validation (a separate part of issue 17) covers that; until then nx < 2 is left out here.
