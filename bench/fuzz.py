@@ -586,7 +586,7 @@ def fuzz_solver(examples: int, seed: int = 0, timeout_s: float = 600.0, workdir:
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rd3g-fuzz-solver-"))
     workdir.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "bench.fuzz", "solver-child", str(examples), str(seed), str(workdir)]
-    replay = f"{sys.executable} -m bench.fuzz solver-replay {workdir / 'current.pkl'}"
+    replay = f"python -m app bench fuzz --target solver_api --replay {workdir / 'current.pkl'}"
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
                               cwd=Path(__file__).resolve().parent.parent)
@@ -598,7 +598,8 @@ def fuzz_solver(examples: int, seed: int = 0, timeout_s: float = 600.0, workdir:
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     if report["failures"]:
         first = report["failures"][0]
-        raise FuzzFailure(f"{first['message']}; reproduce: {sys.executable} -m bench.fuzz solver-replay {first['reproducer']}")
+        raise FuzzFailure(f"{first['message']}; reproduce: python -m app bench fuzz --target solver_api --replay "
+                          f"{first['reproducer']}")
     return report
 
 
@@ -675,18 +676,11 @@ def markdown(report: dict, command: str, machine: str) -> str:
 
 
 def _main(argv: list[str]) -> int:
-    if argv[:1] == ["solver-child"]:
+    """The child process of fuzz_solver (a native crash ends only it), not a user command."""
+    if argv[:1] == ["solver-child"] and len(argv) == 4:
         print(json.dumps(_solver_child(int(argv[1]), int(argv[2]), Path(argv[3]))))
         return 0
-    if argv[:1] == ["solver-replay"]:
-        import pickle
-
-        problem = pickle.loads(Path(argv[1]).read_bytes())
-        print(problem)
-        print(solve_one(problem))
-        return 0
-    print("usage: python -m bench.fuzz solver-child N SEED DIR | solver-replay FILE.pkl "
-          "(campaigns: python -m app bench fuzz)")
+    print("campaigns and replays: python -m app bench fuzz --target NAME [--replay FILE]")
     return 2
 
 
