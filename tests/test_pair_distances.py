@@ -122,13 +122,17 @@ API_CASES = [
     ([PairDistance((1, 1), 1.0)], r"collision.pair_distances\[0\].agents must be two different agents, got \[1, 1\]"),
     ([PairDistance((0, 1), 1.0), PairDistance((1, 0), 1.2)],
      r"collision.pair_distances\[1\].agents: the pair \[1, 0\] already has a distance in collision.pair_distances\[0\]"),
-    ([PairDistance((0, 2), -1.0)], r"collision.pair_distances\[0\].min_distance must be positive, got -1 \(agents \[0, 2\]\)"),
-    ([PairDistance((0, 2), float("nan"))], r"collision.pair_distances\[0\].min_distance .* nan \(agents \[0, 2\]\)"),
-    ([PairDistance((0, 2), float("inf"))], r"collision.pair_distances\[0\].min_distance .* inf \(agents \[0, 2\]\)"),
+    ([PairDistance((0, 2), -1.0)], r"collision.pair_distances\[0\].min_distance must be a positive finite number "
+                                   r"\(m\), got -1 \(agents \[0, 2\]\)"),
+    ([PairDistance((0, 2), float("nan"))], r"collision.pair_distances\[0\].min_distance must be a positive finite number "
+                                           r"\(m\), got nan \(agents \[0, 2\]\)"),
+    ([PairDistance((0, 2), float("inf"))], r"collision.pair_distances\[0\].min_distance must be a positive finite number "
+                                           r"\(m\), got inf \(agents \[0, 2\]\)"),
     ([PairDistance((0, 2), [1.0] * 3)], r"collision.pair_distances\[0\].min_distance must be a positive number or 4 .*"
                                         r"got 3 \(agents \[0, 2\]\)"),
     ([PairDistance((2, 1), [1.0, 1.0, 0.0, 1.0])],
-     r"collision.pair_distances\[0\].min_distance\[2\] \(step k = 3\) must be positive, got 0 \(agents \[2, 1\]\)"),
+     r"collision.pair_distances\[0\].min_distance\[2\] \(step k = 3\) must be a positive finite number \(m\), got 0 "
+     r"\(agents \[2, 1\]\)"),
     ([PairDistance((0,), 1.0)], r"collision.pair_distances\[0\].agents must be two agent indices, got \(0,\)"),
     ([PairDistance((0.5, 1), 1.0)], r"collision.pair_distances\[0\].agents\[0\] must be an integer"),
     ([(0, 1, 1.0)], r"collision.pair_distances\[0\] must be a PairDistance, got tuple"),

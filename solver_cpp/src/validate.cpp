@@ -70,14 +70,16 @@ void validate_bounds(const Vec& lower, const Vec& upper, int n, const std::strin
 
 void validate_min_distance(double min_distance, const Vec& steps, int horizon, const std::string& where) {
   if (steps.size() == 0) {
-    require(std::isfinite(min_distance) && min_distance > 0, where + " must be positive, got " + num(min_distance));
+    require(std::isfinite(min_distance) && min_distance > 0,
+            where + " must be a positive finite number (m), got " + num(min_distance));
     return;
   }
   require(steps.size() == horizon, where + " must be a positive number or " + std::to_string(horizon) +
                                        " positive numbers (one per step k = 1..T), got " + std::to_string(steps.size()));
   for (int k = 0; k < horizon; ++k)
     require(std::isfinite(steps[k]) && steps[k] > 0,
-            where + "[" + std::to_string(k) + "] (step k = " + std::to_string(k + 1) + ") must be positive, got " + num(steps[k]));
+            where + "[" + std::to_string(k) + "] (step k = " + std::to_string(k + 1) +
+                ") must be a positive finite number (m), got " + num(steps[k]));
 }
 
 void validate_obstacle(const Obstacle& o, int horizon, const std::string& where) {
