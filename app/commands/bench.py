@@ -1,4 +1,5 @@
-"""`python -m app bench ...`: benchmarks (results in docs/benchmarks.md)."""
+"""`python -m app bench ...`: benchmarks (results in docs/benchmarks.md). Every benchmark is a subcommand here;
+the modules that own their options (`add_arguments(parser)`, `run(args)`) are listed in MODULE_BENCHES."""
 from __future__ import annotations
 
 import json
@@ -7,8 +8,10 @@ import sys
 import time
 
 from app.cli import UserError
+from app.realtime import bench as loop_bench
 from fileio import atomic_write_text, check_output_dir, check_output_path
-from bench import merge_bench, problem_size, saddles, solver_bench
+from bench import (baselines, charuco_coverage, merge_bench, problem_size, race_perturbations, saddles, solver_bench,
+                   time_limit, tracking_bench)
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
 from solver_cpp import make_settings
@@ -29,6 +32,20 @@ def parse_range(text: str) -> list[int]:
     if not out or min(out) < 2:
         raise UserError("--cars needs car counts of at least 2")
     return out
+
+
+# (name, module, help) of the benchmarks whose module defines its options and its run.
+MODULE_BENCHES = [
+    ("loop", loop_bench, "HIL loop: the same seeds as pure simulation and as --hil races (rate, deadline misses, "
+                         "stage timings, tracking error, winners)"),
+    ("race-perturbations", race_perturbations, "simulated races with the loop's control-path imperfections (late "
+                                               "commands, neutral pulses, solver cap): which change the winners"),
+    ("baselines", baselines, "RD3G, iLQGames and ALGames on merging seeds: convergence count and median time"),
+    ("time-limit", time_limit, "how well the solver's time_limit holds, per linear-solver path"),
+    ("tracking", tracking_bench, "rendering, marker detection and EKF update times on synthetic frames"),
+    ("charuco", charuco_coverage, "calibrate-camera on rendered ChArUco views with known intrinsics: largest errors "
+                                  "and how often the reported standard deviations cover them"),
+]
 
 
 def register(sub) -> None:
@@ -97,6 +114,23 @@ def register(sub) -> None:
     f.add_argument("--replay", metavar="FILE", help="run the target on one reproducer file instead")
     f.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
     f.set_defaults(func=run_fuzz)
+
+    for name, module, text in MODULE_BENCHES:
+        b = kinds.add_parser(name, help=text, description=text)
+        module.add_arguments(b)
+        b.set_defaults(func=module.run)
+
+    g = kinds.add_parser("malformed", help="the project's real files, mutated by hand-written rules, through the "
+                                           "command line (app/malformed_cli.py, docs/file-formats.md)")
+    g.add_argument("--formats", default="all", help="comma-separated, or all: problem, car, track, fixed_markers, "
+                                                    "intrinsics, calibration, sysid_csv, link_capture, recording")
+    g.add_argument("--per-format", type=int, default=0, help="at most this many cases per format (0 = all)")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--offsets", type=int, default=40, help="truncation offsets per file")
+    g.add_argument("--workdir", help="keep the failures' inputs here (default: a temporary folder)")
+    g.add_argument("--json", help="write the report here")
+    g.add_argument("--verbose", action="store_true")
+    g.set_defaults(func=run_malformed)
 
 
 def run_solver(args) -> int:
@@ -257,6 +291,14 @@ def run_fuzz(args) -> int:
     if not args.no_docs:
         print(f"recorded in {write_section('fuzz-' + args.target, md)}")
     return 1 if report["failures"] else 0
+
+
+def run_malformed(args) -> int:
+    try:  # app.malformed_cli renders TOML with bench.fuzz, which needs hypothesis (an optional extra, .[test])
+        from app import malformed_cli
+    except ImportError as exc:
+        raise UserError(f"bench malformed needs hypothesis (pip install -e '.[test]'): {exc}") from None
+    return malformed_cli.command(args)
 
 
 def run_size(args) -> int:
