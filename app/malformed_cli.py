@@ -21,11 +21,10 @@ Anything else (another exit code, a traceback, a signal, a timeout, a partial ou
 Some mutations can never give a valid file (a NaN string or a type swap where only numbers are
 allowed, text cut inside JSON, re-encoding as UTF-16): for those acceptance is a failure too.
 
-    python -m app.malformed_cli [--formats all] [--per-format N] [--seed S] [--json out.json]
+    python -m app bench malformed [--formats all] [--per-format N] [--seed S] [--json out.json]
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -459,32 +458,24 @@ def markdown(report: dict, command: str, load: tuple[float, float]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--formats", default="all", help=f"comma-separated, or all: {', '.join(FORMATS)}")
-    p.add_argument("--per-format", type=int, default=0, help="at most this many cases per format (0 = all)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--offsets", type=int, default=40, help="truncation offsets per file")
-    p.add_argument("--workdir", help="keep the failures' inputs here (default: a temporary folder)")
-    p.add_argument("--json", help="write the report here")
-    p.add_argument("--verbose", action="store_true")
-    args = p.parse_args(argv)
+def command(args) -> int:
+    """`python -m app bench malformed` (its options are in app/commands/bench.py, which imports this module only
+    when the command runs: it needs hypothesis, an optional extra)."""
     names = list(FORMATS) if args.formats == "all" else args.formats.split(",")
     unknown = [n for n in names if n not in FORMATS]
     if unknown:
-        p.error(f"unknown format(s) {', '.join(unknown)}; known: {', '.join(FORMATS)}")
+        raise ValueError(f"--formats: unknown format(s) {', '.join(unknown)}; known: {', '.join(FORMATS)}")
     build_parser()  # once, in the parent: every forked child starts with the commands imported
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="rd3g-malformed-"))
     load0 = os.getloadavg()[0]
     report = run(names, args.per_format, args.seed, workdir, args.offsets,
                  progress=(lambda s: print(s, flush=True)) if args.verbose else None)
-    md = markdown(report, "python -m app.malformed_cli " + " ".join(argv if argv is not None else sys.argv[1:]),
-                  (load0, os.getloadavg()[0]))
+    md = markdown(report, "python -m app " + " ".join(sys.argv[1:]), (load0, os.getloadavg()[0]))
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps(report, indent=1) + "\n")
+        atomic_write_text(args.json, json.dumps(report, indent=1) + "\n", stream=True)
     return 1 if report["failures"] else 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # the old entry point, forwarded
+    raise SystemExit(cli_main(["bench", "malformed", *sys.argv[1:]]))

@@ -1,4 +1,4 @@
-"""Does calibrate-camera's reported uncertainty cover the real error? ``python -m bench.charuco_coverage``
+"""Does calibrate-camera's reported uncertainty cover the real error? ``python -m app bench charuco``
 
 Renders ``--trials`` sets of ``--views`` ChArUco views with known intrinsics (bench.charuco_views: OpenCV
 alone, blur 0.6 px, noise 2 grey levels), calibrates each with tracking.charuco and prints, for fx, fy, cx,
@@ -19,12 +19,16 @@ SPEC = CharucoBoardSpec(7, 5, 0.03, 0.022, "DICT_4X4_50")
 ENTRIES = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.charuco_coverage", description=__doc__.split("\n")[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `python -m app bench charuco`."""
     parser.add_argument("--trials", type=int, default=20)
     parser.add_argument("--views", type=int, default=12)
     parser.add_argument("--seed", type=int, default=100)
-    args = parser.parse_args(argv)
+
+
+def run(args) -> int:
+    if args.trials < 1 or args.views < 3:
+        raise ValueError("--trials must be >= 1 and --views >= 3")
     render = BoardRenderer((SPEC.squares_x, SPEC.squares_y), SPEC.square_length_m, SPEC.marker_length_m, SPEC.dictionary)
     detector = BoardDetector(SPEC)
     z, rel = [], []
@@ -45,4 +49,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit("moved: python -m app bench charuco")

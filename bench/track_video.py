@@ -1,5 +1,5 @@
 """A rendered video of cars on known trajectories, tracked by `python -m app track`'s pipeline
-(race.video_tracking): ``python -m bench.track_video [--frames 600] [--fps 60] [--out runs/track]``.
+(race.video_tracking): ``python -m app bench track-video [--frames 600] [--fps 60] [--out runs/track]``.
 
 Renders the synthetic overhead camera (sim.camera, the HIL race's) at 1280x800 over the oval: car 3 at
 2.0 m/s and car 7 at 1.6 m/s along the centre line (car 7's marker hidden over ``HIDDEN_S``), writes
@@ -100,13 +100,15 @@ def errors(rows: np.ndarray, truth: dict[int, np.ndarray], fps: float) -> dict[i
     return out
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.track_video")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `python -m app bench track-video`."""
     parser.add_argument("--frames", type=int, default=600)
     parser.add_argument("--fps", type=float, default=60.0)
-    parser.add_argument("--out", default="runs/track")
+    parser.add_argument("--out", default="runs/track", help="folder for the clip, its calibration and truth.csv")
     parser.add_argument("--raw", action="store_true", help="detections without the estimator")
-    args = parser.parse_args(argv)
+
+
+def run(args) -> int:
     video = Path(args.out) / "clip.avi"
     clip = render_clip(video, args.frames, args.fps)
     with open(Path(args.out) / "truth.csv", "w", newline="") as fh:
@@ -134,7 +136,3 @@ def main(argv=None) -> int:
               f"(a pixel is ~{px_mm:.1f} mm); heading median {math.degrees(np.median(head)):.2f} deg, "
               f"p95 {math.degrees(np.percentile(head, 95)):.2f} deg")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fileio import atomic_write_with
+from fileio import atomic_write_with, check_output_dir
 from race.recording import EVENTS_ENTITY, RecordingData
 from race.summary import percentile
 from sim.collision import rectangle_gap
@@ -153,7 +153,7 @@ def save_plots(data: RecordingData, folder: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    folder.mkdir(parents=True, exist_ok=True)
+    check_output_dir(folder)
     colors = {"rd3g": "tab:red", "opponent": "tab:blue"}
     out = []
     track = load_track_of(data)

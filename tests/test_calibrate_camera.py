@@ -59,7 +59,7 @@ def test_rendered_boards_give_the_true_intrinsics_within_half_a_percent(render):
     for name, (estimate, true) in _truth(result).items():
         assert abs(estimate - true) < 0.005 * true, (name, estimate, true)
         # The reported standard deviation covers the error: over 20 renderings of 12 views, 95-100 % of the
-        # errors lie within 3 std (python -m bench.charuco_coverage, docs/tracking.md).
+        # errors lie within 3 std (python -m app bench charuco, docs/tracking.md).
         assert abs(estimate - true) < 3 * result.std_px[name], (name, estimate, true, result.std_px[name])
     assert np.allclose(result.intrinsics.dist_coeffs[:2], DIST_TRUE[:2], atol=0.03)
     assert result.warnings == [] or all("corner" in w for w in result.warnings)

@@ -122,6 +122,9 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
         marker_id = int(key)
         if not 0 <= marker_id < n_ids:
             raise CalibrationError(f"{where}: id outside {dictionary} (0..{n_ids - 1})")
+        if marker_id in markers:  # "40" and "040" are one marker: which survey would be used?
+            twin = next(k for k in raw if k != key and int(k) == marker_id)
+            raise CalibrationError(f"{where}: marker id {marker_id} appears twice (also as {twin!r})")
         if not isinstance(entry, dict):
             raise CalibrationError(f"{where}: must be an object with x, y, size")
         for key in entry:
@@ -198,6 +201,10 @@ def _validate_intrinsics(k: np.ndarray, dist: np.ndarray, size, source: str) -> 
     for name, value in (("image_width", width), ("image_height", height)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 2**31 or int(value) != value:
             raise CalibrationError(f"{source}: {name}: must be a positive integer, got {value!r}")
+    for axis, c, name, n in (("x", k[0, 2], "image_width", width), ("y", k[1, 2], "image_height", height)):
+        if not 0 <= c <= n:  # each valid alone, together a camera whose optical axis misses its own image
+            raise CalibrationError(f"{source}: camera_matrix: principal point {axis} ({c:g} px) must lie inside the "
+                                   f"image (0..{name} = {int(n)})")
     return Intrinsics(k, dist if dist.size else np.zeros(5), (int(width), int(height)))
 
 
@@ -532,9 +539,16 @@ def load_calibration(path) -> CameraCalibration:
     errors = data.get("marker_errors_px", {})
     if not isinstance(errors, dict) or not all(k.isdigit() for k in errors):
         raise CalibrationError(f"{src}: marker_errors_px: expected an object mapping marker id -> pixels")
+    if len({int(k) for k in errors}) < len(errors):
+        twins = sorted(k for k in errors if sum(int(j) == int(k) for j in errors) > 1)
+        raise CalibrationError(f"{src}: marker_errors_px: marker id {int(twins[0])} appears twice ({', '.join(map(repr, twins))})")
     missing = data.get("markers_missing", [])
     if not isinstance(missing, list) or not all(isinstance(m, int) and not isinstance(m, bool) for m in missing):
         raise CalibrationError(f"{src}: markers_missing: expected a list of marker ids")
+    used_and_missing = sorted(set(missing) & {int(k) for k in errors})
+    if used_and_missing:  # calibrate lists a marker in one or the other
+        raise CalibrationError(f"{src}: markers_missing: marker id {used_and_missing[0]} is also in marker_errors_px "
+                               f"(a marker the calibration used)")
 
     def number(value, where):  # the stored quality figures may be NaN (no estimate)
         if value is None or (isinstance(value, float) and math.isnan(value)):

@@ -318,6 +318,10 @@ class ArucoTracker:
             if bad:  # an id the dictionary does not have is never seen: the car would be "lost" forever
                 raise ValueError(f"{what}: marker id {bad[0]} is not in the ArUco dictionary "
                                  f"in use (ids 0..{n_ids - 1})")
+        shared = sorted(set(int(i) for i in car_ids or ()) & set(int(i) for i in fixed_ids))
+        if shared:  # a car wearing a fixed marker's id would be taken for the fixed marker, or move it
+            raise ValueError(f"car_ids: marker id {shared[0]} is also a fixed marker of the track "
+                             f"(fixed ids {', '.join(map(str, sorted(int(i) for i in fixed_ids)))})")
         self.calibration = calibration
         self.marker_size_m = float(marker_size_m)
         self.marker_height_m = float(marker_height_m)

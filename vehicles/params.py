@@ -137,7 +137,7 @@ def _aruco_dictionary(name: str) -> str | None:
 
 @dataclass(frozen=True)
 class MarkerParams:
-    aruco_id: int = _int(0, _between(0, 999))
+    aruco_id: int = _int(0, _between(0, 999), doc="within marker.dictionary's ids")
     height_m: float = _num(0.045, _non_negative, doc="marker plane above the ground")
     size_m: float = _num(0.055, doc="side of the printed ArUco marker (outer black border)")
     dictionary: str = _text(MARKER_DICTIONARY, _aruco_dictionary,
@@ -298,6 +298,10 @@ def _check_cross_fields(p: CarParams, source: str) -> None:
         for f in fields(obj):
             _validate_value(source, f"{sec}.{f.name}", f, getattr(obj, f.name))
     _check_radio(p.radio, source)
+    ids = aruco_dictionary_size(p.marker.dictionary)  # each valid alone; a marker its dictionary lacks is never seen
+    if not p.marker.aruco_id < ids:
+        raise CarParamsError(f"{source}: marker.aruco_id: {p.marker.aruco_id} is not an id of marker.dictionary "
+                             f"{p.marker.dictionary} (ids 0..{ids - 1})")
 
 
 def _sections_of(p: CarParams) -> list[tuple[str, Any]]:

@@ -17,7 +17,7 @@ import numpy as np
 from app.cli import UserError
 from app.commands.race import add_race_arguments, make_setup
 from app.race_plots import plot_examples
-from fileio import atomic_write_text
+from fileio import atomic_write_text, check_output_dir, check_output_path
 from race.simulation import run_race
 
 # Paper (Zhang & Tsiotras, RD3G), physical races RD3G vs MPC: win rate of RD3G per cell.
@@ -265,6 +265,10 @@ def run(args) -> int:
     if not 0 < slow < fast:
         raise UserError(f"--slow-speed must be between 0 and the fast speed {fast}, got {slow}")
     make_setup(args, 0, "front", fast, slow)  # validate track/car files before starting workers
+    if args.json:
+        check_output_path(args.json, stream=True)
+    if args.figures:
+        check_output_dir(args.figures)
     keep = bool(args.figures)
     jobs = [(args, cell, r, fast, slow, keep) for r in range(args.races) for cell in CELLS]
     records = run_races(jobs, args.workers, args.cluster, args.cluster_timeout)
@@ -273,7 +277,7 @@ def run(args) -> int:
           f"slow {slow} m/s (ratio {slow / fast:.2f}); win rate ours / paper")
     print(table(cells))
     if args.json:
-        atomic_write_text(args.json, json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n", stream=True)
     if keep:
         for path in plot_examples(records, args, Path(args.figures)):
             print(f"figure: {path}")

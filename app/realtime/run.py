@@ -15,7 +15,7 @@ import numpy as np
 from app.cli import UserError
 from app.realtime.hardware import CameraFeed
 from race.hil import HilWorld, WorldSpec
-from fileio import atomic_write_text
+from fileio import OutputFileError, atomic_write_text, check_output_path
 from race.config import LoopConfig, LoopConfigError, parse_fault
 from race.loop import CarBinding, LoopError, RaceLoop, setup_document
 from race.planning import RacePlanners
@@ -177,6 +177,9 @@ def _run_realtime(args, mode: str) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     if args.out == DEFAULT_OUT:  # one file per race
         out = out.parent / f"{mode}-seed{args.seed}-{stamp}.rrd"
+    for path, stream in ((out, False), (args.json, True), (args.link_capture, False)):
+        if path:
+            check_output_path(path, stream=stream)  # before the HIL processes or the hardware open
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     opponent = "human" if args.human_opponent else args.opponent
     link_plan = plan_link(args, mode, setup, config.link_hz)  # everything about the link valid before it opens
@@ -191,7 +194,6 @@ def _run_realtime(args, mode: str) -> int:
     recorder = loop = capture = None
     try:
         planners = RacePlanners(setup, opponent)
-        out.parent.mkdir(parents=True, exist_ok=True)
         recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars])
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
@@ -228,7 +230,7 @@ def _run_realtime(args, mode: str) -> int:
             capture.close()
     _print(outcome, setup, args, mode, opponent)
     if args.json:
-        atomic_write_text(args.json, json.dumps(outcome.summary(), indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(outcome.summary(), indent=2) + "\n", stream=True)
     return 0 if outcome.reason in ("finished", "time_limit") else 1
 
 
@@ -292,8 +294,9 @@ def open_capture(args):
         return None
     path = Path(args.link_capture)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         return LinkCapture(path)
+    except OutputFileError as exc:
+        raise UserError(f"--link-capture: {exc}") from None
     except OSError as exc:
         raise UserError(f"--link-capture: cannot write {path}: {exc}") from None
 
