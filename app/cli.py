@@ -25,6 +25,7 @@ COMMAND_MODULES = [
     "app.commands.link_decode",
     "app.commands.check",
     "app.commands.sysid",
+    "app.commands.track",
 ]
 
 
