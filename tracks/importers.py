@@ -153,19 +153,22 @@ def _left_normals(points: np.ndarray) -> np.ndarray:
     return np.column_stack([-tangent[:, 1], tangent[:, 0]])
 
 
-def fit_into_arena(points: np.ndarray, half_width: float, arena: Arena, wall_margin_m: float):
+def fit_into_arena(points: np.ndarray, half_width: float, arena: Arena, wall_margin_m: float, width_scales: bool = False):
     """``(points, scale)``: the circuit scaled about its centre, turned 90 deg if that allows a larger
-    scale, and centred in ``arena`` with ``half_width + wall_margin_m`` (m, after scaling) to every
-    wall. Raises TrackImportError if even that room does not fit."""
-    room_x = arena.x_max - arena.x_min - 2.0 * (half_width + wall_margin_m)
-    room_y = arena.y_max - arena.y_min - 2.0 * (half_width + wall_margin_m)
+    scale, and centred in ``arena`` with ``half_width + wall_margin_m`` (m) to every wall.
+    ``half_width`` is in the file's units and scales with the circuit when ``width_scales``, else it
+    is the final (m) half-width. Raises TrackImportError if even that room does not fit."""
+    fixed = 0.0 if width_scales else 2.0 * half_width
+    grown = 2.0 * half_width if width_scales else 0.0
+    room_x = arena.x_max - arena.x_min - 2.0 * wall_margin_m - fixed
+    room_y = arena.y_max - arena.y_min - 2.0 * wall_margin_m - fixed
     if room_x <= 0 or room_y <= 0:
         raise TrackImportError(f"a track {2 * half_width:g} m wide with {wall_margin_m:g} m to the walls does not fit "
                                f"the arena {arena.x_max - arena.x_min:g} x {arena.y_max - arena.y_min:g} m")
     best = None
     for turned in (False, True):
         p = points[:, ::-1] * np.array([-1.0, 1.0]) if turned else points
-        extent = np.ptp(p, axis=0)
+        extent = np.ptp(p, axis=0) + grown
         scale = min(room_x / extent[0], room_y / extent[1])
         if best is None or scale > best[1] * (1 + 1e-9):
             best = (p, scale)
@@ -246,7 +249,7 @@ def import_track(path: str | os.PathLike, *, car: CarEnvelope, fmt: str = "auto"
     scale = 1.0
     if fit_arena:
         half = 0.5 * (width_m if width_m is not None else float(np.max(widths)))
-        points, scale = fit_into_arena(points, half, arena, wall_margin_m)
+        points, scale = fit_into_arena(points, half, arena, wall_margin_m, width_scales=width_m is None)
         if width_m is None:  # the circuit's own widths, scaled down with it
             widths = widths * scale
     widths = np.full(len(points), width_m) if width_m is not None else widths
