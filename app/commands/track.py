@@ -18,7 +18,7 @@ from race.setup import RaceSetup
 from tracking.calibration import load_fixed_markers
 from tracks import Arena, TrackFormatError, UnknownTrackError, load_track, track_from_dict
 from tracks.importers import FORMATS, CarEnvelope, TrackImportError, import_track
-from tracks.racing_line import RacingLineError, limits_for_car, racing_line
+from tracks.racing_line import RacingLineError, lap_time_s, limits_for_car, racing_line, speed_profile
 from vehicles.params import CarParamsError, load_car_params
 
 
@@ -86,6 +86,11 @@ def summary_lines(track, line) -> list[str]:
                    f"lap time {line.lap_time_s:.3f} s (friction circle {lim.lateral_accel_mps2:.2f} m/s^2, "
                    f"drive {lim.accel_mps2:.2f} m/s^2 at rest, brake {lim.brake_mps2:.2f} m/s^2, "
                    f"top speed {lim.top_speed_mps:g} m/s)")
+        # The same limits on the centre line, for comparison (the reference the planners follow today).
+        centre_kappa = track.curvature(line.s)
+        step = np.full(len(line.s), track.length / len(line.s))
+        centre_lap = lap_time_s(step, speed_profile(step, centre_kappa, lim, closed=True))
+        out.append(f"centre line at the same limits: lap time {centre_lap:.3f} s")
     return out
 
 
