@@ -26,8 +26,8 @@ def test_buzzracer_full_matches_hand_counted_tiles():
     x, y = track.position(0.0)
     assert (x, y, float(track.heading(0.0))) == pytest.approx((2.1, 2.1, -math.pi / 2), abs=1e-12)
     assert track.position(0.3) == pytest.approx([2.1, 1.8], abs=1e-12)
-    arena = track.arena
-    assert (arena.x_min, arena.x_max, arena.y_min, arena.y_max) == pytest.approx((0, 2.4, 0, 3.6))
+    arena = track.arena   # the grid with the 0.2 m floor border the file declares for the fixed markers
+    assert (arena.x_min, arena.x_max, arena.y_min, arena.y_max) == pytest.approx((-0.2, 2.6, -0.2, 3.8))
     assert abs(track.curvature(np.linspace(0, track.length, 500))).max() == pytest.approx(1 / 0.3)
     left, right = track.boundaries(0.01)
     for edge in (left, right):   # the surface lies on the grid, within 18.5 mm of its walls at most
@@ -47,6 +47,8 @@ def test_four_turn_loop_is_a_circle():
     s = np.linspace(0, track.length, 100, endpoint=False)
     p = track.position(s)
     assert track.length == pytest.approx(2 * math.pi * 0.3)
+    arena = track.arena   # no arena in the file: the tile grid
+    assert (arena.x_min, arena.x_max, arena.y_min, arena.y_max) == (0.0, 1.2, 0.0, 1.2)
     assert np.hypot(p[:, 0] - 0.6, p[:, 1] - 0.6) == pytest.approx(np.full(100, 0.3), abs=1e-12)
 
 
