@@ -119,3 +119,19 @@ def test_car_wider_than_the_track_is_refused(tmp_path):
     with pytest.raises(RacingLineError, match="closed track"):
         racing_line(track_from_dict({"name": "road", "closed": False, "width": 1.0, "start": [0, 0, 0],
                                      "segments": [{"type": "straight", "length": 5}]}), limits(), cache_dir=tmp_path)
+
+
+def test_racing_line_is_recorded_as_a_static_strip(tmp_path):
+    from race.recording import RaceRecorder, load_recording
+
+    track = ring()
+    line = racing_line(track, limits(), cache_dir=tmp_path)
+    rec = RaceRecorder(tmp_path / "r.rrd", "test", background=False)
+    rec.static_racing_line(track, line)
+    rec.close()
+    data = load_recording(tmp_path / "r.rrd")
+    strips = data.static["world/track/racing_line"]["LineStrips2D:strips"][-1]
+    starts = np.array([np.asarray(s, dtype=float).reshape(-1, 2)[0] for s in strips])
+    assert len(strips) == len(line.s)
+    # On the annulus the line is the circle of radius R + w/2 - 0.1 about the origin.
+    assert np.hypot(starts[:, 0], starts[:, 1]) == pytest.approx(np.full(len(starts), R + WIDTH / 2 - 0.1), abs=3e-3)
