@@ -79,3 +79,18 @@ def test_bad_tile_file_exits_2_naming_file_and_move(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "lab.json: tiles.path[7]: move 7 is 'q'" in err
     assert not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.parametrize("tiles, field", [
+    ({"grid": [0, 3]}, "tiles.grid[0]"),
+    ({"grid": [3, 101]}, "tiles.grid[1]"),
+    ({"tile_size": -0.6}, "tiles.tile_size"),
+    ({"start_tile": [1]}, "tiles.start_tile"),
+    ({"tile_sise": 0.6}, "tiles.tile_sise"),
+])
+def test_bad_tile_fields_are_named(tiles, field):
+    data = tile_track("urdl", (2, 2))
+    data["tiles"].update(tiles)
+    with pytest.raises(TrackFormatError) as info:
+        track_from_dict(data)
+    assert info.value.field == field

@@ -113,8 +113,9 @@ class TrackDefinition:
 
 _TOP_LEVEL_KEYS = {"name", "description", "closed", "width", "centerline", "start", "segments", "tiles", "lanes", "arena"}
 _TILE_KEYS = {"grid", "path", "tile_size", "start_tile"}
-# Tile grids larger than this many tiles a side are not a lab's floor (and keep the geometry small).
-MAX_TILE_GRID = 1000
+# Tile grids larger than this many tiles a side (60 m of 0.6 m tiles) are not a lab's floor; the bound keeps
+# the straight/arc chain (one segment per tile) small.
+MAX_TILE_GRID = 100
 
 # Every number in a track file (m or degrees) lies within +-MAX_ABS_NUMBER; widths, lengths and radii
 # are at least MIN_LENGTH_M: beyond either the geometry overflows or divides by ~0.
