@@ -27,6 +27,7 @@ COMMAND_MODULES = [
     "app.commands.check",
     "app.commands.sysid",
     "app.commands.track",
+    "app.commands.track_tools",
 ]
 
 

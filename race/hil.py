@@ -49,7 +49,8 @@ from vehicles import fhss
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN, CarCommand
 from vehicles.virtual_box import CommandHistory, VirtualCarBox
 
-FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json"}
+FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json",
+                 "buzzracer:full": Path(__file__).resolve().parents[1] / "tracking" / "data" / "buzzracer_full_fixed_markers.json"}
 
 
 @dataclass(frozen=True)

@@ -100,6 +100,17 @@ class RaceRecorder:
         self.rec.log("world/track/right", rr.LineStrips2D([np.vstack([right, right[:1]])]), static=True)
         self.rec.log("world/track/centre", rr.LineStrips2D([centre], colors=[[120, 120, 120]]), static=True)
 
+    def static_racing_line(self, track, line, entity: str = "world/track/racing_line") -> None:
+        """The racing line (tracks.racing_line.RacingLine) as a closed strip of short pieces, each
+        coloured by the speed profile: blue at the line's slowest speed to red at its fastest."""
+        x, y = track.to_cartesian(line.s, line.ey)
+        points = np.column_stack([x, y])
+        pieces = np.stack([points, np.roll(points, -1, axis=0)], axis=1)
+        v = line.speed_mps
+        share = (v - v.min()) / max(float(v.max() - v.min()), 1e-9)
+        colors = np.column_stack([255 * share, 60 * np.ones_like(share), 255 * (1 - share)]).astype(np.uint8)
+        self.rec.log(entity, self.rr.LineStrips2D(list(pieces), colors=colors), static=True)
+
     def static_document(self, entity: str, text: str) -> None:
         self.rec.log(entity, self.rr.TextDocument(text), static=True)
 

@@ -74,8 +74,27 @@ class Arena:
 
 
 @dataclass(frozen=True)
+class TileLayout:
+    """A BuzzRacer-style tile track: square tiles of ``tile_size`` m on a ``rows`` x ``cols`` grid, laid
+    along ``path``, a string of moves ``u`` (+y), ``r`` (+x), ``d`` (-y), ``l`` (-x) from tile (0, 0),
+    whose lower-left corner is the world origin. Tile (i, j) is column i (x), row j (y).
+    ``start_tile`` is the straight tile whose centre is the start line (None: the first straight
+    tile along the path)."""
+
+    rows: int
+    cols: int
+    path: str
+    tile_size: float
+    start_tile: tuple[int, int] | None = None
+
+
+TILE_MOVES = "urdl"
+
+
+@dataclass(frozen=True)
 class TrackDefinition:
-    """A track as written in its file. Exactly one of ``centerline`` and (``start``, ``segments``) is set.
+    """A track as written in its file. Exactly one of ``centerline``, (``start``, ``segments``) and
+    ``tiles`` is set.
 
     ``width`` is the full drivable width in m: one number, or one per centre-line point.
     """
@@ -86,12 +105,17 @@ class TrackDefinition:
     centerline: tuple[tuple[float, float], ...] | None = None
     start: tuple[float, float, float] | None = None  # (x m, y m, heading rad)
     segments: tuple[StraightSegment | ArcSegment, ...] | None = None
+    tiles: TileLayout | None = None     # tile tracks: the Track builds start and segments from it
     lanes: tuple[Lane, ...] = ()
     arena: Arena | None = None
     description: str = ""
 
 
-_TOP_LEVEL_KEYS = {"name", "description", "closed", "width", "centerline", "start", "segments", "lanes", "arena"}
+_TOP_LEVEL_KEYS = {"name", "description", "closed", "width", "centerline", "start", "segments", "tiles", "lanes", "arena"}
+_TILE_KEYS = {"grid", "path", "tile_size", "start_tile"}
+# Tile grids larger than this many tiles a side (60 m of 0.6 m tiles) are not a lab's floor; the bound keeps
+# the straight/arc chain (one segment per tile) small.
+MAX_TILE_GRID = 100
 
 # Every number in a track file (m or degrees) lies within +-MAX_ABS_NUMBER; widths, lengths and radii
 # are at least MIN_LENGTH_M: beyond either the geometry overflows or divides by ~0.
@@ -154,14 +178,24 @@ def parse_definition(data: Any, source: str = "<track>") -> TrackDefinition:
 
     has_points = "centerline" in data
     has_segments = "segments" in data or "start" in data
-    if has_points and has_segments:
-        raise TrackFormatError("centerline", "give either 'centerline' or 'start'+'segments', not both", source)
-    if not has_points and not has_segments:
-        raise TrackFormatError("centerline", "missing (give 'centerline' points or 'start'+'segments')", source)
+    has_tiles = "tiles" in data
+    if has_points + has_segments + has_tiles > 1:
+        raise TrackFormatError("centerline", "give one of 'centerline', 'start'+'segments' or 'tiles', not several", source)
+    if not has_points and not has_segments and not has_tiles:
+        raise TrackFormatError("centerline", "missing (give 'centerline' points, 'start'+'segments' or 'tiles')", source)
 
     raw_width = _require(data, "width", source)
-    centerline = start = segments = None
-    if has_points:
+    centerline = start = segments = tiles = None
+    if has_tiles:
+        if not closed:
+            raise TrackFormatError("closed", "a tile track is a loop: must be true", source)
+        if isinstance(raw_width, list):
+            raise TrackFormatError("width", "a tile track takes one width; give one number", source)
+        width = _positive(raw_width, "width", source)
+        tiles = _parse_tiles(data["tiles"], source)
+        if width >= tiles.tile_size:
+            raise TrackFormatError("width", f"{width:g} m does not fit on tiles of {tiles.tile_size:g} m", source)
+    elif has_points:
         centerline = _parse_centerline(data["centerline"], source)
         if isinstance(raw_width, list):
             if len(raw_width) != len(centerline):
@@ -189,6 +223,8 @@ def parse_definition(data: Any, source: str = "<track>") -> TrackDefinition:
 
     lanes = _parse_lanes(data.get("lanes", []), width, source)
     arena = _parse_arena(data["arena"], source) if "arena" in data else None
+    if arena is None and tiles is not None:  # the tile grid is the lab's floor
+        arena = Arena(0.0, round(tiles.cols * tiles.tile_size, 9), 0.0, round(tiles.rows * tiles.tile_size, 9))
     return TrackDefinition(
         name=name,
         closed=closed,
@@ -196,6 +232,7 @@ def parse_definition(data: Any, source: str = "<track>") -> TrackDefinition:
         centerline=centerline,
         start=start,
         segments=segments,
+        tiles=tiles,
         lanes=lanes,
         arena=arena,
         description=description,
@@ -246,6 +283,36 @@ def _parse_segments(raw: Any, source: str) -> tuple[StraightSegment | ArcSegment
         else:
             raise TrackFormatError(prefix + "type", f"expected 'straight' or 'arc', got {kind!r}", source)
     return tuple(segments)
+
+
+def _grid_int(value: Any, field: str, source: str, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= MAX_TILE_GRID:
+        raise TrackFormatError(field, f"expected an integer in [{low}, {MAX_TILE_GRID}], got {value!r}", source)
+    return value
+
+
+def _parse_tiles(raw: Any, source: str) -> TileLayout:
+    if not isinstance(raw, Mapping):
+        raise TrackFormatError("tiles", "expected an object with grid, path, tile_size (and start_tile)", source)
+    _check_keys(raw, _TILE_KEYS, "tiles.", source)
+    grid = _require(raw, "grid", source, "tiles.")
+    if not isinstance(grid, list) or len(grid) != 2:
+        raise TrackFormatError("tiles.grid", f"expected [rows, cols], got {grid!r}", source)
+    rows, cols = (_grid_int(v, f"tiles.grid[{i}]", source, 1) for i, v in enumerate(grid))
+    path = _require(raw, "path", source, "tiles.")
+    if not isinstance(path, str) or len(path) < 4:
+        raise TrackFormatError("tiles.path", f"expected a string of at least 4 moves u/r/d/l, got {path!r}", source)
+    for i, move in enumerate(path):
+        if move not in TILE_MOVES:
+            raise TrackFormatError(f"tiles.path[{i}]", f"move {i} is {move!r}: unknown move letter (moves: u, r, d, l)", source)
+    tile_size = _positive(_require(raw, "tile_size", source, "tiles."), "tiles.tile_size", source)
+    start_tile = None
+    if "start_tile" in raw:
+        value = raw["start_tile"]
+        if not isinstance(value, list) or len(value) != 2:
+            raise TrackFormatError("tiles.start_tile", f"expected [column, row], got {value!r}", source)
+        start_tile = (_grid_int(value[0], "tiles.start_tile[0]", source, 0), _grid_int(value[1], "tiles.start_tile[1]", source, 0))
+    return TileLayout(rows, cols, path, tile_size, start_tile)
 
 
 def _parse_lanes(raw: Any, width: float | tuple[float, ...], source: str) -> tuple[Lane, ...]:

@@ -19,8 +19,20 @@ class UnknownTrackError(ValueError):
 
 
 def available_tracks() -> list[str]:
-    """Names of the shipped tracks (files ``tracks/data/<name>.json``), sorted."""
-    return sorted(p.stem for p in DATA_DIR.glob("*.json"))
+    """Names of the shipped tracks, sorted: ``<name>`` for ``tracks/data/<name>.json`` and
+    ``<family>:<name>`` for ``tracks/data/<family>/<name>.json`` (e.g. ``buzzracer:full``)."""
+    names = [p.stem for p in DATA_DIR.glob("*.json")]
+    names += [f"{p.parent.name}:{p.stem}" for p in DATA_DIR.glob("*/*.json")]
+    return sorted(names)
+
+
+def shipped_track_path(name: str) -> Path:
+    """The file of a shipped track name (``oval``, ``buzzracer:full``); UnknownTrackError if there is none."""
+    family, _, stem = name.rpartition(":")
+    path = DATA_DIR / family / f"{stem}.json" if family else DATA_DIR / f"{stem}.json"
+    if not (stem and path.is_file()):
+        raise UnknownTrackError(f"unknown track {name!r}; shipped tracks: {', '.join(available_tracks())}")
+    return path
 
 
 def track_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Track:
@@ -31,8 +43,9 @@ def track_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Track:
 def load_track(name_or_path: str | os.PathLike) -> Track:
     """Load and validate a track.
 
-    A bare name without a directory or ``.json`` suffix (e.g. ``"oval"``) loads the shipped
-    ``tracks/data/<name>.json``; anything else is a file path. Raises :class:`UnknownTrackError`
+    A bare name without a directory or ``.json`` suffix loads the shipped file: ``"oval"`` is
+    ``tracks/data/oval.json``, ``"buzzracer:full"`` is ``tracks/data/buzzracer/full.json``; anything
+    else is a file path. Raises :class:`UnknownTrackError`
     for an unknown bare name and :class:`TrackFormatError` (a ValueError naming the field at fault)
     for anything else: field ``<file>`` for a path that is missing, unreadable, not a regular file,
     too large or not UTF-8, ``<json>`` for invalid or too deeply nested JSON.
@@ -40,9 +53,7 @@ def load_track(name_or_path: str | os.PathLike) -> Track:
     text = os.fspath(name_or_path)
     is_bare_name = not isinstance(name_or_path, Path) and os.sep not in text and "/" not in text and not text.endswith(".json")
     if is_bare_name:
-        path = DATA_DIR / f"{text}.json"
-        if not path.is_file():
-            raise UnknownTrackError(f"unknown track {text!r}; shipped tracks: {', '.join(available_tracks())}")
+        path = shipped_track_path(text)
     else:
         path = Path(text)
     source = path.name

@@ -78,3 +78,24 @@ def draw_track(
     ax.set_aspect("equal")
     ax.autoscale_view()
     return artists
+
+
+def draw_racing_line(ax, track: Track, line, *, cmap: str = "viridis", lw: float = 2.0, zorder: float = 0.5,
+                     colorbar: bool = True):
+    """Draw a racing line (tracks.racing_line.RacingLine) on ``track``, coloured by its speed (m/s).
+
+    Returns the LineCollection (and adds a colour bar labelled in m/s unless ``colorbar`` is False).
+    """
+    from matplotlib.collections import LineCollection
+
+    x, y = track.to_cartesian(line.s, line.ey)
+    points = np.column_stack([x, y])
+    segments = np.stack([points, np.roll(points, -1, axis=0)], axis=1)
+    speed = line.speed_mps
+    collection = LineCollection(segments, cmap=cmap, linewidths=lw, zorder=zorder)
+    collection.set_array(0.5 * (speed + np.roll(speed, -1)))
+    collection.set_clim(float(speed.min()), float(speed.max()) if speed.max() > speed.min() else float(speed.min()) + 1e-3)
+    ax.add_collection(collection)
+    if colorbar:
+        ax.figure.colorbar(collection, ax=ax, label="racing-line speed (m/s)", shrink=0.8)
+    return collection

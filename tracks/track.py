@@ -20,6 +20,7 @@ from .definition import (
     TrackFormatError,
 )
 from .geometry import CenterlineSample, SegmentCenterline, SplineCenterline, wrap_angle
+from .tiles import tile_chain
 
 # Closed segment chains must also end with the start heading, within this (rad, ~0.1 deg).
 _CLOSURE_HEADING_TOLERANCE = math.radians(0.1)
@@ -60,12 +61,16 @@ class Track:
             )
             self._centerline = SplineCenterline(definition.centerline, definition.closed, widths)
         else:
-            assert definition.start is not None and definition.segments is not None
-            lengths = [seg.length for seg in definition.segments]
-            curvatures = [seg.curvature if isinstance(seg, ArcSegment) else 0.0 for seg in definition.segments]
-            self._centerline = SegmentCenterline(definition.start, lengths, curvatures)
+            if definition.tiles is not None:
+                start, segments = tile_chain(definition.tiles, source)
+            else:
+                assert definition.start is not None and definition.segments is not None
+                start, segments = definition.start, definition.segments
+            lengths = [seg.length for seg in segments]
+            curvatures = [seg.curvature if isinstance(seg, ArcSegment) else 0.0 for seg in segments]
+            self._centerline = SegmentCenterline(start, lengths, curvatures)
             if definition.closed:
-                _check_segment_closure(self._centerline, definition.start, source)
+                _check_segment_closure(self._centerline, start, source)
         self._length = float(self._centerline.length)
 
         # Dense lookup table: the nearest sample seeds the Newton projection in to_frenet.
@@ -344,7 +349,8 @@ class Track:
         bad = (along > 0.5 * np.pi * widths + 2 * spacing) & (dist < widths * (1 - 1e-9))
         if np.any(bad):
             k = int(np.argmax(bad))
-            field = "centerline" if self._definition.centerline is not None else "segments"
+            field = ("centerline" if self._definition.centerline is not None
+                     else "tiles.path" if self._definition.tiles is not None else "segments")
             raise TrackFormatError(
                 field,
                 f"track overlaps itself: centre line at s = {s[i[k]]:.3f} m and s = {s[j[k]]:.3f} m is only "
