@@ -65,7 +65,10 @@ SPEED_SCALE_MPS = 0.05
 class SysidSettings:
     horizon_s: float = 1.0  # planning horizon over which predictions are compared
     block_s: float | None = None  # time blocks of the split; None: duration / 9, clamped to [3, 10] s
-    heldout_every: int = 3  # every third block is held out
+    heldout_every: int = 3  # every third block (one run: time blocks) or run (several runs) is held out
+    # Several runs: indices (canonical order, Trajectory.runs) of the runs held out whole; None: every
+    # heldout_every-th run (at least one). One run: time blocks.
+    heldout_runs: tuple[int, ...] | None = None
     fit_max_starts: int = 300  # training windows used per fit (evenly spaced)
     heldout_max_starts: int = 2000
     fit_steps: int = 6  # horizon steps entering the fit residual (evenly spaced, last = horizon)
@@ -121,27 +124,53 @@ class Split:
 
 
 def block_length(traj: Trajectory, s: SysidSettings) -> float:
+    """Time blocks of the split of one run: ``block_s``, or duration / 9 clamped to [3, 10] s; a run too
+    short for one held-out block of that length gets shorter blocks (never below the horizon + run-in)."""
     if s.block_s is not None:
         return float(s.block_s)
-    return float(np.clip((traj.t[-1] - traj.t[0]) / 9.0, 3.0, 10.0))
+    duration = float(max(r.duration_s for r in traj.runs))
+    block = float(np.clip(duration / 9.0, 3.0, 10.0))
+    if duration < s.heldout_every * block:
+        block = max(duration / (s.heldout_every + 0.5), s.horizon_s + WARMUP_S + 0.2)
+    return block
+
+
+def heldout_runs(traj: Trajectory, s: SysidSettings) -> tuple[int, ...]:
+    """Runs held out whole (several runs), in canonical order; () for one run."""
+    if traj.n_runs < 2:
+        return ()
+    if s.heldout_runs is not None:
+        return tuple(sorted(set(s.heldout_runs)))
+    picked = tuple(i for i in range(traj.n_runs) if i % s.heldout_every == s.heldout_every - 1)
+    return picked or (traj.n_runs - 1,)
 
 
 def split_starts(traj: Trajectory, horizon: int, s: SysidSettings) -> Split:
-    """Windows that stay inside one segment and one time block; blocks alternate train / held-out."""
+    """Windows that stay inside one segment (and, with one run, one time block). Several runs: the
+    held-out runs are held out whole (cross-run validation); one run: time blocks alternate train /
+    held-out."""
     k = np.arange(traj.n)
-    block_s = block_length(traj, s)
-    block = np.floor((traj.t - traj.t[0]) / block_s).astype(int)
     end = k + horizon
     # Windows start WARMUP_S into a segment (the dynamic model's run-in) and end inside it.
     valid = (end < traj.seg_end) & (k - traj.seg_start >= int(round(WARMUP_S / traj.dt)))
-    valid[valid] &= block[end[valid]] == block[valid]
-    heldout_mask = (block % s.heldout_every) == s.heldout_every - 1
+    held = heldout_runs(traj, s)
+    if held:
+        if len(held) >= traj.n_runs:
+            raise ValueError(f"every run is held out ({traj.n_runs} runs); leave at least one for the fit")
+        heldout_mask = np.isin(traj.run, held)
+        where = f"runs {', '.join(str(i + 1) for i in held)} held out whole"
+    else:
+        block_s = block_length(traj, s)
+        block = traj.blocks(k, block_s)
+        valid[valid] &= block[end[valid]] == block[valid]
+        heldout_mask = (np.floor(traj.elapsed / block_s).astype(int) % s.heldout_every) == s.heldout_every - 1
+        where = f"blocks of {block_s:.1f} s, every {s.heldout_every}rd held out; --block-length sets the length"
     train = k[valid & ~heldout_mask]
     heldout = k[valid & heldout_mask]
     if train.size < 20 or heldout.size < 20:
         raise ValueError(
-            f"log too short for identification: {train.size} training and {heldout.size} held-out windows of "
-            f"{horizon} steps (need >= 20 each; blocks of {block_s:.1f} s, every {s.heldout_every}rd held out)"
+            f"too little data for identification: {train.size} training and {heldout.size} held-out windows of "
+            f"{horizon} steps (need >= 20 each; {where})"
         )
 
     def thin(a: np.ndarray, n: int) -> np.ndarray:
@@ -210,6 +239,21 @@ class SysidResult:
         return bool(self.selected)
 
 
+def _subset(e: PredictionErrors, keep: np.ndarray) -> PredictionErrors:
+    return PredictionErrors(**{f.name: getattr(e, f.name)[keep] for f in dataclasses.fields(e)})
+
+
+def per_run_summaries(result: "SysidResult") -> list[tuple[int, int, ErrorSummary, ErrorSummary, ErrorSummary]]:
+    """Per run with held-out windows: (run index, windows, nominal dynamic, planner, final) held-out errors."""
+    run = result.traj.run[result.split.heldout]
+    out = []
+    for i in np.unique(run).tolist():
+        keep = run == i
+        out.append((i, int(keep.sum()), *(summarize(_subset(f.heldout_errors, keep))
+                                          for f in (result.dynamic_nominal, result.planner, result.final))))
+    return out
+
+
 # ----------------------------------------------------------------------------- fitting
 def _fit_steps(horizon: int, n: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(horizon / n, horizon, n)).astype(int))
@@ -229,8 +273,7 @@ def _residual(traj: Trajectory, starts: np.ndarray, pred: np.ndarray, steps: np.
 
 
 def _clusters(traj: Trajectory, starts: np.ndarray, per_start: int, block_s: float) -> np.ndarray:
-    block = np.floor((traj.t[starts] - traj.t[0]) / block_s).astype(int)
-    return np.repeat(block, per_start)
+    return np.repeat(traj.blocks(starts, block_s), per_start)
 
 
 def _sandwich_std(jac: np.ndarray, resid: np.ndarray, clusters: np.ndarray) -> np.ndarray:
@@ -326,7 +369,7 @@ def improvement(traj: Trajectory, split: Split, before: Fit, after: Fit, s: Sysi
     e0 = before.heldout_errors.position[:, -1] ** 2
     e1 = after.heldout_errors.position[:, -1] ** 2
     reduction = 1.0 - math.sqrt(e1.mean() / e0.mean()) if e0.mean() > 0 else 0.0
-    blocks = np.floor((traj.t[split.heldout] - traj.t[0]) / s.bootstrap_block_s).astype(int)
+    blocks = traj.blocks(split.heldout, s.bootstrap_block_s)
     _, inverse = np.unique(blocks, return_inverse=True)
     diff_sum = np.bincount(inverse, weights=e0 - e1)
     counts = np.bincount(inverse).astype(float)
@@ -371,7 +414,7 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     v = traj.speed[starts[:, None] + np.arange(lag + 1)[None, :]].mean(axis=1)
     names = tuple(LIBRARY)
     theta = np.stack([LIBRARY[n][1](v, throttle, delta) for n in names], axis=1)
-    clusters = np.floor((traj.t[starts] - traj.t[0]) / s.bootstrap_block_s).astype(int)
+    clusters = traj.blocks(starts, s.bootstrap_block_s)
 
     def sparse_fit(target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         coef = stlsq(theta, target, s.sparse_threshold * float(np.std(target)))

@@ -36,6 +36,16 @@ class LogFormatError(fileio.InputFileError):
 
 
 @dataclass(frozen=True)
+class CommandStream:
+    """Commands logged on their own time stamps (a reader whose commands and poses come from different
+    messages): each is held from its time until the next."""
+
+    t: np.ndarray
+    throttle: np.ndarray
+    steering: np.ndarray
+
+
+@dataclass(frozen=True)
 class DriveLog:
     """All rows of a log, in file order. ``row`` holds each sample's line number in the file (for a
     recording: the number of the extracted row, ordered by car, then time). ``car_labels`` names the
@@ -53,6 +63,7 @@ class DriveLog:
     row: np.ndarray  # int, line number in the file (header = 1)
     car_labels: dict[int, str] = field(default_factory=dict)
     pose_sources: dict[int, str] = field(default_factory=dict)
+    commands: CommandStream | None = None  # None: the commands of the rows (sent at the rows' times)
 
     @property
     def cars(self) -> list[int]:
@@ -72,7 +83,7 @@ class DriveLog:
             throttle=self.throttle[keep], steering=self.steering[keep],
             speed=None if self.speed is None else self.speed[keep], row=self.row[keep],
             car_labels={c: n for c, n in self.car_labels.items() if c == car},
-            pose_sources={c: n for c, n in self.pose_sources.items() if c == car},
+            pose_sources={c: n for c, n in self.pose_sources.items() if c == car}, commands=self.commands,
         )
 
 

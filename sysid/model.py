@@ -159,7 +159,7 @@ def actuations(traj: Trajectory, first: np.ndarray, steps: int, cars: Sequence[C
             steering = asymmetric(steering, c.steering_gain_asymmetry)
         motor_scale = None
         if c.motor_force_drift_per_s != 0.0:
-            t_mid = traj.t[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt - traj.t[0]
+            t_mid = traj.elapsed[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt
             motor_scale = motor_force_scale(c.motor_force_drift_per_s, t_mid)
         out.append(Actuation(throttle, steering, motor_scale))
     return out

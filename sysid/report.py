@@ -11,7 +11,8 @@ import numpy as np
 
 import fileio
 
-from sysid.diagnose import EFFECT_NAMES, ErrorSummary, Fit, SysidResult
+from sysid.diagnose import (EFFECT_NAMES, ErrorSummary, Fit, SysidResult, block_length, heldout_runs,
+                             per_run_summaries)
 
 # Per effect: (label of the explaining variable, label of the residual it drives).
 EXPLAINING_VARIABLES = {
@@ -25,7 +26,7 @@ EXPLAINING_VARIABLES = {
                           "heading error at horizon [rad]"),
     "steering_asymmetry": ("mean speed x |steering command| over the window [rad·m/s]",
                            "heading error at horizon [rad]"),
-    "motor_drift": ("time since the log start [s]", "speed error at horizon [m/s]"),
+    "motor_drift": ("time since the run's start [s]", "speed error at horizon [m/s]"),
     "other": ("mean speed over the window [m/s]", "heading error at horizon [rad]"),
 }
 
@@ -45,7 +46,7 @@ def explaining_variable(result: SysidResult, effect: str) -> np.ndarray:
     if effect == "steering_asymmetry":
         return np.mean(v * np.abs(traj.steering[window]), axis=1)
     if effect == "motor_drift":
-        return traj.t[starts] - traj.t[0]
+        return traj.elapsed[starts]
     if effect == "tire_slip":
         return np.mean(v * traj.yaw_rate[window], axis=1)
     if effect == "longitudinal_drag":
@@ -128,6 +129,11 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
         "unnamed_effect_remains": result.unnamed_effect_remains,
         "dropped_after_other": list(result.dropped_after_other),
         "car_params_out": car_params_out,
+        "heldout_runs": [
+            {"run": i + 1, "source": result.traj.runs[i].source, "windows": n,
+             "dynamic_nominal": nominal.json_dict(), "planner": planner.json_dict(), "after": after.json_dict()}
+            for i, n, nominal, planner, after in per_run_summaries(result)
+        ],
     }
 
 
@@ -155,20 +161,30 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
     lines = ["# Model identification report", ""]
     if command:
         lines += [f"Command: `{command}`", ""]
+    held = heldout_runs(traj, s)
+    split_note = (f"run{'s' if len(held) > 1 else ''} {', '.join(str(i + 1) for i in held)} held out whole (cross-run validation)" if held else
+                  f"time blocks of {block_length(traj, s):.1f} s, every {s.heldout_every}rd held out")
     lines += [
-        f"* Log: `{log_path}` — {traj.n_raw_rows} rows, {traj.n_duplicates_merged} duplicate timestamps merged, "
-        f"{traj.n_gaps} gap(s); {traj.n} samples on a {traj.dt * 1000:.2f} ms grid "
-        f"({traj.t[-1] - traj.t[0]:.1f} s)" + (f"; {log_note}." if log_note else "."),
+        f"* Log{'s' if traj.n_runs > 1 else ''}: `{log_path}` — {traj.n_raw_rows} rows, {traj.n_duplicates_merged} "
+        f"rows merged (equal time stamps or frames), {traj.n_gaps} gap(s); {traj.n} samples on a "
+        f"{traj.dt * 1000:.2f} ms grid ({sum(r.duration_s for r in traj.runs):.1f} s)"
+        + (f"; {log_note}." if log_note else "."),
         f"* Car parameters in: `{car_in}`; out: `{car_out}`" + (f"; JSON: `{json_path}`." if json_path else "."),
         f"* Horizon {result.horizon_steps} steps ({result.horizon_steps * traj.dt:.2f} s); "
-        f"{result.split.train.size} training and {result.split.heldout.size} held-out windows "
-        f"(time blocks, every {s.heldout_every}rd held out).",
+        f"{result.split.train.size} training and {result.split.heldout.size} held-out windows ({split_note}).",
         f"* Estimated measurement noise: position {traj.position_noise_m * 1000:.1f} mm, heading "
         f"{traj.heading_noise_rad:.4f} rad.",
         "",
-        "## Verdict",
-        "",
     ]
+    if traj.n_runs > 1 or traj.runs[0].n_missing_frames:
+        lines += ["| run | file | rows | merged | missing frames | gaps | samples | duration | role |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for i, r in enumerate(traj.runs):
+            lines.append(f"| {i + 1} | `{r.source}` | {r.n_raw_rows} | {r.n_duplicates_merged} | {r.n_missing_frames} | "
+                         f"{r.n_gaps} | {r.n_samples} | {r.duration_s:.1f} s | "
+                         f"{'held out' if i in held else ('fit' if held else 'fit + held-out blocks')} |")
+        lines.append("")
+    lines += ["## Verdict", ""]
     if result.selected:
         names = ", ".join(f"**{e.effect}**" for e in result.selected)
         lines.append(f"Significant effect(s), best first: {names}. Held-out horizon position RMSE "
@@ -226,6 +242,17 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
         _row("after: reference model + identified effects", result.final.heldout),
         _row("planner, new corrections", result.planner_after.heldout),
         "",
+    ]
+    if traj.n_runs > 1:
+        lines += ["Per held-out run (horizon RMSE: position cm, heading rad, speed m/s; nominal dynamic → after):", "",
+                  "| run | windows | position | heading | speed |", "|---|---|---|---|---|"]
+        for i, n, nominal, _, after in per_run_summaries(result):
+            lines.append(f"| {i + 1} `{traj.runs[i].source}` | {n} | {100 * nominal.horizon_pos_rmse_m:.1f} → "
+                         f"{100 * after.horizon_pos_rmse_m:.1f} | {nominal.horizon_heading_rmse_rad:.3f} → "
+                         f"{after.horizon_heading_rmse_rad:.3f} | {nominal.horizon_speed_rmse_mps:.3f} → "
+                         f"{after.horizon_speed_rmse_mps:.3f} |")
+        lines.append("")
+    lines += [
         "## Candidates",
         "",
         "Each candidate fitted alone on the training blocks on top of the reference model; reduction = "
