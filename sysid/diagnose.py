@@ -29,7 +29,7 @@ from vehicles.extra_terms import LIBRARY, terms_from_coefficients
 from vehicles.params import CarParams, OtherTermsParams
 
 EFFECT_NAMES = ("actuation_delay", "steering_offset", "steering_gain", "tire_slip", "longitudinal_drag",
-                "steering_backlash", "steering_asymmetry", "motor_drift", "other")
+                "steering_backlash", "steering_asymmetry", "motor_drift", "speed_map", "speed_response", "other")
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,7 @@ class Candidate:
     upper: tuple[float, ...]
     scale: tuple[float, ...]  # typical size, for the optimiser's scaling
     dynamic: bool = False  # needs the dynamic model
+    drive: str = "any"  # "throttle": only for throttle cars (the motor law); "speed": only for speed set-point cars
 
 
 CANDIDATES: tuple[Candidate, ...] = (
@@ -47,11 +48,20 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("steering_offset", ("steering_offset_rad",), (-0.3,), (0.3,), (0.01,)),
     Candidate("steering_gain", ("steering_gain",), (0.2,), (5.0,), (0.05,)),
     Candidate("tire_slip", ("tire_grip_scale",), (0.05,), (5.0,), (0.1,), dynamic=True),
-    Candidate("longitudinal_drag", ("extra_drag_n_per_mps2",), (-1.0,), (10.0,), (0.01,)),
+    Candidate("longitudinal_drag", ("extra_drag_n_per_mps2",), (-1.0,), (10.0,), (0.01,), drive="throttle"),
     Candidate("steering_backlash", ("steering_backlash_rad",), (0.0,), (0.3,), (0.01,)),
     Candidate("steering_asymmetry", ("steering_gain_asymmetry",), (-0.5,), (0.5,), (0.02,)),
-    Candidate("motor_drift", ("motor_force_drift_per_s",), (-0.01,), (0.01,), (1e-4,)),
+    Candidate("motor_drift", ("motor_force_drift_per_s",), (-0.01,), (0.01,), (1e-4,), drive="throttle"),
+    # Speed set-point cars: the speed reached per commanded m/s, and the speed loop's response rate.
+    Candidate("speed_map", ("speed_setpoint_gain",), (0.2,), (5.0,), (0.05,), drive="speed"),
+    Candidate("speed_response", ("speed_response_scale",), (0.05,), (20.0,), (0.1,), drive="speed"),
 )
+
+
+def candidates_for(car: CarParams) -> tuple[Candidate, ...]:
+    """The candidates that apply to the car's drive (throttle or speed set-point)."""
+    drive = "speed" if car.speed_control.active else "throttle"
+    return tuple(c for c in CANDIDATES if c.drive in ("any", drive))
 # Parameters whose cost is not convex from the neutral value: the fit starts from the best of these.
 _START_GRID = {"steering_backlash_rad": (0.01, 0.02, 0.04, 0.08)}
 
@@ -535,8 +545,8 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
     candidates: list[CandidateResult] = []
     alone: dict[str, Fit] = {}
     fits = side_by_side([lambda c=cand: fit_candidates(traj, split, horizon, reference.setup, [c], s)
-                         for cand in CANDIDATES])
-    for cand, fit in zip(CANDIDATES, fits):
+                         for cand in candidates_for(reference.setup.car)])
+    for cand, fit in zip(candidates_for(reference.setup.car), fits):
         alone[cand.effect] = fit
         candidates.append(_judge(traj, split, reference, fit, cand.effect, s))
     candidates.sort(key=lambda c: c.heldout_error_reduction, reverse=True)
@@ -555,7 +565,7 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
         pool = [by_name[c.effect] for c in candidates if by_name[c.effect] not in chosen
                 and c.heldout_error_reduction > 0]
         if chosen:
-            rest = [c for c in CANDIDATES if c not in chosen and (current.setup.dynamic or not c.dynamic)]
+            rest = [c for c in candidates_for(reference.setup.car) if c not in chosen and (current.setup.dynamic or not c.dynamic)]
             scores = _score_test(traj, split, horizon, current.setup, rest, s)
             ranked = sorted(scores, key=scores.get, reverse=True)
             pool += [by_name[e] for e in ranked[:_SCORE_TOP] if scores[e] > _SCORE_MIN and by_name[e] not in pool]

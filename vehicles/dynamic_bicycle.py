@@ -63,6 +63,11 @@ class ModelCoefficients:
     blend_low: np.ndarray
     blend_high: np.ndarray
     relax_time: np.ndarray
+    # Speed set-point cars (CarParams.speed_control); speed_gain 0: a throttle car.
+    speed_gain: np.ndarray = 0.0
+    speed_setpoint_gain: np.ndarray = 1.0
+    speed_max_accel: np.ndarray = 1.0
+    speed_max_decel: np.ndarray = 1.0
 
     @classmethod
     def from_params(
@@ -128,6 +133,10 @@ class ModelCoefficients:
             blend_low=arr([p.model.blend_speed_low_mps for p in plist]),
             blend_high=arr([p.model.blend_speed_high_mps for p in plist]),
             relax_time=arr([p.model.kinematic_relax_time_s for p in plist]),
+            speed_gain=arr([p.speed_control.gain_per_s * p.corrections.speed_response_scale for p in plist]),
+            speed_setpoint_gain=arr([p.corrections.speed_setpoint_gain for p in plist]),
+            speed_max_accel=arr([p.speed_control.max_accel_mps2 for p in plist]),
+            speed_max_decel=arr([p.speed_control.max_decel_mps2 for p in plist]),
         )
         if np.any(values["drag"] < 0):
             raise ValueError("drag: total drag coefficient (nominal + corrections + extra) must be >= 0")
@@ -221,6 +230,28 @@ def drive_force(vx, throttle, k: ModelCoefficients, xp=np, partials: bool = True
 
 
 def _drive_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
+    if _is_zero(k.speed_gain):
+        return _motor_force(vx, i, k, xp, partials)
+    if isinstance(k.speed_gain, float) or bool(np.all(k.speed_gain > 0)):
+        return _speed_loop_force(vx, i, k, xp, partials)
+    # A batch of throttle and speed set-point cars: each its own law.
+    speed_car = k.speed_gain > 0
+    a, b = _motor_force(vx, i, k, xp, partials), _speed_loop_force(vx, i, k, xp, partials)
+    return tuple(None if x is None else np.where(speed_car, y, x) for x, y in zip(a, b))
+
+
+def _speed_loop_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
+    """Speed set-point car (the throttle input is the set-point, m/s): m * clip(g (s u - vx), -dec, acc)."""
+    want = k.speed_gain * (k.speed_setpoint_gain * i.throttle - vx)
+    accel = xp.minimum(xp.maximum(want, -k.speed_max_decel), k.speed_max_accel)
+    force = k.mass * accel
+    if not partials:
+        return force, None, None
+    inside = (want > -k.speed_max_decel) * (want < k.speed_max_accel) * 1.0
+    return force, -k.mass * k.speed_gain * inside, k.mass * k.speed_gain * k.speed_setpoint_gain * inside
+
+
+def _motor_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
     tanh_v = xp.tanh(vx / k.rolling_smoothing_speed)
     abs_vx = xp.abs(vx)
     force = (

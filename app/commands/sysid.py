@@ -16,7 +16,7 @@ from race.setup import RaceSpec
 from sim import SimEffectsError
 from sysid.generate import (CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, ExcitationSettings, generate_log,
                             parse_effects, sim_effects)
-from sysid.log import LogFormatError, read_log, write_log_csv
+from sysid.log import STEERING_UNITS, THROTTLE_UNITS, CommandUnits, LogFormatError, read_log, write_log_csv
 from vehicles.params import CarParamsError, load_car_params, resolve_car_path, save_car_params
 
 
@@ -41,6 +41,12 @@ def register(sub) -> None:
     p.add_argument("--heldout-run", action="append", default=None, metavar="LOG",
                    help="with several runs: a run (as given) to hold out whole; repeatable (default: every 3rd run "
                         "in content order, at least one)")
+    p.add_argument("--steering-units", choices=STEERING_UNITS, default=None,
+                   help="CSV logs: steering column as a wheel angle command in rad (default), the race link's "
+                        "normalised command (x max_steering_rad) or a pulse width in us (the car file's [radio])")
+    p.add_argument("--throttle-units", choices=THROTTLE_UNITS, default=None,
+                   help="CSV logs: throttle column as normalised throttle (default), a pulse width in us, or a "
+                        "speed set-point in m/s (a car file with [speed_control])")
     p.add_argument("--frame-period", type=float, default=None,
                    help="the pose sensor's frame period, s: time stamps are snapped to its clock (jittered arrival "
                         "times), rows on one frame merged; docs/sysid.md")
@@ -90,6 +96,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     # here, not at the top: these import scipy.signal (sysid.data), about 0.3 s on every CLI start
+    from sysid.conventions import to_physical
     from sysid.data import build_runs, canonical_order
     from sysid.diagnose import SysidSettings, identify
     from sysid.report import make_plots, markdown_report, write_json
@@ -111,16 +118,20 @@ def run(args) -> int:
         if run not in args.log:
             raise UserError(f"--heldout-run {run}: not one of the runs given ({', '.join(args.log)})")
     car = load_car_params(args.car_params)
+    car_source = str(resolve_car_path(args.car_params))
+    units = None
+    if args.steering_units or args.throttle_units:
+        units = CommandUnits(steering=args.steering_units or "rad", throttle=args.throttle_units or "normalized")
     car_logs, notes = [], []
     for path in args.log:
-        log = read_log(path)
+        log = read_log(path, units)
         if args.car is None:
             if len(log.cars) > 1:
                 raise UserError(f"{path}: the log has cars {log.describe_cars()}; choose one with --car")
             car_id = log.cars[0]
         else:
             car_id = args.car
-        car_log = log.select_car(car_id)
+        car_log = to_physical(log.select_car(car_id), car, car_source)
         if car_id in car_log.pose_sources:
             notes.append(f"car {car_id} ({car_log.car_labels.get(car_id, '?')}) of {path}; poses from "
                          f"{car_log.pose_sources[car_id]}")
