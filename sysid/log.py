@@ -187,7 +187,7 @@ def check_values(log: DriveLog, car_raw: np.ndarray) -> None:
     for column, bad, why in checks:
         k = _first_bad(bad)
         if k is not None:
-            value = getattr(log, column)[k] if column != "car" else car_raw[k]
+            value = float(getattr(log, column)[k] if column != "car" else car_raw[k])
             raise LogFormatError(f"{log.source}: row {log.row[k]}, column {column}: {why}, got {value!r}")
     # Time must not run backwards within a car (duplicates are allowed and merged later).
     for car in log.cars:
@@ -205,12 +205,11 @@ def _command_check(column: str, values: np.ndarray, unit: str) -> tuple[str, np.
     """Range of a command column in its declared convention."""
     if unit == "us":
         lo, hi = PULSE_RANGE_US
-        return column, (values < lo) | (values > hi), f"{column} is declared as pulse widths (us): must be in [{lo:g}, {hi:g}]"
+        return column, (values < lo) | (values > hi), f"declared as pulse widths (us): must be in [{lo:g}, {hi:g}]"
     if unit == "normalized":
-        return column, np.abs(values) > 1.0, f"{column} is declared normalised: must be in [-1, 1]"
+        return column, np.abs(values) > 1.0, "declared normalised: must be in [-1, 1]"
     if unit == "speed":
-        return (column, np.abs(values) > MAX_SPEED_MPS,
-                f"{column} is declared a speed set-point: |{column}| must be <= {MAX_SPEED_MPS} m/s")
+        return column, np.abs(values) > MAX_SPEED_MPS, f"declared a speed set-point: must be within +-{MAX_SPEED_MPS} m/s"
     return (column, np.abs(values) > MAX_ABS_STEERING_RAD,
             f"steering must be a wheel angle in radians, |steering| <= {MAX_ABS_STEERING_RAD} (normalised commands "
             "or pulse widths: declare them, docs/sysid.md)")
