@@ -22,6 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sysid.data import Trajectory
+from sysid.excitation import Excitation, excitation
 from sysid.lockstep import predict, side_by_side
 from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, prediction_errors, substeps
 from sysid.sparse import coefficient_std, stlsq
@@ -62,8 +63,39 @@ def candidates_for(car: CarParams) -> tuple[Candidate, ...]:
     """The candidates that apply to the car's drive (throttle or speed set-point)."""
     drive = "speed" if car.speed_control.active else "throttle"
     return tuple(c for c in CANDIDATES if c.drive in ("any", drive))
+
+
+@dataclass(frozen=True)
+class NotIdentifiable:
+    """Parameters of an effect the logs do not excite: not fitted, not claimed, not written."""
+
+    effect: str
+    params: tuple[str, ...]
+    reasons: tuple[str, ...]
+
+
+def restrict(cands: tuple[Candidate, ...], exc: dict[str, Excitation]
+             ) -> tuple[tuple[Candidate, ...], list[NotIdentifiable]]:
+    """The candidates with only their excited parameters, and what was left out and why."""
+    kept, left_out = [], []
+    for c in cands:
+        ok = [i for i, p in enumerate(c.params) if exc[p].identifiable]
+        bad = [i for i in range(len(c.params)) if i not in ok]
+        if bad:
+            left_out.append(NotIdentifiable(c.effect, tuple(c.params[i] for i in bad),
+                                            tuple(exc[c.params[i]].reason for i in bad)))
+        if ok:
+            pick = lambda v: tuple(v[i] for i in ok)  # noqa: E731
+            kept.append(dataclasses.replace(c, params=pick(c.params), lower=pick(c.lower), upper=pick(c.upper),
+                                            scale=pick(c.scale)))
+    return tuple(kept), left_out
 # Parameters whose cost is not convex from the neutral value: the fit starts from the best of these.
 _START_GRID = {"steering_backlash_rad": (0.01, 0.02, 0.04, 0.08)}
+
+MIN_BOOTSTRAP_BLOCKS = 2  # held-out windows in fewer bootstrap blocks than this: no significance claimed
+# Bounds of an `other` term's contribution over the data: beyond them a term is a fit artefact, not a car.
+OTHER_MAX_ACCEL_MPS2 = 20.0
+OTHER_MAX_YAW_RATE_RADPS = 5.0
 
 # Scales of the fit residual: errors are divided by these so position, heading and speed weigh alike.
 POSITION_SCALE_M = 0.01
@@ -238,6 +270,7 @@ class SysidResult:
     families_compared: bool = False  # forward selection ran on both the kinematic and the dynamic model
     unnamed_effect_remains: bool = False  # `other` is significant: an effect the library cannot name
     dropped_after_other: list[str] = field(default_factory=list)  # named effects dropped once `other` was in
+    not_identifiable: list[NotIdentifiable] = field(default_factory=list)  # not excited by the logs: not fitted
 
     @property
     def heldout_error_reduction(self) -> float:
@@ -279,7 +312,9 @@ def _residual(traj: Trajectory, starts: np.ndarray, pred: np.ndarray, steps: np.
         dth / HEADING_SCALE_RAD,
         (p[..., 3] - traj.speed[idx]) / SPEED_SCALE_MPS,
     ], axis=-1)
-    return r.reshape(-1)
+    # A trial parameter vector whose prediction overflowed costs a large finite residual (least_squares
+    # then steps back from it instead of stopping on a non-finite cost).
+    return np.nan_to_num(r.reshape(-1), nan=1e6, posinf=1e6, neginf=-1e6)
 
 
 def _clusters(traj: Trajectory, starts: np.ndarray, per_start: int, block_s: float) -> np.ndarray:
@@ -381,6 +416,8 @@ def improvement(traj: Trajectory, split: Split, before: Fit, after: Fit, s: Sysi
     reduction = 1.0 - math.sqrt(e1.mean() / e0.mean()) if e0.mean() > 0 else 0.0
     blocks = traj.blocks(split.heldout, s.bootstrap_block_s)
     _, inverse = np.unique(blocks, return_inverse=True)
+    if inverse.max() + 1 < MIN_BOOTSTRAP_BLOCKS:  # one block cannot show the spread between blocks
+        return reduction, 0.0
     diff_sum = np.bincount(inverse, weights=e0 - e1)
     counts = np.bincount(inverse).astype(float)
     rng = np.random.default_rng(s.seed)
@@ -442,6 +479,10 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
 
     ca, sa = sparse_fit(r_v)
     cy, sy = sparse_fit(r_th)
+    # Bounded terms: a coefficient whose term reaches more than a physical rate anywhere in the data is dropped.
+    reach = np.max(np.abs(theta), axis=0)
+    ca[np.abs(ca) * reach > OTHER_MAX_ACCEL_MPS2] = 0.0
+    cy[np.abs(cy) * reach > OTHER_MAX_YAW_RATE_RADPS] = 0.0
     steps = _fit_steps(horizon, s.fit_steps)
 
     def with_terms(a: np.ndarray, y: np.ndarray) -> ModelSetup:
@@ -540,13 +581,14 @@ def _leave_one_out(traj: Trajectory, split: Split, horizon: int, chosen: list[Ca
     return side_by_side([lambda i=i: refit(i) for i in range(len(chosen))])
 
 
-def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit, s: SysidSettings) -> _Selection:
+def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit, s: SysidSettings,
+                    cands: tuple[Candidate, ...]) -> _Selection:
     """Candidates alone on top of ``reference``, then forward selection (docs/sysid.md)."""
     candidates: list[CandidateResult] = []
     alone: dict[str, Fit] = {}
     fits = side_by_side([lambda c=cand: fit_candidates(traj, split, horizon, reference.setup, [c], s)
-                         for cand in candidates_for(reference.setup.car)])
-    for cand, fit in zip(candidates_for(reference.setup.car), fits):
+                         for cand in cands])
+    for cand, fit in zip(cands, fits):
         alone[cand.effect] = fit
         candidates.append(_judge(traj, split, reference, fit, cand.effect, s))
     candidates.sort(key=lambda c: c.heldout_error_reduction, reverse=True)
@@ -557,7 +599,7 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
     effect_steps: list[tuple[Fit, Fit]] = []
     chosen: list[Candidate] = []
     selected: list[CandidateResult] = []
-    by_name = {c.effect: c for c in CANDIDATES}
+    by_name = {c.effect: c for c in cands}
     while len(chosen) < s.max_effects:
         # Later rounds refit jointly only the candidates that helped on their own and the ones a score
         # test on top of the current model ranks highest: an effect masked by a larger one (a play
@@ -565,7 +607,7 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
         pool = [by_name[c.effect] for c in candidates if by_name[c.effect] not in chosen
                 and c.heldout_error_reduction > 0]
         if chosen:
-            rest = [c for c in candidates_for(reference.setup.car) if c not in chosen and (current.setup.dynamic or not c.dynamic)]
+            rest = [c for c in cands if c not in chosen and (current.setup.dynamic or not c.dynamic)]
             scores = _score_test(traj, split, horizon, current.setup, rest, s)
             ranked = sorted(scores, key=scores.get, reverse=True)
             pool += [by_name[e] for e in ranked[:_SCORE_TOP] if scores[e] > _SCORE_MIN and by_name[e] not in pool]
@@ -650,7 +692,11 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     structure_train = _judge(traj, train_split, evaluate(traj, train_split, horizon, planner.setup),
                              evaluate(traj, train_split, horizon, dynamic_nominal.setup), "tire_slip", s, {}, {})
     references = (dynamic_nominal,) if structure_train.significant else (dynamic_nominal, planner)
-    families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s) for ref in references])
+    # Identifiability before a claim: only parameters the training windows excite are fitted.
+    exc = excitation(traj, split.train, horizon, car)
+    cands, not_identifiable = restrict(candidates_for(car), exc)
+    families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s, cands)
+                             for ref in references])
     sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
     reference, candidates, selected = sel.reference, sel.candidates, sel.selected
     effect_steps, current = sel.effect_steps, sel.current
@@ -658,7 +704,7 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     # Best first: order the claimed effects by their held-out reduction.
     order = sorted(range(len(selected)), key=lambda i: selected[i].heldout_error_reduction, reverse=True)
     selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
-    by_name = {c.effect: c for c in CANDIDATES}
+    by_name = {c.effect: c for c in cands}
 
     # `other` on top of the named effects. When it earns its place, every named effect is re-tested with
     # it in the model (the terms can take over part of what a named effect explained, or show that the
@@ -714,8 +760,8 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         if chosen:
             # One more pass over the named parameters with the terms in place (they were fitted without).
             refit = fit_candidates(traj, split, horizon, other_fit.setup, chosen, s, other_fit.effects)
-            if _training_mse(traj, split, horizon, refit.setup) < _training_mse(traj, split, horizon,
-                                                                               other_fit.setup):
+            if (_training_mse(traj, split, horizon, refit.setup) < _training_mse(traj, split, horizon, other_fit.setup)
+                    and refit.heldout.horizon_pos_rmse_m <= other_fit.heldout.horizon_pos_rmse_m):
                 other_fit = dataclasses.replace(refit, effects=other_fit.effects)
         selected = selected + [other_verdict]
         effect_steps = effect_steps + [(named, other_fit)]
@@ -754,4 +800,5 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         selected=selected, final=current, planner_after=planner_after, effect_steps=effect_steps,
         switched_after=switched_after, families_compared=len(references) == 2,
         unnamed_effect_remains=unnamed_remains, dropped_after_other=dropped_after_other,
+        not_identifiable=not_identifiable,
     )

@@ -135,6 +135,8 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
         "unnamed_effect_remains": result.unnamed_effect_remains,
         "dropped_after_other": list(result.dropped_after_other),
         "car_params_out": car_params_out,
+        "not_identifiable": [{"effect": n.effect, "params": list(n.params), "reasons": list(n.reasons)}
+                             for n in result.not_identifiable],
         "heldout_runs": [
             {"run": i + 1, "source": result.traj.runs[i].source, "windows": n,
              "dynamic_nominal": nominal.json_dict(), "planner": planner.json_dict(), "after": after.json_dict()}
@@ -162,7 +164,7 @@ def _fmt_params(params: dict[str, float], std: dict[str, float]) -> str:
 
 def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: str, json_path: str | None,
                     plots: list[tuple[str, Path]], report_dir: Path, command: str | None = None,
-                    log_note: str | None = None) -> str:
+                    log_note: str | None = None, numeric_warnings: int = 0) -> str:
     s, traj = result.settings, result.traj
     lines = ["# Model identification report", ""]
     if command:
@@ -180,8 +182,11 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
         f"{result.split.train.size} training and {result.split.heldout.size} held-out windows ({split_note}).",
         f"* Estimated measurement noise: position {traj.position_noise_m * 1000:.1f} mm, heading "
         f"{traj.heading_noise_rad:.4f} rad.",
-        "",
     ]
+    if numeric_warnings:
+        lines.append(f"* {numeric_warnings} numpy warning(s) (overflow or invalid values in trial predictions of the "
+                     "fits; such trials cost the fit a large residual and are rejected).")
+    lines.append("")
     if traj.n_runs > 1 or traj.runs[0].n_missing_frames:
         lines += ["| run | file | rows | merged | missing frames | gaps | samples | duration | role |",
                   "|---|---|---|---|---|---|---|---|---|"]
@@ -272,6 +277,13 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
     for c in result.candidates:
         lines.append(f"| {c.effect} | {_fmt_params(c.params, c.params_std)} | {100 * c.heldout_error_reduction:+.1f} % "
                      f"| {c.confidence:.2f} | {'yes' if c.significant else 'no'} |")
+    if result.not_identifiable:
+        lines += ["", "## Not identifiable from these logs", "",
+                  "Not fitted, not claimed, nothing written to the car file: the training windows do not excite them "
+                  "(docs/sysid.md, \"Excitation tests\").", "", "| effect | parameter | reason |", "|---|---|---|"]
+        for n in result.not_identifiable:
+            for p, why in zip(n.params, n.reasons):
+                lines.append(f"| {n.effect} | `{p}` | {why} |")
     lines += ["", "## Identified effects", ""]
     if result.selected:
         lines += ["Best first. Held-out reduction against the nominal dynamic model: (RMSE of the final model "
