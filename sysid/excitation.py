@@ -23,7 +23,7 @@ SATURATION = 0.95  # |command| above this fraction of its limit (the car's or th
 STRAIGHT_RAD = 0.05  # |steering command| below this is not turning (steering gain)
 STRAIGHT_STEERING_RAD, STRAIGHT_YAW_RATE = 0.1, 0.5  # straight driving (drag): |command| and |yaw rate| below
 DRAG_FORCE_RATIO = 1.4  # the drag force v^2 must vary by this factor over straight driving (p90 / p10)
-PILE_UP = 0.02  # this share of moving samples at the largest logged steering command: a saturation there
+PILE_UP = 0.02  # this share of moving samples at +- the largest logged steering command (each side): a limit
 LATERAL_ACCEL_MPS2 = 1.0  # tyres load up enough for grip to show
 DRIFT_SPAN_S = 20.0  # a battery drift needs this much run time
 
@@ -63,9 +63,10 @@ def excitation(traj: Trajectory, starts: np.ndarray, horizon: int, car: CarParam
     n_thr = int(np.count_nonzero(np.ptp(thr_w, axis=1) > change))
     put("throttle_delay_s", n_thr, MIN_WINDOWS, f"training windows with a {drive} command change > {change:g}")
     # Steering: unsaturated = off the car's limit, and off the largest command in the logs when commands pile
-    # up there (a joystick's or a driver's range: the car may turn further than commanded there or not).
+    # up there on both sides (a joystick's symmetric range: whether the wheels follow there is unknown).
     largest = float(np.max(np.abs(traj.steering)))
-    piled = np.mean(np.abs(steer[moving]) >= 0.99 * largest) >= PILE_UP if moving.any() else False
+    on_move = steer[moving]
+    piled = on_move.size > 0 and all(np.mean(side * on_move >= 0.99 * largest) >= PILE_UP for side in (1, -1))
     limit = SATURATION * (min(car.actuators.max_steering_rad, largest) if piled else car.actuators.max_steering_rad)
     unsat = moving & (np.abs(steer) > STRAIGHT_RAD) & (np.abs(steer) < limit)
     put("steering_gain", seconds(unsat), MIN_SECONDS, f"s of moving, turning, unsaturated steering (|command| in "

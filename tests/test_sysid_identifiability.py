@@ -1,0 +1,90 @@
+"""Identifiability before a claim: parameters the logs do not excite are not fitted, not claimed and not written;
+the significance test needs more than one block; `other` terms are bounded."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sim import Simulator
+from sysid.data import build_trajectory
+from sysid.diagnose import Fit, SysidSettings, identify, improvement, split_starts
+from sysid.excitation import excitation
+from sysid.generate import sim_effects
+from sysid.log import DriveLog
+from sysid.model import PredictionErrors
+from tracks import load_track
+from vehicles.params import load_car_params
+
+CAR = load_car_params("buzzracer")
+
+
+def circle(t: np.ndarray, radius=0.8, speed=1.2) -> DriveLog:
+    """Constant throttle and steering on a circle (no command ever changes)."""
+    angle = speed / radius * t
+    steer = math.atan(CAR.geometry.wheelbase_m / radius)
+    return DriveLog("<circle>", t, np.zeros(t.size, dtype=int), radius * np.cos(angle), radius * np.sin(angle),
+                    np.angle(np.exp(1j * (angle + math.pi / 2))), np.full(t.size, 0.3), np.full(t.size, steer), None,
+                    np.arange(2, t.size + 2))
+
+
+def test_constant_commands_on_a_circle_excite_gain_and_offset_only():
+    traj = build_trajectory(circle(np.arange(0, 40, 1 / 30)))
+    split = split_starts(traj, 30, SysidSettings())
+    exc = excitation(traj, split.train, 30, CAR)
+    # No command changes: no delay, play or response to time; a steady circle: no straight driving.
+    for p in ("steering_delay_s", "throttle_delay_s", "steering_backlash_rad", "extra_drag_n_per_mps2"):
+        assert not exc[p].identifiable, p
+    assert "0 (need >= 20)" in exc["throttle_delay_s"].reason
+    assert "straight driving" in exc["extra_drag_n_per_mps2"].reason
+    # 0.11 rad of steady, unsaturated steering while moving: gain and offset are excited; one side only.
+    assert exc["steering_gain"].identifiable and exc["steering_offset_rad"].identifiable
+    assert not exc["steering_gain_asymmetry"].identifiable
+    # 1.8 m/s^2 lateral acceleration (1.2^2 / 0.8): grip is excited.
+    assert exc["tire_grip_scale"].identifiable
+
+
+@pytest.fixture(scope="module")
+def constant_throttle_log():
+    """40 s of the simulated car with a hidden 0.08 s delay on both channels, driven with a constant throttle
+    and a sine on the steering: the throttle delay cannot show in these data."""
+    dt, n = 1 / 30, 1200
+    sim = Simulator(load_track("oval"), [CAR], effects=sim_effects({"actuation_delay": 0.08}, 0.002, 0.01), seed=3,
+                    physics_dt=0.002, check_dt=0.01)
+    sim.reset([[0.0, 0.0, 0.0, 0.8, 0.0, 0.0]])
+    rows = []
+    for i in range(n):
+        steer = 0.25 * math.sin(2 * math.pi * 0.35 * i * dt) + 0.08 * math.sin(2 * math.pi * 1.3 * i * dt)
+        m = sim.measure(0)
+        rows.append((m.t, m.x, m.y, m.heading, 0.3, steer))
+        sim.step([[0.3, steer]], dt)
+    a = np.array(rows)
+    return DriveLog("<constant throttle>", a[:, 0], np.zeros(n, dtype=int), a[:, 1], a[:, 2], a[:, 3], a[:, 4],
+                    a[:, 5], None, np.arange(2, n + 2))
+
+
+def test_no_throttle_delay_is_claimed_or_written_without_throttle_changes(constant_throttle_log):
+    result = identify(build_trajectory(constant_throttle_log), CAR,
+                      SysidSettings(fit_max_starts=120, heldout_max_starts=500, n_bootstrap=300))
+    left_out = {p: why for n in result.not_identifiable for p, why in zip(n.params, n.reasons)}
+    assert "throttle_delay_s" in left_out and "throttle command change" in left_out["throttle_delay_s"]
+    assert result.car_out.corrections.throttle_delay_s == CAR.corrections.throttle_delay_s
+    assert all("throttle_delay_s" not in e.params for e in result.selected)
+    # The steering delay is excited (the sine) and found.
+    delay = [e for e in result.selected if e.effect == "actuation_delay"]
+    assert delay and delay[0].params["steering_delay_s"] == pytest.approx(0.08, rel=0.2)
+
+
+def test_held_out_windows_in_one_block_are_never_significant():
+    traj = build_trajectory(circle(np.arange(0, 40, 1 / 30)))
+    starts = np.arange(300, 330)  # 1 s of windows: one 2 s block
+
+    def fit(err: float) -> Fit:
+        e = np.full((starts.size, 30), err)
+        return Fit((), {}, {}, None, PredictionErrors(e, e, e, e, e), None)
+
+    class S:
+        heldout = starts
+
+    reduction, confidence = improvement(traj, S, fit(0.1), fit(0.01), SysidSettings())
+    assert reduction == pytest.approx(0.9) and confidence == 0.0
