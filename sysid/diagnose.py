@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -92,6 +93,7 @@ def restrict(cands: tuple[Candidate, ...], exc: dict[str, Excitation]
 # Parameters whose cost is not convex from the neutral value: the fit starts from the best of these.
 _START_GRID = {"steering_backlash_rad": (0.01, 0.02, 0.04, 0.08)}
 
+GEOMETRY_GAIN_TOLERANCE = 0.15  # a steering gain further from 1 is reported as a geometry/steering-scale misfit
 MIN_BOOTSTRAP_BLOCKS = 2  # held-out windows in fewer bootstrap blocks than this: no significance claimed
 # Bounds of an `other` term's contribution over the data: beyond them a term is a fit artefact, not a car.
 OTHER_MAX_ACCEL_MPS2 = 20.0
@@ -116,6 +118,7 @@ class SysidSettings:
     fit_steps: int = 6  # horizon steps entering the fit residual (evenly spaced, last = horizon)
     min_reduction: float = 0.10  # smallest held-out horizon RMSE reduction that counts as an effect
     confidence: float = 0.95  # one-sided bootstrap confidence that the MSE reduction is > 0
+    max_worsening: float = 0.02  # a claim may not raise the held-out horizon heading or speed RMSE by more
     bootstrap_block_s: float = 2.0
     n_bootstrap: int = 1000
     max_effects: int = 3
@@ -246,6 +249,8 @@ class CandidateResult:
     # Claimed effects: (RMSE of the final model refitted without it - RMSE final) / RMSE of the nominal
     # dynamic model, held-out horizon position error (docs/sysid.md, "Outputs").
     reduction_vs_nominal: float | None = None
+    heading_reduction: float = 0.0  # 1 - RMSE_after / RMSE_before of the held-out horizon heading error
+    speed_reduction: float = 0.0  # the same for the speed error
 
 
 @dataclass
@@ -271,6 +276,22 @@ class SysidResult:
     unnamed_effect_remains: bool = False  # `other` is significant: an effect the library cannot name
     dropped_after_other: list[str] = field(default_factory=list)  # named effects dropped once `other` was in
     not_identifiable: list[NotIdentifiable] = field(default_factory=list)  # not excited by the logs: not fitted
+    numeric_warnings: int = 0  # numpy RuntimeWarnings of trial predictions, counted instead of printed
+
+    @property
+    def geometry_diagnosis(self) -> dict | None:
+        """A steering response far from the car file's (gain fitted alone or claimed, |gain - 1| > 15 %): at small
+        angles a steering gain g and a wheelbase L / g are the same, so the file's geometry or steering scale
+        (max_steering_rad, the normalised or pulse-width mapping) is the likely cause, not the servo."""
+        gains = [c.params.get("steering_gain") for c in self.selected + self.candidates if c.effect == "steering_gain"]
+        gains = [g for g in gains if g is not None]
+        if not gains or abs(gains[0] - 1.0) <= GEOMETRY_GAIN_TOLERANCE:
+            return None
+        g, wheelbase = gains[0], self.car_in.geometry.wheelbase_m
+        return {"steering_gain": g, "wheelbase_m": wheelbase, "equivalent_wheelbase_m": wheelbase / g,
+                "note": f"geometry/steering scale does not fit: the car turns {g:.2f} x as sharply as the car file says; "
+                        f"at small angles that is a wheelbase of {wheelbase / g:.3f} m instead of {wheelbase:.3f} m, or "
+                        f"a steering scale off by {g:.2f} (max_steering_rad, normalised or pulse-width mapping)"}
 
     @property
     def heldout_error_reduction(self) -> float:
@@ -427,14 +448,21 @@ def improvement(traj: Trajectory, split: Split, before: Fit, after: Fit, s: Sysi
 
 
 def _judge(traj, split, before: Fit, after: Fit, effect: str, s: SysidSettings, params=None, std=None) -> CandidateResult:
+    """Significant: the held-out position error drops enough and beyond noise, and neither the held-out
+    heading nor the speed error at the horizon gets worse (a claim must fit all three, not position alone)."""
     reduction, conf = improvement(traj, split, before, after, s)
+    heading = 1.0 - after.heldout.horizon_heading_rmse_rad / max(before.heldout.horizon_heading_rmse_rad, 1e-12)
+    speed = 1.0 - after.heldout.horizon_speed_rmse_mps / max(before.heldout.horizon_speed_rmse_mps, 1e-12)
     return CandidateResult(
         effect=effect,
         params=dict(after.values if params is None else params),
         params_std=dict(after.std if std is None else std),
         heldout_error_reduction=reduction,
         confidence=conf,
-        significant=bool(reduction >= s.min_reduction and conf >= s.confidence),
+        significant=bool(reduction >= s.min_reduction and conf >= s.confidence
+                         and heading >= -s.max_worsening and speed >= -s.max_worsening),
+        heading_reduction=heading,
+        speed_reduction=speed,
     )
 
 
@@ -675,6 +703,21 @@ def _training_mse(traj: Trajectory, split: Split, horizon: int, setup: ModelSetu
 
 
 def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSettings()) -> SysidResult:
+    """Identify the effects in ``traj`` (docs/sysid.md). Trial parameter vectors of a fit can overflow a
+    prediction (the fit rejects them): numpy's warnings about it are counted in ``numeric_warnings``,
+    not printed."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        result = _identify(traj, car, settings)
+    numeric = [w for w in caught if issubclass(w.category, RuntimeWarning)]
+    for w in caught:
+        if not issubclass(w.category, RuntimeWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    result.numeric_warnings = len(numeric)
+    return result
+
+
+def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> SysidResult:
     s = settings
     horizon = max(1, int(round(s.horizon_s / traj.dt)))
     split = split_starts(traj, horizon, s)

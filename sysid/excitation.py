@@ -20,7 +20,7 @@ MIN_SECONDS = 3.0  # seconds of samples showing a property (gain, offset, grip, 
 STEERING_CHANGE_RAD = 0.03  # a steering step a delay can be timed on
 THROTTLE_CHANGE = {"throttle": 0.1, "speed": 0.3}  # normalised throttle; m/s of speed set-point
 SATURATION = 0.95  # |command| above this fraction of its limit (the car's or the log's largest) is saturated
-STRAIGHT_RAD = 0.05  # |steering command| below this is not turning (steering gain)
+TURNING_SHARE = 0.1  # |steering command| below this share of the largest logged one is not turning (gain)
 STRAIGHT_STEERING_RAD, STRAIGHT_YAW_RATE = 0.1, 0.5  # straight driving (drag): |command| and |yaw rate| below
 DRAG_FORCE_RATIO = 1.4  # the drag force v^2 must vary by this factor over straight driving (p90 / p10)
 PILE_UP = 0.02  # this share of moving samples at +- the largest logged steering command (each side): a limit
@@ -68,9 +68,10 @@ def excitation(traj: Trajectory, starts: np.ndarray, horizon: int, car: CarParam
     on_move = steer[moving]
     piled = on_move.size > 0 and all(np.mean(side * on_move >= 0.99 * largest) >= PILE_UP for side in (1, -1))
     limit = SATURATION * (min(car.actuators.max_steering_rad, largest) if piled else car.actuators.max_steering_rad)
-    unsat = moving & (np.abs(steer) > STRAIGHT_RAD) & (np.abs(steer) < limit)
+    turning = TURNING_SHARE * largest  # commands smaller than this share of the largest hardly turn the car
+    unsat = moving & (np.abs(steer) > turning) & (np.abs(steer) < limit)
     put("steering_gain", seconds(unsat), MIN_SECONDS, f"s of moving, turning, unsaturated steering (|command| in "
-        f"({STRAIGHT_RAD}, {limit:.3f}) rad)", " s")
+        f"({turning:.3f}, {limit:.3f}) rad)", " s")
     put("steering_gain_asymmetry", min(seconds(unsat & (steer > 0)), seconds(unsat & (steer < 0))), MIN_SECONDS / 2,
         "s of unsaturated steering on the less used side", " s")
     put("steering_offset_rad", seconds(moving), MIN_SECONDS, f"s moving faster than {MOVING_MPS} m/s", " s")

@@ -135,6 +135,7 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
         "unnamed_effect_remains": result.unnamed_effect_remains,
         "dropped_after_other": list(result.dropped_after_other),
         "car_params_out": car_params_out,
+        "geometry_diagnosis": result.geometry_diagnosis,
         "not_identifiable": [{"effect": n.effect, "params": list(n.params), "reasons": list(n.reasons)}
                              for n in result.not_identifiable],
         "heldout_runs": [
@@ -164,7 +165,7 @@ def _fmt_params(params: dict[str, float], std: dict[str, float]) -> str:
 
 def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: str, json_path: str | None,
                     plots: list[tuple[str, Path]], report_dir: Path, command: str | None = None,
-                    log_note: str | None = None, numeric_warnings: int = 0) -> str:
+                    log_note: str | None = None) -> str:
     s, traj = result.settings, result.traj
     lines = ["# Model identification report", ""]
     if command:
@@ -183,8 +184,8 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
         f"* Estimated measurement noise: position {traj.position_noise_m * 1000:.1f} mm, heading "
         f"{traj.heading_noise_rad:.4f} rad.",
     ]
-    if numeric_warnings:
-        lines.append(f"* {numeric_warnings} numpy warning(s) (overflow or invalid values in trial predictions of the "
+    if result.numeric_warnings:
+        lines.append(f"* {result.numeric_warnings} numpy warning(s) (overflow or invalid values in trial predictions of the "
                      "fits; such trials cost the fit a large residual and are rejected).")
     lines.append("")
     if traj.n_runs > 1 or traj.runs[0].n_missing_frames:
@@ -215,6 +216,8 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                      f"least {100 * s.min_reduction:.0f} % with {100 * s.confidence:.0f} % bootstrap confidence; "
                      "the corrections are left unchanged.")
     lines.append("")
+    if result.geometry_diagnosis:
+        lines += [f"**Geometry / steering scale.** {result.geometry_diagnosis['note']}.", ""]
     st = result.structure
     if result.reference_is_dynamic:
         lines += [
@@ -267,15 +270,18 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
         "## Candidates",
         "",
         "Each candidate fitted alone on the training blocks on top of the reference model; reduction = "
-        "1 − RMSE_after / RMSE_before of the held-out horizon position error; confidence = block-bootstrap "
+        "1 − RMSE_after / RMSE_before of the held-out horizon position error (heading / speed: the same for their "
+        "errors; a claim may not make either worse by more than "
+        f"{100 * s.max_worsening:.0f} %); confidence = block-bootstrap "
         "probability that the held-out mean squared error went down. Standard deviations are cluster-robust "
         "(sandwich) estimates from the least-squares Jacobian.",
         "",
-        "| effect | fitted parameters | held-out reduction | confidence | significant |",
-        "|---|---|---|---|---|",
+        "| effect | fitted parameters | held-out reduction | heading / speed | confidence | significant |",
+        "|---|---|---|---|---|---|",
     ]
     for c in result.candidates:
         lines.append(f"| {c.effect} | {_fmt_params(c.params, c.params_std)} | {100 * c.heldout_error_reduction:+.1f} % "
+                     f"| {100 * c.heading_reduction:+.1f} % / {100 * c.speed_reduction:+.1f} % "
                      f"| {c.confidence:.2f} | {'yes' if c.significant else 'no'} |")
     if result.not_identifiable:
         lines += ["", "## Not identifiable from these logs", "",

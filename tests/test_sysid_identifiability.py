@@ -88,3 +88,35 @@ def test_held_out_windows_in_one_block_are_never_significant():
 
     reduction, confidence = improvement(traj, S, fit(0.1), fit(0.01), SysidSettings())
     assert reduction == pytest.approx(0.9) and confidence == 0.0
+
+
+@pytest.fixture(scope="module")
+def clean_log():
+    from sysid.generate import generate_log
+
+    return generate_log(CAR, {}, 0.6, seed=31, physics_dt=0.002)
+
+
+@pytest.mark.parametrize("what", ["wheelbase", "steering_scale"])
+def test_wrong_geometry_or_steering_scale_is_diagnosed_as_such(clean_log, what, recwarn):
+    """A car file with a 30 % too long wheelbase, or steering commands off by 3x (a wrong normalised scale), is
+    reported as a geometry/steering-scale misfit: never as drift, drag or `other`."""
+    import dataclasses
+
+    car, log, want = CAR, clean_log, None
+    if what == "wheelbase":
+        g = CAR.geometry
+        car = dataclasses.replace(CAR, geometry=dataclasses.replace(g, lf_m=1.3 * g.lf_m, lr_m=1.3 * g.lr_m))
+        want = 1.3  # the car turns 1.3 x as sharply as a 1.3 x longer car
+    else:
+        log = dataclasses.replace(clean_log, steering=clean_log.steering / 3.0)
+        want = 3.0
+    result = identify(build_trajectory(log), car, SysidSettings(fit_max_starts=120, heldout_max_starts=500,
+                                                                n_bootstrap=300))
+    names = {e.effect for e in result.selected}
+    assert not names & {"motor_drift", "longitudinal_drag", "other"}, names
+    diag = result.geometry_diagnosis
+    assert diag is not None and diag["steering_gain"] == pytest.approx(want, rel=0.15)
+    assert diag["equivalent_wheelbase_m"] == pytest.approx(car.geometry.wheelbase_m / want, rel=0.15)
+    # Overflowing trial predictions are counted, not printed.
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]

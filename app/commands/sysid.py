@@ -7,7 +7,6 @@ import math
 import shlex
 import sys
 import time
-import warnings
 from pathlib import Path
 
 from app.cli import UserError
@@ -152,17 +151,9 @@ def run(args) -> int:
         if args.heldout_run:
             held = tuple(order.index(args.log.index(r)) for r in args.heldout_run)
         traj = build_runs(logs, frame_period=args.frame_period)
-        # Trial parameter vectors of a fit can overflow a prediction (the fit then rejects them): such
-        # numpy warnings are counted for the report, not printed.
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", RuntimeWarning)
-            result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed,
-                                                       fit_max_starts=args.fit_windows, block_s=args.block_length,
-                                                       heldout_runs=held))
-        numerics = [w for w in caught if issubclass(w.category, RuntimeWarning)]
-        for w in caught:
-            if not issubclass(w.category, RuntimeWarning):
-                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed,
+                                                   fit_max_starts=args.fit_windows, block_s=args.block_length,
+                                                   heldout_runs=held))
     except LogFormatError:
         raise  # names its file and row
     except ValueError as exc:  # the logs loaded but do not support the fit (too short, too few moving samples)
@@ -181,7 +172,7 @@ def run(args) -> int:
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["sysid"] else None
     atomic_write_text(report, markdown_report(result, ", ".join(args.log), str(resolve_car_path(args.car_params)), str(params_out),
                                               str(json_path) if json_path else None, plots, report.parent, command,
-                                              log_note, len(numerics)))
+                                              log_note))
     elapsed = time.perf_counter() - started
     if result.selected:
         summary = ", ".join(f"{e.effect} ({100 * e.reduction_vs_nominal:.0f} %)" for e in result.selected)
