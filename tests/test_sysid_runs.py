@@ -133,3 +133,18 @@ def test_jittered_arrival_times_snap_to_the_frame_clock():
     assert snapped_traj.n_gaps == np.sum(holes >= 3)  # single dropped frames are interpolated, not gaps
     # Noise estimate: the true poses are exact, the jitter alone made the plain grid see noise.
     assert snapped_traj.position_noise_m < 0.3 * plain.position_noise_m
+
+
+def test_bad_runs_in_a_set_name_their_file_and_row(runs, tmp_path, capsys):
+    header = "t,car,x,y,heading,throttle,steering"
+    rows = [f"{0.05 * i:.2f},0,{0.1 * i:.2f},0.0,0.0,0.2,0.0" for i in range(10)]
+    backwards = tmp_path / "backwards.csv"
+    backwards.write_text("\n".join([header, *rows[:5], "0.01,0,0,0,0,0.2,0", *rows[5:]]) + "\n")
+    assert main(["sysid", runs[0], str(backwards), "--report", str(tmp_path / "x.md")]) == 2
+    err = capsys.readouterr().err
+    assert f"{backwards}: row 7, column t: time goes backwards" in err
+    short = tmp_path / "short.csv"
+    short.write_text("\n".join([header, *rows]) + "\n")  # 0.45 s
+    assert main(["sysid", runs[0], str(short), "--report", str(tmp_path / "x.md")]) == 2
+    err = capsys.readouterr().err
+    assert f"{short}: no stretch of the log is long enough" in err
