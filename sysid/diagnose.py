@@ -31,7 +31,8 @@ from vehicles.extra_terms import LIBRARY, terms_from_coefficients
 from vehicles.params import CarParams, OtherTermsParams
 
 EFFECT_NAMES = ("actuation_delay", "steering_offset", "steering_gain", "tire_slip", "longitudinal_drag",
-                "steering_backlash", "steering_asymmetry", "motor_drift", "speed_map", "speed_response", "other")
+                "steering_backlash", "steering_asymmetry", "motor_drift", "throttle_map", "speed_map", "speed_response",
+                "other")
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,9 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("steering_backlash", ("steering_backlash_rad",), (0.0,), (0.3,), (0.01,)),
     Candidate("steering_asymmetry", ("steering_gain_asymmetry",), (-0.5,), (0.5,), (0.02,)),
     Candidate("motor_drift", ("motor_force_drift_per_s",), (-0.01,), (0.01,), (1e-4,), drive="throttle"),
+    # The throttle-to-force map of a throttle car, apart from drag: gain and dead band.
+    Candidate("throttle_map", ("throttle_gain", "throttle_dead_band"), (0.2, 0.0), (5.0, 0.5), (0.05, 0.02),
+              drive="throttle"),
     # Speed set-point cars: the speed reached per commanded m/s, and the speed loop's response rate.
     Candidate("speed_map", ("speed_setpoint_gain",), (0.2,), (5.0,), (0.05,), drive="speed"),
     Candidate("speed_response", ("speed_response_scale",), (0.05,), (20.0,), (0.1,), drive="speed"),

@@ -26,6 +26,7 @@ DRAG_FORCE_RATIO = 1.4  # the drag force v^2 must vary by this factor over strai
 PILE_UP = 0.02  # this share of moving samples at +- the largest logged steering command (each side): a limit
 LATERAL_ACCEL_MPS2 = 1.0  # tyres load up enough for grip to show
 DRIFT_SPAN_S = 20.0  # a battery drift needs this much run time
+DEAD_BAND_PROBE = 0.2  # throttles below this probe a dead band
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,14 @@ def excitation(traj: Trajectory, starts: np.ndarray, horizon: int, car: CarParam
         lo, hi = np.percentile(speed[idx][straight], [10, 90])
         put("extra_drag_n_per_mps2", (hi / lo) ** 2, DRAG_FORCE_RATIO,
             f"ratio of v^2 (drag force) between p90 and p10 of the straight-line speed ({lo:.2f}, {hi:.2f} m/s)")
+    # Throttle map: a gain shows in accelerations (throttle changes; a steady speed trades it against drag),
+    # a dead band needs small throttles and larger ones.
+    put("throttle_gain", n_thr, MIN_WINDOWS, f"training windows with a {drive} command change > {change:g}")
+    thr = np.abs(traj.throttle[idx])
+    small = seconds(moving & (thr > 0) & (thr < DEAD_BAND_PROBE))
+    large = seconds(moving & (thr >= DEAD_BAND_PROBE))
+    put("throttle_dead_band", min(small, large), MIN_SECONDS,
+        f"s moving with 0 < |throttle| < {DEAD_BAND_PROBE} and with |throttle| >= {DEAD_BAND_PROBE} (the fewer)", " s")
     span = float(np.ptp(traj.elapsed[starts])) if starts.size else 0.0
     put("motor_force_drift_per_s", span, DRIFT_SPAN_S, "s of run time spanned by the training windows", " s")
     steady = moving_w & (np.ptp(thr_w, axis=1) < 0.1) & (np.abs(thr_w[:, 0]) > 0.5)

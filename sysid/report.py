@@ -27,6 +27,7 @@ EXPLAINING_VARIABLES = {
     "steering_asymmetry": ("mean speed x |steering command| over the window [rad·m/s]",
                            "heading error at horizon [rad]"),
     "motor_drift": ("time since the run's start [s]", "speed error at horizon [m/s]"),
+    "throttle_map": ("mean |throttle| over the window", "speed error at horizon [m/s]"),
     "speed_map": ("mean speed set-point over the window [m/s]", "speed error at horizon [m/s]"),
     "speed_response": ("set-point minus speed at the window start [m/s]", "speed error at horizon [m/s]"),
     "other": ("mean speed over the window [m/s]", "heading error at horizon [rad]"),
@@ -53,6 +54,8 @@ def explaining_variable(result: SysidResult, effect: str) -> np.ndarray:
         return np.mean(v * traj.yaw_rate[window], axis=1)
     if effect == "speed_map":
         return np.mean(traj.throttle[window], axis=1)
+    if effect == "throttle_map":
+        return np.mean(np.abs(traj.throttle[window]), axis=1)
     if effect == "speed_response":
         return traj.throttle[starts] - traj.speed[starts]
     if effect == "longitudinal_drag":
@@ -64,7 +67,7 @@ def residual_for(fit: Fit, effect: str) -> np.ndarray:
     e = fit.heldout_errors
     if effect == "tire_slip":
         return e.lateral[:, -1]
-    if effect in ("longitudinal_drag", "motor_drift", "speed_map", "speed_response"):
+    if effect in ("longitudinal_drag", "motor_drift", "throttle_map", "speed_map", "speed_response"):
         return e.speed[:, -1]
     return e.heading[:, -1]
 

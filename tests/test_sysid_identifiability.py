@@ -120,3 +120,38 @@ def test_wrong_geometry_or_steering_scale_is_diagnosed_as_such(clean_log, what, 
     assert diag["equivalent_wheelbase_m"] == pytest.approx(car.geometry.wheelbase_m / want, rel=0.15)
     # Overflowing trial predictions are counted, not printed.
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+def test_a_wrong_throttle_map_is_named_as_such_not_as_drag_or_drift():
+    """The simulated car's motor sees 0.75 x (|u| - 0.05): the throttle map is named and measured, drag and battery
+    drift (which also change the speed) are not claimed."""
+    import dataclasses
+
+    from sysid.generate import generate_log
+
+    sim_car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, throttle_gain=0.75,
+                                                                       throttle_dead_band=0.05))
+    log = generate_log(sim_car, {}, 0.6, seed=41, physics_dt=0.002)
+    result = identify(build_trajectory(log), CAR, SysidSettings(fit_max_starts=120, heldout_max_starts=500,
+                                                                n_bootstrap=300))
+    assert [e.effect for e in result.selected] == ["throttle_map"]
+    fitted = result.car_out.corrections
+    assert fitted.throttle_gain == pytest.approx(0.75, rel=0.1)
+    assert fitted.throttle_dead_band == pytest.approx(0.05, abs=0.015)
+    assert fitted.extra_drag_n_per_mps2 == 0.0 and fitted.motor_force_drift_per_s == 0.0
+    assert result.selected[0].heading_reduction >= 0 and result.selected[0].speed_reduction > 0.5
+
+
+def test_the_planners_command_mapping_inverts_the_throttle_map():
+    import dataclasses
+
+    from planning.commands import CommandMapper
+
+    car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, throttle_gain=0.75,
+                                                                   throttle_dead_band=0.05))
+    mapper = CommandMapper(car, 1 / 30)
+    accel, speed = np.array([-2.0, -0.5, 0.0, 0.3, 1.0, 2.5]), np.full(6, 1.0)
+    u = mapper.throttle_for_acceleration(accel, speed)
+    # Independent check: the nominal car's acceleration at the throttle the motor really sees.
+    seen = 0.75 * np.sign(u) * np.maximum(np.abs(u) - 0.05, 0.0)
+    np.testing.assert_allclose(CommandMapper(CAR, 1 / 30).acceleration(seen, speed), accel, atol=1e-9)

@@ -159,6 +159,9 @@ class Corrections:
         0.0, _between(-0.5, 0.5), doc="a: gain * (1 + a) for left (positive) servo angles, * (1 - a) for right")
     motor_force_drift_per_s: float = _num(
         0.0, _between(-0.01, 0.01), doc="motor force scale 1 - rate * t (t: s since the log/race start)")
+    throttle_gain: float = _num(
+        1.0, _between(0.2, 5.0), doc="throttle cars: the motor sees gain * sign(u) * max(|u| - dead band, 0)")
+    throttle_dead_band: float = _num(0.0, _between(0.0, 0.5), doc="throttle cars: |throttle| below this does nothing")
     speed_setpoint_gain: float = _num(
         1.0, _between(0.2, 5.0), doc="speed set-point cars: speed reached per commanded m/s")
     speed_response_scale: float = _num(
