@@ -138,3 +138,13 @@ def test_f110_runs_fit_on_two_predict_a_third(tmp_path):
     assert held["source"] == runs[0] and held["windows"] >= 20
     # The identified model is never worse held out than the nominal one it started from.
     assert held["after"]["horizon_pos_rmse_m"] <= held["dynamic_nominal"]["horizon_pos_rmse_m"] * 1.0001
+
+
+def test_a_car_file_with_inconsistent_geometry_is_refused(tmp_path, capsys):
+    text = (Path(__file__).resolve().parents[1] / "vehicles" / "buzzracer.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("lf_m = 0.04824", "lf_m = 48.24"))  # millimetres written as metres
+    log = csv_log(tmp_path, [0.0] * 3, [0.1] * 3)
+    assert main(["sysid", str(log), "--car-params", str(bad), "--report", str(tmp_path / "r.md")]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "geometry: the axles (lf_m 48.24" in err

@@ -302,6 +302,12 @@ def _check_cross_fields(p: CarParams, source: str) -> None:
     for sec, obj in _sections_of(p):
         for f in fields(obj):
             _validate_value(source, f"{sec}.{f.name}", f, getattr(obj, f.name))
+    g = p.geometry
+    front, rear = g.footprint_offset_m + 0.5 * g.footprint_length_m, g.footprint_offset_m - 0.5 * g.footprint_length_m
+    if g.lf_m > front or -g.lr_m < rear:  # an axle outside the body: lengths in different units, or swapped
+        raise CarParamsError(
+            f"{source}: geometry: the axles (lf_m {g.lf_m}, lr_m {g.lr_m} from the CG) must lie inside the body "
+            f"outline (footprint_length_m {g.footprint_length_m} centred {g.footprint_offset_m} ahead of the CG)")
     _check_radio(p.radio, source)
 
 
