@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -109,10 +110,37 @@ class DriveLog:
         )
 
 
-def _read_csv(path: Path, units: CommandUnits = CommandUnits()) -> DriveLog:
+_UNITS_COMMENT = re.compile(r"^\s*#\s*(steering|throttle)_units\s*[=:]\s*(\S+)\s*$")
+
+
+def _declared_units(source: str, lines: list[str], option: CommandUnits | None) -> CommandUnits:
+    """The command convention of a CSV log: comment lines ``# steering_units = normalized`` /
+    ``# throttle_units = us`` in the file, or the option; both given and different is an error."""
+    found: dict[str, tuple[str, int]] = {}
+    for i, line in enumerate(lines):
+        hit = _UNITS_COMMENT.match(line)
+        if hit:
+            found[hit.group(1)] = (hit.group(2), i + 1)
+    for channel, (value, row) in found.items():
+        try:
+            CommandUnits(**{channel: value})
+        except ValueError as exc:
+            raise LogFormatError(f"{source}: row {row}: {exc}") from None
+    header = CommandUnits(**{k: v for k, (v, _) in found.items()})
+    if option is None:
+        return header
+    for channel, (value, row) in found.items():
+        if getattr(option, channel) != value:
+            raise LogFormatError(f"{source}: row {row}: the file declares {channel}_units = {value}, the option "
+                                 f"--{channel}-units {getattr(option, channel)}")
+    return option
+
+
+def _read_csv(path: Path, units: CommandUnits | None = None) -> DriveLog:
     source = str(path)
     text = fileio.read_text(path, "log file", max_bytes=MAX_FILE_BYTES, max_line=MAX_LINE, error=LogFormatError)
     lines = text.splitlines()
+    units = _declared_units(source, lines, units)
     # Comment lines (#...) and blank lines are skipped but keep their line numbers.
     numbered = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
     if not numbered:
@@ -245,7 +273,7 @@ def read_log(path: str | Path, units: CommandUnits | None = None) -> DriveLog:
             raise LogFormatError(f"{path}: unknown log format {path.suffix!r}; supported: {sorted(LOG_READERS)} "
                                  "and F1/10 run folders")
         if reader is _read_csv:
-            return _read_csv(path, units or CommandUnits())
+            return _read_csv(path, units)
         log = reader(path)
     if units is not None and units != log.units:
         raise LogFormatError(f"{path}: the format's commands are steering in {log.units.steering} and throttle in "

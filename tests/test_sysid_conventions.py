@@ -178,3 +178,19 @@ def test_normalised_and_pulse_width_logs_identify_like_the_radian_log(tmp_path):
         assert [e["effect"] for e in a] == [e["effect"] for e in b] == ["steering_offset"]
         # The CSV keeps 6 decimals: the commands agree to ~1e-6 rad, the fits to far better than their spread.
         assert b[0]["params"]["steering_offset_rad"] == pytest.approx(a[0]["params"]["steering_offset_rad"], abs=2e-4)
+
+
+def test_units_declared_in_the_file_header(tmp_path):
+    path = csv_log(tmp_path, [0.5, -1.0, 0.0], [1700, 1300, 1900])
+    path.write_text("# steering_units = normalized\n# throttle_units = us\n" + path.read_text())
+    log = read_log(path)
+    assert log.units == CommandUnits("normalized", "us")
+    phys = to_physical(log, BUZZ, "buzzracer")
+    np.testing.assert_allclose(phys.throttle, [0.5, -0.5, 1.0])
+    # The option agrees: fine; it differs: the row of the declaration is named.
+    assert read_log(path, CommandUnits("normalized", "us")).units == log.units
+    with pytest.raises(LogFormatError, match="row 1: the file declares steering_units = normalized"):
+        read_log(path, CommandUnits("rad", "us"))
+    path.write_text(path.read_text().replace("throttle_units = us", "throttle_units = volts"))
+    with pytest.raises(LogFormatError, match="row 2: throttle units: one of"):
+        read_log(path)
