@@ -1,13 +1,18 @@
-"""From a raw drive log to smoothed, uniformly sampled trajectory segments.
+"""From raw drive logs (one or several runs) to smoothed, uniformly sampled trajectory segments.
 
-Steps (docs/sysid.md, "Preprocessing"): merge duplicate timestamps, split at gaps, resample each
-segment onto a uniform grid (commands zero-order hold, measurements linear), then estimate
-speed, yaw rate and body-frame velocity with Savitzky-Golay derivatives of the poses.
+Steps (docs/sysid.md, "Preprocessing"): optionally snap time stamps to the sensor's frame clock,
+merge duplicate timestamps, split at gaps, resample each segment onto a uniform grid (commands
+zero-order hold, measurements linear), then estimate speed, yaw rate and body-frame velocity with
+Savitzky-Golay derivatives of the poses. Several runs become one :class:`Trajectory` whose segments
+never cross a run; each run keeps its own time base (``elapsed``: seconds since its first sample), and
+the runs are put in a canonical order (by content), so no result depends on the order they were given in.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+from dataclasses import dataclass, replace
+from typing import Sequence
 
 import numpy as np
 from scipy.signal import savgol_coeffs, savgol_filter
@@ -19,11 +24,29 @@ SMOOTHING_WINDOW_S = 0.25  # Savitzky-Golay window (cubic) for poses and their d
 
 
 @dataclass(frozen=True)
+class RunInfo:
+    """What preprocessing did to one run (reported per run)."""
+
+    source: str
+    n_raw_rows: int
+    n_duplicates_merged: int  # rows merged into another row's time stamp (or frame, with a frame period)
+    n_gaps: int
+    n_samples: int
+    duration_s: float  # from the first to the last grid sample
+    n_missing_frames: int = 0  # with a frame period: frames inside a segment without a row (interpolated)
+
+
+@dataclass(frozen=True)
 class Trajectory:
-    """Uniformly sampled segments of one car, concatenated. Sample k covers [t[k], t[k] + dt)."""
+    """Uniformly sampled segments of one car, concatenated (several runs: run after run, in canonical
+    order). Sample k covers [t[k], t[k] + dt); ``t`` is the run's own clock, ``elapsed`` the time since
+    the run's first sample."""
 
     dt: float
     t: np.ndarray
+    run: np.ndarray  # run index per sample (into ``runs``)
+    elapsed: np.ndarray  # s since the first sample of the sample's run
+    runs: tuple[RunInfo, ...]
     segment: np.ndarray  # segment id per sample
     seg_start: np.ndarray  # index of the first sample of the sample's segment
     seg_end: np.ndarray  # index one past the last sample of the sample's segment
@@ -52,6 +75,15 @@ class Trajectory:
     @property
     def n(self) -> int:
         return self.t.size
+
+    @property
+    def n_runs(self) -> int:
+        return len(self.runs)
+
+    def blocks(self, idx: np.ndarray, block_s: float) -> np.ndarray:
+        """Time-block id of samples ``idx``: blocks of ``block_s`` from each run's start, unique across runs."""
+        n_max = int(np.floor(self.elapsed.max() / block_s)) + 1
+        return self.run[idx] * n_max + np.floor(self.elapsed[idx] / block_s).astype(int)
 
 
 def _merge_duplicates(log: DriveLog) -> tuple[dict[str, np.ndarray], int]:
@@ -88,12 +120,35 @@ def _noise_scale(window: int) -> float:
     return float(np.sqrt(max(1.0 - c[window // 2], 1e-9)))
 
 
-def build_trajectory(log: DriveLog, dt: float | None = None, min_segment_s: float = 1.0) -> Trajectory:
-    """Preprocess one car's log (``log`` must hold a single car)."""
+def snap_to_frames(t: np.ndarray, frame_period: float) -> tuple[np.ndarray, int]:
+    """Time stamps snapped to the nearest tick of a frame clock of period ``frame_period`` whose phase is
+    the circular mean of the stamps (message arrival times jitter around the sensor's frames). Returns the
+    snapped times and the number of frames inside the stretch that no row landed on."""
+    phase_angle = np.angle(np.mean(np.exp(2j * np.pi * np.mod(t - t[0], frame_period) / frame_period)))
+    phase = t[0] + phase_angle / (2 * np.pi) * frame_period
+    frame = np.round((t - phase) / frame_period).astype(np.int64)
+    steps = np.diff(np.unique(frame))
+    missing = int(np.sum(steps[steps <= GAP_FACTOR] - 1))  # longer holes are gaps, reported as such
+    return phase + frame * frame_period, missing
+
+
+def build_trajectory(log: DriveLog, dt: float | None = None, min_segment_s: float = 1.0,
+                     frame_period: float | None = None) -> Trajectory:
+    """Preprocess one car's log (``log`` must hold a single car), one run.
+
+    ``frame_period``: the sensor's frame period; time stamps are snapped to its clock (docs/sysid.md,
+    "Time stamps"), rows on one frame merged, the grid step is the period."""
     if len(log.cars) != 1:
         raise LogFormatError(f"{log.source}: build_trajectory needs one car, the log has {log.cars}")
     if log.t.size < 3:
         raise LogFormatError(f"{log.source}: too few rows ({log.t.size}) for identification")
+    n_missing = 0
+    if frame_period is not None:
+        if not (np.isfinite(frame_period) and frame_period > 0):
+            raise LogFormatError(f"{log.source}: the frame period must be a positive number, got {frame_period!r}")
+        snapped, n_missing = snap_to_frames(log.t, frame_period)
+        log = replace(log, t=snapped)
+        dt = frame_period
     m, n_dup = _merge_duplicates(log)
     t = m["t"]
     steps = np.diff(t)
@@ -127,9 +182,14 @@ def build_trajectory(log: DriveLog, dt: float | None = None, min_segment_s: floa
         # Commands are held from the time they were sent. Grid interval k gets the command that is
         # active for most of it (the last one sent before its middle), so timestamp jitter of a
         # fraction of a period does not shift commands by a whole step.
-        hold = np.clip(np.searchsorted(ts, grid + 0.5 * nominal, side="right") - 1, 0, ts.size - 1)
-        throttle = m["throttle"][a:b][hold]
-        steering = m["steering"][a:b][hold]
+        if log.commands is None:
+            hold = np.clip(np.searchsorted(ts, grid + 0.5 * nominal, side="right") - 1, 0, ts.size - 1)
+            throttle = m["throttle"][a:b][hold]
+            steering = m["steering"][a:b][hold]
+        else:  # commands on their own time stamps (the rule is the same)
+            cmd = log.commands
+            hold = np.clip(np.searchsorted(cmd.t, grid + 0.5 * nominal, side="right") - 1, 0, cmd.t.size - 1)
+            throttle, steering = cmd.throttle[hold], cmd.steering[hold]
 
         def sg(v: np.ndarray, deriv: int = 0) -> np.ndarray:
             return savgol_filter(v, window, 3, deriv=deriv, delta=nominal, mode="interp")
@@ -161,8 +221,14 @@ def build_trajectory(log: DriveLog, dt: float | None = None, min_segment_s: floa
     starts = np.flatnonzero(np.concatenate([[True], np.diff(segment) != 0]))
     ends = np.concatenate([starts[1:], [segment.size]])
     scale = _noise_scale(window)
+    t_grid = arrays["t"]
+    info = RunInfo(source=log.source, n_raw_rows=int(log.t.size), n_duplicates_merged=n_dup, n_gaps=int(breaks.size),
+                   n_samples=int(t_grid.size), duration_s=float(t_grid[-1] - t_grid[0]), n_missing_frames=n_missing)
     return Trajectory(
         dt=nominal,
+        run=np.zeros(t_grid.size, dtype=int),
+        elapsed=t_grid - t_grid[0],
+        runs=(info,),
         segment=segment,
         seg_start=starts[segment],
         seg_end=ends[segment],
@@ -173,4 +239,77 @@ def build_trajectory(log: DriveLog, dt: float | None = None, min_segment_s: floa
         n_duplicates_merged=n_dup,
         n_gaps=int(breaks.size),
         **arrays,
+    )
+
+
+def _content_key(log: DriveLog) -> str:
+    """A key of a run's content (its rows), so runs can be put in an order that does not depend on how
+    they were given."""
+    h = hashlib.sha256()
+    for a in (log.t, log.x, log.y, log.heading, log.throttle, log.steering):
+        h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+    return h.hexdigest()
+
+
+def canonical_order(logs: Sequence[DriveLog]) -> list[int]:
+    """Indices of ``logs`` in the canonical (content) order."""
+    keys = [_content_key(log) for log in logs]
+    return sorted(range(len(logs)), key=lambda i: (keys[i], logs[i].source))
+
+
+def common_grid_step(logs: Sequence[DriveLog]) -> float:
+    """The grid step of a set of runs: the mean of the non-gap intervals pooled over all runs (each run's
+    gap threshold from its own median interval)."""
+    total, count = 0.0, 0
+    for log in logs:
+        steps = np.diff(np.unique(log.t))
+        if steps.size == 0:
+            continue
+        keep = steps[steps <= GAP_FACTOR * np.median(steps)]
+        total += float(np.sum(np.sort(keep)))  # sorted: the sum does not depend on the row order
+        count += keep.size
+    if count == 0:
+        raise LogFormatError(f"{logs[0].source}: cannot determine the sampling period (fewer than 2 distinct times)")
+    return total / count
+
+
+def build_runs(logs: Sequence[DriveLog], frame_period: float | None = None) -> Trajectory:
+    """Several runs of one car as one trajectory on a common grid, in canonical order (docs/sysid.md,
+    "Several runs"). Each run is preprocessed on its own (own time base, own gaps and smoothing)."""
+    if not logs:
+        raise ValueError("build_runs: no runs given")
+    order = canonical_order(logs)
+    logs = [logs[i] for i in order]
+    dt = frame_period if frame_period is not None else (common_grid_step(logs) if len(logs) > 1 else None)
+    parts = [build_trajectory(log, dt=dt, frame_period=frame_period) for log in logs]
+    if len(parts) == 1:
+        return parts[0]
+    return concatenate(parts)
+
+
+def concatenate(parts: Sequence[Trajectory]) -> Trajectory:
+    """Runs on the same grid step, one after the other (segment ids, run ids and indices offset)."""
+    dt = parts[0].dt
+    if any(abs(p.dt - dt) > 1e-12 * dt for p in parts):
+        raise ValueError("concatenate: runs must share the grid step")
+    arrays = ("t", "elapsed", "x", "y", "heading", "xs", "ys", "headings", "speed", "vx", "vy", "yaw_rate",
+              "throttle", "steering")
+    out = {k: np.concatenate([getattr(p, k) for p in parts]) for k in arrays}
+    offsets = np.cumsum([0] + [p.n for p in parts[:-1]])
+    seg_offsets = np.cumsum([0] + [int(p.segment.max()) + 1 for p in parts[:-1]])
+    out["segment"] = np.concatenate([p.segment + o for p, o in zip(parts, seg_offsets)])
+    out["seg_start"] = np.concatenate([p.seg_start + o for p, o in zip(parts, offsets)])
+    out["seg_end"] = np.concatenate([p.seg_end + o for p, o in zip(parts, offsets)])
+    out["run"] = np.concatenate([np.full(p.n, i) for i, p in enumerate(parts)])
+    weights = np.array([p.n for p in parts], dtype=float)
+
+    def pooled(name: str) -> float:  # RMS over samples
+        return float(np.sqrt(np.sum(weights * np.array([getattr(p, name) for p in parts]) ** 2) / weights.sum()))
+
+    return Trajectory(
+        dt=dt, runs=tuple(r for p in parts for r in p.runs),
+        position_noise_m=pooled("position_noise_m"), heading_noise_rad=pooled("heading_noise_rad"),
+        speed_from_log=all(p.speed_from_log for p in parts),
+        n_raw_rows=sum(p.n_raw_rows for p in parts), n_duplicates_merged=sum(p.n_duplicates_merged for p in parts),
+        n_gaps=sum(p.n_gaps for p in parts), **out,
     )

@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from sysid.data import Trajectory
+from sysid.excitation import Excitation, excitation
 from sysid.lockstep import predict, side_by_side
 from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, prediction_errors, substeps
 from sysid.sparse import coefficient_std, stlsq
@@ -29,7 +31,8 @@ from vehicles.extra_terms import LIBRARY, terms_from_coefficients
 from vehicles.params import CarParams, OtherTermsParams
 
 EFFECT_NAMES = ("actuation_delay", "steering_offset", "steering_gain", "tire_slip", "longitudinal_drag",
-                "steering_backlash", "steering_asymmetry", "motor_drift", "other")
+                "steering_backlash", "steering_asymmetry", "motor_drift", "throttle_map", "speed_map", "speed_response",
+                "other")
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,7 @@ class Candidate:
     upper: tuple[float, ...]
     scale: tuple[float, ...]  # typical size, for the optimiser's scaling
     dynamic: bool = False  # needs the dynamic model
+    drive: str = "any"  # "throttle": only for throttle cars (the motor law); "speed": only for speed set-point cars
 
 
 CANDIDATES: tuple[Candidate, ...] = (
@@ -47,13 +51,57 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("steering_offset", ("steering_offset_rad",), (-0.3,), (0.3,), (0.01,)),
     Candidate("steering_gain", ("steering_gain",), (0.2,), (5.0,), (0.05,)),
     Candidate("tire_slip", ("tire_grip_scale",), (0.05,), (5.0,), (0.1,), dynamic=True),
-    Candidate("longitudinal_drag", ("extra_drag_n_per_mps2",), (-1.0,), (10.0,), (0.01,)),
+    Candidate("longitudinal_drag", ("extra_drag_n_per_mps2",), (-1.0,), (10.0,), (0.01,), drive="throttle"),
     Candidate("steering_backlash", ("steering_backlash_rad",), (0.0,), (0.3,), (0.01,)),
     Candidate("steering_asymmetry", ("steering_gain_asymmetry",), (-0.5,), (0.5,), (0.02,)),
-    Candidate("motor_drift", ("motor_force_drift_per_s",), (-0.01,), (0.01,), (1e-4,)),
+    Candidate("motor_drift", ("motor_force_drift_per_s",), (-0.01,), (0.01,), (1e-4,), drive="throttle"),
+    # The throttle-to-force map of a throttle car, apart from drag: gain and dead band.
+    Candidate("throttle_map", ("throttle_gain", "throttle_dead_band"), (0.2, 0.0), (5.0, 0.5), (0.05, 0.02),
+              drive="throttle"),
+    # Speed set-point cars: the speed reached per commanded m/s, and the speed loop's response rate.
+    Candidate("speed_map", ("speed_setpoint_gain",), (0.2,), (5.0,), (0.05,), drive="speed"),
+    Candidate("speed_response", ("speed_response_scale",), (0.05,), (20.0,), (0.1,), drive="speed"),
 )
+
+
+def candidates_for(car: CarParams) -> tuple[Candidate, ...]:
+    """The candidates that apply to the car's drive (throttle or speed set-point)."""
+    drive = "speed" if car.speed_control.active else "throttle"
+    return tuple(c for c in CANDIDATES if c.drive in ("any", drive))
+
+
+@dataclass(frozen=True)
+class NotIdentifiable:
+    """Parameters of an effect the logs do not excite: not fitted, not claimed, not written."""
+
+    effect: str
+    params: tuple[str, ...]
+    reasons: tuple[str, ...]
+
+
+def restrict(cands: tuple[Candidate, ...], exc: dict[str, Excitation]
+             ) -> tuple[tuple[Candidate, ...], list[NotIdentifiable]]:
+    """The candidates with only their excited parameters, and what was left out and why."""
+    kept, left_out = [], []
+    for c in cands:
+        ok = [i for i, p in enumerate(c.params) if exc[p].identifiable]
+        bad = [i for i in range(len(c.params)) if i not in ok]
+        if bad:
+            left_out.append(NotIdentifiable(c.effect, tuple(c.params[i] for i in bad),
+                                            tuple(exc[c.params[i]].reason for i in bad)))
+        if ok:
+            pick = lambda v: tuple(v[i] for i in ok)  # noqa: E731
+            kept.append(dataclasses.replace(c, params=pick(c.params), lower=pick(c.lower), upper=pick(c.upper),
+                                            scale=pick(c.scale)))
+    return tuple(kept), left_out
 # Parameters whose cost is not convex from the neutral value: the fit starts from the best of these.
 _START_GRID = {"steering_backlash_rad": (0.01, 0.02, 0.04, 0.08)}
+
+GEOMETRY_GAIN_TOLERANCE = 0.15  # a steering gain further from 1 is reported as a geometry/steering-scale misfit
+MIN_BOOTSTRAP_BLOCKS = 2  # held-out windows in fewer bootstrap blocks than this: no significance claimed
+# Bounds of an `other` term's contribution over the data: beyond them a term is a fit artefact, not a car.
+OTHER_MAX_ACCEL_MPS2 = 20.0
+OTHER_MAX_YAW_RATE_RADPS = 5.0
 
 # Scales of the fit residual: errors are divided by these so position, heading and speed weigh alike.
 POSITION_SCALE_M = 0.01
@@ -65,12 +113,16 @@ SPEED_SCALE_MPS = 0.05
 class SysidSettings:
     horizon_s: float = 1.0  # planning horizon over which predictions are compared
     block_s: float | None = None  # time blocks of the split; None: duration / 9, clamped to [3, 10] s
-    heldout_every: int = 3  # every third block is held out
+    heldout_every: int = 3  # every third block (one run: time blocks) or run (several runs) is held out
+    # Several runs: indices (canonical order, Trajectory.runs) of the runs held out whole; None: every
+    # heldout_every-th run (at least one). One run: time blocks.
+    heldout_runs: tuple[int, ...] | None = None
     fit_max_starts: int = 300  # training windows used per fit (evenly spaced)
     heldout_max_starts: int = 2000
     fit_steps: int = 6  # horizon steps entering the fit residual (evenly spaced, last = horizon)
     min_reduction: float = 0.10  # smallest held-out horizon RMSE reduction that counts as an effect
     confidence: float = 0.95  # one-sided bootstrap confidence that the MSE reduction is > 0
+    max_worsening: float = 0.05  # a claim may not raise the held-out horizon heading or speed RMSE by more
     bootstrap_block_s: float = 2.0
     n_bootstrap: int = 1000
     max_effects: int = 3
@@ -121,27 +173,53 @@ class Split:
 
 
 def block_length(traj: Trajectory, s: SysidSettings) -> float:
+    """Time blocks of the split of one run: ``block_s``, or duration / 9 clamped to [3, 10] s; a run too
+    short for one held-out block of that length gets shorter blocks (never below the horizon + run-in)."""
     if s.block_s is not None:
         return float(s.block_s)
-    return float(np.clip((traj.t[-1] - traj.t[0]) / 9.0, 3.0, 10.0))
+    duration = float(max(r.duration_s for r in traj.runs))
+    block = float(np.clip(duration / 9.0, 3.0, 10.0))
+    if duration < s.heldout_every * block:
+        block = max(duration / (s.heldout_every + 0.5), s.horizon_s + WARMUP_S + 0.2)
+    return block
+
+
+def heldout_runs(traj: Trajectory, s: SysidSettings) -> tuple[int, ...]:
+    """Runs held out whole (several runs), in canonical order; () for one run."""
+    if traj.n_runs < 2:
+        return ()
+    if s.heldout_runs is not None:
+        return tuple(sorted(set(s.heldout_runs)))
+    picked = tuple(i for i in range(traj.n_runs) if i % s.heldout_every == s.heldout_every - 1)
+    return picked or (traj.n_runs - 1,)
 
 
 def split_starts(traj: Trajectory, horizon: int, s: SysidSettings) -> Split:
-    """Windows that stay inside one segment and one time block; blocks alternate train / held-out."""
+    """Windows that stay inside one segment (and, with one run, one time block). Several runs: the
+    held-out runs are held out whole (cross-run validation); one run: time blocks alternate train /
+    held-out."""
     k = np.arange(traj.n)
-    block_s = block_length(traj, s)
-    block = np.floor((traj.t - traj.t[0]) / block_s).astype(int)
     end = k + horizon
     # Windows start WARMUP_S into a segment (the dynamic model's run-in) and end inside it.
     valid = (end < traj.seg_end) & (k - traj.seg_start >= int(round(WARMUP_S / traj.dt)))
-    valid[valid] &= block[end[valid]] == block[valid]
-    heldout_mask = (block % s.heldout_every) == s.heldout_every - 1
+    held = heldout_runs(traj, s)
+    if held:
+        if len(held) >= traj.n_runs:
+            raise ValueError(f"every run is held out ({traj.n_runs} runs); leave at least one for the fit")
+        heldout_mask = np.isin(traj.run, held)
+        where = f"runs {', '.join(str(i + 1) for i in held)} held out whole"
+    else:
+        block_s = block_length(traj, s)
+        block = traj.blocks(k, block_s)
+        valid[valid] &= block[end[valid]] == block[valid]
+        heldout_mask = (np.floor(traj.elapsed / block_s).astype(int) % s.heldout_every) == s.heldout_every - 1
+        where = f"blocks of {block_s:.1f} s, every {s.heldout_every}rd held out; --block-length sets the length"
     train = k[valid & ~heldout_mask]
     heldout = k[valid & heldout_mask]
     if train.size < 20 or heldout.size < 20:
         raise ValueError(
-            f"log too short for identification: {train.size} training and {heldout.size} held-out windows of "
-            f"{horizon} steps (need >= 20 each; blocks of {block_s:.1f} s, every {s.heldout_every}rd held out)"
+            f"too little data for identification: {train.size} training and {heldout.size} held-out windows of "
+            f"{horizon} steps (need >= 20 each; {where})"
         )
 
     def thin(a: np.ndarray, n: int) -> np.ndarray:
@@ -175,6 +253,8 @@ class CandidateResult:
     # Claimed effects: (RMSE of the final model refitted without it - RMSE final) / RMSE of the nominal
     # dynamic model, held-out horizon position error (docs/sysid.md, "Outputs").
     reduction_vs_nominal: float | None = None
+    heading_reduction: float = 0.0  # 1 - RMSE_after / RMSE_before of the held-out horizon heading error
+    speed_reduction: float = 0.0  # the same for the speed error
 
 
 @dataclass
@@ -199,6 +279,23 @@ class SysidResult:
     families_compared: bool = False  # forward selection ran on both the kinematic and the dynamic model
     unnamed_effect_remains: bool = False  # `other` is significant: an effect the library cannot name
     dropped_after_other: list[str] = field(default_factory=list)  # named effects dropped once `other` was in
+    not_identifiable: list[NotIdentifiable] = field(default_factory=list)  # not excited by the logs: not fitted
+    numeric_warnings: int = 0  # numpy RuntimeWarnings of trial predictions, counted instead of printed
+
+    @property
+    def geometry_diagnosis(self) -> dict | None:
+        """A steering response far from the car file's (gain fitted alone or claimed, |gain - 1| > 15 %): at small
+        angles a steering gain g and a wheelbase L / g are the same, so the file's geometry or steering scale
+        (max_steering_rad, the normalised or pulse-width mapping) is the likely cause, not the servo."""
+        gains = [c.params.get("steering_gain") for c in self.selected + self.candidates if c.effect == "steering_gain"]
+        gains = [g for g in gains if g is not None]
+        if not gains or abs(gains[0] - 1.0) <= GEOMETRY_GAIN_TOLERANCE:
+            return None
+        g, wheelbase = gains[0], self.car_in.geometry.wheelbase_m
+        return {"steering_gain": g, "wheelbase_m": wheelbase, "equivalent_wheelbase_m": wheelbase / g,
+                "note": f"geometry/steering scale does not fit: the car turns {g:.2f} x as sharply as the car file says; "
+                        f"at small angles that is a wheelbase of {wheelbase / g:.3f} m instead of {wheelbase:.3f} m, or "
+                        f"a steering scale off by {g:.2f} (max_steering_rad, normalised or pulse-width mapping)"}
 
     @property
     def heldout_error_reduction(self) -> float:
@@ -208,6 +305,21 @@ class SysidResult:
     @property
     def significant(self) -> bool:
         return bool(self.selected)
+
+
+def _subset(e: PredictionErrors, keep: np.ndarray) -> PredictionErrors:
+    return PredictionErrors(**{f.name: getattr(e, f.name)[keep] for f in dataclasses.fields(e)})
+
+
+def per_run_summaries(result: "SysidResult") -> list[tuple[int, int, ErrorSummary, ErrorSummary, ErrorSummary]]:
+    """Per run with held-out windows: (run index, windows, nominal dynamic, planner, final) held-out errors."""
+    run = result.traj.run[result.split.heldout]
+    out = []
+    for i in np.unique(run).tolist():
+        keep = run == i
+        out.append((i, int(keep.sum()), *(summarize(_subset(f.heldout_errors, keep))
+                                          for f in (result.dynamic_nominal, result.planner, result.final))))
+    return out
 
 
 # ----------------------------------------------------------------------------- fitting
@@ -225,12 +337,13 @@ def _residual(traj: Trajectory, starts: np.ndarray, pred: np.ndarray, steps: np.
         dth / HEADING_SCALE_RAD,
         (p[..., 3] - traj.speed[idx]) / SPEED_SCALE_MPS,
     ], axis=-1)
-    return r.reshape(-1)
+    # A trial parameter vector whose prediction overflowed costs a large finite residual (least_squares
+    # then steps back from it instead of stopping on a non-finite cost).
+    return np.nan_to_num(r.reshape(-1), nan=1e6, posinf=1e6, neginf=-1e6)
 
 
 def _clusters(traj: Trajectory, starts: np.ndarray, per_start: int, block_s: float) -> np.ndarray:
-    block = np.floor((traj.t[starts] - traj.t[0]) / block_s).astype(int)
-    return np.repeat(block, per_start)
+    return np.repeat(traj.blocks(starts, block_s), per_start)
 
 
 def _sandwich_std(jac: np.ndarray, resid: np.ndarray, clusters: np.ndarray) -> np.ndarray:
@@ -326,8 +439,10 @@ def improvement(traj: Trajectory, split: Split, before: Fit, after: Fit, s: Sysi
     e0 = before.heldout_errors.position[:, -1] ** 2
     e1 = after.heldout_errors.position[:, -1] ** 2
     reduction = 1.0 - math.sqrt(e1.mean() / e0.mean()) if e0.mean() > 0 else 0.0
-    blocks = np.floor((traj.t[split.heldout] - traj.t[0]) / s.bootstrap_block_s).astype(int)
+    blocks = traj.blocks(split.heldout, s.bootstrap_block_s)
     _, inverse = np.unique(blocks, return_inverse=True)
+    if inverse.max() + 1 < MIN_BOOTSTRAP_BLOCKS:  # one block cannot show the spread between blocks
+        return reduction, 0.0
     diff_sum = np.bincount(inverse, weights=e0 - e1)
     counts = np.bincount(inverse).astype(float)
     rng = np.random.default_rng(s.seed)
@@ -336,15 +451,25 @@ def improvement(traj: Trajectory, split: Split, before: Fit, after: Fit, s: Sysi
     return reduction, float(np.mean(boot > 0))
 
 
-def _judge(traj, split, before: Fit, after: Fit, effect: str, s: SysidSettings, params=None, std=None) -> CandidateResult:
+def _judge(traj, split, before: Fit, after: Fit, effect: str, s: SysidSettings, params=None, std=None,
+           channels: bool = False) -> CandidateResult:
+    """Significant: the held-out position error drops enough and beyond noise; with ``channels`` (the keep
+    test of a claim in the final model) also neither the held-out heading nor the speed error at the
+    horizon gets worse (a claim must fit all three, not position alone). Forward selection judges on position:
+    an effect that is right can worsen another channel while a second effect is still missing."""
     reduction, conf = improvement(traj, split, before, after, s)
+    heading = 1.0 - after.heldout.horizon_heading_rmse_rad / max(before.heldout.horizon_heading_rmse_rad, 1e-12)
+    speed = 1.0 - after.heldout.horizon_speed_rmse_mps / max(before.heldout.horizon_speed_rmse_mps, 1e-12)
     return CandidateResult(
         effect=effect,
         params=dict(after.values if params is None else params),
         params_std=dict(after.std if std is None else std),
         heldout_error_reduction=reduction,
         confidence=conf,
-        significant=bool(reduction >= s.min_reduction and conf >= s.confidence),
+        significant=bool(reduction >= s.min_reduction and conf >= s.confidence
+                         and (not channels or (heading >= -s.max_worsening and speed >= -s.max_worsening))),
+        heading_reduction=heading,
+        speed_reduction=speed,
     )
 
 
@@ -371,7 +496,7 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     v = traj.speed[starts[:, None] + np.arange(lag + 1)[None, :]].mean(axis=1)
     names = tuple(LIBRARY)
     theta = np.stack([LIBRARY[n][1](v, throttle, delta) for n in names], axis=1)
-    clusters = np.floor((traj.t[starts] - traj.t[0]) / s.bootstrap_block_s).astype(int)
+    clusters = traj.blocks(starts, s.bootstrap_block_s)
 
     def sparse_fit(target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         coef = stlsq(theta, target, s.sparse_threshold * float(np.std(target)))
@@ -389,6 +514,10 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
 
     ca, sa = sparse_fit(r_v)
     cy, sy = sparse_fit(r_th)
+    # Bounded terms: a coefficient whose term reaches more than a physical rate anywhere in the data is dropped.
+    reach = np.max(np.abs(theta), axis=0)
+    ca[np.abs(ca) * reach > OTHER_MAX_ACCEL_MPS2] = 0.0
+    cy[np.abs(cy) * reach > OTHER_MAX_YAW_RATE_RADPS] = 0.0
     steps = _fit_steps(horizon, s.fit_steps)
 
     def with_terms(a: np.ndarray, y: np.ndarray) -> ModelSetup:
@@ -482,18 +611,19 @@ def _leave_one_out(traj: Trajectory, split: Split, horizon: int, chosen: list[Ca
         named_rest = (fit_candidates(traj, split, horizon, base, rest, s, tuple(c.effect for c in rest)) if rest
                       else evaluate(traj, split, horizon, base))
         without = fit_other(traj, split, horizon, named_rest, s)[0] if with_other else named_rest
-        return _judge(traj, split, without, full, cand.effect, s), i, without, named_rest
+        return _judge(traj, split, without, full, cand.effect, s, channels=True), i, without, named_rest
 
     return side_by_side([lambda i=i: refit(i) for i in range(len(chosen))])
 
 
-def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit, s: SysidSettings) -> _Selection:
+def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit, s: SysidSettings,
+                    cands: tuple[Candidate, ...]) -> _Selection:
     """Candidates alone on top of ``reference``, then forward selection (docs/sysid.md)."""
     candidates: list[CandidateResult] = []
     alone: dict[str, Fit] = {}
     fits = side_by_side([lambda c=cand: fit_candidates(traj, split, horizon, reference.setup, [c], s)
-                         for cand in CANDIDATES])
-    for cand, fit in zip(CANDIDATES, fits):
+                         for cand in cands])
+    for cand, fit in zip(cands, fits):
         alone[cand.effect] = fit
         candidates.append(_judge(traj, split, reference, fit, cand.effect, s))
     candidates.sort(key=lambda c: c.heldout_error_reduction, reverse=True)
@@ -504,7 +634,7 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
     effect_steps: list[tuple[Fit, Fit]] = []
     chosen: list[Candidate] = []
     selected: list[CandidateResult] = []
-    by_name = {c.effect: c for c in CANDIDATES}
+    by_name = {c.effect: c for c in cands}
     while len(chosen) < s.max_effects:
         # Later rounds refit jointly only the candidates that helped on their own and the ones a score
         # test on top of the current model ranks highest: an effect masked by a larger one (a play
@@ -512,7 +642,7 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
         pool = [by_name[c.effect] for c in candidates if by_name[c.effect] not in chosen
                 and c.heldout_error_reduction > 0]
         if chosen:
-            rest = [c for c in CANDIDATES if c not in chosen and (current.setup.dynamic or not c.dynamic)]
+            rest = [c for c in cands if c not in chosen and (current.setup.dynamic or not c.dynamic)]
             scores = _score_test(traj, split, horizon, current.setup, rest, s)
             ranked = sorted(scores, key=scores.get, reverse=True)
             pool += [by_name[e] for e in ranked[:_SCORE_TOP] if scores[e] > _SCORE_MIN and by_name[e] not in pool]
@@ -521,9 +651,11 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
         fits = [alone[c.effect] for c in pool] if not chosen else side_by_side(
             [lambda c=c: fit_candidates(traj, split, horizon, current.setup, chosen + [c], s) for c in pool])
         trials = [(_judge(traj, split, current, fit, cand.effect, s), cand, fit) for cand, fit in zip(pool, fits)]
-        verdict, cand, fit = max(trials, key=lambda t: t[0].heldout_error_reduction)
-        if not verdict.significant:
+        # The best significant trial: a larger position gain that worsens heading or speed does not block it.
+        trials = [t for t in trials if t[0].significant]
+        if not trials:
             break
+        verdict, cand, fit = max(trials, key=lambda t: t[0].heldout_error_reduction)
         if cand.dynamic and not current.setup.dynamic:
             # Switching to the dynamic model can help even at the current grip: that part is model
             # structure (the car slides as its tyre parameters say), not a tyre deviation. Switch,
@@ -554,12 +686,12 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
     while len(chosen) >= 2:
         loo = [(v, i, without) for v, i, without, _ in
                _leave_one_out(traj, split, horizon, chosen, current, current, reference, s, with_other=False)]
-        weakest = min(loo, key=lambda t: t[0].heldout_error_reduction)
-        if weakest[0].significant:
+        failing = [t for t in loo if not t[0].significant]
+        if not failing:
             selected = [v for v, _, _ in loo]
             effect_steps = [(without, current) for _, _, without in loo]
             break
-        _, i, without = weakest
+        _, i, without = min(failing, key=lambda t: t[0].heldout_error_reduction)
         del chosen[i]
         current = without
         selected = [dataclasses.replace(v, significant=True) for v in selected[:i] + selected[i + 1:]]
@@ -568,8 +700,16 @@ def _forward_select(traj: Trajectory, split: Split, horizon: int, reference: Fit
             single = evaluate(traj, split, horizon, dataclasses.replace(
                 current.setup, car=with_corrections(current.setup.car, {
                     p: getattr(reference.setup.car.corrections, p) for p in chosen[0].params})))
-            selected = [_judge(traj, split, single, current, chosen[0].effect, s)]
+            selected = [_judge(traj, split, single, current, chosen[0].effect, s, channels=True)]
             effect_steps = [(single, current)]
+    if len(chosen) == 1:
+        # The keep test of a single claim: against the model without it, on position, heading and speed.
+        before, after = effect_steps[0]
+        verdict = _judge(traj, split, before, after, chosen[0].effect, s, channels=True)
+        if verdict.significant:
+            selected = [verdict]
+        else:
+            chosen, selected, effect_steps, current = [], [], [], before
     return _Selection(reference, candidates, selected, chosen, effect_steps, current, reference_is_dynamic,
                       switched_after)
 
@@ -580,6 +720,21 @@ def _training_mse(traj: Trajectory, split: Split, horizon: int, setup: ModelSetu
 
 
 def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSettings()) -> SysidResult:
+    """Identify the effects in ``traj`` (docs/sysid.md). Trial parameter vectors of a fit can overflow a
+    prediction (the fit rejects them): numpy's warnings about it are counted in ``numeric_warnings``,
+    not printed."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        result = _identify(traj, car, settings)
+    numeric = [w for w in caught if issubclass(w.category, RuntimeWarning)]
+    for w in caught:
+        if not issubclass(w.category, RuntimeWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    result.numeric_warnings = len(numeric)
+    return result
+
+
+def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> SysidResult:
     s = settings
     horizon = max(1, int(round(s.horizon_s / traj.dt)))
     split = split_starts(traj, horizon, s)
@@ -597,7 +752,11 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     structure_train = _judge(traj, train_split, evaluate(traj, train_split, horizon, planner.setup),
                              evaluate(traj, train_split, horizon, dynamic_nominal.setup), "tire_slip", s, {}, {})
     references = (dynamic_nominal,) if structure_train.significant else (dynamic_nominal, planner)
-    families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s) for ref in references])
+    # Identifiability before a claim: only parameters the training windows excite are fitted.
+    exc = excitation(traj, split.train, horizon, car)
+    cands, not_identifiable = restrict(candidates_for(car), exc)
+    families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s, cands)
+                             for ref in references])
     sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
     reference, candidates, selected = sel.reference, sel.candidates, sel.selected
     effect_steps, current = sel.effect_steps, sel.current
@@ -605,7 +764,7 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     # Best first: order the claimed effects by their held-out reduction.
     order = sorted(range(len(selected)), key=lambda i: selected[i].heldout_error_reduction, reverse=True)
     selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
-    by_name = {c.effect: c for c in CANDIDATES}
+    by_name = {c.effect: c for c in cands}
 
     # `other` on top of the named effects. When it earns its place, every named effect is re-tested with
     # it in the model (the terms can take over part of what a named effect explained, or show that the
@@ -614,7 +773,7 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
     chosen = list(sel.chosen)
     named, named_selected, named_steps = current, selected, effect_steps
     other_fit, other_params, other_std = fit_other(traj, split, horizon, named, s)
-    other_verdict = _judge(traj, split, named, other_fit, "other", s, other_params, other_std)
+    other_verdict = _judge(traj, split, named, other_fit, "other", s, other_params, other_std, channels=True)
     dropped_after_other: list[str] = []
     if not other_verdict.significant and chosen:
         # A named effect can stand in for one the library cannot name (torque steer, a heading rate
@@ -629,20 +788,20 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         alone_fit, alone_params, alone_std = fit_other(traj, split, horizon, bare, s)
         if alone_params and _judge(traj, split, named, alone_fit, "other", s).significant:
             joint = fit_candidates(traj, split, horizon, alone_fit.setup, chosen, s, alone_fit.effects)
-            joint_verdict = _judge(traj, split, named, joint, "other", s, alone_params, alone_std)
+            joint_verdict = _judge(traj, split, named, joint, "other", s, alone_params, alone_std, channels=True)
             if joint_verdict.significant:
                 other_fit, other_params, other_std, other_verdict = joint, alone_params, alone_std, joint_verdict
     if other_verdict.significant:
         while chosen:
             loo = _leave_one_out(traj, split, horizon, chosen, named, other_fit, reference, s, with_other=True)
-            weakest = min(loo, key=lambda t: t[0].heldout_error_reduction)
-            if weakest[0].significant:
+            failing = [t for t in loo if not t[0].significant]
+            if not failing:
                 named_selected = [v for v, _, _, _ in loo]
                 named_steps = [(without, other_fit) for _, _, without, _ in loo]
                 break
-            _, i, _, named_rest = weakest
+            _, i, _, named_rest = min(failing, key=lambda t: t[0].heldout_error_reduction)
             new_other, new_params, new_std = fit_other(traj, split, horizon, named_rest, s)
-            new_verdict = _judge(traj, split, named_rest, new_other, "other", s, new_params, new_std)
+            new_verdict = _judge(traj, split, named_rest, new_other, "other", s, new_params, new_std, channels=True)
             if not new_verdict.significant:
                 # The named effect and the terms explain the same thing: the named effect stays.
                 other_verdict = dataclasses.replace(other_verdict, significant=False)
@@ -661,8 +820,8 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         if chosen:
             # One more pass over the named parameters with the terms in place (they were fitted without).
             refit = fit_candidates(traj, split, horizon, other_fit.setup, chosen, s, other_fit.effects)
-            if _training_mse(traj, split, horizon, refit.setup) < _training_mse(traj, split, horizon,
-                                                                               other_fit.setup):
+            if (_training_mse(traj, split, horizon, refit.setup) < _training_mse(traj, split, horizon, other_fit.setup)
+                    and refit.heldout.horizon_pos_rmse_m <= other_fit.heldout.horizon_pos_rmse_m):
                 other_fit = dataclasses.replace(refit, effects=other_fit.effects)
         selected = selected + [other_verdict]
         effect_steps = effect_steps + [(named, other_fit)]
@@ -701,4 +860,5 @@ def identify(traj: Trajectory, car: CarParams, settings: SysidSettings = SysidSe
         selected=selected, final=current, planner_after=planner_after, effect_steps=effect_steps,
         switched_after=switched_after, families_compared=len(references) == 2,
         unnamed_effect_remains=unnamed_remains, dropped_after_other=dropped_after_other,
+        not_identifiable=not_identifiable,
     )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -35,6 +36,36 @@ class LogFormatError(fileio.InputFileError):
     """The log is malformed; the message names the file, row (1-based line number) and column."""
 
 
+# Command conventions (docs/sysid.md, "Command conventions"): what the steering and throttle columns hold.
+STEERING_UNITS = ("rad", "normalized", "us")  # wheel angle command; fraction of max_steering_rad; pulse width
+THROTTLE_UNITS = ("normalized", "us", "speed")  # throttle in [-1, 1]; pulse width; speed set-point in m/s
+PULSE_RANGE_US = (1000.0, 2000.0)
+
+
+@dataclass(frozen=True)
+class CommandUnits:
+    """The convention of a log's command columns, as declared (an option, or the reader's format)."""
+
+    steering: str = "rad"
+    throttle: str = "normalized"
+
+    def __post_init__(self) -> None:
+        if self.steering not in STEERING_UNITS:
+            raise ValueError(f"steering units: one of {STEERING_UNITS}, got {self.steering!r}")
+        if self.throttle not in THROTTLE_UNITS:
+            raise ValueError(f"throttle units: one of {THROTTLE_UNITS}, got {self.throttle!r}")
+
+
+@dataclass(frozen=True)
+class CommandStream:
+    """Commands logged on their own time stamps (a reader whose commands and poses come from different
+    messages): each is held from its time until the next."""
+
+    t: np.ndarray
+    throttle: np.ndarray
+    steering: np.ndarray
+
+
 @dataclass(frozen=True)
 class DriveLog:
     """All rows of a log, in file order. ``row`` holds each sample's line number in the file (for a
@@ -53,6 +84,8 @@ class DriveLog:
     row: np.ndarray  # int, line number in the file (header = 1)
     car_labels: dict[int, str] = field(default_factory=dict)
     pose_sources: dict[int, str] = field(default_factory=dict)
+    commands: CommandStream | None = None  # None: the commands of the rows (sent at the rows' times)
+    units: CommandUnits = CommandUnits()
 
     @property
     def cars(self) -> list[int]:
@@ -72,14 +105,42 @@ class DriveLog:
             throttle=self.throttle[keep], steering=self.steering[keep],
             speed=None if self.speed is None else self.speed[keep], row=self.row[keep],
             car_labels={c: n for c, n in self.car_labels.items() if c == car},
-            pose_sources={c: n for c, n in self.pose_sources.items() if c == car},
+            pose_sources={c: n for c, n in self.pose_sources.items() if c == car}, commands=self.commands,
+            units=self.units,
         )
 
 
-def _read_csv(path: Path) -> DriveLog:
+_UNITS_COMMENT = re.compile(r"^\s*#\s*(steering|throttle)_units\s*[=:]\s*(\S+)\s*$")
+
+
+def _declared_units(source: str, lines: list[str], option: CommandUnits | None) -> CommandUnits:
+    """The command convention of a CSV log: comment lines ``# steering_units = normalized`` /
+    ``# throttle_units = us`` in the file, or the option; both given and different is an error."""
+    found: dict[str, tuple[str, int]] = {}
+    for i, line in enumerate(lines):
+        hit = _UNITS_COMMENT.match(line)
+        if hit:
+            found[hit.group(1)] = (hit.group(2), i + 1)
+    for channel, (value, row) in found.items():
+        try:
+            CommandUnits(**{channel: value})
+        except ValueError as exc:
+            raise LogFormatError(f"{source}: row {row}: {exc}") from None
+    header = CommandUnits(**{k: v for k, (v, _) in found.items()})
+    if option is None:
+        return header
+    for channel, (value, row) in found.items():
+        if getattr(option, channel) != value:
+            raise LogFormatError(f"{source}: row {row}: the file declares {channel}_units = {value}, the option "
+                                 f"--{channel}-units {getattr(option, channel)}")
+    return option
+
+
+def _read_csv(path: Path, units: CommandUnits | None = None) -> DriveLog:
     source = str(path)
     text = fileio.read_text(path, "log file", max_bytes=MAX_FILE_BYTES, max_line=MAX_LINE, error=LogFormatError)
     lines = text.splitlines()
+    units = _declared_units(source, lines, units)
     # Comment lines (#...) and blank lines are skipped but keep their line numbers.
     numbered = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
     if not numbered:
@@ -128,6 +189,7 @@ def _read_csv(path: Path) -> DriveLog:
         source=source,
         t=values["t"], car=car.astype(int), x=values["x"], y=values["y"], heading=values["heading"],
         throttle=values["throttle"], steering=values["steering"], speed=values.get("speed"), row=line_numbers,
+        units=units,
     )
     check_values(log, values["car"])
     return log
@@ -145,16 +207,15 @@ def check_values(log: DriveLog, car_raw: np.ndarray) -> None:
         ("x", np.abs(log.x) > MAX_ABS_POSITION_M, f"|x| must be <= {MAX_ABS_POSITION_M} m"),
         ("y", np.abs(log.y) > MAX_ABS_POSITION_M, f"|y| must be <= {MAX_ABS_POSITION_M} m"),
         ("heading", np.abs(log.heading) > 100.0, "heading must be in radians (|heading| <= 100)"),
-        ("throttle", np.abs(log.throttle) > 1.0, "throttle must be in [-1, 1]"),
-        ("steering", np.abs(log.steering) > MAX_ABS_STEERING_RAD,
-         f"steering must be a wheel angle in radians, |steering| <= {MAX_ABS_STEERING_RAD}"),
+        _command_check("throttle", log.throttle, log.units.throttle),
+        _command_check("steering", log.steering, log.units.steering),
     ]
     if log.speed is not None:
         checks.append(("speed", (log.speed < 0) | (log.speed > MAX_SPEED_MPS), f"speed must be in [0, {MAX_SPEED_MPS}] m/s"))
     for column, bad, why in checks:
         k = _first_bad(bad)
         if k is not None:
-            value = getattr(log, column)[k] if column != "car" else car_raw[k]
+            value = float(getattr(log, column)[k] if column != "car" else car_raw[k])
             raise LogFormatError(f"{log.source}: row {log.row[k]}, column {column}: {why}, got {value!r}")
     # Time must not run backwards within a car (duplicates are allowed and merged later).
     for car in log.cars:
@@ -168,6 +229,20 @@ def check_values(log: DriveLog, car_raw: np.ndarray) -> None:
             )
 
 
+def _command_check(column: str, values: np.ndarray, unit: str) -> tuple[str, np.ndarray, str]:
+    """Range of a command column in its declared convention."""
+    if unit == "us":
+        lo, hi = PULSE_RANGE_US
+        return column, (values < lo) | (values > hi), f"declared as pulse widths (us): must be in [{lo:g}, {hi:g}]"
+    if unit == "normalized":
+        return column, np.abs(values) > 1.0, "declared normalised: must be in [-1, 1]"
+    if unit == "speed":
+        return column, np.abs(values) > MAX_SPEED_MPS, f"declared a speed set-point: must be within +-{MAX_SPEED_MPS} m/s"
+    return (column, np.abs(values) > MAX_ABS_STEERING_RAD,
+            f"steering must be a wheel angle in radians, |steering| <= {MAX_ABS_STEERING_RAD} (normalised commands "
+            "or pulse widths: declare them, docs/sysid.md)")
+
+
 def _read_rrd(path: Path) -> DriveLog:
     from sysid.rrd import read_rrd  # imports rerun; only when a recording is read
 
@@ -178,12 +253,32 @@ def _read_rrd(path: Path) -> DriveLog:
 LOG_READERS: dict[str, Callable[[Path], DriveLog]] = {".csv": _read_csv, ".rrd": _read_rrd}
 
 
-def read_log(path: str | Path) -> DriveLog:
+def _read_dir(path: Path) -> DriveLog:
+    from sysid.f110 import is_f110_run, read_f110_run  # only for a run folder
+
+    if not is_f110_run(path):
+        raise LogFormatError(f"{path}: a folder that is not an F1/10 run (no commandData.csv and pfPoseData.csv)")
+    return read_f110_run(path)
+
+
+def read_log(path: str | Path, units: CommandUnits | None = None) -> DriveLog:
+    """Read a log; ``units``: the declared convention of a CSV log's command columns (other formats
+    declare their own and refuse a different one)."""
     path = Path(path)
-    reader = LOG_READERS.get(path.suffix.lower())
-    if reader is None:
-        raise LogFormatError(f"{path}: unknown log format {path.suffix!r}; supported: {sorted(LOG_READERS)}")
-    return reader(path)
+    if path.is_dir():
+        log = _read_dir(path)
+    else:
+        reader = LOG_READERS.get(path.suffix.lower())
+        if reader is None:
+            raise LogFormatError(f"{path}: unknown log format {path.suffix!r}; supported: {sorted(LOG_READERS)} "
+                                 "and F1/10 run folders")
+        if reader is _read_csv:
+            return _read_csv(path, units)
+        log = reader(path)
+    if units is not None and units != log.units:
+        raise LogFormatError(f"{path}: the format's commands are steering in {log.units.steering} and throttle in "
+                             f"{log.units.throttle}; the declared units ({units.steering}, {units.throttle}) differ")
+    return log
 
 
 def write_log_csv(path: str | Path, log: DriveLog) -> Path:

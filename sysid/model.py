@@ -109,13 +109,15 @@ def _segment(a: np.ndarray, target: np.ndarray, rate: float, length, w: np.ndarr
 # held weakly so a new one with the id of a collected one cannot hit.
 _CHAIN_CACHE: dict[tuple, tuple[weakref.ref, np.ndarray]] = {}
 THROTTLE, STEERING = "throttle", "steering"
+SETPOINT_RATE_LIMIT = 1e9  # speed set-points jump (the speed loop behind them is the model's)
 
 
 def _chain_key(traj: Trajectory, first: np.ndarray, steps: int, car: CarParams, n_sub: int, channel: str) -> tuple:
     c, a = car.corrections, car.actuators
     where = (id(traj), first.tobytes(), steps, n_sub, channel)
     if channel == THROTTLE:
-        return where + (c.throttle_delay_s, a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s)
+        return where + (c.throttle_delay_s, a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s,
+                        car.speed_control)
     return where + (c.steering_delay_s, c.steering_backlash_rad, a.max_steering_rad, a.steering_rate_limit_radps)
 
 
@@ -159,7 +161,7 @@ def actuations(traj: Trajectory, first: np.ndarray, steps: int, cars: Sequence[C
             steering = asymmetric(steering, c.steering_gain_asymmetry)
         motor_scale = None
         if c.motor_force_drift_per_s != 0.0:
-            t_mid = traj.t[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt - traj.t[0]
+            t_mid = traj.elapsed[first[:, None] + np.arange(steps)[None, :]] + 0.5 * traj.dt
             motor_scale = motor_force_scale(c.motor_force_drift_per_s, t_mid)
         out.append(Actuation(throttle, steering, motor_scale))
     return out
@@ -172,8 +174,13 @@ def _actuation_batch(traj: Trajectory, first: np.ndarray, steps: int, cars: list
     groups: dict[tuple, list[int]] = {}  # limits and rate are scalars within a batch
     for i, car in enumerate(cars):
         a = car.actuators
-        limits = ((a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s) if channel == THROTTLE
-                  else (-a.max_steering_rad, a.max_steering_rad, a.steering_rate_limit_radps))
+        if channel == THROTTLE and car.speed_control.active:  # a speed set-point: clipped, not rate-limited
+            m = car.speed_control.max_setpoint_mps
+            limits = (-m, m, SETPOINT_RATE_LIMIT)
+        elif channel == THROTTLE:
+            limits = (a.throttle_min, a.throttle_max, a.throttle_rate_limit_per_s)
+        else:
+            limits = (-a.max_steering_rad, a.max_steering_rad, a.steering_rate_limit_radps)
         groups.setdefault(limits, []).append(i)
     out: list = [None] * len(cars)
     for (lo, hi, rate), members in groups.items():

@@ -11,7 +11,8 @@ import numpy as np
 
 import fileio
 
-from sysid.diagnose import EFFECT_NAMES, ErrorSummary, Fit, SysidResult
+from sysid.diagnose import (EFFECT_NAMES, ErrorSummary, Fit, SysidResult, block_length, heldout_runs,
+                             per_run_summaries)
 
 # Per effect: (label of the explaining variable, label of the residual it drives).
 EXPLAINING_VARIABLES = {
@@ -25,7 +26,10 @@ EXPLAINING_VARIABLES = {
                           "heading error at horizon [rad]"),
     "steering_asymmetry": ("mean speed x |steering command| over the window [rad·m/s]",
                            "heading error at horizon [rad]"),
-    "motor_drift": ("time since the log start [s]", "speed error at horizon [m/s]"),
+    "motor_drift": ("time since the run's start [s]", "speed error at horizon [m/s]"),
+    "throttle_map": ("mean |throttle| over the window", "speed error at horizon [m/s]"),
+    "speed_map": ("mean speed set-point over the window [m/s]", "speed error at horizon [m/s]"),
+    "speed_response": ("set-point minus speed at the window start [m/s]", "speed error at horizon [m/s]"),
     "other": ("mean speed over the window [m/s]", "heading error at horizon [rad]"),
 }
 
@@ -45,9 +49,15 @@ def explaining_variable(result: SysidResult, effect: str) -> np.ndarray:
     if effect == "steering_asymmetry":
         return np.mean(v * np.abs(traj.steering[window]), axis=1)
     if effect == "motor_drift":
-        return traj.t[starts] - traj.t[0]
+        return traj.elapsed[starts]
     if effect == "tire_slip":
         return np.mean(v * traj.yaw_rate[window], axis=1)
+    if effect == "speed_map":
+        return np.mean(traj.throttle[window], axis=1)
+    if effect == "throttle_map":
+        return np.mean(np.abs(traj.throttle[window]), axis=1)
+    if effect == "speed_response":
+        return traj.throttle[starts] - traj.speed[starts]
     if effect == "longitudinal_drag":
         return np.mean(v * np.abs(v), axis=1)
     return np.mean(v, axis=1)
@@ -57,7 +67,7 @@ def residual_for(fit: Fit, effect: str) -> np.ndarray:
     e = fit.heldout_errors
     if effect == "tire_slip":
         return e.lateral[:, -1]
-    if effect in ("longitudinal_drag", "motor_drift"):
+    if effect in ("longitudinal_drag", "motor_drift", "throttle_map", "speed_map", "speed_response"):
         return e.speed[:, -1]
     return e.heading[:, -1]
 
@@ -128,6 +138,14 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
         "unnamed_effect_remains": result.unnamed_effect_remains,
         "dropped_after_other": list(result.dropped_after_other),
         "car_params_out": car_params_out,
+        "geometry_diagnosis": result.geometry_diagnosis,
+        "not_identifiable": [{"effect": n.effect, "params": list(n.params), "reasons": list(n.reasons)}
+                             for n in result.not_identifiable],
+        "heldout_runs": [
+            {"run": i + 1, "source": result.traj.runs[i].source, "windows": n,
+             "dynamic_nominal": nominal.json_dict(), "planner": planner.json_dict(), "after": after.json_dict()}
+            for i, n, nominal, planner, after in per_run_summaries(result)
+        ],
     }
 
 
@@ -155,20 +173,33 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
     lines = ["# Model identification report", ""]
     if command:
         lines += [f"Command: `{command}`", ""]
+    held = heldout_runs(traj, s)
+    split_note = (f"run{'s' if len(held) > 1 else ''} {', '.join(str(i + 1) for i in held)} held out whole (cross-run validation)" if held else
+                  f"time blocks of {block_length(traj, s):.1f} s, every {s.heldout_every}rd held out")
     lines += [
-        f"* Log: `{log_path}` — {traj.n_raw_rows} rows, {traj.n_duplicates_merged} duplicate timestamps merged, "
-        f"{traj.n_gaps} gap(s); {traj.n} samples on a {traj.dt * 1000:.2f} ms grid "
-        f"({traj.t[-1] - traj.t[0]:.1f} s)" + (f"; {log_note}." if log_note else "."),
+        f"* Log{'s' if traj.n_runs > 1 else ''}: `{log_path}` — {traj.n_raw_rows} rows, {traj.n_duplicates_merged} "
+        f"rows merged (equal time stamps or frames), {traj.n_gaps} gap(s); {traj.n} samples on a "
+        f"{traj.dt * 1000:.2f} ms grid ({sum(r.duration_s for r in traj.runs):.1f} s)"
+        + (f"; {log_note}." if log_note else "."),
         f"* Car parameters in: `{car_in}`; out: `{car_out}`" + (f"; JSON: `{json_path}`." if json_path else "."),
         f"* Horizon {result.horizon_steps} steps ({result.horizon_steps * traj.dt:.2f} s); "
-        f"{result.split.train.size} training and {result.split.heldout.size} held-out windows "
-        f"(time blocks, every {s.heldout_every}rd held out).",
+        f"{result.split.train.size} training and {result.split.heldout.size} held-out windows ({split_note}).",
         f"* Estimated measurement noise: position {traj.position_noise_m * 1000:.1f} mm, heading "
         f"{traj.heading_noise_rad:.4f} rad.",
-        "",
-        "## Verdict",
-        "",
     ]
+    if result.numeric_warnings:
+        lines.append(f"* {result.numeric_warnings} numpy warning(s) (overflow or invalid values in trial predictions of the "
+                     "fits; such trials cost the fit a large residual and are rejected).")
+    lines.append("")
+    if traj.n_runs > 1 or traj.runs[0].n_missing_frames:
+        lines += ["| run | file | rows | merged | missing frames | gaps | samples | duration | role |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for i, r in enumerate(traj.runs):
+            lines.append(f"| {i + 1} | `{r.source}` | {r.n_raw_rows} | {r.n_duplicates_merged} | {r.n_missing_frames} | "
+                         f"{r.n_gaps} | {r.n_samples} | {r.duration_s:.1f} s | "
+                         f"{'held out' if i in held else ('fit' if held else 'fit + held-out blocks')} |")
+        lines.append("")
+    lines += ["## Verdict", ""]
     if result.selected:
         names = ", ".join(f"**{e.effect}**" for e in result.selected)
         lines.append(f"Significant effect(s), best first: {names}. Held-out horizon position RMSE "
@@ -188,6 +219,8 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                      f"least {100 * s.min_reduction:.0f} % with {100 * s.confidence:.0f} % bootstrap confidence; "
                      "the corrections are left unchanged.")
     lines.append("")
+    if result.geometry_diagnosis:
+        lines += [f"**Geometry / steering scale.** {result.geometry_diagnosis['note']}.", ""]
     st = result.structure
     if result.reference_is_dynamic:
         lines += [
@@ -226,19 +259,40 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
         _row("after: reference model + identified effects", result.final.heldout),
         _row("planner, new corrections", result.planner_after.heldout),
         "",
+    ]
+    if traj.n_runs > 1:
+        lines += ["Per held-out run (horizon RMSE: position cm, heading rad, speed m/s; nominal dynamic → after):", "",
+                  "| run | windows | position | heading | speed |", "|---|---|---|---|---|"]
+        for i, n, nominal, _, after in per_run_summaries(result):
+            lines.append(f"| {i + 1} `{traj.runs[i].source}` | {n} | {100 * nominal.horizon_pos_rmse_m:.1f} → "
+                         f"{100 * after.horizon_pos_rmse_m:.1f} | {nominal.horizon_heading_rmse_rad:.3f} → "
+                         f"{after.horizon_heading_rmse_rad:.3f} | {nominal.horizon_speed_rmse_mps:.3f} → "
+                         f"{after.horizon_speed_rmse_mps:.3f} |")
+        lines.append("")
+    lines += [
         "## Candidates",
         "",
         "Each candidate fitted alone on the training blocks on top of the reference model; reduction = "
-        "1 − RMSE_after / RMSE_before of the held-out horizon position error; confidence = block-bootstrap "
+        "1 − RMSE_after / RMSE_before of the held-out horizon position error (heading / speed: the same for their "
+        "errors; a claim may not make either worse by more than "
+        f"{100 * s.max_worsening:.0f} %); confidence = block-bootstrap "
         "probability that the held-out mean squared error went down. Standard deviations are cluster-robust "
         "(sandwich) estimates from the least-squares Jacobian.",
         "",
-        "| effect | fitted parameters | held-out reduction | confidence | significant |",
-        "|---|---|---|---|---|",
+        "| effect | fitted parameters | held-out reduction | heading / speed | confidence | significant |",
+        "|---|---|---|---|---|---|",
     ]
     for c in result.candidates:
         lines.append(f"| {c.effect} | {_fmt_params(c.params, c.params_std)} | {100 * c.heldout_error_reduction:+.1f} % "
+                     f"| {100 * c.heading_reduction:+.1f} % / {100 * c.speed_reduction:+.1f} % "
                      f"| {c.confidence:.2f} | {'yes' if c.significant else 'no'} |")
+    if result.not_identifiable:
+        lines += ["", "## Not identifiable from these logs", "",
+                  "Not fitted, not claimed, nothing written to the car file: the training windows do not excite them "
+                  "(docs/sysid.md, \"Excitation tests\").", "", "| effect | parameter | reason |", "|---|---|---|"]
+        for n in result.not_identifiable:
+            for p, why in zip(n.params, n.reasons):
+                lines.append(f"| {n.effect} | `{p}` | {why} |")
     lines += ["", "## Identified effects", ""]
     if result.selected:
         lines += ["Best first. Held-out reduction against the nominal dynamic model: (RMSE of the final model "

@@ -165,13 +165,15 @@ def test_declared_rate_limits_leave_nothing_to_explain_under_hard_throttle_steps
 
 def test_an_effect_outside_the_library_of_names_is_reported_as_other_and_written():
     # Torque steer: the heading rate grows with throttle x speed. No named candidate has that shape; a
-    # steering offset mimics it at the mean throttle and is fitted first, then dropped for the terms.
+    # steering offset mimics it at the mean throttle and is fitted first, then dropped: by the keep test
+    # (it worsens the held-out speed error by 6 %) before the terms are tried.
     result = _identified("", 47, other=(("yaw_rate_u_v", 0.5),))
     assert [e.effect for e in result.selected] == ["other"] and result.unnamed_effect_remains
     assert result.car_out.corrections == NOMINAL.corrections
     assert result.car_out.other_terms.yaw_rate_u_v == pytest.approx(0.5, rel=0.2)
     assert result.heldout_error_reduction >= 0.5
-    assert result.dropped_after_other == ["steering_offset"]
+    offset = next(c for c in result.candidates if c.effect == "steering_offset")
+    assert offset.heldout_error_reduction > 0.3 and offset.speed_reduction < -0.05  # position only: not kept
 
 
 # ----------------------------------------------------------------------------- planner's command mapping

@@ -63,6 +63,14 @@ class ModelCoefficients:
     blend_low: np.ndarray
     blend_high: np.ndarray
     relax_time: np.ndarray
+    # Speed set-point cars (CarParams.speed_control); speed_gain 0: a throttle car.
+    speed_gain: np.ndarray = 0.0
+    speed_setpoint_gain: np.ndarray = 1.0
+    speed_max_accel: np.ndarray = 1.0
+    speed_max_decel: np.ndarray = 1.0
+    # Throttle map of a throttle car (corrections): gain and dead band.
+    throttle_gain: np.ndarray = 1.0
+    throttle_dead_band: np.ndarray = 0.0
 
     @classmethod
     def from_params(
@@ -128,6 +136,12 @@ class ModelCoefficients:
             blend_low=arr([p.model.blend_speed_low_mps for p in plist]),
             blend_high=arr([p.model.blend_speed_high_mps for p in plist]),
             relax_time=arr([p.model.kinematic_relax_time_s for p in plist]),
+            speed_gain=arr([p.speed_control.gain_per_s * p.corrections.speed_response_scale for p in plist]),
+            speed_setpoint_gain=arr([p.corrections.speed_setpoint_gain for p in plist]),
+            speed_max_accel=arr([p.speed_control.max_accel_mps2 for p in plist]),
+            speed_max_decel=arr([p.speed_control.max_decel_mps2 for p in plist]),
+            throttle_gain=arr([p.corrections.throttle_gain for p in plist]),
+            throttle_dead_band=arr([p.corrections.throttle_dead_band for p in plist]),
         )
         if np.any(values["drag"] < 0):
             raise ValueError("drag: total drag coefficient (nominal + corrections + extra) must be >= 0")
@@ -184,7 +198,7 @@ def pacejka(slip, b, c, peak, e, xp=np, slope: bool = True):
 class _Inputs:
     """Quantities of the input alone (constant while the input is held, e.g. over an RK4 step)."""
 
-    __slots__ = ("throttle", "delta", "cos_d", "sin_d", "tan_d", "root", "abs_u", "motor")
+    __slots__ = ("throttle", "delta", "cos_d", "sin_d", "tan_d", "root", "abs_u", "motor", "map_slope")
 
 
 def input_terms(throttle, steering, k: ModelCoefficients, xp=np) -> _Inputs:
@@ -204,11 +218,26 @@ def input_terms(throttle, steering, k: ModelCoefficients, xp=np) -> _Inputs:
 def _throttle_terms(i: _Inputs, throttle, k: ModelCoefficients, xp) -> _Inputs:
     """Fill the throttle part of ``i``: the throttle, smoothed |throttle| (root, abs_u) and the motor force."""
     eps = k.throttle_smoothing
+    i.map_slope = 1.0
+    if not (_is_one(k.throttle_gain) and _is_zero(k.throttle_dead_band)):
+        throttle, i.map_slope = throttle_map(throttle, k, xp)
     i.throttle = throttle
     i.root = xp.sqrt(throttle * throttle + eps * eps)
     i.abs_u = i.root - eps
     i.motor = k.motor_force * throttle
     return i
+
+
+def _is_one(value) -> bool:
+    return isinstance(value, (float, int)) and value == 1.0
+
+
+def throttle_map(throttle, k: ModelCoefficients, xp=np):
+    """The throttle the motor sees for a commanded throttle u (corrections.throttle_gain g, throttle_dead_band b):
+    g * sign(u) * max(|u| - b, 0), and its slope d/du."""
+    over = xp.maximum(xp.abs(throttle) - k.throttle_dead_band, 0.0)
+    sign = (throttle > 0) * 1.0 - (throttle < 0) * 1.0
+    return k.throttle_gain * sign * over, k.throttle_gain * (over > 0) * 1.0
 
 
 def drive_force(vx, throttle, k: ModelCoefficients, xp=np, partials: bool = True):
@@ -221,6 +250,28 @@ def drive_force(vx, throttle, k: ModelCoefficients, xp=np, partials: bool = True
 
 
 def _drive_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
+    if _is_zero(k.speed_gain):
+        return _motor_force(vx, i, k, xp, partials)
+    if isinstance(k.speed_gain, float) or bool(np.all(k.speed_gain > 0)):
+        return _speed_loop_force(vx, i, k, xp, partials)
+    # A batch of throttle and speed set-point cars: each its own law.
+    speed_car = k.speed_gain > 0
+    a, b = _motor_force(vx, i, k, xp, partials), _speed_loop_force(vx, i, k, xp, partials)
+    return tuple(None if x is None else np.where(speed_car, y, x) for x, y in zip(a, b))
+
+
+def _speed_loop_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
+    """Speed set-point car (the throttle input is the set-point, m/s): m * clip(g (s u - vx), -dec, acc)."""
+    want = k.speed_gain * (k.speed_setpoint_gain * i.throttle - vx)
+    accel = xp.minimum(xp.maximum(want, -k.speed_max_decel), k.speed_max_accel)
+    force = k.mass * accel
+    if not partials:
+        return force, None, None
+    inside = (want > -k.speed_max_decel) * (want < k.speed_max_accel) * 1.0
+    return force, -k.mass * k.speed_gain * inside, k.mass * k.speed_gain * k.speed_setpoint_gain * inside
+
+
+def _motor_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
     tanh_v = xp.tanh(vx / k.rolling_smoothing_speed)
     abs_vx = xp.abs(vx)
     force = (
@@ -236,7 +287,7 @@ def _drive_force(vx, i: _Inputs, k: ModelCoefficients, xp, partials: bool):
         - k.rolling_resistance / k.rolling_smoothing_speed * (1.0 - tanh_v * tanh_v)
         - 2.0 * k.drag * abs_vx
     )
-    d_u = k.motor_force - k.motor_speed_loss * vx * i.throttle / i.root
+    d_u = (k.motor_force - k.motor_speed_loss * vx * i.throttle / i.root) * i.map_slope
     return force, d_vx, d_u
 
 

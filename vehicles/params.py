@@ -112,6 +112,24 @@ class ActuatorParams:
 
 
 @dataclass(frozen=True)
+class SpeedControlParams:
+    """A car whose command is a speed set-point (an F1/10 car's VESC speed controller) instead of a throttle:
+    the longitudinal acceleration is gain * (set-point * corrections.speed_setpoint_gain - speed), limited
+    to [-max_decel, max_accel] (the controller compensates friction and drag; the car file's motor law is
+    not used). docs/sysid.md, "Speed set-point cars"."""
+
+    gain_per_s: float = _num(0.0, _non_negative, doc="0: the car is driven by throttle (default); > 0: speed "
+                                                    "set-point in m/s, 1 / time constant of the speed loop")
+    max_accel_mps2: float = _num(5.0, doc="largest acceleration the speed loop commands")
+    max_decel_mps2: float = _num(5.0, doc="largest deceleration the speed loop commands")
+    max_setpoint_mps: float = _num(10.0, doc="set-points are clipped to +-this")
+
+    @property
+    def active(self) -> bool:
+        return self.gain_per_s > 0.0
+
+
+@dataclass(frozen=True)
 class ModelParams:
     """Low-speed handling of the dynamic model (blend to a kinematic model)."""
 
@@ -164,6 +182,13 @@ class Corrections:
         0.0, _between(-0.5, 0.5), doc="a: gain * (1 + a) for left (positive) servo angles, * (1 - a) for right")
     motor_force_drift_per_s: float = _num(
         0.0, _between(-0.01, 0.01), doc="motor force scale 1 - rate * t (t: s since the log/race start)")
+    throttle_gain: float = _num(
+        1.0, _between(0.2, 5.0), doc="throttle cars: the motor sees gain * sign(u) * max(|u| - dead band, 0)")
+    throttle_dead_band: float = _num(0.0, _between(0.0, 0.5), doc="throttle cars: |throttle| below this does nothing")
+    speed_setpoint_gain: float = _num(
+        1.0, _between(0.2, 5.0), doc="speed set-point cars: speed reached per commanded m/s")
+    speed_response_scale: float = _num(
+        1.0, _between(0.05, 20.0), doc="speed set-point cars: multiplies speed_control.gain_per_s")
     # ---- end of model identification fields ----
 
 
@@ -262,6 +287,8 @@ class CarParams:
     model: ModelParams = field(default_factory=ModelParams)
     marker: MarkerParams = field(default_factory=MarkerParams)
     corrections: Corrections = field(default_factory=Corrections)
+    speed_control: SpeedControlParams = field(default_factory=SpeedControlParams,
+                                              metadata={"optional_in_file": True})
     # transmitter calibration (BuzzRacer FHSS box) and model identification; both optional in a car file
     # (added after the first car files were written)
     radio: RadioParams = field(default_factory=RadioParams, metadata={"optional_in_file": True})
@@ -281,6 +308,7 @@ _SECTION_TYPES = {
     "model": ModelParams,
     "marker": MarkerParams,
     "corrections": Corrections,
+    "speed_control": SpeedControlParams,
     "radio": RadioParams,
     "other_terms": OtherTermsParams,  # model identification
 }
@@ -297,6 +325,12 @@ def _check_cross_fields(p: CarParams, source: str) -> None:
     for sec, obj in _sections_of(p):
         for f in fields(obj):
             _validate_value(source, f"{sec}.{f.name}", f, getattr(obj, f.name))
+    g = p.geometry
+    front, rear = g.footprint_offset_m + 0.5 * g.footprint_length_m, g.footprint_offset_m - 0.5 * g.footprint_length_m
+    if g.lf_m > front or -g.lr_m < rear:  # an axle outside the body: lengths in different units, or swapped
+        raise CarParamsError(
+            f"{source}: geometry: the axles (lf_m {g.lf_m}, lr_m {g.lr_m} from the CG) must lie inside the body "
+            f"outline (footprint_length_m {g.footprint_length_m} centred {g.footprint_offset_m} ahead of the CG)")
     _check_radio(p.radio, source)
     ids = aruco_dictionary_size(p.marker.dictionary)  # each valid alone; a marker its dictionary lacks is never seen
     if not p.marker.aruco_id < ids:

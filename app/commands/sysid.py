@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import shlex
 import sys
 import time
@@ -15,13 +16,14 @@ from race.setup import RaceSpec
 from sim import SimEffectsError
 from sysid.generate import (CAMERA_HEADING_NOISE_RAD, CAMERA_POSITION_NOISE_M, ExcitationSettings, generate_log,
                             parse_effects, sim_effects)
-from sysid.log import read_log, write_log_csv
+from sysid.log import STEERING_UNITS, THROTTLE_UNITS, CommandUnits, LogFormatError, read_log, write_log_csv
 from vehicles.params import CarParamsError, load_car_params, resolve_car_path, save_car_params
 
 
 def register(sub) -> None:
     p = sub.add_parser("sysid", help="check the car model against a drive log; fit and write corrections")
-    p.add_argument("log", help="drive log: .csv, or a race recording .rrd (python -m app race --out ...); docs/sysid.md")
+    p.add_argument("log", nargs="+", help="drive log(s), one per run: .csv, a race recording .rrd (python -m app race "
+                                         "--out ...); several runs of the same car are fitted jointly; docs/sysid.md")
     p.add_argument("--car-params", default="buzzracer", help="car file (or bare name in vehicles/); default buzzracer")
     p.add_argument("--report", required=True, help="Markdown report to write")
     p.add_argument("--json", help="JSON summary to write")
@@ -34,6 +36,20 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
     p.add_argument("--fit-windows", type=int, default=300,
                    help="training windows per fit (default 300; fewer is faster and less precise)")
+    p.add_argument("--block-length", type=float, default=None,
+                   help="time blocks of the train/held-out split of one run, s (default duration/9 in [3, 10] s)")
+    p.add_argument("--heldout-run", action="append", default=None, metavar="LOG",
+                   help="with several runs: a run (as given) to hold out whole; repeatable (default: every 3rd run "
+                        "in content order, at least one)")
+    p.add_argument("--steering-units", choices=STEERING_UNITS, default=None,
+                   help="CSV logs: steering column as a wheel angle command in rad (default), the race link's "
+                        "normalised command (x max_steering_rad) or a pulse width in us (the car file's [radio])")
+    p.add_argument("--throttle-units", choices=THROTTLE_UNITS, default=None,
+                   help="CSV logs: throttle column as normalised throttle (default), a pulse width in us, or a "
+                        "speed set-point in m/s (a car file with [speed_control])")
+    p.add_argument("--frame-period", type=float, default=None,
+                   help="the pose sensor's frame period, s: time stamps are snapped to its clock (jittered arrival "
+                        "times), rows on one frame merged; docs/sysid.md")
     p.set_defaults(func=run)
 
     g = sub.add_parser("sysid-generate", help="simulate a car with hidden effects and write an identification log")
@@ -80,7 +96,8 @@ def register(sub) -> None:
 
 def run(args) -> int:
     # here, not at the top: these import scipy.signal (sysid.data), about 0.3 s on every CLI start
-    from sysid.data import build_trajectory
+    from sysid.conventions import to_physical
+    from sysid.data import build_runs, canonical_order
     from sysid.diagnose import SysidSettings, identify
     from sysid.report import make_plots, markdown_report, write_json
 
@@ -88,6 +105,9 @@ def run(args) -> int:
         raise UserError(f"--horizon must be > 0, got {args.horizon}")
     if args.fit_windows < 20:
         raise UserError(f"--fit-windows must be >= 20, got {args.fit_windows}")
+    for flag, value in (("--block-length", args.block_length), ("--frame-period", args.frame_period)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise UserError(f"{flag} must be a positive number of seconds, got {value}")
     started = time.perf_counter()
     for out, stream in ((args.report, False), (args.params_out or Path(args.report).with_suffix(".toml"), False),
                         (args.json, True)):
@@ -95,25 +115,52 @@ def run(args) -> int:
             check_output_path(out, stream=stream)  # before the identification, not after it
     if args.figures:
         check_output_dir(args.figures)
+    if len(set(args.log)) != len(args.log):
+        raise UserError(f"a run is given twice: {sorted({a for a in args.log if args.log.count(a) > 1})[0]}")
+    for run in args.heldout_run or ():
+        if run not in args.log:
+            raise UserError(f"--heldout-run {run}: not one of the runs given ({', '.join(args.log)})")
     car = load_car_params(args.car_params)
-    log = read_log(args.log)
-    if args.car is None:
-        if len(log.cars) > 1:
-            raise UserError(f"{args.log}: the log has cars {log.describe_cars()}; choose one with --car")
-        car_id = log.cars[0]
-    else:
-        car_id = args.car
-    car_log = log.select_car(car_id)
-    log_note = None
-    if car_id in car_log.pose_sources:
-        log_note = (f"car {car_id} ({car_log.car_labels.get(car_id, '?')}) of the recording; poses from "
-                    f"{car_log.pose_sources[car_id]}")
-        print(log_note)
+    car_source = str(resolve_car_path(args.car_params))
+    units = None
+    if args.steering_units or args.throttle_units:
+        units = CommandUnits(steering=args.steering_units or "rad", throttle=args.throttle_units or "normalized")
+    car_logs, notes = [], []
+    for path in args.log:
+        log = read_log(path, units)
+        if args.car is None:
+            if len(log.cars) > 1:
+                raise UserError(f"{path}: the log has cars {log.describe_cars()}; choose one with --car")
+            car_id = log.cars[0]
+        else:
+            car_id = args.car
+        car_log = to_physical(log.select_car(car_id), car, car_source)
+        if car_id in car_log.pose_sources:
+            notes.append(f"car {car_id} ({car_log.car_labels.get(car_id, '?')}) of {path}; poses from "
+                         f"{car_log.pose_sources[car_id]}")
+            print(notes[-1])
+        car_logs.append((path, car_id, car_log))
+    ids = {car_id for _, car_id, _ in car_logs}
+    if len(ids) > 1:
+        first = car_logs[0]
+        other = next(c for c in car_logs if c[1] != first[1])
+        raise UserError(f"{other[0]}: runs of different cars: car {other[1]} here, car {first[1]} in {first[0]} "
+                        "(choose one car with --car)")
+    log_note = "; ".join(notes) or None
     try:
-        traj = build_trajectory(car_log)
-        result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed, fit_max_starts=args.fit_windows))
-    except ValueError as exc:  # the log loaded but does not support the fit (too short, too few moving samples)
-        raise UserError(f"{args.log}: {exc}") from None
+        logs = [c[2] for c in car_logs]
+        order = canonical_order(logs)
+        held = None
+        if args.heldout_run:
+            held = tuple(order.index(args.log.index(r)) for r in args.heldout_run)
+        traj = build_runs(logs, frame_period=args.frame_period)
+        result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed,
+                                                   fit_max_starts=args.fit_windows, block_s=args.block_length,
+                                                   heldout_runs=held))
+    except LogFormatError:
+        raise  # names its file and row
+    except ValueError as exc:  # the logs loaded but do not support the fit (too short, too few moving samples)
+        raise UserError(f"{', '.join(args.log)}: {exc}") from None
 
     report = Path(args.report)
     params_out = Path(args.params_out) if args.params_out else report.with_suffix(".toml")
@@ -126,7 +173,7 @@ def run(args) -> int:
         json_path = Path(args.json)
         write_json(result, json_path, str(params_out))
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["sysid"] else None
-    atomic_write_text(report, markdown_report(result, args.log, str(resolve_car_path(args.car_params)), str(params_out),
+    atomic_write_text(report, markdown_report(result, ", ".join(args.log), str(resolve_car_path(args.car_params)), str(params_out),
                                               str(json_path) if json_path else None, plots, report.parent, command,
                                               log_note))
     elapsed = time.perf_counter() - started
