@@ -2,7 +2,8 @@
 overhead camera would see it: floor, track surface and boundary lines (polylines in track metres),
 fixed ArUco markers at surveyed points, and each car as a box with an ArUco marker (on a white label)
 on its roof, through a pinhole camera with optional lens distortion, plus motion blur (sub-exposure
-samples along each car's motion), defocus blur, uneven lighting and sensor noise, all seeded. It is a
+samples along each car's motion), defocus blur, uneven lighting and sensor noise, all seeded, and
+optionally rolling shutter, lighting flicker and MJPEG compression (sim.camera_profile's profiles). It is a
 ``tracking.camera.CameraSource``.
 """
 from __future__ import annotations
@@ -45,6 +46,8 @@ class CarAppearance:
     marker_size_m: float = MarkerParams.size_m
     label_margin_m: float = 0.008  # white border around the marker (quiet zone)
     marker_offset_m: float = 0.0  # marker centre ahead of the car reference point
+    marker_offset_left_m: float = 0.0  # marker centre left of the car reference point
+    marker_yaw_rad: float = 0.0  # marker turned (counter-clockwise) against the car's heading
     body_gray: int = 40
     roof_gray: int = 70
 
@@ -58,6 +61,18 @@ class RenderEffects:
     light_variation: float = 0.2  # amplitude of a smooth illumination ramp/hotspot
     max_motion_samples: int = 8
     seed: int = 0
+    # Effects of sim.camera_profile's "realistic" profile (all off by default; units and sources there).
+    jpeg_quality: int | None = None  # MJPEG: each frame through cv2.imencode/imdecode JPEG at this quality
+    readout_s: float = 0.0  # rolling shutter: first to last row; 0 = global shutter
+    flicker_amplitude: float = 0.0  # relative brightness swing of the lighting
+    flicker_hz: float = 100.0  # its frequency (twice the mains frequency)
+
+    def __post_init__(self) -> None:
+        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f"RenderEffects jpeg_quality: 1..100 or None, got {self.jpeg_quality}")
+        for key in ("exposure_s", "readout_s", "flicker_amplitude", "flicker_hz"):
+            if not getattr(self, key) >= 0:
+                raise ValueError(f"RenderEffects {key}: must be >= 0, got {getattr(self, key)}")
 
 
 @dataclass
@@ -307,14 +322,39 @@ class SyntheticCamera:
         xy = local @ np.array([[c, s], [-s, c]]) + np.array([x, y])
         clearance = 0.005
         box = np.vstack([np.column_stack([xy, np.full(4, clearance)]), np.column_stack([xy, np.full(4, car.roof_height_m)])])
-        mx, my = x + car.marker_offset_m * c, y + car.marker_offset_m * s
-        label = marker_corners_track(mx, my, heading, car.marker_size_m + 2 * car.label_margin_m, car.roof_height_m)
+        fwd, left = car.marker_offset_m, car.marker_offset_left_m
+        mx, my = x + fwd * c - left * s, y + fwd * s + left * c
+        marker_heading = heading + car.marker_yaw_rad
+        label = marker_corners_track(mx, my, marker_heading, car.marker_size_m + 2 * car.label_margin_m,
+                                     car.roof_height_m)
         return [
             ("poly", box, car.body_gray),
             ("poly", box[4:], car.roof_gray),
             ("poly", label, 255),
-            ("marker", marker_id, mx, my, heading, car.marker_size_m, car.roof_height_m),
+            ("marker", marker_id, mx, my, marker_heading, car.marker_size_m, car.roof_height_m),
         ]
+
+    def row_time_offset(self, pose: CarPose) -> float:
+        """Rolling shutter: when (s, relative to the frame's time, the exposure middle of the image's middle
+        row) the row of the car's marker centre is exposed; rows are read top to bottom over ``readout_s``."""
+        readout = self.effects.readout_s
+        if readout <= 0:
+            return 0.0
+        car = self.car
+        c, s = math.cos(pose.heading), math.sin(pose.heading)
+        centre = [pose.x + car.marker_offset_m * c - car.marker_offset_left_m * s,
+                  pose.y + car.marker_offset_m * s + car.marker_offset_left_m * c, car.roof_height_m]
+        row = float(self.camera.project(np.array([centre]))[0, 1])
+        h = self.camera.image_size[1]
+        return readout * (float(np.clip(row, 0, h - 1)) / (h - 1) - 0.5)
+
+    def _at_row_time(self, pose: CarPose) -> CarPose:
+        """The car where it is when its marker's row is exposed (constant speed and turn rate)."""
+        dt = self.row_time_offset(pose)
+        if dt == 0.0:
+            return pose
+        x, y, heading = ctrv_transition(np.array([pose.x, pose.y, pose.heading, pose.speed, pose.yaw_rate]), dt)[:3]
+        return CarPose(pose.marker_id, float(x), float(y), float(heading), pose.speed, pose.yaw_rate)
 
     def _motion_samples(self, pose: CarPose) -> list[tuple[float, float, float]]:
         exposure = self.effects.exposure_s
@@ -331,6 +371,7 @@ class SyntheticCamera:
         """Frame showing the cars at time ``t_s`` (the middle of the exposure)."""
         canvas = self._background.copy()
         poses = [raw if isinstance(raw, CarPose) else CarPose(int(raw[0]), *map(float, raw[1:])) for raw in car_poses]
+        poses = [self._at_row_time(p) for p in poses]
         # Painter's order: farthest from the camera's ground point first. The projected box of a car
         # includes its side walls, which reach towards the image centre; drawn after a nearer car
         # beside it, they covered that car's roof marker although the roof hides those walls (HIL
@@ -344,11 +385,20 @@ class SyntheticCamera:
             if box is not None:
                 boxes.append(box)
         image = self._sensor_image(canvas, boxes)
+        fx = self.effects
+        if fx.flicker_amplitude > 0:  # each row at its own exposure time (rolling shutter)
+            h = image.shape[0]
+            rows_t = t_s + fx.readout_s * (np.arange(h) / (h - 1) - 0.5)
+            gain = 1.0 + fx.flicker_amplitude * np.sin(2 * math.pi * fx.flicker_hz * rows_t)
+            image = cv2.multiply(image, np.repeat(gain[:, None], image.shape[1], axis=1), dtype=cv2.CV_8U)
         if self._noise is not None:
             h, w = image.shape
             oy, ox = self._rng.integers(0, 64, 2)
             positive, negative = self._noise
             image = cv2.subtract(cv2.add(image, positive[oy:oy + h, ox:ox + w]), negative[oy:oy + h, ox:ox + w])
+        if fx.jpeg_quality is not None:
+            ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(fx.jpeg_quality)])
+            image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
         frame = Frame(image, float(t_s), self._index)
         self._index += 1
         return frame

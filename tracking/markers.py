@@ -275,6 +275,8 @@ class ArucoTracker:
     with surveyed markers, a fixed id is kept only near the projection of its surveyed centre.
     The dictionary is the calibration's (``dictionary`` overrides it); ``car_dictionary``, the car file's
     ``marker.dictionary``, must be the same (ValueError otherwise).
+    ``marker_offset_m``, ``marker_offset_left_m``, ``marker_yaw_rad``: where the marker sits on the car (the
+    car file's marker.offset_forward_m, offset_left_m, yaw_rad), subtracted to give the reference point.
     ``marker_height_m``: marker height above the track; ``correct_height=False`` maps the
     corners on the track plane instead (only for comparison, it is biased).
     ROI mode: :meth:`process` with ``predictions`` ({id: (x, y)}) searches only squares of
@@ -293,6 +295,7 @@ class ArucoTracker:
 
     def __init__(self, calibration: CameraCalibration, marker_size_m: float,
                  marker_height_m: float = MarkerParams.height_m, marker_offset_m: float = 0.0, car_ids=None,
+                 marker_offset_left_m: float = 0.0, marker_yaw_rad: float = 0.0,
                  fixed_ids=(), correct_height: bool = True, dictionary: int | None = None,
                  car_dictionary: str | None = None, downscale: float = 1.0, refine: str = "ecc",
                  roi_radius_m: float = 0.2, full_search_every: int = 30,
@@ -326,6 +329,8 @@ class ArucoTracker:
         self.marker_size_m = float(marker_size_m)
         self.marker_height_m = float(marker_height_m)
         self.marker_offset_m = float(marker_offset_m)
+        self.marker_offset_left_m = float(marker_offset_left_m)
+        self.marker_yaw_rad = float(marker_yaw_rad)
         self.car_ids = None if car_ids is None else set(int(i) for i in car_ids)
         self.fixed_ids = set(int(i) for i in fixed_ids)
         surveyed = fixed_ids.values() if isinstance(fixed_ids, dict) else ()
@@ -357,9 +362,10 @@ class ArucoTracker:
         height = self.marker_height_m if self.correct_height else 0.0
         on_plane = self.calibration.camera.pixels_to_plane(corners_px, height)
         x, y, heading, side = procrustes_pose(on_plane, self.marker_size_m)
-        x -= self.marker_offset_m * math.cos(heading)
-        y -= self.marker_offset_m * math.sin(heading)
-        return x, y, heading, side - self.marker_size_m
+        heading = math.atan2(math.sin(heading - self.marker_yaw_rad), math.cos(heading - self.marker_yaw_rad))
+        c, s = math.cos(heading), math.sin(heading)
+        fwd, left = self.marker_offset_m, self.marker_offset_left_m
+        return x - fwd * c + left * s, y - fwd * s - left * c, heading, side - self.marker_size_m
 
     def _rois(self, predictions: dict) -> list[tuple[int, int, int, int]]:
         cam = self.calibration.camera

@@ -160,6 +160,11 @@ class MarkerParams:
     size_m: float = _num(0.055, doc="side of the printed ArUco marker (outer black border)")
     dictionary: str = _text(MARKER_DICTIONARY, _aruco_dictionary,
                             doc="ArUco dictionary of the printed marker; the track's fixed markers use the same")
+    # Where the marker is glued: its centre relative to the car's reference point (the CG) in the car's frame,
+    # and its turn against the car's heading; the tracker subtracts them. A few mm and 1-2 degrees are usual.
+    offset_forward_m: float = _num(0.0, _between(-0.2, 0.2), doc="marker centre ahead of the reference point")
+    offset_left_m: float = _num(0.0, _between(-0.2, 0.2), doc="marker centre left of the reference point")
+    yaw_rad: float = _num(0.0, _between(-0.5, 0.5), doc="marker turned counter-clockwise against the car")
 
 
 @dataclass(frozen=True)
