@@ -41,7 +41,8 @@ from race.referee import event_text, fault_of
 from race.setup import CAR_NAMES
 from race.world import WorldPacket
 from sim import Simulator
-from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
+from sim.camera import CarAppearance, CarPose, SyntheticCamera, TrackDrawing, overhead_camera
+from sim.camera_profile import CameraProfile, DelayedDelivery
 from sim.collision import footprint_gap
 from tracking.calibration import aruco_dictionary_id, load_fixed_markers
 from tracking.camera import Frame
@@ -79,6 +80,7 @@ class WorldSpec:
     receivers: tuple | None = None
     hidden_markers: tuple[int, ...] = ()   # car markers not drawn (covered or missing)
     covered_fixed_markers: tuple[int, ...] = ()  # fixed track markers not drawn
+    camera_profile: CameraProfile = CameraProfile()  # --camera-profile (sim.camera_profile), seeded by `seed`
 
 
 class SerialRelay:
@@ -283,7 +285,8 @@ def make_camera(spec: WorldSpec):
     track = spec.track
     arena = track.arena
     bounds = (arena.x_min, arena.y_min, arena.x_max, arena.y_max) if arena else (0.0, 0.0, 5.0, 3.0)
-    camera = overhead_camera(bounds, image_size=spec.image_size)
+    profile = spec.camera_profile.with_seed(spec.seed)
+    camera = overhead_camera(bounds, image_size=spec.image_size, dist_coeffs=np.array(profile.dist_coeffs))
     left, right = track.boundaries(0.01)
     fixed_path = FIXED_MARKERS.get(track.name)
     marker_set = load_fixed_markers(fixed_path) if fixed_path else None
@@ -292,9 +295,11 @@ def make_camera(spec: WorldSpec):
         raise ValueError(f"car file marker.dictionary {dictionary} differs from {fixed_path}'s dictionary "
                          f"{marker_set.dictionary}: the tracker reads one dictionary")
     fixed = [m for m in (marker_set.markers.values() if marker_set else []) if m.marker_id not in spec.covered_fixed_markers]
-    appearance = CarAppearance(roof_height_m=spec.car.marker.height_m, marker_size_m=spec.car.marker.size_m)
+    mk = spec.car.marker
+    appearance = CarAppearance(roof_height_m=mk.height_m, marker_size_m=mk.size_m, marker_offset_m=mk.offset_forward_m,
+                               marker_offset_left_m=mk.offset_left_m, marker_yaw_rad=mk.yaw_rad)
     synth = SyntheticCamera(camera, TrackDrawing(left, right, arena_bounds=bounds), fixed, car=appearance,
-                            effects=RenderEffects(seed=spec.seed), dictionary=aruco_dictionary_id(dictionary),
+                            effects=profile.effects, dictionary=aruco_dictionary_id(dictionary),
                             fps=spec.fps)
     return synth, camera, fixed_path, appearance
 
@@ -360,6 +365,7 @@ class _World:
         self._stop_render = False
         self._send_lock = threading.Lock()  # the render thread and the main thread both send to the parent
         self._reported_corrupt = 0
+        self._delivery = DelayedDelivery(spec.camera_profile, self._send_frame)  # the camera's delivery latency
         self._render_thread = threading.Thread(target=self._render_loop, name="render", daemon=True)
         self._render_thread.start()
 
@@ -431,8 +437,14 @@ class _World:
             snap["render_ms"] = 1e3 * (time.perf_counter() - t0)
             self.render_ms.append(snap["render_ms"])
             self.rendered += 1
-            with self._send_lock:
-                self.conn.send(("frame", snap))
+            self._delivery.submit(snap["t_capture"], snap)
+
+    def _send_frame(self, t_stamp: float, snap: dict) -> None:
+        """A frame as the loop receives it: stamped with its delivery time less the latency the loop knows
+        (the true exposure time with the ideal camera)."""
+        snap["t_capture"] = t_stamp
+        with self._send_lock:
+            self.conn.send(("frame", snap))
 
     def _apply_faults(self, t_race: float) -> None:
         """Faults due by race time ``t_race``. Serial faults are injected by the box process, which
@@ -551,6 +563,7 @@ class _World:
             self._stop_render = True
             self._render_cv.notify()
         self._render_thread.join(timeout=2.0)
+        self._delivery.close()
         status = self.sim.race_status()
         box_summary = self.box.stop()
         if self.t_go is not None:

@@ -122,3 +122,46 @@ class DeliveryClock:
     def stamp(self, t_delivery_s: float) -> float:
         """The capture time the loop believes: delivery time minus the latency it was told."""
         return t_delivery_s - self.profile.latency_known_s
+
+
+class DelayedDelivery:
+    """Hands rendered frames on at their delivery time (``DeliveryClock``) from a thread of its own, so
+    the renderer goes on with the next frame meanwhile. ``submit(t_exposure_s, item)`` queues an item;
+    ``deliver(t_stamp_s, item)`` is called at ``clock.delivery_time(t_exposure_s)`` on the monotonic clock
+    with the stamp the loop believes (``clock.stamp``). With no latency nor jitter it calls through."""
+
+    def __init__(self, profile: CameraProfile, deliver, now=None, sleep=None):
+        import queue
+        import threading
+        import time
+
+        self.clock = DeliveryClock(profile)
+        self._deliver = deliver
+        self._now, self._sleep = now or time.monotonic, sleep or time.sleep
+        self._direct = profile.latency_s == 0 and profile.jitter_s == 0 and profile.latency_known_s == 0
+        self._queue: queue.Queue = queue.Queue()
+        self._thread = None if self._direct else threading.Thread(target=self._run, name="frame-delivery", daemon=True)
+        if self._thread is not None:
+            self._thread.start()
+
+    def submit(self, t_exposure_s: float, item) -> None:
+        if self._direct:
+            self._deliver(t_exposure_s, item)
+            return
+        self._queue.put((self.clock.delivery_time(t_exposure_s), item))
+
+    def _run(self) -> None:
+        while True:
+            entry = self._queue.get()
+            if entry is None:
+                return
+            t_delivery, item = entry
+            wait = t_delivery - self._now()
+            if wait > 0:
+                self._sleep(wait)
+            self._deliver(self.clock.stamp(t_delivery), item)
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join(timeout=2.0)

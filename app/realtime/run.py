@@ -27,6 +27,7 @@ from tracking.camera import CameraError, OpenCVCamera
 from tracking.estimator import MultiCarEstimator
 from tracking.markers import ArucoTracker
 from vehicles.fhss import servo_calibration
+from sim.camera_profile import PROFILE_NAMES, camera_profile
 from vehicles.link_capture import LinkCapture
 from vehicles.link_protocols import HARDWARE_DEFAULT, HIL_DEFAULT, PROTOCOLS, check_protocol, make_encoder
 from vehicles.params import CarParamsError, load_car_params
@@ -48,6 +49,9 @@ def add_realtime_arguments(p) -> None:
                         "radio); plans are made for that instant, plan_ticks ticks ahead (default: "
                         "LoopConfig.command_delay_s, 19 ms, measured in HIL; see command_lag_ms)")
     g.add_argument("--fps", type=float, default=60.0, help="HIL camera frame rate (default 60)")
+    g.add_argument("--camera-profile", choices=PROFILE_NAMES, default="ideal",
+                   help="HIL synthetic camera: ideal (pinhole, global shutter) or realistic (lens distortion, MJPEG, "
+                        "rolling shutter, delivery latency, flicker; sim/camera_profile.py; default ideal)")
     g.add_argument("--fault", action="append", default=[], metavar="KIND@START[+DUR][:CAR]",
                    help="HIL fault injection (repeatable): occlude, serial_corrupt, serial_vanish, solver_fail, nan_state")
     g.add_argument("--marker-ids", default="0,1", help="ArUco ids of the RD3G car and the opponent (default 0,1)")
@@ -306,13 +310,14 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
     fields = dict(track=setup.track, car=setup.car, start_states=start_states(setup),
                   marker_ids=(cars[0].marker_id, cars[1].marker_id), radio_ids=(cars[0].radio_id, cars[1].radio_id),
                   laps=setup.laps, seed=setup.seed, fps=args.fps, faults=faults, link_protocol=link_plan.protocol,
-                  receivers=link_plan.calibrations if link_plan.protocol == "buzzracer-fhss" else None)
+                  receivers=link_plan.calibrations if link_plan.protocol == "buzzracer-fhss" else None,
+                  camera_profile=camera_profile(getattr(args, "camera_profile", "ideal")))
     fields.update(world_options)  # `check --hil --hil-fault`: a world that differs from the host's set-up
     spec = WorldSpec(**fields)
     world = HilWorld(spec)
     try:
         info = world.info
-        camera = world.camera
+        camera = spec.camera_profile.estimated(world.camera)  # the lens as calibrated, not the renderer's truth
         fixed_ids = ()
         note = "calibration: true synthetic camera (no fixed markers for this track)"
         calibration = CameraCalibration(camera, dictionary=setup.car.marker.dictionary)
@@ -329,9 +334,11 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
             err = 1e3 * float(np.linalg.norm(calibration.camera.position - camera.position))
             note = (f"calibration from {len(calibration.markers_used)} fixed markers: reprojection rms "
                     f"{calibration.reprojection_rms_px:.3f} px, camera position error {err:.1f} mm")
+        mk = setup.car.marker
         tracker = ArucoTracker(calibration, info["marker_size_m"], info["marker_height_m"],
                                car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9,
-                               car_dictionary=setup.car.marker.dictionary)
+                               car_dictionary=mk.dictionary, marker_offset_m=mk.offset_forward_m,
+                               marker_offset_left_m=mk.offset_left_m, marker_yaw_rad=mk.yaw_rad)
     except Exception:
         world.close()
         raise
@@ -353,8 +360,10 @@ def _open_hardware(args, setup, cars, config):
         camera = OpenCVCamera(source, latency_s=args.camera_latency_ms / 1e3)
     except CameraError as exc:
         raise UserError(f"--camera: {exc}") from None
-    tracker = ArucoTracker(calibration, setup.car.marker.size_m, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
-                           full_search_every=10 ** 9, car_dictionary=setup.car.marker.dictionary)
+    mk = setup.car.marker
+    tracker = ArucoTracker(calibration, mk.size_m, mk.height_m, car_ids=[c.marker_id for c in cars],
+                           full_search_every=10 ** 9, car_dictionary=mk.dictionary, marker_offset_m=mk.offset_forward_m,
+                           marker_offset_left_m=mk.offset_left_m, marker_yaw_rad=mk.yaw_rad)
     return None, CameraFeed(camera), tracker, MultiCarEstimator(), args.serial, None
 
 
