@@ -22,13 +22,13 @@ from fileio import OutputFileError, atomic_write_text, atomic_write_with, check_
 
 
 def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = "",
-               link_protocol: str | None = None, link_capture: str | None = None):
+               link_protocol: str | None = None, link_capture: str | None = None, camera_profile: str = "realistic"):
     p = argparse.ArgumentParser()
     sub = p.add_subparsers()
     race.register(sub)
     argv = ["race", "--seed", str(seed), "--out", out, "--json", json_path]
     if hil:
-        argv += ["--hil", "--rt-priority", str(rt)]  # 0 = normal scheduling
+        argv += ["--hil", "--rt-priority", str(rt), "--camera-profile", camera_profile]  # rt 0 = normal scheduling
         if link_protocol:
             argv += ["--link-protocol", link_protocol]
         if link_capture:
@@ -47,6 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim-effects", default="", metavar="TEXT",
                         help='hidden effects of the pure-simulation reference races (race --sim-effects), e.g. '
                              '"actuation_delay=0.03" to compare HIL with a simulation that has a loop-like delay')
+    parser.add_argument("--camera-profile", default="realistic",
+                        help="the HIL races' --camera-profile (default realistic: sim/camera_profile.py)")
     parser.add_argument("--link-protocol", default=None, help="the HIL races' --link-protocol (default: race's, rd3g)")
     parser.add_argument("--link-capture", action="store_true",
                         help="write each HIL race's link capture to runs/loop_bench/hil-seed<N>-link.txt")
@@ -86,7 +88,7 @@ def run(args) -> int:
             out, js = runs / f"{mode}-seed{seed}.rrd", runs / f"{mode}-seed{seed}.json"
             capture = str(runs / f"hil-seed{seed}-link.txt") if args.link_capture and mode == "hil" else None
             a = _race_args(seed, str(out), str(js), args.rt_priority, mode == "hil", args.sim_effects,
-                           args.link_protocol, capture)
+                           args.link_protocol, capture, args.camera_profile)
             load0 = os.getloadavg()[0]
             steal0 = steal_seconds()
             t0 = time.monotonic()
@@ -149,7 +151,7 @@ def report(rows, args, machine: str) -> str:
     misses = sum(h["deadline_misses"] for h in hil)
     lines = [
         f"Command: `.venv/bin/python -m app bench loop --seeds {args.seeds} --first-seed {args.first_seed}"
-        + f" --rt-priority {args.rt_priority}"
+        + f" --rt-priority {args.rt_priority} --camera-profile {args.camera_profile}"
         + (f" --sim-effects {args.sim_effects}" if args.sim_effects else "")
         + (f" --link-protocol {args.link_protocol}" if args.link_protocol else "") + "`"
         + f" ({time.strftime('%Y-%m-%d %H:%M')}; {machine}).",
