@@ -43,7 +43,18 @@ import numpy as np
 from sim.camera import RenderEffects
 from tracking.geometry import PinholeCamera
 
-PROFILE_NAMES = ("ideal", "realistic")
+# One effect of the realistic profile alone on the ideal one ("ideal+jpeg"), to measure what each costs:
+# the profile fields (``effects.X``: a RenderEffects field) it takes from the realistic profile.
+SINGLE_EFFECTS = {
+    "lens": ("dist_coeffs",),  # distortion rendered, and known exactly to the tracker
+    "calibration": ("dist_coeffs", "calibration_dist_error"),  # distortion, estimated with an error
+    "jpeg": ("effects.jpeg_quality",),
+    "rolling_shutter": ("effects.readout_s",),
+    "latency": ("latency_s", "jitter_s", "latency_known_s"),
+    "motion_blur": ("effects.exposure_s",),
+    "flicker": ("effects.flicker_amplitude", "effects.flicker_hz"),
+}
+PROFILE_NAMES = ("ideal", "realistic", *(f"ideal+{name}" for name in SINGLE_EFFECTS))
 
 
 @dataclass(frozen=True)
@@ -101,6 +112,11 @@ def camera_profile(name: str, seed: int = 0) -> CameraProfile:
         return CameraProfile("realistic", _realistic_effects(seed), dist_coeffs=(-0.12, 0.03, 5e-4, -3e-4, 0.0),
                              calibration_dist_error=(0.002, -0.001, 0.0, 0.0, 0.0), latency_s=0.030, jitter_s=0.003,
                              latency_known_s=0.030)
+    if name.startswith("ideal+") and name[6:] in SINGLE_EFFECTS:
+        real, ideal = camera_profile("realistic", seed), camera_profile("ideal", seed)
+        top = {k: getattr(real, k) for k in SINGLE_EFFECTS[name[6:]] if not k.startswith("effects.")}
+        fx = {k[8:]: getattr(real.effects, k[8:]) for k in SINGLE_EFFECTS[name[6:]] if k.startswith("effects.")}
+        return dataclasses.replace(ideal, name=name, effects=dataclasses.replace(ideal.effects, **fx), **top)
     raise ValueError(f"camera profile: {name!r} is not one of {', '.join(PROFILE_NAMES)}")
 
 

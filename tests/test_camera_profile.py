@@ -141,7 +141,10 @@ def test_profiles_by_name_and_bad_values():
     assert camera_profile("ideal").effects == RenderEffects()
     estimated = REALISTIC.estimated(overhead_camera(dist_coeffs=np.array(REALISTIC.dist_coeffs)))
     assert estimated.dist_coeffs[0] == pytest.approx(REALISTIC.dist_coeffs[0] + REALISTIC.calibration_dist_error[0])
-    with pytest.raises(ValueError, match="realistic, or|ideal, realistic"):
+    jpeg = camera_profile("ideal+jpeg")
+    assert jpeg.effects == dataclasses.replace(RenderEffects(), jpeg_quality=75) and jpeg.dist_coeffs == (0,) * 5
+    assert camera_profile("ideal+calibration").calibration_dist_error == REALISTIC.calibration_dist_error
+    with pytest.raises(ValueError, match="ideal, realistic"):
         camera_profile("fisheye")
     with pytest.raises(ValueError, match="latency_s"):
         CameraProfile("x", latency_s=-0.01)

@@ -51,7 +51,8 @@ def add_realtime_arguments(p) -> None:
     g.add_argument("--fps", type=float, default=60.0, help="HIL camera frame rate (default 60)")
     g.add_argument("--camera-profile", choices=PROFILE_NAMES, default="ideal",
                    help="HIL synthetic camera: ideal (pinhole, global shutter) or realistic (lens distortion, MJPEG, "
-                        "rolling shutter, delivery latency, flicker; sim/camera_profile.py; default ideal)")
+                        "rolling shutter, delivery latency, flicker; sim/camera_profile.py; default ideal); ideal+EFFECT adds "
+                        "one of the realistic effects alone")
     g.add_argument("--fault", action="append", default=[], metavar="KIND@START[+DUR][:CAR]",
                    help="HIL fault injection (repeatable): occlude, serial_corrupt, serial_vanish, solver_fail, nan_state")
     g.add_argument("--marker-ids", default="0,1", help="ArUco ids of the RD3G car and the opponent (default 0,1)")
