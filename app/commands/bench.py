@@ -10,7 +10,7 @@ import time
 from app.cli import UserError
 from app.realtime import bench as loop_bench
 from fileio import atomic_write_text, check_output_dir, check_output_path
-from bench import (baselines, charuco_coverage, merge_bench, problem_size, race_perturbations, saddles, solver_bench,
+from bench import (baselines, camera_profiles, charuco_coverage, merge_bench, problem_size, race_perturbations, saddles, solver_bench,
                    time_limit, track_video, tracking_bench)
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
@@ -45,6 +45,8 @@ MODULE_BENCHES = [
     ("tracking", tracking_bench, "rendering, marker detection and EKF update times on synthetic frames"),
     ("track-video", track_video, "python -m app track on a rendered 1280x800 clip of cars on known trajectories: "
                                  "frames per second and pose errors"),
+    ("camera-profiles", camera_profiles, "HIL camera profiles (sim/camera_profile.py): tracking error of each "
+                                         "realistic effect alone and of all together (docs/tracking.md)"),
     ("charuco", charuco_coverage, "calibrate-camera on rendered ChArUco views with known intrinsics: largest errors "
                                   "and how often the reported standard deviations cover them"),
 ]
