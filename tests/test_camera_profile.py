@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
-from sim.camera_profile import CameraProfile, DeliveryClock, camera_profile
+from sim.camera_profile import CameraProfile, DelayedDelivery, DeliveryClock, camera_profile
 from tracking.calibration import CameraCalibration, FixedMarker
 from tracking.markers import ArucoTracker, MarkerDetector
 from tracks.geometry import wrap_angle
@@ -150,3 +150,36 @@ def test_profiles_by_name_and_bad_values():
         CameraProfile("x", latency_s=-0.01)
     with pytest.raises(ValueError, match="jpeg_quality"):
         RenderEffects(jpeg_quality=0)
+
+
+def test_delayed_delivery_hands_frames_on_after_their_latency_in_order():
+    import time
+
+    profile = dataclasses.replace(camera_profile("ideal"), latency_s=0.02, jitter_s=0.002, latency_known_s=0.02)
+    got = []
+    delivery = DelayedDelivery(profile, lambda stamp, item: got.append((time.monotonic(), stamp, item)))
+    t0 = time.monotonic()
+    for i in range(5):
+        delivery.submit(t0 + i * 0.005, i)
+    deadline = time.monotonic() + 5.0
+    while len(got) < 5 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    delivery.close()
+    assert [item for _, _, item in got] == list(range(5))
+    for arrived, stamp, i in got:
+        exposure = t0 + i * 0.005
+        assert arrived >= exposure + 0.01  # not before its latency (less 5 jitter sigmas)
+        assert abs(stamp - exposure) < 0.012  # the loop's stamp: delivery less the known latency
+
+
+def test_hil_world_camera_uses_the_profile_and_the_car_files_marker_placement():
+    from race.hil import WorldSpec, make_camera
+    from tracks import load_track
+
+    car = car_params_from_dict({"name": "glued", "marker": {"offset_forward_m": 0.004, "yaw_rad": 0.02}})
+    spec = WorldSpec(track=load_track("oval"), car=car, start_states=np.zeros((2, 6)), marker_ids=(0, 1),
+                     radio_ids=(0, 1), laps=1, seed=9, camera_profile=camera_profile("realistic"))
+    synth, camera, _, appearance = make_camera(spec)
+    assert tuple(camera.dist_coeffs) == REALISTIC.dist_coeffs
+    assert synth.effects == camera_profile("realistic", seed=9).effects
+    assert (appearance.marker_offset_m, appearance.marker_yaw_rad) == (0.004, 0.02)
