@@ -58,7 +58,7 @@ def measure(profile_name: str, frames: int, seed: int, glued: bool = False) -> d
     synth = SyntheticCamera(camera, TrackDrawing(left, right), list(fixed.markers.values()), car=car,
                             effects=profile.effects, world=world, fps=60.0)
     estimated = profile.estimated(camera)
-    calibration = calibrate_image(synth.render([], -1.0).image, fixed,
+    calibration = calibrate_image(synth.render([], -1.0).image, profile.surveyed(fixed),
                                   Intrinsics(estimated.camera_matrix, estimated.dist_coeffs, estimated.image_size))
     tracker = ArucoTracker(calibration, car.marker_size_m, car.roof_height_m, car_ids=[0, 1], fixed_ids=fixed.markers,
                            full_search_every=1)

@@ -26,6 +26,8 @@ effects.flicker_amplitude   0.04             +-4 % brightness at twice the mains
 latency_s                   0.030 s          UVC exposure-to-delivery delay (readout, MJPEG encoding, USB
                                              transfer, driver buffering: 20-50 ms is usual at 60 fps)
 jitter_s                    0.003 s          standard deviation of that delay (USB scheduling)
+survey_sigma_m              0.003 m          fixed markers surveyed with a tape over a 5 m arena: a few
+                                             mm per coordinate (issue 33's independent renderer: 3 mm)
 latency_known_s             0.030 s          the loop is told the nominal delay (measured once, e.g. by
                                              filming a millisecond clock; OpenCVCamera's latency_s)
 ==========================  ===============  ================================================================
@@ -41,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.camera import RenderEffects
+from tracking.calibration import FixedMarkerSet
 from tracking.geometry import PinholeCamera
 
 # One effect of the realistic profile alone on the ideal one ("ideal+jpeg"), to measure what each costs:
@@ -51,6 +54,7 @@ SINGLE_EFFECTS = {
     "jpeg": ("effects.jpeg_quality",),
     "rolling_shutter": ("effects.readout_s",),
     "latency": ("latency_s", "jitter_s", "latency_known_s"),
+    "survey": ("survey_sigma_m",),
     "motion_blur": ("effects.exposure_s",),
     "flicker": ("effects.flicker_amplitude", "effects.flicker_hz"),
 }
@@ -66,6 +70,8 @@ class CameraProfile:
     ``latency_s``/``jitter_s``: a frame is delivered ``latency_s`` + N(0, ``jitter_s``) after its exposure
     (seeded, never before its exposure nor before the previous frame); ``latency_known_s`` is what the loop
     subtracts from the delivery time to stamp it (0: the loop knows only the delivery time).
+    ``survey_sigma_m``: standard deviation of each surveyed coordinate of the fixed markers the camera pose
+    is calibrated from (the renderer draws them at their true places).
     """
 
     name: str = "ideal"
@@ -75,9 +81,10 @@ class CameraProfile:
     latency_s: float = 0.0
     jitter_s: float = 0.0
     latency_known_s: float = 0.0
+    survey_sigma_m: float = 0.0
 
     def __post_init__(self) -> None:
-        for key in ("latency_s", "jitter_s", "latency_known_s"):
+        for key in ("latency_s", "jitter_s", "latency_known_s", "survey_sigma_m"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"camera profile {self.name}: {key}: must be >= 0 (seconds), got {getattr(self, key)}")
         for key in ("dist_coeffs", "calibration_dist_error"):
@@ -99,6 +106,19 @@ class CameraProfile:
                              camera.image_size)
 
 
+    def surveyed(self, marker_set: FixedMarkerSet) -> FixedMarkerSet:
+        """The fixed markers as a lab surveyed them: x, y, z each off by N(0, survey_sigma_m), seeded."""
+        if self.survey_sigma_m == 0:
+            return marker_set
+        rng = np.random.default_rng(self.seed + 5)
+        moved = {}
+        for marker_id in sorted(marker_set.markers):
+            m = marker_set.markers[marker_id]
+            dx, dy, dz = rng.normal(0.0, self.survey_sigma_m, 3)
+            moved[marker_id] = dataclasses.replace(m, x=m.x + dx, y=m.y + dy, z=m.z + dz)
+        return dataclasses.replace(marker_set, markers=moved)
+
+
 def _realistic_effects(seed: int) -> RenderEffects:
     return RenderEffects(exposure_s=0.004, jpeg_quality=75, readout_s=0.010, flicker_amplitude=0.04,
                          flicker_hz=100.0, seed=seed)
@@ -111,7 +131,7 @@ def camera_profile(name: str, seed: int = 0) -> CameraProfile:
     if name == "realistic":
         return CameraProfile("realistic", _realistic_effects(seed), dist_coeffs=(-0.12, 0.03, 5e-4, -3e-4, 0.0),
                              calibration_dist_error=(0.002, -0.001, 0.0, 0.0, 0.0), latency_s=0.030, jitter_s=0.003,
-                             latency_known_s=0.030)
+                             latency_known_s=0.030, survey_sigma_m=0.003)
     if name.startswith("ideal+") and name[6:] in SINGLE_EFFECTS:
         real, ideal = camera_profile("realistic", seed), camera_profile("ideal", seed)
         top = {k: getattr(real, k) for k in SINGLE_EFFECTS[name[6:]] if not k.startswith("effects.")}

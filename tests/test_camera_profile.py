@@ -183,3 +183,16 @@ def test_hil_world_camera_uses_the_profile_and_the_car_files_marker_placement():
     assert tuple(camera.dist_coeffs) == REALISTIC.dist_coeffs
     assert synth.effects == camera_profile("realistic", seed=9).effects
     assert (appearance.marker_offset_m, appearance.marker_yaw_rad) == (0.004, 0.02)
+
+
+def test_surveyed_fixed_markers_are_off_by_the_profiles_seeded_survey_error():
+    from pathlib import Path
+
+    from tracking.calibration import load_fixed_markers
+
+    fixed = load_fixed_markers(Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json")
+    a, b = REALISTIC.surveyed(fixed), REALISTIC.surveyed(fixed)
+    assert a == b and camera_profile("ideal").surveyed(fixed) is fixed
+    d = np.array([[a.markers[i].x - m.x, a.markers[i].y - m.y, a.markers[i].z - m.z] for i, m in fixed.markers.items()])
+    assert np.all(d != 0) and np.abs(d).max() < 5 * REALISTIC.survey_sigma_m
+    assert 0.3 * REALISTIC.survey_sigma_m < d.std() < 2 * REALISTIC.survey_sigma_m

@@ -325,7 +325,7 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
         if info["fixed_markers"]:
             # Calibrate like on the real track: camera pose from the fixed markers in a grid frame,
             # with known intrinsics.
-            marker_set = load_fixed_markers(info["fixed_markers"])
+            marker_set = spec.camera_profile.with_seed(spec.seed).surveyed(load_fixed_markers(info["fixed_markers"]))
             packet = world.poll(5.0)
             while packet.frame is None:
                 packet = world.poll(5.0)
