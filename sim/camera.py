@@ -133,10 +133,37 @@ class _RenderCanvas:
                                     (w + 2 * pad_x, h + 2 * pad_y))
         self.size = self.camera.image_size
 
-    def to_sensor(self, canvas: np.ndarray) -> np.ndarray:
+        self._pad = (pad_x, pad_y)
+        self._sensor_camera = camera
+
+    def to_sensor(self, canvas: np.ndarray, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """The sensor image of ``canvas``, or only its ``box`` (u0, v0, u1, v1 in sensor pixels)."""
         if self.remap is None:
-            return canvas
-        return cv2.remap(canvas, self.remap[0], self.remap[1], cv2.INTER_LINEAR, borderValue=0)
+            return canvas if box is None else canvas[box[1]:box[3], box[0]:box[2]]
+        maps = self.remap if box is None else [np.ascontiguousarray(m[box[1]:box[3], box[0]:box[2]]) for m in self.remap]
+        return cv2.remap(canvas, maps[0], maps[1], cv2.INTER_LINEAR, borderValue=0)
+
+    def sensor_box(self, box: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:
+        """Sensor pixels (u0, v0, u1, v1) that a change inside the canvas ``box`` can reach: its border
+        through the lens (barrel or pincushion keeps a box's inside inside its border's image), grown by the
+        two pixels the bilinear resampling reads."""
+        if self.remap is None:
+            return box
+        u0, v0, u1, v1 = box
+        t = np.linspace(0.0, 1.0, 9)
+        border = np.vstack([np.column_stack([u0 + (u1 - u0) * t, np.full(9, v0)]),
+                            np.column_stack([u0 + (u1 - u0) * t, np.full(9, v1)]),
+                            np.column_stack([np.full(9, u0), v0 + (v1 - v0) * t]),
+                            np.column_stack([np.full(9, u1), v0 + (v1 - v0) * t])]) - self._pad
+        k = self._sensor_camera.camera_matrix
+        normal = np.column_stack([(border - k[:2, 2]) / np.diag(k)[:2], np.ones(len(border))])
+        px, _ = cv2.projectPoints(normal, np.zeros(3), np.zeros(3), k, self._sensor_camera.dist_coeffs)
+        px = px.reshape(-1, 2)
+        w, h = self._sensor_camera.image_size
+        a0, b0 = np.floor(px.min(axis=0)).astype(int) - 2
+        a1, b1 = np.ceil(px.max(axis=0)).astype(int) + 3
+        a0, b0, a1, b1 = max(a0, 0), max(b0, 0), min(a1, w), min(b1, h)
+        return (int(a0), int(b0), int(a1), int(b1)) if a1 > a0 and b1 > b0 else None
 
 
 _SUPERSAMPLE = 4
@@ -389,8 +416,9 @@ class SyntheticCamera:
         if fx.flicker_amplitude > 0:  # each row at its own exposure time (rolling shutter)
             h = image.shape[0]
             rows_t = t_s + fx.readout_s * (np.arange(h) / (h - 1) - 0.5)
-            gain = 1.0 + fx.flicker_amplitude * np.sin(2 * math.pi * fx.flicker_hz * rows_t)
-            image = cv2.multiply(image, np.repeat(gain[:, None], image.shape[1], axis=1), dtype=cv2.CV_8U)
+            gain = np.clip(np.round(128 * (1.0 + fx.flicker_amplitude * np.sin(2 * math.pi * fx.flicker_hz * rows_t))),
+                           0, 255).astype(np.uint8)  # 1.0 == 128, as the lighting gain
+            image = cv2.multiply(image, np.repeat(gain[:, None], image.shape[1], axis=1), scale=1.0 / 128.0)
         if self._noise is not None:
             h, w = image.shape
             oy, ox = self._rng.integers(0, 64, 2)
@@ -407,18 +435,18 @@ class SyntheticCamera:
         """The sensor image of ``canvas``, which differs from the static background only inside
         ``boxes``: the static sensor image with those boxes (grown by the blur's radius) redone from
         regions another radius larger. Pixel for pixel the same as _sensor_effects on the whole
-        canvas (at the image border a region ends there too, so the blur's border rule is the same). With lens distortion the whole image is
-        resampled (the remap mixes pixels from anywhere), so it is done in full."""
-        if self._canvas.remap is not None:
-            return self._sensor_effects(self._canvas.to_sensor(canvas))
+        canvas (at the image border a region ends there too, so the blur's border rule is the same). With lens
+        distortion ``boxes`` (canvas pixels) become the sensor boxes the lens maps them to, and each region is
+        resampled from the canvas through its part of the lens map."""
         image = self._background_sensor.copy()
+        boxes = [b for b in (self._canvas.sensor_box(box) for box in boxes) if b is not None]
         h, w = image.shape
         r = self._blur_radius()
         for u0, v0, u1, v1 in boxes:
             # The blur spreads the box's changes r pixels out, and needs r more pixels to compute those.
             u0, v0, u1, v1 = max(u0 - r, 0), max(v0 - r, 0), min(u1 + r, w), min(v1 + r, h)
             a0, b0, a1, b1 = max(u0 - r, 0), max(v0 - r, 0), min(u1 + r, w), min(v1 + r, h)
-            region = self._sensor_effects(canvas[b0:b1, a0:a1], self._gain[b0:b1, a0:a1])
+            region = self._sensor_effects(self._canvas.to_sensor(canvas, (a0, b0, a1, b1)), self._gain[b0:b1, a0:a1])
             image[v0:v1, u0:u1] = region[v0 - b0:v1 - b0, u0 - a0:u1 - a0]
         return image
 

@@ -196,3 +196,23 @@ def test_surveyed_fixed_markers_are_off_by_the_profiles_seeded_survey_error():
     d = np.array([[a.markers[i].x - m.x, a.markers[i].y - m.y, a.markers[i].z - m.z] for i, m in fixed.markers.items()])
     assert np.all(d != 0) and np.abs(d).max() < 5 * REALISTIC.survey_sigma_m
     assert 0.3 * REALISTIC.survey_sigma_m < d.std() < 2 * REALISTIC.survey_sigma_m
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.5])
+def test_regions_redone_through_the_lens_equal_the_whole_image_pipeline(sigma):
+    """With lens distortion only the cars' regions are resampled per frame; the reference is the whole canvas
+    through the lens map and the sensor effects. Cars overlapping, in a corner (strongest distortion) and
+    half outside the image."""
+    camera = overhead_camera(dist_coeffs=np.array(REALISTIC.dist_coeffs))
+    synth = SyntheticCamera(camera, effects=RenderEffects(seed=5, defocus_sigma_px=sigma))
+    cases = [[CarPose(1, 2.0, 1.0, 0.3), CarPose(2, 2.08, 1.04, 0.5)],
+             [CarPose(1, 0.05, 0.05, 0.8), CarPose(2, 4.95, 2.95, 1.0)],
+             [CarPose(1, -0.15, 1.5, 0.0), CarPose(2, 2.5, 3.1, 2.0)]]
+    for poses in cases:
+        canvas = synth._background.copy()
+        boxes = [b for b in (synth._draw_objects(canvas, [synth._car_objects(p.marker_id, p.x, p.y, p.heading)])
+                             for p in poses) if b is not None]
+        assert boxes
+        whole = synth._sensor_effects(synth._canvas.to_sensor(canvas))
+        np.testing.assert_array_equal(synth._sensor_image(canvas, boxes), whole)
+        assert not np.array_equal(whole, synth._background_sensor)  # the cars did change the image
