@@ -83,6 +83,9 @@ def measure(profile_name: str, frames: int, seed: int, glued: bool = False) -> d
 
 
 def run(args) -> int:
+    """Measures every profile; ValueError names a bad option."""
+    if args.frames < 1:
+        raise ValueError(f"--frames: need at least 1, got {args.frames}")
     names = ["ideal", *(f"ideal+{e}" for e in SINGLE_EFFECTS), "realistic"]
     rows = [measure(n, args.frames, args.seed) for n in tqdm(names, desc="camera profiles")]
     rows.append(measure("realistic", args.frames, args.seed, glued=True))

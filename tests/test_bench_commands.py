@@ -13,7 +13,7 @@ from app.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 BENCHES = ["solver", "merge", "saddles", "size", "fuzz", "loop", "race-perturbations", "baselines", "time-limit",
-           "tracking", "malformed", "charuco", "track-video"]
+           "tracking", "malformed", "charuco", "track-video", "camera-profiles"]
 
 
 def test_the_bench_command_lists_every_benchmark(capsys):
@@ -45,6 +45,8 @@ def test_bad_options_exit_2(capsys):
     assert "--late-ms: need 0 <= LO <= HI" in capsys.readouterr().err
     assert main(["bench", "malformed", "--formats", "nope"]) == 2
     assert "--formats: unknown format(s) nope" in capsys.readouterr().err
+    assert main(["bench", "camera-profiles", "--frames", "0", "--no-docs"]) == 2
+    assert "--frames: need at least 1" in capsys.readouterr().err
 
 
 def test_old_entry_points():
