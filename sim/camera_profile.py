@@ -13,6 +13,9 @@ dist_coeffs k1, k2, p1, p2  -0.12, 0.03,     moderate barrel distortion of a ~90
                             5e-4, -3e-4      published calibrations of wide USB cameras report k1 from
                                              -0.05 to -0.4, k2 of the opposite sign and a few tenths of it,
                                              tangential terms below 1e-3 (lens decentring)
+calibration_focal_error     +0.3 %           focal length of the calibration against the lens's: within the
+                                             0.5 % that calibrate-camera recovers on rendered boards
+                                             (docs/tracking.md), issue 33: +0.5 % costs 1.5 mm
 calibration_dist_error      +0.002 on k1,    what a good ChArUco calibration leaves (its k1 standard error
                             -0.001 on k2     is of order 1e-3); issue 33: k1 off by 0.01 costs 12 mm
 effects.jpeg_quality        75               MJPEG quality of UVC cameras (libjpeg scale; webcams stream at
@@ -50,7 +53,7 @@ from tracking.geometry import PinholeCamera
 # the profile fields (``effects.X``: a RenderEffects field) it takes from the realistic profile.
 SINGLE_EFFECTS = {
     "lens": ("dist_coeffs",),  # distortion rendered, and known exactly to the tracker
-    "calibration": ("dist_coeffs", "calibration_dist_error"),  # distortion, estimated with an error
+    "calibration": ("dist_coeffs", "calibration_dist_error", "calibration_focal_error"),  # lens estimated with errors
     "jpeg": ("effects.jpeg_quality",),
     "rolling_shutter": ("effects.readout_s",),
     "latency": ("latency_s", "jitter_s", "latency_known_s"),
@@ -66,7 +69,8 @@ class CameraProfile:
     """What the synthetic camera does to its images and their timestamps, and what the tracker is told.
 
     ``dist_coeffs``: the lens's true OpenCV distortion (k1, k2, p1, p2, k3), rendered through.
-    ``calibration_dist_error``: added to it in the calibration the tracker uses (an estimated lens).
+    ``calibration_dist_error``: added to it in the calibration the tracker uses (an estimated lens), whose
+    focal length is off by ``calibration_focal_error`` (relative).
     ``latency_s``/``jitter_s``: a frame is delivered ``latency_s`` + N(0, ``jitter_s``) after its exposure
     (seeded, never before its exposure nor before the previous frame); ``latency_known_s`` is what the loop
     subtracts from the delivery time to stamp it (0: the loop knows only the delivery time).
@@ -78,6 +82,7 @@ class CameraProfile:
     effects: RenderEffects = RenderEffects()
     dist_coeffs: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     calibration_dist_error: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    calibration_focal_error: float = 0.0  # relative: the calibration's fx, fy are (1 + this) times the lens's
     latency_s: float = 0.0
     jitter_s: float = 0.0
     latency_known_s: float = 0.0
@@ -102,7 +107,10 @@ class CameraProfile:
         """``camera`` (the renderer's true one) with the distortion a calibration would estimate."""
         dist = np.asarray(camera.dist_coeffs, float).ravel()
         dist = np.pad(dist, (0, max(0, 5 - len(dist))))[:5] + np.asarray(self.calibration_dist_error)
-        return PinholeCamera(camera.camera_matrix.copy(), dist, camera.rotation.copy(), camera.translation.copy(),
+        k = camera.camera_matrix.copy()
+        k[0, 0] *= 1.0 + self.calibration_focal_error
+        k[1, 1] *= 1.0 + self.calibration_focal_error
+        return PinholeCamera(k, dist, camera.rotation.copy(), camera.translation.copy(),
                              camera.image_size)
 
 
@@ -130,7 +138,8 @@ def camera_profile(name: str, seed: int = 0) -> CameraProfile:
         return CameraProfile("ideal", RenderEffects(seed=seed))
     if name == "realistic":
         return CameraProfile("realistic", _realistic_effects(seed), dist_coeffs=(-0.12, 0.03, 5e-4, -3e-4, 0.0),
-                             calibration_dist_error=(0.002, -0.001, 0.0, 0.0, 0.0), latency_s=0.030, jitter_s=0.003,
+                             calibration_dist_error=(0.002, -0.001, 0.0, 0.0, 0.0), calibration_focal_error=0.003,
+                             latency_s=0.030, jitter_s=0.003,
                              latency_known_s=0.030, survey_sigma_m=0.003)
     if name.startswith("ideal+") and name[6:] in SINGLE_EFFECTS:
         real, ideal = camera_profile("realistic", seed), camera_profile("ideal", seed)

@@ -141,6 +141,10 @@ def test_profiles_by_name_and_bad_values():
     assert camera_profile("ideal").effects == RenderEffects()
     estimated = REALISTIC.estimated(overhead_camera(dist_coeffs=np.array(REALISTIC.dist_coeffs)))
     assert estimated.dist_coeffs[0] == pytest.approx(REALISTIC.dist_coeffs[0] + REALISTIC.calibration_dist_error[0])
+    true_k = overhead_camera().camera_matrix
+    assert estimated.camera_matrix[0, 0] == pytest.approx(true_k[0, 0] * 1.003)
+    assert estimated.camera_matrix[1, 1] == pytest.approx(true_k[1, 1] * 1.003)
+    np.testing.assert_array_equal(estimated.camera_matrix[:2, 2], true_k[:2, 2])
     jpeg = camera_profile("ideal+jpeg")
     assert jpeg.effects == dataclasses.replace(RenderEffects(), jpeg_quality=75) and jpeg.dist_coeffs == (0,) * 5
     assert camera_profile("ideal+calibration").calibration_dist_error == REALISTIC.calibration_dist_error
