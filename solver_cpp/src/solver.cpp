@@ -64,7 +64,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   T_ = prob_.horizon;
   nx_ = prob_.dynamics[0]->nx();
   nu_ = prob_.dynamics[0]->nu();
-  per_agent_multipliers_ = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
+  per_agent_multipliers_ = s.linear.solver == LinearSolver::LSCG || s.linear.solver == LinearSolver::SparseQR;
   layout_ = StageLayout{N_, nx_, nu_};
   n_primal_ = N_ * T_ * stage_size();
 
@@ -144,7 +144,7 @@ void Solver::update_settings(const Settings& s) {
   if (N_ == 0) throw std::logic_error("setup() must be called before update_settings()");
   const auto t0 = Clock::now();
   validate_settings(s);
-  const bool per_agent = s.linear_solver == LinearSolver::LSCG || s.linear_solver == LinearSolver::SparseQR;
+  const bool per_agent = s.linear.solver == LinearSolver::LSCG || s.linear.solver == LinearSolver::SparseQR;
   if (per_agent != per_agent_multipliers_) lu_analyzed_ = lm_analyzed_ = false;  // another multiplier layout
   per_agent_multipliers_ = per_agent;
   settings_ = s;
@@ -302,7 +302,7 @@ double Solver::violation_sum(const Vec& h) const { return h.cwiseMax(0.0).sum();
 // sits at h ~ 0 (the barrier is undefined there), and one whose multiplier turns negative is released
 // (Free) until it is far enough inside to be handed to the barrier.
 void Solver::classify(const Vec& h, bool first) {
-  const double margin = settings_.barrier_margin;
+  const double margin = settings_.barrier.margin;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
     ConstraintState& st = state_[c];
     if (first) {
@@ -492,7 +492,7 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
   J_built_ = false;
   lm_ready_ = false;
   const int n = n_vars_;
-  if (settings_.linear_solver == LinearSolver::Riccati) {
+  if (settings_.linear.solver == LinearSolver::Riccati) {
     if (riccati_.solve(trip_, n, rhs_, dy)) {
       // Check the step against the assembled system (O(nnz)); a poorly conditioned recursion falls back to LU.
       lin_res_.head(n) = rhs_.head(n);
@@ -530,7 +530,7 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
     info.qr_fallbacks++;
     return qr.info() == Eigen::Success && dy.head(n).allFinite();
   };
-  switch (settings_.linear_solver) {
+  switch (settings_.linear.solver) {
     case LinearSolver::Riccati:
     case LinearSolver::SparseLU: {
       // The sparsity pattern depends only on which constraints are equalities: analyse it only when that changes.
@@ -545,7 +545,7 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
         dy.head(n) = lu_.solve(rhs);
         // Iterative refinement with the same factors: the Newton matrix can be badly scaled (barrier
         // curvature z/(-h) next to O(1) entries), and an inaccurate step is not a descent direction.
-        for (int ref = 0; ref < settings_.refinement_steps; ++ref) {
+        for (int ref = 0; ref < settings_.linear.refinement_steps; ++ref) {
           lin_res_.head(n) = rhs - J_ * dy.head(n);
           const double res_norm = lin_res_.head(n).norm();
           if (settings_.verbose) std::printf("   linear residual %.2e (rhs %.2e)\n", res_norm, rhs.norm());
@@ -559,17 +559,17 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
     }
     case LinearSolver::LSCG: {
       Eigen::LeastSquaresConjugateGradient<SpMat> cg;
-      cg.setTolerance(settings_.lscg_tol);
+      cg.setTolerance(settings_.linear.lscg_tol);
       cg.compute(J_);
       if (settings_.time_limit <= 0) {
-        cg.setMaxIterations(settings_.lscg_max_iter);
+        cg.setMaxIterations(settings_.linear.lscg_max_iter);
         dy.head(n) = cg.solve(rhs);
       } else {
         // In chunks, so that the deadline is checked inside a long solve (each chunk restarts from the last
         // iterate, which changes the iterates slightly compared with one run).
         dy.head(n).setZero();
-        for (int done = 0; done < settings_.lscg_max_iter; done += kLscgChunk) {
-          cg.setMaxIterations(std::min(kLscgChunk, settings_.lscg_max_iter - done));
+        for (int done = 0; done < settings_.linear.lscg_max_iter; done += kLscgChunk) {
+          cg.setMaxIterations(std::min(kLscgChunk, settings_.linear.lscg_max_iter - done));
           dy.head(n) = cg.solveWithGuess(rhs, dy.head(n));
           if (cg.info() == Eigen::Success) break;
           if (past_deadline()) {
@@ -592,7 +592,7 @@ bool Solver::solve_linear(Vec& dy, Info& info) {
 }
 
 bool Solver::second_order_wanted(const Info& info) const {
-  if (settings_.second_order_gap < 0 || info.status == Status::NumericalError) return false;
+  if (settings_.second_order.gap < 0 || info.status == Status::NumericalError) return false;
   // A converged point always gets the test (it decides converged vs saddle). Any other iterate only
   // reports its eigenvalues, which is not worth passing the deadline for (a dense eigenvalue problem per agent).
   return info.status == Status::Converged || !(info.status == Status::TimeLimit || past_deadline());
@@ -699,7 +699,7 @@ double Solver::line_search(double merit0) {
     // Fraction to the boundary: barrier duals stay positive.
     for (int c = 0; c < static_cast<int>(cons_.size()); ++c)
       if (state_[c] == ConstraintState::Barrier && dz_[c] < 0)
-        t = std::min(t, -settings_.fraction_to_boundary * y_.z[c] / dz_[c]);
+        t = std::min(t, -settings_.barrier.fraction_to_boundary * y_.z[c] / dz_[c]);
   } else {
     dz_.setZero();
   }
@@ -707,7 +707,7 @@ double Solver::line_search(double merit0) {
     t = domain_step(t);
     if (t <= 0) return 0.0;  // a held control is at its box and the step points out of it
   }
-  for (int ls = 0; ls < settings_.ls_max_steps; ++ls, t *= settings_.ls_beta) {
+  for (int ls = 0; ls < settings_.line_search.max_steps; ++ls, t *= settings_.line_search.beta) {
     apply_step(y_, dy_, t, trial_);
     eval_all_constraints(trial_, h_trial_);
     if (violation_sum(h_trial_) > hsum + 1e-12) {
@@ -719,7 +719,7 @@ double Solver::line_search(double merit0) {
       continue;
     }
     const double mt = merit(r_trial_, rc_trial_);
-    if (mt <= (1.0 - settings_.ls_alpha * t) * merit0) return t;
+    if (mt <= (1.0 - settings_.line_search.alpha * t) * merit0) return t;
     if (settings_.verbose) std::printf("   t %.2e rejected: |r| %.3e vs %.3e\n", t, mt, merit0);
   }
   return 0.0;
@@ -799,7 +799,7 @@ std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::ve
   y_.mu = mu;
   y_.mu2 = mu;
   y_.z.setZero();  // barrier duals start at zero, as in solve()
-  barrier_ = settings_.barrier;
+  barrier_ = settings_.barrier.mode;
   rho_ = rho;
   eval_all_constraints(y_, h_);
   classify(h_, true);
@@ -815,7 +815,7 @@ std::vector<int> Solver::debug_residual(const std::vector<Mat>& x, const std::ve
 bool Solver::polish(const Vec& h) {
   bool any = false;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    if (state_[c] != ConstraintState::Barrier || h[c] < -settings_.polish_gap) continue;
+    if (state_[c] != ConstraintState::Barrier || h[c] < -settings_.stall.polish_gap) continue;
     state_[c] = ConstraintState::Active;
     // The barrier dual (or -rho/h in the primal form) is the multiplier estimate.
     const double mu = barrier_ == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h[c];
@@ -851,9 +851,9 @@ Result Solver::solve(const WarmStart* warm) {
   bool from_saddle = false;  // the next attempt starts where leave_saddle left y_
   int br_attempts = 0;       // attempts from the best-response guess (inserted, as the escapes)
   inertia_delta_.assign(N_, 0.0);
-  for (int attempt = 0; attempt <= settings_.restarts; ++attempt) {
-    const bool br_now = !from_saddle && br_attempts == 0 && settings_.best_response_rounds > 0 &&
-                        attempt == settings_.best_response_attempt;
+  for (int attempt = 0; attempt <= settings_.restart.count; ++attempt) {
+    const bool br_now = !from_saddle && br_attempts == 0 && settings_.best_response.rounds > 0 &&
+                        attempt == settings_.best_response.attempt;
     bool repeat = br_now;  // an inserted attempt: the schedule resumes at this attempt afterwards
     info.attempts = attempt + 1 + escapes + br_attempts;
     info.saddle_escapes = escapes;
@@ -867,12 +867,12 @@ Result Solver::solve(const WarmStart* warm) {
     } else if (!from_saddle) {
       start_attempt(attempt, warm);
     }
-    inertia_on_ = from_saddle || settings_.saddle_inertia_restarts;
+    inertia_on_ = from_saddle;
     from_saddle = false;
     if (run_attempt(info, total_iter) == AttemptEnd::Finished) {
       // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.
-      if (!(settings_.restart_on_saddle && info.status == Status::Converged && settings_.second_order_gap >= 0 &&
-            (attempt < settings_.restarts || br_now || escapes < settings_.saddle_escapes) && total_iter < settings_.max_iter &&
+      if (!(settings_.second_order.restart_on_saddle && info.status == Status::Converged && settings_.second_order.gap >= 0 &&
+            (attempt < settings_.restart.count || br_now || escapes < settings_.second_order.escapes) && total_iter < settings_.max_iter &&
             !past_deadline()))
         break;
       Result cand = res;
@@ -933,7 +933,7 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
       // A constant offset per agent and control component (not white noise, which averages out):
       // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
       for (int q = 0; q < nu_; ++q) {
-        const double offset = settings_.restart_u_std * noise_(rng_);
+        const double offset = settings_.restart.u_std * noise_(rng_);
         y_.u[i].row(q).array() += offset;
       }
     if (attempt == 0) y_.lam[i] = lam_init_[i];
@@ -953,18 +953,18 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
   // the violation is still ~1 m, and the barrier then admits only tiny steps (crossing, docs/solver.md).
   const bool restart_rules = attempt > 0 || deep_overlap();
   use_rules(restart_rules);
-  rho_ = settings_.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
-  barrier_ = settings_.barrier;
+  rho_ = settings_.barrier.rho_init * ((variant == 1 || variant == 3) ? 10.0 : 1.0);
+  barrier_ = settings_.barrier.mode;
   if (variant >= 2)
-    barrier_ = settings_.barrier == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
+    barrier_ = settings_.barrier.mode == BarrierMode::PrimalDual ? BarrierMode::Primal : BarrierMode::PrimalDual;
   // The LU's symbolic analysis is kept across attempts and solves: it depends only on the sparsity pattern,
   // i.e. on the partition (pattern_state_) and the constraint list, and is redone when either changes.
 }
 
 void Solver::use_rules(bool restart_rules) {
-  rules_.rho_progress = restart_rules ? settings_.restart_rho_progress : settings_.rho_progress;
-  rules_.violation_memory = restart_rules ? settings_.restart_violation_memory : settings_.violation_memory;
-  rules_.rho_on_stall = restart_rules ? settings_.restart_rho_on_stall : settings_.rho_on_stall;
+  rules_.rho_progress = restart_rules ? settings_.restart.rho_progress : settings_.barrier.rho_progress;
+  rules_.violation_memory = restart_rules ? settings_.restart.violation_memory : settings_.line_search.violation_memory;
+  rules_.rho_on_stall = restart_rules && settings_.restart.rho_on_stall;
 }
 
 void Solver::roll_out(Iterate& y, int i) {
@@ -975,7 +975,7 @@ void Solver::roll_out(Iterate& y, int i) {
 }
 
 bool Solver::deep_overlap() const {
-  if (settings_.deep_overlap > 1) return false;
+  if (settings_.restart.deep_overlap > 1) return false;
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   for (const Constraint& cn : cons_) {
     double dmin;
@@ -990,7 +990,7 @@ bool Solver::deep_overlap() const {
     } else {
       continue;
     }
-    if (d.norm() < (1.0 - settings_.deep_overlap) * dmin) return true;
+    if (d.norm() < (1.0 - settings_.restart.deep_overlap) * dmin) return true;
   }
   return false;
 }
@@ -1019,7 +1019,7 @@ bool Solver::converged(double rnorm) const {
          (C == 0 || at_rho_floor());
 }
 
-double Solver::rho_floor() const { return settings_.tol * settings_.rho_floor_factor; }
+double Solver::rho_floor() const { return settings_.tol * settings_.barrier.rho_floor_factor; }
 
 bool Solver::at_rho_floor() const { return rho_ <= rho_floor() * (1 + 1e-9); }
 
@@ -1048,14 +1048,14 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (converged(rnorm)) { info.status = Status::Converged; break; }
     if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
     if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
-    auto lower_rho = [&] { rho_ = std::max(rho_floor(), std::min(settings_.rho_kappa * rho_, std::pow(rho_, settings_.rho_beta))); };
+    auto lower_rho = [&] { rho_ = std::max(rho_floor(), std::min(settings_.barrier.rho_kappa * rho_, std::pow(rho_, settings_.barrier.rho_beta))); };
     double merit_now = rnorm;
     // ||r|| is still above `ratio` times its value `window` iterations ago (window 0: never).
     auto fell_less = [&](int window, double ratio) {
       return window > 0 && static_cast<int>(merits_.size()) > window && rnorm > ratio * merits_[merits_.size() - 1 - window];
     };
-    const bool stall = (at_rho_floor() && fell_less(settings_.stall_floor_window, 1.0 - 1e-4)) ||
-                       fell_less(settings_.crawl_window, settings_.crawl_ratio) || fell_less(settings_.stall_window, 0.99);
+    const bool stall = (at_rho_floor() && fell_less(settings_.stall.floor_window, 1.0 - 1e-4)) ||
+                       fell_less(settings_.stall.crawl_window, settings_.stall.crawl_ratio) || fell_less(settings_.stall.window, 0.99);
     if (stall && rules_.rho_on_stall && rules_.rho_progress > 0 && !at_rho_floor()) {
       // With rho_progress, a barrier subproblem can stall above rho_progress * rho, and rho would never be
       // lowered: lower it now (merging_problem(7, 12), rho_progress 10: rho stuck at 0.01 with ||r|| 0.13).
@@ -1068,7 +1068,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
       // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per
       // attempt). A stall with rho at its floor is often the barrier's ill-conditioning around a contact
       // that the equilibrium needs; the equality form has no such curvature.
-      if (polished || settings_.polish_gap <= 0 || !polish(h_)) { stalled = true; break; }
+      if (polished || settings_.stall.polish_gap <= 0 || !polish(h_)) { stalled = true; break; }
       polished = true;
       number_multipliers();
       evaluate(y_, h_, true, r_, rc_);
@@ -1103,7 +1103,7 @@ double Solver::take_step(double rnorm, Info& info) {
 
   t0 = Clock::now();
   double t = line_search(rnorm);
-  if (t > 0 && t < settings_.lm_below_step) {
+  if (t > 0 && t < settings_.line_search.lm_below_step) {
     // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
     // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it: from the
     // largest nu down (it wins most often), until a smaller nu no longer lowers the merit; each try
@@ -1112,8 +1112,8 @@ double Solver::take_step(double rnorm, Info& info) {
     double best_m = merit(r_trial_, rc_trial_);
     double last_m = HUGE_VAL;
     bool lm_won = false;
-    for (int q = settings_.lm_tries - 1; q >= 0 && !past_deadline(); --q) {
-      if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+    for (int q = settings_.line_search.lm_tries - 1; q >= 0 && !past_deadline(); --q) {
+      if (!solve_levenberg_marquardt(settings_.line_search.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
       const double tl = line_search(rnorm);
       const double m = tl > 0 ? merit(r_trial_, rc_trial_) : HUGE_VAL;
       if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
@@ -1123,9 +1123,9 @@ double Solver::take_step(double rnorm, Info& info) {
     std::swap(trial_, best_);
     if (lm_won) info.lm_steps++;
   }
-  for (int q = 0; t == 0.0 && q < settings_.lm_tries; ++q) {
+  for (int q = 0; t == 0.0 && q < settings_.line_search.lm_tries; ++q) {
     if (past_deadline()) { timed_out_ = true; break; }
-    if (!solve_levenberg_marquardt(settings_.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+    if (!solve_levenberg_marquardt(settings_.line_search.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
     t = line_search(rnorm);
     if (t > 0) info.lm_steps++;
   }

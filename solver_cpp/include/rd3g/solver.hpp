@@ -56,7 +56,7 @@ class Solver {
   /// Solves from zero controls or from a warm start; the initial states are the rollout of the controls.
   Result solve(const WarmStart* warm = nullptr);
 
-  /// Iterated best response alone (the guess of Settings::best_response_rounds): `rounds` (>= 1) Gauss-Seidel sweeps
+  /// Iterated best response alone (the guess of Settings::best_response.rounds): `rounds` (>= 1) Gauss-Seidel sweeps
   /// from the warm start's controls (zero without), the sub-solves' iterations together at most N max_iter (max_iter
   /// game-iteration equivalents, as in the restart). Result: x, u and info (iterations = best_response_iterations,
   /// timings.total); no multipliers.
@@ -97,7 +97,7 @@ class Solver {
   /// Why an attempt (one pass of Newton iterations from the initial guess) ended.
   enum class AttemptEnd { Finished, Restart };
 
-  /// Attempt from an iterated-best-response guess (Settings::best_response_rounds): y_ from the initial controls,
+  /// Attempt from an iterated-best-response guess (Settings::best_response.rounds): y_ from the initial controls,
   /// the sweeps (at most `budget` sub-solve iterations), then rho_init and attempt 0's rules. Returns the iterations.
   int start_best_response_attempt(int budget);
   /// Gauss-Seidel sweeps on y_'s controls (best_response.cpp); returns the sub-solves' iterations (<= budget).
@@ -112,7 +112,7 @@ class Solver {
   void roll_out(Iterate& y, int i);
   AttemptEnd run_attempt(Info& info, int& total_iter);
   /// The rolled-out iterate y_ brings two agents (or an agent and an obstacle) closer than
-  /// (1 - settings_.deep_overlap) times their collision distance at some step.
+  /// (1 - settings_.restart.deep_overlap) times their collision distance at some step.
   bool deep_overlap() const;
   /// The globalisation rules of an attempt: the settings' first-attempt ones or the restart ones (rules_).
   void use_rules(bool restart_rules);
@@ -176,8 +176,8 @@ class Solver {
   int n_vars_ = 0;
   double rho_ = 0;
   BarrierMode barrier_ = BarrierMode::PrimalDual;  // barrier form of the current attempt
-  /// Globalisation rules of the current attempt (start_attempt): the settings' rho_progress, violation_memory and
-  /// rho_on_stall in attempt 0, the restart_* rules in later attempts.
+  /// Globalisation rules of the current attempt (start_attempt): barrier.rho_progress and
+  /// line_search.violation_memory (rho never lowered on a stall) in attempt 0, the restart group's in later attempts.
   struct AttemptRules {
     double rho_progress = 0;
     int violation_memory = 1;
