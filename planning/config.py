@@ -5,8 +5,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 
-from solver_cpp import make_settings
-from solver_cpp.solve import merge_settings
+from solver_cpp import make_settings, merge_settings
 
 
 class PlannerConfigError(ValueError):

@@ -11,7 +11,7 @@ from bench.families import family_problem
 from bench.merging import MIN_DISTANCE, merging_problem
 from bench.verify import (best_response_gap, collision_gaps_m, dynamics_defect, max_collision_violation_m,
                           player_cost, stationarity_residual, verify_equilibrium)
-from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, Obstacle, QuadraticCost, solve
+from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, Obstacle, QuadraticCost, merge_settings, solve
 
 INSTANCES = [(3, 2), (3, 4), (3, 10), (5, 3)]  # (cars, seed)
 # The paper's globalisation rules in every attempt (rho lowered every iteration, monotone violation test) and its
@@ -150,7 +150,7 @@ def test_polish_rescues_a_stalled_merge():
     # holding those constraints as equalities converges in the first attempt. (PAPER_RULES has no best-response
     # attempt: from its guess this merge converges without the polish.)
     problem = merging_problem(7, 12)
-    without = solve(problem, **PAPER_RULES, stall=dict(polish_gap=0.0), restart=dict(count=3))
+    without = solve(problem, **merge_settings(PAPER_RULES, dict(stall=dict(polish_gap=0.0), restart=dict(count=3))))
     assert without.status == "stalled"
     result = solve(problem)
     assert result.converged

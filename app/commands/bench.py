@@ -14,8 +14,7 @@ from bench import (baselines, charuco_coverage, merge_bench, problem_size, race_
                    time_limit, track_video, tracking_bench)
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
-from solver_cpp import make_settings
-from solver_cpp.solve import merge_settings
+from solver_cpp import make_settings, merge_settings
 
 
 def parse_range(text: str) -> list[int]:
