@@ -168,8 +168,8 @@ class GameResult:
     active_constraints: int
     symbolic_factorizations: int
     attempts: int = 1  # 1 + restarts used (escapes from saddles included)
-    saddle_escapes: int = 0  # attempts started from a saddle along negative curvature (setting saddle_escapes)
-    best_response_attempts: int = 0    # attempts started from an iterated-best-response guess (best_response_rounds)
+    saddle_escapes: int = 0  # attempts started from a saddle along negative curvature (setting second_order.escapes)
+    best_response_attempts: int = 0    # attempts started from an iterated-best-response guess (best_response.rounds)
     best_response_iterations: int = 0  # Newton iterations of its single-agent sub-solves (1/N each in iterations)
     # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
     # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
@@ -277,7 +277,7 @@ class Solver:
 
     def best_response(self, rounds: int, warm_start: WarmStart | None = None) -> WarmStart:
         """Controls (N, T, nu) after `rounds` (>= 1) Gauss-Seidel sweeps of iterated best response from the warm
-        start's controls (zero without), with the C++ sweeps of the best-response restart (best_response_rounds)."""
+        start's controls (zero without), with the C++ sweeps of the best-response restart (best_response.rounds)."""
         ws = None if warm_start is None else _to_core_warm(warm_start, self._sizes, len(self.constraints))
         return WarmStart(u=np.stack(self._solver.best_response(int(rounds), ws).u))
 

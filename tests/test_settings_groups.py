@@ -92,8 +92,11 @@ def test_problem_file_takes_grouped_settings_and_warns_about_flat_ones():
     assert settings == {"tol": 1e-4, "stall": {"window": 6}}
     assert make_settings(**settings).stall.window == 6
     data["solver"] = {"stall_window": 6, "barrier": "primal"}
-    with pytest.warns(DeprecationWarning, match=r"p\.json: solver\.stall_window is deprecated: use solver\.stall\.window"):
+    with pytest.warns(DeprecationWarning) as record:
         _, settings, _ = problem_from_dict(data, "p.json")
+    assert sorted(str(w.message) for w in record) == [
+        "p.json: solver.barrier is deprecated: use solver.barrier.mode",
+        "p.json: solver.stall_window is deprecated: use solver.stall.window"]
     assert settings == {"stall": {"window": 6}, "barrier": {"mode": "primal"}}
 
 

@@ -69,7 +69,8 @@ def register(sub) -> None:
     m.add_argument("--max-iter", type=int, help="RD3G's max_iter per solve (default: the solver's, "
                                                  "solver_cpp/include/rd3g/problem.hpp)")
     m.add_argument("--rd3g-setting", action="append", default=[], metavar="NAME=VALUE",
-                   help="override one RD3G setting (solver_cpp/include/rd3g/problem.hpp), e.g. domain_fraction=0 or stall.window=8; "
+                   help="override one RD3G setting (solver_cpp/include/rd3g/problem.hpp), e.g. domain_fraction=0 or "
+                        "stall.window=8 (GROUP.FIELD); "
                         "repeatable")
     m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
     m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "

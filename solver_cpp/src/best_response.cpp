@@ -1,5 +1,5 @@
 // Iterated best response (Settings::best_response.rounds): each agent in turn solves its own problem alone, the
-// others' current rolled-out positions as moving obstacles (best_response_margin beyond each pair's collision
+// others' current rolled-out positions as moving obstacles (best_response.margin beyond each pair's collision
 // distance), with the same solver (one agent). Used as the initial guess of one restart attempt (docs/solver.md,
 // "Restarts") and, through Solver::best_response, by solver_cpp.best_response_guess.
 #include <algorithm>

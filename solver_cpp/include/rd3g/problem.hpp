@@ -280,7 +280,7 @@ struct Info {
   int riccati_solves = 0;      ///< Newton steps solved by the stage-wise Riccati recursion
   int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
   int attempts = 0;            ///< 1 + restarts used (escapes from saddles included)
-  int saddle_escapes = 0;      ///< attempts started from a saddle along negative curvature (Settings::saddle_escapes)
+  int saddle_escapes = 0;      ///< attempts started from a saddle along negative curvature (Settings::second_order.escapes)
   int best_response_attempts = 0;    ///< attempts started from an iterated-best-response guess (0 or 1)
   /// Newton iterations of its single-agent sub-solves, unscaled (iterations includes them divided by N, rounded up)
   int best_response_iterations = 0;

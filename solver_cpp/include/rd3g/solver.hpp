@@ -144,7 +144,7 @@ class Solver {
   /// Partition, multiplier numbering, residual and Jacobian at y_; false if the residual is undefined.
   bool assemble(bool first, Info& info);
   bool converged(double rnorm) const;
-  /// rho's floor, tol * rho_floor_factor, and whether rho has reached it (to rounding).
+  /// rho's floor, tol * barrier.rho_floor_factor, and whether rho has reached it (to rounding).
   double rho_floor() const;
   bool at_rho_floor() const;
   /// Newton (or Levenberg-Marquardt) step from y_ into y_ with the line search; the accepted t, or 0.
@@ -279,13 +279,13 @@ class Solver {
   /// barrier dual (or -rho/h), 0 if released.
   void constraint_weights(Vec& w_i, Vec& w_j) const;
   /// Steering away from the saddle in y_, whose second-order test just failed (second_order.cpp): records the
-  /// inertia correction of the failing agents (saddle_inertia) and, if an escape is left (escapes <
-  /// saddle_escapes), moves them along negative curvature and prepares y_, rho_ and the partition for an attempt
+  /// inertia correction of the failing agents (second_order.inertia) and, if an escape is left (escapes <
+  /// second_order.escapes), moves them along negative curvature and prepares y_, rho_ and the partition for an attempt
   /// from there. Returns true if it did (y_ is unchanged otherwise).
   bool leave_saddle(int escapes);
   /// Agent a's shooting Lagrangian J^a + sum_c w_c h_c at y (its constraints only) and the largest of their h.
   double agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const Vec& w_j, double& max_h) const;
-  /// Adds the inertia correction (saddle_inertia) to this iteration's Newton matrix (trip_).
+  /// Adds the inertia correction (second_order.inertia) to this iteration's Newton matrix (trip_).
   void add_inertia_correction(double rnorm);
   bool inertia_on_ = false;  // this attempt applies the inertia correction
   std::vector<double> inertia_delta_;  // per agent: delta of the inertia correction (cost units per control unit^2)
