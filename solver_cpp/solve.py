@@ -34,7 +34,7 @@ FLAT_SETTING_NAMES = {
     "restarts": "restart.count", "restart_u_std": "restart.u_std", "restart_rho_progress": "restart.rho_progress",
     "restart_violation_memory": "restart.violation_memory", "restart_rho_on_stall": "restart.rho_on_stall",
     "deep_overlap": "restart.deep_overlap",
-    "best_response_rounds": "best_response.rounds", "best_response_attempt": "best_response.attempt",
+    "best_response_rounds": "best_response.rounds",
     "best_response_max_iter": "best_response.max_iter", "best_response_margin": "best_response.margin",
     "second_order_gap": "second_order.gap", "second_order_tol": "second_order.tol",
     "restart_on_saddle": "second_order.restart_on_saddle", "saddle_escapes": "second_order.escapes",

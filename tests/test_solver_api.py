@@ -121,7 +121,6 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"second_order": {"escape_rho": -1e-3}}, "solver.second_order.escape_rho"),
     ({"second_order": {"inertia": -1.0}}, "solver.second_order.inertia"),
     ({"best_response": {"rounds": -1}}, "solver.best_response.rounds"),
-    ({"best_response": {"attempt": 0}}, "solver.best_response.attempt"),  # attempt 0 keeps the initial guess
     ({"best_response": {"max_iter": 0}}, "solver.best_response.max_iter"),
     ({"best_response": {"margin": -0.1}}, "solver.best_response.margin"),
     ({"best_response": {"margin": float("inf")}}, "solver.best_response.margin"),

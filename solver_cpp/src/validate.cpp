@@ -213,7 +213,6 @@ void validate_settings(const Settings& s) {
   require(s.linear.lscg_tol > 0 && s.linear.lscg_max_iter >= 1, "solver.linear.lscg_tol must be positive and solver.linear.lscg_max_iter >= 1");
   require(s.second_order.tol > 0, "solver.second_order.tol must be positive");
   require(s.best_response.rounds >= 0, "solver.best_response.rounds must be >= 0 (0 = off)");
-  require(s.best_response.attempt >= 1, "solver.best_response.attempt must be >= 1 (attempt 0 keeps the initial guess)");
   require(s.best_response.max_iter >= 1, "solver.best_response.max_iter must be >= 1");
   require(std::isfinite(s.best_response.margin) && s.best_response.margin >= 0,
           "solver.best_response.margin must be finite and >= 0 (a fraction of the collision distance)");

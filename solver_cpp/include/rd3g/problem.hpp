@@ -187,15 +187,14 @@ struct RestartSettings {
 };
 
 /// Iterated best response as a restart variant (Settings::best_response; docs/solver.md, "Restarts"): an extra
-/// attempt, inserted before restart attempt `attempt` (>= 1), starts from the controls that `rounds` Gauss-Seidel
+/// attempt, inserted before restart attempt 1, starts from the controls that `rounds` Gauss-Seidel
 /// sweeps over the agents reach from the initial controls: each agent in turn solves its own problem alone (with
 /// the others' current rolled-out positions as moving obstacles at (1 + margin) times the collision distance),
 /// warm-started, with at most max_iter iterations, one restart and no best response of its own. A sub-solve
 /// iteration counts 1/N of a game iteration in Info::iterations and max_iter (rounded up per attempt). The attempt
-/// runs from rho_init with attempt 0's rules. rounds 0 = off; an attempt past restart.count never runs.
+/// runs from rho_init with attempt 0's rules. rounds 0 = off; never with restart.count 0.
 struct BestResponseSettings {
   int rounds = 1;
-  int attempt = 1;
   int max_iter = 100;   ///< per single-agent sub-solve (Newton iterations)
   double margin = 0.1;  ///< fraction of the collision distance, >= 0: the guess starts strictly inside the barrier
 };
