@@ -117,3 +117,16 @@ def test_bench_setting_flag_takes_the_grouped_name(capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "--rd3g-setting" in err and "solver.stall.window" in err, err
+
+
+def test_solve_command_reads_grouped_settings_and_warns_about_flat_ones(tmp_path, capsys):
+    data = problem_to_dict(merging_problem(2, 0), solver={"stall": {"window": -1}})
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(data))
+    assert main(["solve", str(bad)]) == 2
+    assert f"{bad}: solver.stall.window must be >= 0" in capsys.readouterr().err
+    data["solver"] = {"stall_window": 6}
+    flat = tmp_path / "flat.json"
+    flat.write_text(json.dumps(data))
+    assert main(["solve", str(flat)]) == 0
+    assert f"warning: {flat}: solver.stall_window is deprecated: use solver.stall.window" in capsys.readouterr().err
