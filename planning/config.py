@@ -5,7 +5,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 
-from solver_cpp import make_settings
+from solver_cpp import make_settings, merge_settings
 
 
 class PlannerConfigError(ValueError):
@@ -13,14 +13,13 @@ class PlannerConfigError(ValueError):
 
 
 def solver_settings(*layers: Mapping):
-    """The solver's Settings from overrides under its own names (a later layer overrides an earlier one);
-    a None value means the solver's default (solver_cpp.make_settings names any unknown key or bad value)."""
-    merged: dict = {}
+    """The solver's Settings from overrides under its own (grouped) names, a later layer overriding an earlier one
+    field by field; a None value means the solver's default (solver_cpp.make_settings names any unknown key or bad
+    value)."""
     for layer in layers:
         if not isinstance(layer, Mapping):
             raise ValueError(f"must be a mapping of solver settings, got {type(layer).__name__}")
-        merged.update(layer)
-    return make_settings(**{k: v for k, v in merged.items() if v is not None})
+    return make_settings(**merge_settings(*layers))
 
 
 @dataclass(frozen=True)
@@ -78,13 +77,14 @@ class PlannerConfig:
     # > 1: never switched): with the solver's default restart rules and deep_overlap 0.5, `python -m app race` took
     # 11 fallbacks instead of 10, and tests/test_planning.py's closed loop behind a car left the track.
     solver: dict = field(default_factory=lambda: dict(
-        max_iter=15, rho_progress=1.0, restarts=0, ls_max_steps=8, lm_tries=0, rho_init=0.001,
-        deep_overlap=2.0, restart_rho_progress=1.0, restart_violation_memory=1, restart_rho_on_stall=False))
+        max_iter=15, barrier=dict(rho_progress=1.0, rho_init=0.001), line_search=dict(max_steps=8, lm_tries=0),
+        restart=dict(count=0, deep_overlap=2.0, rho_progress=1.0, violation_memory=1, rho_on_stall=False)))
     # The first (cold) plan, computed before the start outside the real-time budget: `solver` with these
     # overrides; None = the solver's own default (here its full globalisation: restarts, Levenberg-Marquardt
     # steps, line-search steps, rho_init).
     cold_start_solver: dict = field(default_factory=lambda: dict(
-        max_iter=200, restarts=3, lm_tries=None, ls_max_steps=None, rho_init=None))
+        max_iter=200, restart=dict(count=3), line_search=dict(lm_tries=None, max_steps=None),
+        barrier=dict(rho_init=None)))
     # A non-converged solve is still used if its constraint violation is at most this (m), otherwise
     # the car tracks the previous plan in closed loop (fallback_* gains below).
     accept_violation_m: float = 0.01

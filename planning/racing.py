@@ -76,7 +76,7 @@ class _RecedingHorizon:
         self._warm_settings = solver_settings(config.solver)
         self._cold_settings = solver_settings(config.solver, config.cold_start_solver)
         # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
-        self._retry_settings = solver_settings(config.solver, {"rho_init": None})
+        self._retry_settings = solver_settings(config.solver, {"barrier": {"rho_init": None}})
         self._shift_weights: dict[int, tuple] = {}  # _shifted's interpolation per series length
 
     def reset(self) -> None:
