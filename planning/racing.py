@@ -81,6 +81,7 @@ class _RecedingHorizon:
         self._solvers: dict[int, Solver] = {}       # one per number of agents (the game's player set changes)
         self._prev_ids: tuple = ()                  # the cars (ids) of _prev's agents 1.., to map its warm start
         self._warm_settings = solver_settings(config.solver)
+        self._game_settings: dict[int, object] = {}  # warm settings of games of more than two players
         self._cold_settings = solver_settings(config.solver, config.cold_start_solver)
         # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
         self._retry_settings = solver_settings(config.solver, {"rho_init": None})
@@ -182,11 +183,12 @@ class _RecedingHorizon:
                 ey_bound = reach + 0.03  # interior room for the barrier
             first.append(np.asarray(model.rollout(x0, np.zeros((1, 2))))[:, :2])
         positions = first + [np.asarray(o)[:2] for o in obstacle_positions]
-        pair = np.full((len(positions), len(positions)), float(d_min))
+        nominal = float(d_min)
+        pair = np.full((len(positions), len(positions)), nominal)
         for i in range(len(first)):  # obstacles constrain the agents only, not each other
             for j in range(i + 1, len(positions)):
                 d = float(np.min(np.hypot(*(positions[i] - positions[j]).T)))
-                pair[i, j] = pair[j, i] = max(min(float(d_min), d - 0.01), _MIN_COLLISION_DISTANCE_M)
+                pair[i, j] = pair[j, i] = max(min(nominal, d - 0.01), _MIN_COLLISION_DISTANCE_M)
                 d_min = min(d_min, d - 0.01)
         return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M), pair
 
@@ -257,6 +259,17 @@ class _RecedingHorizon:
         return Plan(x=np.stack([own, *others]), u=np.asarray(u), status="error", iterations=0, solve_time_s=0.0,
                     max_violation=math.nan, used="fallback", d_min=math.nan, ey_bound=ey_bound, error=error)
 
+    def _warm_settings_for(self, n_agents: int):
+        """The warm settings, with PlannerConfig.max_iter_per_extra_player more iterations per player
+        beyond two."""
+        extra = max(n_agents - 2, 0) * self.config.max_iter_per_extra_player
+        if extra == 0:
+            return self._warm_settings
+        if n_agents not in self._game_settings:
+            base = self.config.solver.get("max_iter", self._warm_settings.max_iter)
+            self._game_settings[n_agents] = solver_settings(self.config.solver, {"max_iter": base + extra})
+        return self._game_settings[n_agents]
+
     def _solver_for(self, problem: GameProblem, settings) -> Solver:
         """The planner's solver with this plan's problem and settings: set up at the first plan with this
         many agents, updated (no new set-up) at every later one."""
@@ -309,7 +322,8 @@ class _RecedingHorizon:
         warm = self._warm_start(ids)
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
         # its full globalisation (config.cold_start_solver).
-        solver = self._solver_for(problem, self._warm_settings if warm is not None else self._cold_settings)
+        solver = self._solver_for(problem, self._warm_settings_for(len(problem.agents)) if warm is not None
+                                  else self._cold_settings)
         result = solver.solve(warm)
         if warm is not None and not result.converged and result.iterations == 0:
             # The warm start itself was unusable (line search failed at once, e.g. a stale fallback
@@ -429,17 +443,19 @@ class RacingPlanner(_RecedingHorizon):
                 return None  # it already has the inside: crossing in front of it now would be a chop
         return math.copysign(max(ey_bound - c.defend_margin_m, 0.0), kappa)
 
-    def plan(self, x_self, x_others, other_tops=None, other_ids=None) -> Plan:
+    def plan(self, x_self, x_others, other_tops=None, other_ids=None, obstacles=None) -> Plan:
         """x_self, x_others (rows): [s (unwrapped, same origin), ey, v, epsi]; x_self already
         delay-predicted. other_tops: the other cars' top speeds (default opponent_top_speed_mps);
-        other_ids: names that identify them from plan to plan (warm starts per car, default their rows)."""
+        other_ids: names that identify them from plan to plan (warm starts per car, default their rows);
+        obstacles: states (rows) of cars avoided at constant speed instead of played with (predict_other)."""
         c = self.config
         rows = _rows(x_others)
+        far = [] if obstacles is None or len(obstacles) == 0 else list(_rows(obstacles))
         tops = [self.opponent_top_speed] * len(rows) if other_tops is None else [float(v) for v in other_tops]
         ids = tuple(range(len(rows))) if other_ids is None else tuple(other_ids)
-        s_now = [x_self[S], *(x[S] for x in rows)]
+        s_now = [x_self[S], *(x[S] for x in rows), *(x[S] for x in far)]
         ey_bound = self.tm.ey_bound(s_now)
-        d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows)])
+        d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
         own_top = self.corner_speed_cap(x_self, c.top_speed_mps)
         other_top = [self.corner_speed_cap(x, top) for x, top in zip(rows, tops)]
         own_cost = self._cost(own_top)
@@ -450,14 +466,19 @@ class RacingPlanner(_RecedingHorizon):
         nominal_d_min = d_min
         # Per-pair distances (pair) would go into the collision specification here once it takes them;
         # today every pair gets the closest pair's relaxed distance d_min.
-        ey_bound, d_min, pair = self._feasible_limits([x_self, *rows], ey_bound, d_min)
-        top = min(own_top, self.follow_speed_cap(x_self, rows, pair[0, 1:] < nominal_d_min))
+        predicted = [self.predict_other(x) for x in far]
+        ey_bound, d_min, pair = self._feasible_limits([x_self, *rows], ey_bound, d_min, predicted)
+        top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
         agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
                   *(self._agent(x, t, ey_bound, self._cost(t), c.lead_weight) for x, t in zip(rows, other_top))]
         d_steps = self._distance_steps(d_min, nominal_d_min)
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
-                              collision=Collision(min_distance=d_steps, form="distance", pos_x=S, pos_y=EY))
-        return self._finish(problem, d_steps, ey_bound, ids)
+                              collision=Collision(min_distance=d_steps, form="distance", pos_x=S, pos_y=EY),
+                              obstacles=[Obstacle(positions=o, min_distance=d_steps) for o in predicted])
+        plan = self._finish(problem, d_steps, ey_bound, ids)
+        if far:
+            plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in far)], axis=0)
+        return plan
 
 
 class MPCOpponent(_RecedingHorizon):

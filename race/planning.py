@@ -169,14 +169,17 @@ class RacePlanners:
         for i, c in enumerate(self.cars):
             if c.name in self.models:
                 planner = self.models[c.name]
-                others = self._others(i, planner, at_plan) if c.planner == "rd3g" else \
-                    [j for j in range(len(self.cars)) if j != i]
+                extra = {}
                 if c.planner == "rd3g":
+                    others, far = self._others(i, planner, at_plan)
                     self.players[c.name] = [self.names[j] for j in others]
+                    extra = {"obstacles": self._in_frame(at_plan, i, far)} if far else {}
+                else:
+                    others = [j for j in range(len(self.cars)) if j != i]
                 rows = self._in_frame(at_plan, i, others)
                 plan, (throttle, steer), ms = plan_step(planner, at_plan[i], rows,
                                                         other_tops=[self.tops[j] for j in others],
-                                                        other_ids=tuple(self.names[j] for j in others))
+                                                        other_ids=tuple(self.names[j] for j in others), **extra)
                 result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms)
             elif c.name in self.pursuit:
                 throttle, steer = self.pursuit[c.name].command(job.states[c.name], self.setup.control_period_s)
@@ -187,14 +190,19 @@ class RacePlanners:
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
         return result
 
-    def _others(self, i: int, planner, at_plan: np.ndarray) -> list[int]:
-        """interacting_cars of car i at the plan's states (nominal collision distance on the straight)."""
+    def _others(self, i: int, planner, at_plan: np.ndarray) -> tuple[list[int], list[int]]:
+        """(players, obstacles) of car i's game: interacting_cars at the plan's states (nominal collision
+        distance on the straight), the nearest PlannerConfig.game_players - 1 of them players, the rest
+        constant-speed obstacles."""
         cfg = planner.config
         if not np.all(np.isfinite(at_plan[:, S])):
-            return [j for j in range(len(self.cars)) if j != i]
-        d_min = 2.0 * planner.tm.footprint_radius + cfg.collision_margin_m
-        return interacting_cars(i, at_plan[:, S], self.tops, cfg.horizon * cfg.plan_dt_s, d_min,
-                                float(self.track.length))
+            near = [j for j in range(len(self.cars)) if j != i]
+        else:
+            d_min = 2.0 * planner.tm.footprint_radius + cfg.collision_margin_m
+            near = interacting_cars(i, at_plan[:, S], self.tops, cfg.horizon * cfg.plan_dt_s, d_min,
+                                    float(self.track.length))
+        keep = len(near) if cfg.game_players == 0 else cfg.game_players - 1
+        return near[:keep], near[keep:]
 
     def _in_frame(self, at_plan: np.ndarray, i: int, others: list[int]) -> np.ndarray:
         """The states of cars ``others`` with s moved to their nearest image from car i's s (a car more

@@ -12,6 +12,7 @@ a :class:`RosterError` naming the car and the field.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -38,9 +39,9 @@ class RosterFileError(InputFileError):
 
 @dataclass(frozen=True)
 class RosterCar:
-    """One car of a race. ``None`` fields take their default in :func:`make_roster`: marker and radio
-    id = the car's index in the roster, top speed by planner (DEFAULT_TOP_SPEED_MPS), start slot =
-    roster order, car file = the race's ``--car-params``."""
+    """One car of a race. ``None`` fields take their default in :func:`make_roster`: marker id, radio
+    id and start slot the smallest one no other car has (in roster order: 0, 1, 2, ... when none is
+    given), top speed by planner (DEFAULT_TOP_SPEED_MPS), car file = the race's ``--car-params``."""
 
     name: str
     planner: str
@@ -79,14 +80,13 @@ def make_roster(cars, max_cars: int = MAX_CARS) -> tuple[RosterCar, ...]:
         speed = DEFAULT_TOP_SPEED_MPS[c.planner] if c.top_speed_mps is None else c.top_speed_mps
         if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not (math.isfinite(speed) and speed > 0):
             raise RosterError(label, "top_speed_mps", f"must be a positive number (m/s), got {speed!r}")
-        c = dataclasses.replace(c, top_speed_mps=float(speed),
-                                marker_id=i if c.marker_id is None else c.marker_id,
-                                radio_id=i if c.radio_id is None else c.radio_id,
-                                start_slot=i if c.start_slot is None else c.start_slot)
-        _integer(label, "marker_id", c.marker_id, 0, 999)
-        _integer(label, "radio_id", c.radio_id, 0, 255)
-        _integer(label, "start_slot", c.start_slot, 0, len(cars) - 1)
-        out.append(c)
+        out.append(dataclasses.replace(c, top_speed_mps=float(speed)))
+    for f, hi in (("marker_id", 999), ("radio_id", 255), ("start_slot", len(cars) - 1)):
+        taken = {getattr(c, f) for c in out}
+        free = (v for v in itertools.count() if v not in taken)
+        out = [c if getattr(c, f) is not None else dataclasses.replace(c, **{f: next(free)}) for c in out]
+        for c in out:
+            _integer(c.name, f, getattr(c, f), 0, hi)
     for f in ("name", "marker_id", "radio_id", "start_slot"):
         seen: dict = {}
         for c in out:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import cached_property
 
 import numpy as np
 
@@ -78,7 +77,7 @@ class RaceSetup:
     grid: str = "single_file"
     finish: str = "first"
     grid_row_gap_car_lengths: tuple[float, float] = (1.9, 2.1)  # grid rows centre to centre: about one car length free
-    grid_lane_ey_m: float = 0.12        # a row's two cars at ey = +-grid_lane_ey_m ...
+    grid_lane_ey_m: float = 0.15        # a row's two cars at ey = +-grid_lane_ey_m ...
     grid_jitter_m: float = 0.01         # ... each jittered uniformly by up to this along and across the track
 
     def __post_init__(self) -> None:
@@ -109,7 +108,7 @@ class RaceSetup:
         if self.car_files is not None and len(self.car_files) != len(cars):
             raise RaceSetupError("car_files", f"one car file per car: {len(cars)} cars, {len(self.car_files)} files")
 
-    @cached_property
+    @property
     def cars(self) -> tuple[RosterCar, ...]:
         """The race's roster (``roster``, or the two-car one: ``rd3g`` and ``opponent``)."""
         if self.roster is not None:

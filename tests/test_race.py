@@ -29,7 +29,8 @@ def test_short_race_finishes_without_collision(race, track):
     assert o.trace_progress[-1].max() - o.trace_progress[0].max() > track.length - 0.5
     assert set(o.summary()) == {"winner", "clean_winner", "lap_times_s", "min_gap_m", "collisions", "rd3g_at_fault",
                                 "off_track", "fallbacks", "solve_ms_p50", "solve_ms_p99", "prestart_ms",
-                                "control_period_ms", "planner_errors", "interrupted", "race_time_s"}
+                                "control_period_ms", "planner_errors", "interrupted", "race_time_s",
+                                "cars", "finishing_order", "collision_events"}
     assert o.planner_errors == [] and o.summary()["planner_errors"] == 0
     assert o.summary()["interrupted"] is False and o.summary()["race_time_s"] == o.race_time_s
 
@@ -114,12 +115,12 @@ def _raising_plan(monkeypatch, cls, calls_that_raise):
     original = cls.plan
     n = {"calls": 0}
 
-    def plan(self, x_self, x_other):
+    def plan(self, x_self, x_others, **others):
         k = n["calls"]
         n["calls"] += 1
         if k in calls_that_raise:
             raise ValueError(f"injected planner failure {k}")
-        return original(self, x_self, x_other)
+        return original(self, x_self, x_others, **others)
 
     monkeypatch.setattr(cls, "plan", plan)
 
@@ -185,9 +186,9 @@ def test_simulated_race_does_not_depend_on_solve_time(track, car, monkeypatch):
     fast = run_race(setup)
     original = RacingPlanner.plan
 
-    def slow_plan(self, x_self, x_other):
+    def slow_plan(self, x_self, x_others, **others):
         time.sleep(0.005)
-        return original(self, x_self, x_other)
+        return original(self, x_self, x_others, **others)
 
     monkeypatch.setattr(RacingPlanner, "plan", slow_plan)
     slow = run_race(setup)
