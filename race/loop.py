@@ -803,12 +803,14 @@ class RaceLoop:
 
 
 def setup_document(setup, config: LoopConfig, mode: str, cars: list[CarBinding], opponent: str, faults,
-                   estimator: EstimatorConfig = EstimatorConfig()) -> str:
-    """The race/setup TextDocument of a real-time race (JSON); ``loop.lost_after_s`` is the estimator's."""
+                   estimator: EstimatorConfig = EstimatorConfig(), planners: dict | None = None) -> str:
+    """The race/setup TextDocument of a real-time race (JSON); ``loop.lost_after_s`` is the estimator's,
+    ``planners`` {car: planner} (default: the set-up's roster)."""
     doc = {"mode": mode, "track": setup.track.name, "car": setup.car.name, "seed": setup.seed, "laps": setup.laps,
            "start": setup.start, "opponent": opponent, "rd3g_top_speed_mps": setup.rd3g_top_speed_mps,
            "opponent_top_speed_mps": setup.opponent_top_speed_mps, "max_time_s": setup.max_time_s,
            "planning_period_s": setup.control_period_s,
            "loop": {**dataclasses.asdict(config), "lost_after_s": estimator.lost_after_s},
-           "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults]}
+           "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults],
+           "planners": planners or {c.name: c.planner for c in setup.cars}}
     return json.dumps(doc, indent=2)

@@ -16,6 +16,7 @@ sorted by ``sim_time``. Entity paths: docs/racing.md (simulated race) and docs/r
 from __future__ import annotations
 
 import ast
+import dataclasses
 import json
 import math
 import queue
@@ -30,6 +31,7 @@ import numpy as np
 
 from planning.frenet import EY, S
 from race.config import lower_realtime_priority
+from race.roster import PLANNERS, two_car_roster
 from recording.blueprint import race_blueprint  # the top-level package recording/, not this module
 from recording.integrity import read_verified
 from sim.collision import footprint_corners
@@ -288,6 +290,22 @@ class RecordingData:
             except (ValueError, SyntaxError):
                 return {}
             return value if isinstance(value, dict) else {}
+
+    def roster(self) -> list[dict]:
+        """The recorded race's cars in roster order, each {"name", "marker_id", "planner", ...}: the
+        simulated race's ``roster``, the real-time race's ``cars`` with their ``planners``; a recording
+        made before rosters were recorded has the two-car roster of its ``opponent``."""
+        setup = self.setup()
+        entries = setup.get("roster") or setup.get("cars") or []
+        cars = [dict(e) for e in entries if isinstance(e, dict) and isinstance(e.get("name"), str)]
+        planners = setup.get("planners") if isinstance(setup.get("planners"), dict) else {}
+        opponent = setup.get("opponent") if setup.get("opponent") in PLANNERS else "mpc"
+        two_car = {c.name: dataclasses.asdict(c) for c in two_car_roster(opponent, 1.0, 1.0)}
+        if not cars:
+            return list(two_car.values())
+        for c in cars:
+            c.setdefault("planner", planners.get(c["name"], two_car.get(c["name"], {}).get("planner")))
+        return cars
 
 
 def load_recording(path) -> RecordingData:

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planning import PlannerConfig
+from planning.config import PlannerConfigError
 from planning.frenet import lateral_half_extent
 from race.roster import RosterCar, RosterError, make_roster, two_car_roster
 from sim.effects import SimEffects, SimEffectsError, parse_effects, sim_effects
@@ -148,6 +149,7 @@ class RaceSpec:
     # its grid (None: "roster"; the two-car race keeps its single-file start unless a grid is named).
     roster: tuple[RosterCar, ...] | None = None
     grid: str | None = None
+    game_players: int = PlannerConfig.game_players  # players of an RD3G car's game (0: every car in reach)
 
     def load(self) -> RaceSetup:
         """Read the files and build the RaceSetup; RaceSetupError names the field at fault."""
@@ -165,7 +167,10 @@ class RaceSpec:
         if not math.isfinite(raceline) or abs(raceline) >= track.min_width / 2:
             raise RaceSetupError("raceline_ey_m", f"must be a finite offset inside the track "
                                                   f"(|M| < {track.min_width / 2:g} m), got {raceline}")
-        planner = PlannerConfig(raceline_ey_m=raceline)
+        try:
+            planner = PlannerConfig(raceline_ey_m=raceline, game_players=self.game_players)
+        except PlannerConfigError as exc:
+            raise RaceSetupError("game_players", str(exc).removeprefix("planner.game_players: ")) from None
         # Before any output is opened: the planner refuses a car wider than the track in its first plan.
         need = lateral_half_extent(car.geometry, planner.heading_allowance_rad) + planner.track_margin_m
         if need >= track.min_width / 2:

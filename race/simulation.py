@@ -266,6 +266,7 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
         rec.static_track(track)
         rec.static_document(SETUP_ENTITY, str(dataclasses.asdict(dataclasses.replace(
             setup, track=track.name, car=car.name, sim_car=None if setup.sim_car is None else setup.sim_car.name,
+            roster=setup.cars,  # resolved: the review and sysid read each car's planner and ids
             car_files=None if setup.car_files is None else tuple(c.name for c in setup.car_files)))))
         rec.static_car_colors(setup.names)
     try:

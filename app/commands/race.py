@@ -23,7 +23,7 @@ FLAGS = {"track": "--track", "car_params": "--car-params", "seed": "--seed", "la
          "start": "--start", "rd3g_top_speed_mps": "--rd3g-speed", "opponent_top_speed_mps": "--opponent-speed",
          "control_hz": "--control-hz", "control_period_s": "--control-hz", "raceline_ey_m": "--raceline-ey",
          "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects",
-         "roster": "--cars/--roster", "grid": "--grid"}
+         "roster": "--cars/--roster", "grid": "--grid", "game_players": "--game-players"}
 
 
 def add_race_arguments(p) -> None:
@@ -36,6 +36,14 @@ def add_race_arguments(p) -> None:
     p.add_argument("--opponent-speed", type=float, default=RaceSpec.opponent_top_speed_mps, help="opponent's top speed (m/s)")
     p.add_argument("--control-hz", type=float, default=RaceSpec.control_hz,
                    help=f"control rate (default {RaceSpec.control_hz:g} Hz)")
+    p.add_argument("--raceline-ey", type=float, default=RaceSpec.raceline_ey_m, metavar="M",
+                   help="lateral reference of both cars' racing cost (m, left positive; default 0, the centre line); "
+                        "on the oval 0.05 (inside) won more slow-car races but had one RD3G-at-fault contact in "
+                        "400 batch races (docs/racing.md)")
+
+
+def add_fleet_arguments(p) -> None:
+    """--cars / --roster / --grid: a fleet race (docs/racing.md, "Fleet races")."""
     fleet = p.add_mutually_exclusive_group()
     fleet.add_argument("--cars", metavar="PLANNERS",
                        help="a fleet race of 2-6 cars, one planner each (rd3g, mpc, pursuit, human), e.g. "
@@ -46,10 +54,11 @@ def add_race_arguments(p) -> None:
     p.add_argument("--grid", choices=GRIDS[1:], default=None,
                    help="start grid of rows of two: slots in roster order (default for --cars/--roster) or "
                         "shuffled by the seed; without it the two-car race starts in single file (--start)")
-    p.add_argument("--raceline-ey", type=float, default=RaceSpec.raceline_ey_m, metavar="M",
-                   help="lateral reference of both cars' racing cost (m, left positive; default 0, the centre line); "
-                        "on the oval 0.05 (inside) won more slow-car races but had one RD3G-at-fault contact in "
-                        "400 batch races (docs/racing.md)")
+    p.add_argument("--game-players", type=int, default=RaceSpec.game_players, metavar="N",
+                   help=f"players in each RD3G car's game: itself and its nearest cars within reach of the horizon; "
+                        f"further cars are constant-speed obstacles; 0: every car within reach "
+                        f"(default {RaceSpec.game_players})")
+    p.add_argument("--grid-plot", metavar="FILE.png", help="draw this race's start grid as a PNG and exit (no race)")
 
 
 def register(sub) -> None:
@@ -62,6 +71,7 @@ def register(sub) -> None:
     p.add_argument("--max-time", type=float, default=None,
                    help="give up after this many seconds of race time (default 30 s per lap + 30 s)")
     add_race_arguments(p)
+    add_fleet_arguments(p)
     # --- closing the model-identification loop (docs/sysid.md): the planners use --car-params (e.g. a
     # file written by `sysid`), the simulator runs the physical car below
     p.add_argument("--sim-car-params", default=None,
@@ -93,7 +103,8 @@ def roster_of(args):
 def race_spec(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1,
               max_time=None) -> RaceSpec:
     """The RaceSpec of parsed race options (batch's arguments have no --raceline-ey/--sim-* of their own)."""
-    return RaceSpec(roster=roster_of(args), grid=getattr(args, "grid", None),track=args.track, car_params=args.car_params, seed=seed, laps=laps, opponent=args.opponent,
+    return RaceSpec(roster=roster_of(args), grid=getattr(args, "grid", None),
+                    game_players=getattr(args, "game_players", RaceSpec.game_players),track=args.track, car_params=args.car_params, seed=seed, laps=laps, opponent=args.opponent,
                     start=start, rd3g_top_speed_mps=rd3g_speed, opponent_top_speed_mps=opponent_speed,
                     control_hz=args.control_hz, raceline_ey_m=getattr(args, "raceline_ey", RaceSpec.raceline_ey_m),
                     max_time_s=max_time or None, sim_car_params=getattr(args, "sim_car_params", None),
@@ -145,6 +156,11 @@ def run(args) -> int:
     if args.json:
         check_output_path(args.json)
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
+    if getattr(args, "grid_plot", None):
+        from app.race_plots import plot_grid
+        check_output_path(args.grid_plot)
+        print(f"start grid: {plot_grid(setup, Path(args.grid_plot))}")
+        return 0
     human = [c.name for c in setup.cars if c.planner == "human"]
     if human:
         raise UserError(f"--cars/--roster: car {human[0]}: planner: human drives real cars only (--hil or --camera)")

@@ -196,7 +196,8 @@ def _run_realtime(args, mode: str) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars])
         recorder.static_track(setup.track)
-        recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
+        recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults,
+                                                                  planners={c.name: c.planner for c in roster}))
         recorder.static_car_colors([c.name for c in cars])
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
                         planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
