@@ -12,7 +12,7 @@ from tracks import draw_track, load_track
 
 def _clean(r, cell) -> bool:
     """An example race must be a clean RD3G win: both cars always on track, no contact."""
-    return (tuple(r["cell"]) == cell and r["winner"] == "rd3g" and "trace" in r and r["rd3g_off_track"] == 0
+    return (tuple(r["cell"]) == cell and r["rd3g_won"] and "trace" in r and r["rd3g_off_track"] == 0
             and r["opponent_off_track"] == 0 and r["collisions"] == 0)
 
 

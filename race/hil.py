@@ -38,6 +38,7 @@ import numpy as np
 from race.commands import physical_command
 from race.config import FaultSpec, lower_realtime_priority
 from race.referee import Referee
+from race.roster import two_car_roster
 from race.world import WorldPacket
 from sim import Simulator
 from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
@@ -59,7 +60,8 @@ class WorldSpec:
     radio_ids: tuple[int, ...]
     laps: int
     seed: int
-    names: tuple[str, ...] = ("rd3g", "opponent")   # the roster's names (roster order)
+    # the roster's names (roster order; default: the two-car race's)
+    names: tuple[str, ...] = tuple(c.name for c in two_car_roster("mpc", 1.0, 1.0))
     finish: str = "first"             # race.setup.FINISHES: the race is decided at the first or the last finish
     fps: float = 60.0
     image_size: tuple[int, int] = (1280, 800)

@@ -94,10 +94,10 @@ def test_off_track_win_is_not_clean_and_not_counted(track, car):
     assert RaceOutcome(winner="rd3g", off_track={"rd3g": 0, "opponent": 2}, **base).clean_winner == "rd3g"
     rec = dict(cell=("rear", "fast"), collisions=0, rd3g_at_fault=0, solve_ms=np.ones(3), min_gap_m=0.1,
                fallbacks=0, opponent_off_track=0)
-    records = [{**rec, "seed": 0, "winner": "rd3g", "rd3g_off_track": 1},   # shortcut: not counted
-               {**rec, "seed": 1, "winner": "rd3g", "rd3g_off_track": 0},
-               {**rec, "seed": 2, "winner": "opponent", "rd3g_off_track": 0},
-               {**rec, "seed": 3, "winner": "rd3g", "rd3g_off_track": 0}]
+    records = [{**rec, "seed": 0, "winner": "rd3g", "rd3g_won": True, "rd3g_off_track": 1},   # shortcut: not counted
+               {**rec, "seed": 1, "winner": "rd3g", "rd3g_won": True, "rd3g_off_track": 0},
+               {**rec, "seed": 2, "winner": "opponent", "rd3g_won": False, "rd3g_off_track": 0},
+               {**rec, "seed": 3, "winner": "rd3g", "rd3g_won": True, "rd3g_off_track": 0}]
     cell = {(c["start"], c["speed"]): c for c in summarise(records, 4)}[("rear", "fast")]
     assert cell["rd3g_wins"] == 2 and cell["win_rate"] == 0.5
     assert cell["rd3g_off_track_races"] == 1 and cell["rd3g_wins_off_track"] == 1

@@ -60,10 +60,11 @@ def _one(job):
     rd3g, opp = (fast, slow) if speed == "fast" else (slow, fast)
     setup = make_setup(args, args.seed + r, start, rd3g, opp, max_time=args.max_time)
     o = run_race(setup)
-    rec = {"cell": cell, "seed": args.seed + r, "winner": o.winner, "collisions": len(o.collisions),
-           "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in o.collisions), "solve_ms": o.solve_ms.astype(np.float32),
-           "min_gap_m": o.min_gap_m, "fallbacks": o.fallbacks,
-           "rd3g_off_track": o.off_track["rd3g"], "opponent_off_track": o.off_track["opponent"]}
+    ours, theirs = (c.name for c in sorted(setup.cars, key=lambda c: c.planner != "rd3g"))  # the RD3G car first
+    rec = {"cell": cell, "seed": args.seed + r, "winner": o.winner, "rd3g_won": o.winner == ours,
+           "collisions": len(o.collisions), "rd3g_at_fault": o.summary()["rd3g_at_fault"],
+           "solve_ms": o.solve_ms.astype(np.float32), "min_gap_m": o.min_gap_m, "fallbacks": o.fallbacks,
+           "rd3g_off_track": o.off_track[ours], "opponent_off_track": o.off_track[theirs]}
     if keep_trace:
         rec["trace"] = (o.trace_t, o.trace_states, o.trace_progress)
     return rec
@@ -203,14 +204,14 @@ def summarise(records, races: int) -> list[dict]:
         rs = [r for r in records if tuple(r["cell"]) == (start, speed)]
         ms = np.concatenate([r["solve_ms"] for r in rs]) if rs else np.zeros(0)
         # Only clean wins count: a car that left the drivable area may have cut the infield.
-        wins = sum(r["winner"] == "rd3g" and r["rd3g_off_track"] == 0 for r in rs)
+        wins = sum(r["rd3g_won"] and r["rd3g_off_track"] == 0 for r in rs)
         cells.append({"start": start, "speed": speed, "races": len(rs), "rd3g_wins": int(wins),
                       "win_rate": wins / len(rs) if rs else None,
                       "collisions": int(sum(r["collisions"] for r in rs)),
                       "rd3g_at_fault": int(sum(r["rd3g_at_fault"] for r in rs)),
                       "unfinished": int(sum(r["winner"] is None for r in rs)),
                       "rd3g_off_track_races": int(sum(r["rd3g_off_track"] > 0 for r in rs)),
-                      "rd3g_wins_off_track": int(sum(r["winner"] == "rd3g" and r["rd3g_off_track"] > 0 for r in rs)),
+                      "rd3g_wins_off_track": int(sum(r["rd3g_won"] and r["rd3g_off_track"] > 0 for r in rs)),
                       "opponent_off_track_races": int(sum(r["opponent_off_track"] > 0 for r in rs)),
                       "fallbacks": int(sum(r["fallbacks"] for r in rs)),
                       "control_steps": int(sum(len(r["solve_ms"]) for r in rs)),

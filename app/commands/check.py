@@ -19,7 +19,7 @@ from tracking.calibration import CalibrationError, load_fixed_markers
 from vehicles.serial_link import SerialCarLink
 
 SETUP_FAULTS = ("swapped_radio_ids", "reversed_throttle:CAR", "missing_marker:CAR", "covered_fixed_marker:ID")
-_SETUP_FAULT = re.compile(r"^(swapped_radio_ids|reversed_throttle:(rd3g|opponent)|missing_marker:(rd3g|opponent)"
+_SETUP_FAULT = re.compile(r"^(swapped_radio_ids|reversed_throttle:[a-z0-9_]+|missing_marker:[a-z0-9_]+"
                           r"|covered_fixed_marker:[0-9]+)$")
 
 
@@ -58,7 +58,9 @@ def _world_options(args, link_plan, cars, fixed_ids) -> dict:
         if not _SETUP_FAULT.match(text):
             raise UserError(f"--hil-fault {text!r}: expected one of {', '.join(SETUP_FAULTS)}")
         kind, _, arg = text.partition(":")
-        index = {"rd3g": 0, "opponent": 1}.get(arg)
+        index = {c.name: i for i, c in enumerate(cars)}.get(arg)
+        if kind in ("reversed_throttle", "missing_marker") and index is None:
+            raise UserError(f"--hil-fault {text!r}: no car {arg!r} (cars: {', '.join(c.name for c in cars)})")
         if kind == "swapped_radio_ids":
             radio_ids.reverse()
             receivers = [dataclasses.replace(r, modem_id=o.modem_id) for r, o in zip(receivers, receivers[::-1])]

@@ -17,7 +17,7 @@ from app.cli import UserError
 from app.realtime.hardware import CameraFeed
 from race.hil import HilWorld, WorldSpec
 from fileio import atomic_write_text
-from race.config import LoopConfig, LoopConfigError, parse_fault
+from race.config import LoopConfig, LoopConfigError, check_fault_cars, parse_fault
 from race.loop import CarBinding, LoopError, RaceLoop, setup_document
 from race.planning import RacePlanners
 from race.recording import RaceRecorder
@@ -180,6 +180,10 @@ def _run_realtime(args, mode: str) -> int:
         out = out.parent / f"{mode}-seed{args.seed}-{stamp}.rrd"
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     roster = race_roster(args, setup)
+    try:
+        check_fault_cars(faults, setup.names)
+    except LoopConfigError as exc:
+        raise UserError(f"--fault: {exc}") from None
     opponent = "human" if args.human_opponent else args.opponent
     link_plan = plan_link(args, mode, setup, config.link_hz)  # everything about the link valid before it opens
     cars = link_plan.cars
