@@ -14,18 +14,6 @@ from race.roster import RosterCar, RosterError, RosterFileError, load_roster, ma
 from race.setup import RaceSetup, RaceSetupError, RaceSpec, grid_frenet, grid_slots, start_states
 from sim.collision import footprint_corners, rectangle_gap
 from sim.race import SimEvent
-from tracks import load_track
-from vehicles.params import load_car_params
-
-
-@pytest.fixture(scope="module")
-def track():
-    return load_track("oval")
-
-
-@pytest.fixture(scope="module")
-def car():
-    return load_car_params("buzzracer")
 
 
 # ---------------------------------------------------------------- roster
@@ -227,3 +215,29 @@ def test_three_car_race_finishes_with_every_cars_result():
     assert len(s["collision_events"]) == s["collisions"]
     for c in s["collision_events"]:
         assert set(c["cars"]) <= set(cars) and c["at_fault"] in c["cars"]
+
+
+# ---------------------------------------------------------------- fleet batch
+def test_fleet_batch_pairs_positions_by_seed():
+    from app.fleet_batch import fleet_roster, summarise_fleet
+
+    roster = parse_cars("rd3g,mpc,mpc,mpc")
+    swapped = fleet_roster(roster, "counterfactual")
+    assert [c.planner for c in swapped] == ["mpc"] * 4 and swapped[0].name == "rd3g1"
+    assert swapped[0].top_speed_mps == 2.0 and swapped[1:] == roster[1:]   # everything else equal
+
+    def rec(arm, seed, position, unfinished=False, at_fault=0):
+        return {"cell": ("fleet", arm), "seed": seed, "cars": 4, "position": position, "unfinished": unfinished,
+                "at_fault": at_fault, "collisions": at_fault}
+
+    records = [rec("rd3g", 0, 1), rec("counterfactual", 0, 2), rec("rd3g", 1, 2, at_fault=1),
+               rec("counterfactual", 1, 2), rec("rd3g", 2, None, unfinished=True), rec("counterfactual", 2, 3)]
+    f = summarise_fleet(records)
+    # positions 1, 2, 4 (unfinished = last of 4) against 2, 2, 3: differences -1, 0, +1
+    assert f["races"] == 3 and f["rd3g_mean_position"] == pytest.approx(7 / 3)
+    assert f["counterfactual_mean_position"] == pytest.approx(7 / 3)
+    assert f["paired_difference"]["mean"] == pytest.approx(0.0)
+    half = 4.302652729911275 * 1.0 / math.sqrt(3)  # t(0.975, 2 dof) from a table, sample sd of (-1, 0, 1) = 1
+    assert f["paired_difference"]["ci95"] == pytest.approx([-half, half])
+    assert f["rd3g_win_rate"] == pytest.approx(1 / 3) and f["counterfactual_win_rate"] == 0.0
+    assert f["rd3g_at_fault"] == 1 and f["unfinished"] == 1

@@ -42,23 +42,24 @@ def add_race_arguments(p) -> None:
                         "400 batch races (docs/racing.md)")
 
 
-def add_fleet_arguments(p) -> None:
-    """--cars / --roster / --grid: a fleet race (docs/racing.md, "Fleet races")."""
-    fleet = p.add_mutually_exclusive_group()
+def add_fleet_arguments(p, roster_file: bool = True,
+                        grid_default: str = "roster for --cars/--roster; without them the two-car race starts "
+                                            "in single file, --start") -> None:
+    """--cars / --roster / --grid / --game-players: a fleet race (docs/racing.md, "Fleet races")."""
+    fleet = p.add_mutually_exclusive_group() if roster_file else p
     fleet.add_argument("--cars", metavar="PLANNERS",
                        help="a fleet race of 2-6 cars, one planner each (rd3g, mpc, pursuit, human), e.g. "
                             "rd3g,mpc,mpc,pursuit; names are planner + position (rd3g1, mpc2, ...). Replaces "
                             "--opponent/--start/--rd3g-speed/--opponent-speed (docs/racing.md, Fleet races)")
-    fleet.add_argument("--roster", metavar="FILE.toml",
-                       help="a fleet race from a roster file, one [[car]] table per car (docs/file-formats.md)")
+    if roster_file:
+        fleet.add_argument("--roster", metavar="FILE.toml",
+                           help="a fleet race from a roster file, one [[car]] table per car (docs/file-formats.md)")
     p.add_argument("--grid", choices=GRIDS[1:], default=None,
-                   help="start grid of rows of two: slots in roster order (default for --cars/--roster) or "
-                        "shuffled by the seed; without it the two-car race starts in single file (--start)")
+                   help=f"start grid of rows of two: slots in roster order or shuffled by the seed (default {grid_default})")
     p.add_argument("--game-players", type=int, default=RaceSpec.game_players, metavar="N",
                    help=f"players in each RD3G car's game: itself and its nearest cars within reach of the horizon; "
                         f"further cars are constant-speed obstacles; 0: every car within reach "
                         f"(default {RaceSpec.game_players})")
-    p.add_argument("--grid-plot", metavar="FILE.png", help="draw this race's start grid as a PNG and exit (no race)")
 
 
 def register(sub) -> None:
@@ -72,6 +73,7 @@ def register(sub) -> None:
                    help="give up after this many seconds of race time (default 30 s per lap + 30 s)")
     add_race_arguments(p)
     add_fleet_arguments(p)
+    p.add_argument("--grid-plot", metavar="FILE.png", help="draw this race's start grid as a PNG and exit (no race)")
     # --- closing the model-identification loop (docs/sysid.md): the planners use --car-params (e.g. a
     # file written by `sysid`), the simulator runs the physical car below
     p.add_argument("--sim-car-params", default=None,
