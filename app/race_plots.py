@@ -1,5 +1,6 @@
-"""PNG figures of example races for docs/racing.md: one overtake (RD3G starts behind and passes) and
-one block (RD3G starts in front on the slower car and keeps the faster MPC car behind)."""
+"""PNG figures for docs/racing.md: example races, one overtake (RD3G starts behind and passes) and one
+block (RD3G starts in front on the slower car and keeps the faster MPC car behind), and a fleet race's
+start grid (plot_grid)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,6 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from fileio import atomic_write_with
+from race.recording import car_colors
+from race.setup import grid_slots, start_states
+from sim.collision import footprint_corners
 from tracks import draw_track, load_track
 
 
@@ -69,10 +73,6 @@ def plot_grid(setup, path: Path) -> Path:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from race.recording import car_colors
-    from race.setup import grid_slots, start_states
-    from sim.collision import footprint_corners
 
     x0 = start_states(setup)
     g = setup.car.geometry

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from app.cli import UserError
+from app.race_plots import plot_grid
 from app.realtime.run import add_realtime_arguments, open_capture, plan_link, run_realtime, wants_realtime
 from fileio import atomic_write_text, check_output_path
 from race.roster import RosterError, RosterFileError, load_roster, parse_cars
@@ -159,7 +160,6 @@ def run(args) -> int:
         check_output_path(args.json)
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     if getattr(args, "grid_plot", None):
-        from app.race_plots import plot_grid
         check_output_path(args.grid_plot)
         print(f"start grid: {plot_grid(setup, Path(args.grid_plot))}")
         return 0
