@@ -559,7 +559,7 @@ class _World:
         lap_times = {name: list(status.lap_times[i]) for i, name in enumerate(names)}
         summary = {
             "winner": None if status.winner is None else names[status.winner],
-            "lap_times_s": lap_times, "finish_order": order, "results": self.referee.results(order, lap_times),
+            "lap_times_s": lap_times, "finish_order": order, "results": self.referee.results(order, lap_times, self.spec.laps),
             "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
             "race_time_s": self.sim.time,
             "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(names)},

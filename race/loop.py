@@ -795,7 +795,7 @@ class RaceLoop:
                 out.lap_times_s = self.referee.lap_times_s
                 out.min_gap_m = self.referee.min_gap_m if math.isfinite(self.referee.min_gap_m) else None
                 out.finish_order = self.referee.finish_order
-                out.results = self.referee.results(out.finish_order, out.lap_times_s)
+                out.results = self.referee.results(out.finish_order, out.lap_times_s, self.setup.laps)
         out.planners = dict(self.planner_kinds)
         if self.rec is not None:
             out.recording = str(self.rec.path)

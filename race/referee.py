@@ -140,9 +140,11 @@ class Referee:
             return {name: [] for name in self.names}
         return {name: list(self._laps.lap_times[i]) for i, name in enumerate(self.names)}
 
-    def results(self, finish_order, lap_times_s: dict) -> list[CarResult]:
+    def results(self, finish_order, lap_times_s: dict, laps: int | None = None) -> list[CarResult]:
         """Each car's result (``names`` order) from the finishing order and lap times (the simulator's,
-        or :attr:`finish_order` / :attr:`lap_times_s` where the referee counted laps itself)."""
+        or :attr:`finish_order` / :attr:`lap_times_s` where the referee counted laps itself); ``laps``:
+        the race's laps (a car that has finished drives on until the race ends: its later laps are not
+        its race's)."""
         position = {name: k + 1 for k, name in enumerate(finish_order)}
-        return [CarResult(name, position.get(name), list(lap_times_s.get(name, [])), self.at_fault(name),
+        return [CarResult(name, position.get(name), list(lap_times_s.get(name, []))[:laps], self.at_fault(name),
                           self.off_track.get(name, 0)) for name in self.names]

@@ -219,7 +219,7 @@ class SimWorld:
         status = self.sim.race_status()
         order = [self.names[i] for i in status.finish_order]
         times = {name: list(status.lap_times[i]) for i, name in enumerate(self.names)}
-        return order, self.referee.results(order, times)
+        return order, self.referee.results(order, times, self.setup.laps)
 
     # ---- Link
     def set_commands(self, commands: dict) -> None:
