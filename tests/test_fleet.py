@@ -77,6 +77,12 @@ def test_cli_rejects_a_bad_roster_with_exit_code_2(tmp_path, capsys):
     assert main(["race", "--cars", "rd3g", "--out", str(out)]) == 2
     assert main(["race", "--cars", "rd3g,human", "--out", str(out)]) == 2  # no person in a simulation
     assert "car human2: planner" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[car]]\nname = "a"\nplanner = "rd3g"\nradio_id = 9\n[[car]]\nname = "b"\nplanner = "mpc"\nradio_id = 9\n')
+    assert main(["race", "--roster", str(bad), "--out", str(out)]) == 2
+    assert f"--roster: {bad}: car b: radio_id" in capsys.readouterr().err
+    assert main(["batch", "--cars", "rd3g,rd3g,mpc", "--races", "1"]) == 2  # one RD3G car against its counterfactual
+    assert "2 RD3G cars" in capsys.readouterr().err
     assert not out.exists()
 
 
