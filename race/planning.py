@@ -154,7 +154,6 @@ class RacePlanners:
                 self.pursuit[c.name] = PurePursuitController(setup.track, car, target_speed_mps=c.top_speed_mps)
         self.unwrap: ProgressUnwrapper | None = None
         self.commanded = tuple(c.name for c in self.cars if c.planner != "human")
-        self.players: dict[str, list[str]] = {}  # RD3G car -> the other cars of its last game
 
     def plan(self, job: PlanJob) -> PlanResult:
         """One planning step for every commanded car; a car whose planner failed has its fallback plan
@@ -172,7 +171,6 @@ class RacePlanners:
                 extra = {}
                 if c.planner == "rd3g":
                     others, far = self._others(i, planner, at_plan)
-                    self.players[c.name] = [self.names[j] for j in others]
                     extra = {"obstacles": self._in_frame(at_plan, i, far)} if far else {}
                 else:
                     others = [j for j in range(len(self.cars)) if j != i]
