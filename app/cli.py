@@ -21,10 +21,12 @@ COMMAND_MODULES = [
     "app.commands.scenario",
     "app.commands.bench",
     "app.commands.calibrate",
+    "app.commands.calibrate_camera", "app.commands.make_board",
     "app.commands.review",
     "app.commands.link_decode",
     "app.commands.check",
     "app.commands.sysid",
+    "app.commands.track",
 ]
 
 

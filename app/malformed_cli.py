@@ -21,11 +21,10 @@ Anything else (another exit code, a traceback, a signal, a timeout, a partial ou
 Some mutations can never give a valid file (a NaN string or a type swap where only numbers are
 allowed, text cut inside JSON, re-encoding as UTF-16): for those acceptance is a failure too.
 
-    python -m app.malformed_cli [--formats all] [--per-format N] [--seed S] [--json out.json]
+    python -m app bench malformed [--formats all] [--per-format N] [--seed S] [--json out.json]
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -42,6 +41,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from app.cli import build_parser, main as cli_main
+from bench.charuco_views import BoardRenderer
 from bench.fuzz import toml_bytes  # the API fuzz's TOML renderer (hypothesis: installed with the test extra)
 from bench.merging import merging_problem
 from fileio import atomic_write_text
@@ -50,6 +50,7 @@ from solver_cpp.problem_file import problem_to_dict
 from sysid.generate import generate_log
 from sysid.log import write_log_csv
 from tracking.calibration import Intrinsics, load_fixed_markers, save_intrinsics
+from tracking.charuco import load_board_file
 from vehicles.fhss import FhssEncoder, ServoCalibration
 from vehicles.link_capture import LinkCapture
 from vehicles.params import load_car_params
@@ -86,6 +87,7 @@ class Seeds:
     folder: Path
     files: dict[str, bytes] = field(default_factory=dict)
     arena_png: Path | None = None
+    board_views: list[Path] = field(default_factory=list)  # rendered views of the board file's board
     intrinsics: Path | None = None
     fixed_markers: Path = ROOT / "tracking" / "data" / "oval_fixed_markers.json"
 
@@ -108,6 +110,8 @@ FORMATS = {f.name: f for f in [
                                                             "--serial", os.devnull], accepted_codes=(1,),
            nullable=("focal_std_px", "focal_std_markers_px", "focal_std_principal_point_px", "reprojection_rms_px",
                      "reprojection_max_px")),
+    Format("board", ".json", "json", lambda f, o, s: ["calibrate-camera", *s.board_views, "--board", f,
+                                                      "--out", o / "intrinsics.json"]),
     Format("sysid_csv", ".csv", "csv", lambda f, o, s: ["sysid", f, "--car-params", "buzzracer", "--report", o / "r.md",
                                                         "--json", o / "r.json", "--fit-windows", "20"]),
     # link-decode exits 1 when the capture holds bad frames (a decode report, not an error).
@@ -142,6 +146,18 @@ def make_seeds(folder: Path) -> Seeds:
     if code != 0:
         raise RuntimeError(f"calibrate on the rendered arena failed ({code}): {err}")
     s.files["calibration"] = cal.read_bytes()
+    board = folder / "board.png"
+    code, _, err = run_cli(["make-board", "--out", board, "--dpi", "100"], folder, 120)
+    if code != 0:
+        raise RuntimeError(f"make-board failed ({code}): {err}")
+    s.files["board"] = board.with_suffix(".json").read_bytes()
+    spec = load_board_file(board.with_suffix(".json")).board
+    render = BoardRenderer((spec.squares_x, spec.squares_y), spec.square_length_m, spec.marker_length_m,
+                           spec.dictionary, supersample=2)
+    rng = np.random.default_rng(0)
+    for i, (rvec, tvec) in enumerate(render.random_poses(4, rng, depth_m=(0.45, 0.55))):
+        s.board_views.append(folder / f"board_view{i}.png")
+        cv2.imwrite(str(s.board_views[-1]), render(rvec, tvec, rng=rng))
     log = folder / "drive.csv"
     write_log_csv(log, generate_log(load_car_params("buzzracer"), {}, 0.5, seed=1, physics_dt=0.002))
     s.files["sysid_csv"] = log.read_bytes()
@@ -442,32 +458,24 @@ def markdown(report: dict, command: str, load: tuple[float, float]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--formats", default="all", help=f"comma-separated, or all: {', '.join(FORMATS)}")
-    p.add_argument("--per-format", type=int, default=0, help="at most this many cases per format (0 = all)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--offsets", type=int, default=40, help="truncation offsets per file")
-    p.add_argument("--workdir", help="keep the failures' inputs here (default: a temporary folder)")
-    p.add_argument("--json", help="write the report here")
-    p.add_argument("--verbose", action="store_true")
-    args = p.parse_args(argv)
+def command(args) -> int:
+    """`python -m app bench malformed` (its options are in app/commands/bench.py, which imports this module only
+    when the command runs: it needs hypothesis, an optional extra)."""
     names = list(FORMATS) if args.formats == "all" else args.formats.split(",")
     unknown = [n for n in names if n not in FORMATS]
     if unknown:
-        p.error(f"unknown format(s) {', '.join(unknown)}; known: {', '.join(FORMATS)}")
+        raise ValueError(f"--formats: unknown format(s) {', '.join(unknown)}; known: {', '.join(FORMATS)}")
     build_parser()  # once, in the parent: every forked child starts with the commands imported
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="rd3g-malformed-"))
     load0 = os.getloadavg()[0]
     report = run(names, args.per_format, args.seed, workdir, args.offsets,
                  progress=(lambda s: print(s, flush=True)) if args.verbose else None)
-    md = markdown(report, "python -m app.malformed_cli " + " ".join(argv if argv is not None else sys.argv[1:]),
-                  (load0, os.getloadavg()[0]))
+    md = markdown(report, "python -m app " + " ".join(sys.argv[1:]), (load0, os.getloadavg()[0]))
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps(report, indent=1) + "\n")
+        atomic_write_text(args.json, json.dumps(report, indent=1) + "\n", stream=True)
     return 1 if report["failures"] else 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # the old entry point, forwarded
+    raise SystemExit(cli_main(["bench", "malformed", *sys.argv[1:]]))

@@ -2,12 +2,11 @@
 ALGames (open-loop Nash, Newton on the augmented-Lagrangian KKT system). Both are C++ (solver_cpp/src/
 ilqgames.cpp, algames.cpp) on the same models, derivatives and problem struct as RD3G; see docs/baselines.md.
 
-    python -m bench.baselines            # convergence count and median time on merging seeds 0-19, 2..5 cars
+    python -m app bench baselines        # convergence count and median time on merging seeds 0-19, 2..5 cars
 """
 from __future__ import annotations
 
 import argparse
-import sys
 
 import numpy as np
 
@@ -87,11 +86,14 @@ def min_pair_distance(result: GameResult, pos=(0, 1)) -> float:
     return float(d.min())
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options of `python -m app bench baselines`."""
     ap.add_argument("--cars", type=int, nargs="+", default=[2, 3, 4, 5])
     ap.add_argument("--seeds", type=int, default=20)
-    args = ap.parse_args(argv)
+
+
+def run(args) -> int:
+    """Convergence count, median time and iterations of RD3G and both baselines per car count."""
     solvers = {"rd3g": lambda p: solve(p), "ilqgames": solve_ilqgames, "algames": solve_algames}
     print(f"{'cars':>4} {'solver':>9} {'converged':>9} {'median ms':>10} {'median it':>9}")
     for n in args.cars:
@@ -110,4 +112,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit("moved: python -m app bench baselines")

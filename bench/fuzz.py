@@ -28,7 +28,9 @@ from typing import Any, Callable
 from hypothesis import strategies as st
 
 from bench.merging import merging_problem
-from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, QuadraticCost, solve
+from fileio import atomic_write_bytes
+from solver_cpp import (Agent, Collision, GameProblem, KinematicBicycle, LinearModel, Obstacle, PairDistance,
+                        QuadraticCost, solve)
 from solver_cpp.problem_file import ProblemFileError, load_problem, problem_to_dict
 from sysid.log import LogFormatError, read_log
 from tracking import calibration
@@ -215,7 +217,8 @@ def problem_seeds() -> list:
     for a in merge["agents"]:
         a["u_init"] = [[0.0, 0.0]] * 5
     T = 4
-    linear = {"dt": 0.1, "horizon": T, "collision": {"min_distance": [1.0] * T, "form": "squared", "enabled": True},
+    linear = {"dt": 0.1, "horizon": T, "collision": {"min_distance": [1.0] * T, "form": "squared", "enabled": True,
+                                                     "pair_distances": [{"agents": [1, 0], "min_distance": 0.8}]},
               "agents": [{"dynamics": {"type": "linear", "A": [[1, 0.1], [0, 1]], "B": [[0], [0.1]]},
                           "x0": [0, 0], "cost": {"x_ref": [1, 0], "Q_ref": [1, 0.1], "R": [0.01], "Qf": [1, 1]},
                           "u_min": [-1], "u_max": [1], "x_min": [-float("inf"), -2], "x_max": [float("inf"), 2],
@@ -519,6 +522,11 @@ def game_problems(draw, valid: bool = False):
     if draw(st.booleans()):
         collision = Collision(min_distance=draw(numbers(0.01, 3.0)), form=pick(["distance"] * 5 + ["squared"] * 5 + ["x"], ["distance", "squared"]),
                               pos_x=pick([0] * 8 + [-1, nx], [0]), pos_y=pick([min(1, nx - 1)] * 8 + [-1, nx], [min(1, nx - 1)]))
+        # A pair with its own distance, its agent indices possibly out of range or equal (not drawn with valid=True,
+        # whose draws bench/time_limit.py's numbers depend on).
+        if not valid and N >= 2 and draw(st.booleans()):
+            pair = (draw(st.sampled_from([0] * 4 + [-1, N])), draw(st.sampled_from([N - 1] * 4 + [0, N])))
+            collision.pair_distances = [PairDistance(agents=pair, min_distance=draw(numbers(0.01, 3.0)))]
     obstacles = []
     # Obstacles with no collision block use state indices 0 and 1 unchecked: the C++ core's index
     # validation (a separate part of issue 17) covers that; until then nx < 2 is left out here.
@@ -579,7 +587,7 @@ def fuzz_solver(examples: int, seed: int = 0, timeout_s: float = 600.0, workdir:
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rd3g-fuzz-solver-"))
     workdir.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "bench.fuzz", "solver-child", str(examples), str(seed), str(workdir)]
-    replay = f"{sys.executable} -m bench.fuzz solver-replay {workdir / 'current.pkl'}"
+    replay = f"python -m app bench fuzz --target solver_api --replay {workdir / 'current.pkl'}"
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
                               cwd=Path(__file__).resolve().parent.parent)
@@ -591,7 +599,8 @@ def fuzz_solver(examples: int, seed: int = 0, timeout_s: float = 600.0, workdir:
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     if report["failures"]:
         first = report["failures"][0]
-        raise FuzzFailure(f"{first['message']}; reproduce: {sys.executable} -m bench.fuzz solver-replay {first['reproducer']}")
+        raise FuzzFailure(f"{first['message']}; reproduce: python -m app bench fuzz --target solver_api --replay "
+                          f"{first['reproducer']}")
     return report
 
 
@@ -628,9 +637,8 @@ def campaign(name: str, examples: int, seed: int, outdir: Path, progress: bool =
             except FuzzFailure as exc:
                 counts["failure"] += 1
                 if len(failures) < 10:
-                    outdir.mkdir(parents=True, exist_ok=True)
                     path = outdir / f"{name}-failure-{len(failures)}{target.suffix}"
-                    path.write_bytes(data)
+                    atomic_write_bytes(path, data)
                     failures.append(str(path))
                     messages.append(str(exc))
 
@@ -668,18 +676,11 @@ def markdown(report: dict, command: str, machine: str) -> str:
 
 
 def _main(argv: list[str]) -> int:
-    if argv[:1] == ["solver-child"]:
+    """The child process of fuzz_solver (a native crash ends only it), not a user command."""
+    if argv[:1] == ["solver-child"] and len(argv) == 4:
         print(json.dumps(_solver_child(int(argv[1]), int(argv[2]), Path(argv[3]))))
         return 0
-    if argv[:1] == ["solver-replay"]:
-        import pickle
-
-        problem = pickle.loads(Path(argv[1]).read_bytes())
-        print(problem)
-        print(solve_one(problem))
-        return 0
-    print("usage: python -m bench.fuzz solver-child N SEED DIR | solver-replay FILE.pkl "
-          "(campaigns: python -m app bench fuzz)")
+    print("campaigns and replays: python -m app bench fuzz --target NAME [--replay FILE]")
     return 2
 
 

@@ -55,5 +55,5 @@ def markdown(rows: list[dict], command: str, machine: str, load: tuple) -> str:
     return "\n".join(lines) + "\n"
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # run()'s child process (one measurement per fresh process), not a user command
     print(json.dumps(measure_one(int(sys.argv[1]), int(sys.argv[2]))))

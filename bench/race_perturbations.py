@@ -1,5 +1,5 @@
 """Simulated races under the control-path imperfections of the real-time loop, to see which of them
-change who wins (docs/benchmarks.md, HIL loop bench notes): ``python -m bench.race_perturbations``.
+change who wins (docs/benchmarks.md, HIL loop bench notes): ``python -m app bench race-perturbations``.
 
 Each option perturbs the pure simulation (``race.simulation.run_race``) in one way; without options
 the races are the default simulated races. Prints each seed's winner and RD3G's win count.
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fileio import atomic_write_text
+from fileio import OutputFileError, atomic_write_text, check_output_path
 
 from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
@@ -61,8 +61,8 @@ def perturbed_simulator(late_ms=(0.0, 0.0), tail=(0.0, 0.0, 0.0), neutral=(0.0, 
     return PerturbedSimulator
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.race_perturbations", description=__doc__.split("\n\n")[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `python -m app bench race-perturbations`."""
     parser.add_argument("--track", default=RaceSpec.track, help=f"track name or file (default: {RaceSpec.track})")
     parser.add_argument("--car-params", default=RaceSpec.car_params, help=f"car file (default: {RaceSpec.car_params})")
     parser.add_argument("--opponent", choices=OPPONENTS, default=RaceSpec.opponent)
@@ -81,12 +81,20 @@ def main(argv=None) -> int:
     parser.add_argument("--rng-seed", type=int, default=7919,
                         help="seed of the perturbations' random draws (added to each race's seed)")
     parser.add_argument("--json", help="write the per-seed winners here")
-    args = parser.parse_args(argv)
+
+
+def run(args) -> int:
+    """Races args.seeds seeds under the perturbations; ValueError names a bad option."""
     if not 0 <= args.late_ms[0] <= args.late_ms[1]:
-        parser.error("--late-ms: need 0 <= LO <= HI")
+        raise ValueError("--late-ms: need 0 <= LO <= HI")
     for name, p in (("--tail", args.tail[0]), ("--neutral", args.neutral[0])):
         if not 0 <= p <= 1:
-            parser.error(f"{name}: the probability must be in [0, 1], got {p}")
+            raise ValueError(f"{name}: the probability must be in [0, 1], got {p}")
+    if args.json:
+        try:
+            check_output_path(args.json, stream=True)
+        except OutputFileError as exc:
+            raise ValueError(str(exc)) from None
     sim_cls = perturbed_simulator(args.late_ms, args.tail, args.neutral, seed_offset=args.rng_seed)
     winners = {}
     for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -96,7 +104,7 @@ def main(argv=None) -> int:
         try:
             setup = spec.load()
         except RaceSetupError as exc:
-            parser.error(str(exc))
+            raise ValueError(str(exc)) from None
         if args.max_iterations is not None:
             solver = {**setup.planner.solver, "max_iter": args.max_iterations}
             setup = dataclasses.replace(setup, planner=dataclasses.replace(setup.planner, solver=solver))
@@ -105,9 +113,9 @@ def main(argv=None) -> int:
     wins = [s for s, w in winners.items() if w == "rd3g"]
     print(f"RD3G won {len(wins)} of {len(winners)}: seeds {wins}")
     if args.json:
-        atomic_write_text(args.json, json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n", stream=True)
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit("moved: python -m app bench race-perturbations")

@@ -1,8 +1,8 @@
 """How well `time_limit` holds (docs/solver.md, "Time limit"); the goal is wall time <= 1.1 limit + 20 ms.
 
-    python -m bench.time_limit [--cars 6] [--seeds 3] [--limits 0.05,0.2]
+    python -m app bench time-limit [--cars 6] [--seeds 3] [--limits 0.05,0.2]
         merging games with SparseQR and with LSCG at a tolerance it cannot reach: status and wall time per solve
-    python -m bench.time_limit --families all --cars 2,4,8 --seeds 2 --fuzz 200 [--json out.json]
+    python -m app bench time-limit --families all --cars 2,4,8 --seeds 2 --fuzz 200 [--json out.json]
         every merge family and solver path, and fuzzed problems (bench/fuzz.py's generator), summarised
 """
 from __future__ import annotations
@@ -101,8 +101,8 @@ def markdown(result: dict, command: str, load: tuple[float, float]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `python -m app bench time-limit`."""
     p.add_argument("--cars", default="6", help="car counts, comma-separated")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--limits", default="0.05,0.2", help="time limits (s), comma-separated")
@@ -110,7 +110,9 @@ def main() -> None:
     p.add_argument("--fuzz", type=int, default=0, help="also this many fuzz-generated problems (summary mode)")
     p.add_argument("--paths", default=",".join(PATHS), help="linear-solver paths, comma-separated")
     p.add_argument("--json", help="write the summary here")
-    args = p.parse_args()
+
+
+def run(args) -> int:
     limits = [float(x) for x in args.limits.split(",")]
     cars = [int(x) for x in args.cars.split(",")]
     paths = {k: PATHS[k] for k in args.paths.split(",")}
@@ -121,21 +123,21 @@ def main() -> None:
                 for seed in range(args.seeds):
                     status, wall, _ = timed(merging_problem(cars[0], seed), limit, linear_solver=name, **extra)
                     print(f"{name:<13}  {limit:7.3f}  {seed:4d}  {status:<10}  {wall:6.3f}  {wall - limit:11.3f}")
-        return
+        return 0
     if args.json:
-        check_output_path(args.json)
+        check_output_path(args.json, stream=True)
     names = [] if args.families is None else list(FAMILIES) if args.families == "all" else args.families.split(",")
     load0 = os.getloadavg()[0]
     fuzzed = fuzz_cases(args.fuzz, 0) if args.fuzz else []
     result = summary([*family_cases(names, cars, args.seeds), *fuzzed], limits, paths)
     if args.fuzz:
         result.update(fuzz_generated=args.fuzz, fuzz_valid=len(fuzzed))
-    md = markdown(result, "python -m bench.time_limit " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-                  (load0, os.getloadavg()[0]))
+    md = markdown(result, "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]), (load0, os.getloadavg()[0]))
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps(result, indent=1) + "\n")
+        atomic_write_text(args.json, json.dumps(result, indent=1) + "\n", stream=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit("moved: python -m app bench time-limit")

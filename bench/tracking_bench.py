@@ -1,4 +1,4 @@
-"""Time rendering and detection on synthetic frames: ``python -m bench.tracking_bench``.
+"""Time rendering and detection on synthetic frames: ``python -m app bench tracking``.
 
 Prints median and 90th-percentile milliseconds per frame for the synthetic render, full-frame
 detection, ROI detection around predicted positions, and the EKF update of all cars. Pose
@@ -22,15 +22,16 @@ from tracks import load_track
 from tracks.geometry import wrap_angle
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.tracking_bench")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `python -m app bench tracking`."""
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--cars", type=int, default=4)
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=800)
     parser.add_argument("--refine", choices=("ecc", "aruco"), default="ecc")
-    args = parser.parse_args(argv)
 
+
+def run(args) -> int:
     track = load_track("oval")
     left, right = track.boundaries()
     fixed = load_fixed_markers(Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json")
@@ -87,4 +88,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit("moved: python -m app bench tracking")

@@ -73,13 +73,15 @@ def _distance_steps(value, T: int) -> np.ndarray:
 
 
 def _collision_settings(problem: GameProblem) -> tuple[bool, np.ndarray, int, int]:
-    """(pairs enabled, d_min for k = 1..T (T,), pos_x, pos_y); positions default to state components 0, 1."""
-    T = int(problem.horizon)
+    """(pairs enabled, d_min of agents i and j for k = 1..T (N, N, T), pos_x, pos_y); positions default to state
+    components 0, 1."""
+    N, T = problem.num_agents, int(problem.horizon)
     col = problem.collision
     if col is None:
-        return False, np.zeros(T), 0, 1
-    enabled = bool(col.enabled) and problem.num_agents >= 2
-    return enabled, _distance_steps(col.min_distance, T) if enabled else np.zeros(T), int(col.pos_x), int(col.pos_y)
+        return False, np.zeros((N, N, T)), 0, 1
+    enabled = bool(col.enabled) and N >= 2
+    d_min = col.pair_min_distances(N, T) if enabled else np.zeros((N, N, T))
+    return enabled, d_min, int(col.pos_x), int(col.pos_y)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -126,7 +128,7 @@ def collision_gaps_m(problem: GameProblem, x) -> np.ndarray:
     gaps = []
     if enabled:
         iu, ju = np.triu_indices(N, k=1)
-        gaps.append((d_min - np.linalg.norm(p[iu] - p[ju], axis=-1)).ravel())
+        gaps.append((d_min[iu, ju] - np.linalg.norm(p[iu] - p[ju], axis=-1)).ravel())
     for o in problem.obstacles:
         pos = np.asarray(o.positions, dtype=float)[1:]  # (T, 2)
         gaps.append((_distance_steps(o.min_distance, T) - np.linalg.norm(p - pos[None], axis=-1)).ravel())
@@ -191,7 +193,7 @@ def _player_inequalities(problem: GameProblem, x: np.ndarray, u: np.ndarray, i: 
     """Yields (value, step k (1..T states / 0..T-1 controls), 'x' or 'u', gradient wrt that block)."""
     N, T, nx, nu = _check_shapes(problem, x, u)
     enabled, d_min, px, py = _collision_settings(problem)
-    others = [(x[j, :, [px, py]].T, d_min) for j in range(N) if enabled and j != i]
+    others = [(x[j, :, [px, py]].T, d_min[i, j]) for j in range(N) if enabled and j != i]
     others += [(np.asarray(o.positions, dtype=float), _distance_steps(o.min_distance, T)) for o in problem.obstacles]
     for other, dmin in others:
         for k in range(1, T + 1):
@@ -305,7 +307,7 @@ class _ShootingProblem:
         self.x_lo, self.x_hi = _bounds(a.x_min, self.nx, -np.inf), _bounds(a.x_max, self.nx, np.inf)
         enabled, d_min, self.px, self.py = _collision_settings(problem)
         # Points to keep away from at k = 1..T: (positions (T, 2), d_min (T,)).
-        self.avoid = [(x[j, 1:][:, [self.px, self.py]], d_min) for j in range(self.N) if enabled and j != i]
+        self.avoid = [(x[j, 1:][:, [self.px, self.py]], d_min[i, j]) for j in range(self.N) if enabled and j != i]
         self.avoid += [(np.asarray(o.positions, dtype=float)[1:], _distance_steps(o.min_distance, self.T))
                        for o in problem.obstacles]
         self._key = None
@@ -526,10 +528,10 @@ def fixed_state_infeasibility(problem: GameProblem, tol_m: float = FEASIBILITY_T
                 continue
             p = x[i, k, [px, py]]
             for j in range(i + 1, N) if enabled else ():
-                gap = d_min[k - 1] - float(np.linalg.norm(p - x[j, k, [px, py]]))
+                gap = d_min[i, j, k - 1] - float(np.linalg.norm(p - x[j, k, [px, py]]))
                 if pos_fixed[j, k] and gap > tol_m:
                     reasons.append(f"agents {i} and {j} at step {k}: positions no control changes are "
-                                   f"{d_min[k - 1] - gap:.3f} m apart < d_min {d_min[k - 1]:g} m")
+                                   f"{d_min[i, j, k - 1] - gap:.3f} m apart < d_min {d_min[i, j, k - 1]:g} m")
             for o, obs in enumerate(problem.obstacles):
                 dmin_o = _distance_steps(obs.min_distance, T)[k - 1]
                 gap = dmin_o - float(np.linalg.norm(p - np.asarray(obs.positions, dtype=float)[k]))
@@ -565,11 +567,12 @@ class _JointShooting:
         self.fs = [a.dynamics.build(problem.dt) for a in problem.agents]
         self.x0 = [np.asarray(a.x0, dtype=float) for a in problem.agents]
         enabled, d_min, self.px, self.py = _collision_settings(problem)
-        # "others": agents 0..N-1 (moving with their controls), then obstacles (fixed positions), with D per step.
+        # "others": agents 0..N-1 (moving with their controls), then obstacles (fixed positions), with D per agent,
+        # other and step (N, N + obstacles, T).
         self.n_pairs_agents = self.N if enabled else 0
         self.obs_pos = np.array([np.asarray(o.positions, dtype=float) for o in problem.obstacles]).reshape(-1, self.T + 1, 2)
-        self.D = np.vstack([np.tile(d_min + margin_m, (self.N, 1))]
-                           + [_distance_steps(o.min_distance, self.T)[None] + margin_m for o in problem.obstacles])
+        obs_d = np.array([_distance_steps(o.min_distance, self.T) for o in problem.obstacles]).reshape(-1, self.T)
+        self.D = np.concatenate([d_min, np.broadcast_to(obs_d, (self.N, *obs_d.shape))], axis=1) + margin_m
         self.x_lo = [_bounds(a.x_min, self.nx, -np.inf) for a in problem.agents]
         self.x_hi = [_bounds(a.x_max, self.nx, np.inf) for a in problem.agents]
         self.work = np.zeros((0, 3), dtype=int)  # rows (agent a, other b, step k): b >= N is obstacle b - N
@@ -600,7 +603,7 @@ class _JointShooting:
         """D - distance for every (a, b > a, k) as an array (N, N + obstacles, T+1) (nan where no constraint)."""
         self._eval(z)
         P = self.positions()
-        g = self.D[None, :, :] - np.linalg.norm(P[None, :, 1:] - P[:self.N, None, 1:], axis=-1)  # (N, N+O, T)
+        g = self.D - np.linalg.norm(P[None, :, 1:] - P[:self.N, None, 1:], axis=-1)  # (N, N+O, T)
         mask = np.zeros(g.shape, dtype=bool)
         mask[:, self.N:] = True
         mask[:, :self.N] = np.triu(np.ones((self.N, self.N), dtype=bool), 1)[:, :, None] & (self.n_pairs_agents > 0)
@@ -617,7 +620,7 @@ class _JointShooting:
         self._eval(z)
         P = self.positions()
         a, b, k = self.work.T
-        d = self.D[b, k - 1]
+        d = self.D[a, b, k - 1]
         c = [(np.sum((P[a, k] - P[b, k]) ** 2, axis=1) - d ** 2) / (2.0 * d)]
         for i in range(self.N):
             hi, lo = np.isfinite(self.x_hi[i]), np.isfinite(self.x_lo[i])
@@ -631,7 +634,7 @@ class _JointShooting:
         P = self.positions()
         a, b, k = self.work.T
         n_z = self.T * self.nu
-        grad = (P[a, k] - P[b, k]) / self.D[b, k - 1][:, None]  # dc/dp_a; dc/dp_b = -grad
+        grad = (P[a, k] - P[b, k]) / self.D[a, b, k - 1][:, None]  # dc/dp_a; dc/dp_b = -grad
         Sp = self.S[:, :, [self.px, self.py]]  # (N, T+1, 2, T nu)
         J = np.zeros((len(a), self.N, n_z))
         r = np.arange(len(a))

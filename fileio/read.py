@@ -21,10 +21,11 @@ class InputFileError(ValueError):
     """An input file that cannot be used; the message names the file and the place at fault."""
 
 
-def _kind(mode: int) -> str:
+def file_kind(mode: int) -> str:
+    """What an ``st_mode`` is, for messages: "a directory", "a FIFO (named pipe)", ..."""
     for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
                        (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-                       (stat.S_ISSOCK, "a socket")):
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISREG, "a regular file")):
         if test(mode):
             return name
     return "not a regular file"
@@ -45,7 +46,7 @@ def read_bytes(path: str | os.PathLike, what: str = "file", *, max_bytes: int = 
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise error(f"{path}: {what} is {_kind(st.st_mode)}, not a regular file")
+            raise error(f"{path}: {what} is {file_kind(st.st_mode)}, not a regular file")
         if st.st_size > max_bytes:
             raise error(f"{path}: {what} is {st.st_size} bytes, more than the limit of {max_bytes}")
         chunks, total = [], 0

@@ -42,7 +42,7 @@ from race.roster import two_car_roster
 from race.world import WorldPacket
 from sim import Simulator
 from sim.camera import CarAppearance, CarPose, RenderEffects, SyntheticCamera, TrackDrawing, overhead_camera
-from tracking.calibration import load_fixed_markers
+from tracking.calibration import aruco_dictionary_id, load_fixed_markers
 from tracking.camera import Frame
 from vehicles import fhss
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN, CarCommand
@@ -287,11 +287,16 @@ def make_camera(spec: WorldSpec):
     camera = overhead_camera(bounds, image_size=spec.image_size)
     left, right = track.boundaries(0.01)
     fixed_path = FIXED_MARKERS.get(track.name)
-    fixed = [m for m in (load_fixed_markers(fixed_path).markers.values() if fixed_path else [])
-             if m.marker_id not in spec.covered_fixed_markers]
+    marker_set = load_fixed_markers(fixed_path) if fixed_path else None
+    dictionary = spec.car.marker.dictionary  # the car file's; the fixed markers must be printed from the same
+    if marker_set is not None and marker_set.dictionary != dictionary:
+        raise ValueError(f"car file marker.dictionary {dictionary} differs from {fixed_path}'s dictionary "
+                         f"{marker_set.dictionary}: the tracker reads one dictionary")
+    fixed = [m for m in (marker_set.markers.values() if marker_set else []) if m.marker_id not in spec.covered_fixed_markers]
     appearance = CarAppearance(roof_height_m=spec.car.marker.height_m, marker_size_m=spec.car.marker.size_m)
     synth = SyntheticCamera(camera, TrackDrawing(left, right, arena_bounds=bounds), fixed, car=appearance,
-                            effects=RenderEffects(seed=spec.seed), fps=spec.fps)
+                            effects=RenderEffects(seed=spec.seed), dictionary=aruco_dictionary_id(dictionary),
+                            fps=spec.fps)
     return synth, camera, fixed_path, appearance
 
 

@@ -29,6 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
+from fileio import check_output_path
 from planning.frenet import EY, S
 from race.config import lower_realtime_priority
 from race.roster import PLANNERS, two_car_roster
@@ -65,6 +66,7 @@ class RaceRecorder:
 
         self.rr = rr
         self.path = Path(path)
+        check_output_path(self.path)  # a regular file (a link to one) or new; Rerun writes it as the race goes
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         self.rec.save(str(self.path), default_blueprint=race_blueprint(car_names, realtime=realtime))
         self.flush_every_s = float(flush_every_s)

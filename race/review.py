@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fileio import atomic_write_with
+from fileio import atomic_write_with, check_output_dir
 from race.recording import EVENTS_ENTITY, RecordingData, car_colors
 from race.summary import percentile
 from sim.collision import rectangle_gap
@@ -161,7 +161,7 @@ def save_plots(data: RecordingData, folder: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    folder.mkdir(parents=True, exist_ok=True)
+    check_output_dir(folder)
     out = []
     track = load_track_of(data)
     names = car_names(data)

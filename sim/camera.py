@@ -18,7 +18,7 @@ from tracking.calibration import FixedMarker, marker_corners_track
 from tracking.camera import CameraError, Frame
 from tracking.geometry import PinholeCamera, rotation_look_at
 from tracking.motion import ctrv_transition
-from vehicles.params import MarkerParams
+from vehicles.params import MARKER_DICTIONARY, MarkerParams
 
 
 # --------------------------------------------------------------------------- synthetic camera
@@ -136,7 +136,7 @@ class SyntheticCamera:
 
     def __init__(self, camera: PinholeCamera, track: TrackDrawing | None = None,
                  fixed_markers: Sequence[FixedMarker] = (), car: CarAppearance = CarAppearance(),
-                 effects: RenderEffects = RenderEffects(), dictionary: int = cv2.aruco.DICT_4X4_50,
+                 effects: RenderEffects = RenderEffects(), dictionary: int = getattr(cv2.aruco, MARKER_DICTIONARY),
                  world: Callable[[float], Sequence] | None = None, fps: float = 60.0, t0_s: float = 0.0):
         for marker in fixed_markers:
             if marker.heading_rad is None:

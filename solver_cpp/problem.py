@@ -97,15 +97,56 @@ def _min_distance(where: str, value) -> tuple[float, np.ndarray]:
 
 
 @dataclass
+class PairDistance:
+    """The collision distance of one pair of agents, in place of Collision.min_distance for that pair
+    (e.g. relaxed for the one pair that starts too close): agents = two agent indices (either order),
+    min_distance in m, one number or T numbers (k = 1..T) as in Collision."""
+
+    agents: Sequence[int]
+    min_distance: float | Sequence[float]
+
+
+@dataclass
 class Collision:
     """Pairwise h = d_min - |p_i - p_j| ("distance") or d_min^2 - |p_i - p_j|^2 ("squared") <= 0.
-    min_distance: d_min in m, one number for every step or a sequence of T numbers (k = 1..T)."""
+    min_distance: d_min in m, one number for every step or a sequence of T numbers (k = 1..T), for every
+    pair not in pair_distances (at most one entry per pair)."""
 
     min_distance: float | Sequence[float]
     form: str = "distance"
     enabled: bool = True
     pos_x: int = 0
     pos_y: int = 1
+    pair_distances: list[PairDistance] = field(default_factory=list)
+
+    def pair_min_distances(self, num_agents: int, horizon: int) -> np.ndarray:
+        """d_min (m) of every pair of agents for k = 1..T, shape (N, N, T), symmetric: the pair's entry of
+        pair_distances, else min_distance (the diagonal, which constrains nothing, is 0)."""
+        d = np.empty((num_agents, num_agents, horizon))
+        d[:] = np.asarray(self.min_distance, dtype=float)
+        for q in self.pair_distances:
+            i, j = q.agents
+            d[i, j] = d[j, i] = np.asarray(q.min_distance, dtype=float)
+        d[np.arange(num_agents), np.arange(num_agents)] = 0.0
+        return d
+
+
+def _pair_distances(entries) -> list:
+    """Collision.pair_distances as C++ PairDistance entries (types only; indices and values are checked in C++)."""
+    if not isinstance(entries, (list, tuple)):
+        raise ValueError(f"collision.pair_distances must be a list of PairDistance, got {type(entries).__name__}")
+    out = []
+    for n, q in enumerate(entries):
+        w = f"collision.pair_distances[{n}]"
+        if not isinstance(q, PairDistance):
+            raise ValueError(f"{w} must be a PairDistance, got {type(q).__name__}")
+        if isinstance(q.agents, (str, bytes)) or not hasattr(q.agents, "__len__") or len(q.agents) != 2:
+            raise ValueError(f"{w}.agents must be two agent indices, got {q.agents!r:.80}")
+        c = _core.PairDistance()
+        c.i, c.j = (_integer(f"{w}.agents[{a}]", q.agents[a]) for a in range(2))
+        c.min_distance, c.min_distance_steps = _min_distance(f"{w}.min_distance", q.min_distance)
+        out.append(c)
+    return out
 
 
 @dataclass
@@ -183,6 +224,7 @@ class GameProblem:
             cs.pos_x, cs.pos_y = _integer("collision.pos_x", col.pos_x), _integer("collision.pos_y", col.pos_y)
             if col.enabled and len(self.agents) >= 2:
                 cs.min_distance, cs.min_distance_steps = _min_distance("collision.min_distance", col.min_distance)
+                cs.pair_distances = _pair_distances(col.pair_distances)
                 cs.enabled = True
         p.collision = cs
         if not isinstance(self.obstacles, (list, tuple)):

@@ -12,7 +12,7 @@ from fileio import Array, FieldSpec, ListOf, Number, String, Table, Tagged
 
 from . import _core
 from .models import KinematicBicycle, LinearModel
-from .problem import Agent, Collision, GameProblem, Obstacle, QuadraticCost
+from .problem import Agent, Collision, GameProblem, Obstacle, PairDistance, QuadraticCost
 from .solve import GameResult, WarmStart, settings_dict
 
 MAX_FILE_BYTES = 64 * 2**20
@@ -56,8 +56,10 @@ def _schema() -> Table:
         "dynamics": dynamics, "cost": cost, "lead_index": _INDEX,
         **{k: _BOUND for k in ("u_min", "u_max", "x_min", "x_max")}},
         extra={"u_init": FieldSpec(Array(2), required=False, nullable=True)})
+    pair_distance = table(PairDistance, overrides={"agents": Array(1, _INDEX, length=2), "min_distance": _DISTANCE})
     collision = table(Collision, overrides={"min_distance": _DISTANCE, "form": String(choices=("distance", "squared")),
-                                            "pos_x": _INDEX, "pos_y": _INDEX})
+                                            "pos_x": _INDEX, "pos_y": _INDEX,
+                                            "pair_distances": ListOf(pair_distance)})
     obstacle = table(Obstacle, overrides={"positions": Array(2), "min_distance": _DISTANCE})
     return table(GameProblem, overrides={
         "dt": Number(gt=0), "horizon": Number(integer=True, ge=1, le=fileio.schema.INT32_MAX),
@@ -80,7 +82,11 @@ def problem_from_dict(data, source: str = "<problem>") -> tuple[GameProblem, dic
             LinearModel(A=np.asarray(dyn["A"], float), B=np.asarray(dyn["B"], float))
         u_init.append(a.pop("u_init", None))
         agents.append(Agent(dynamics=model, cost=QuadraticCost(**a.pop("cost")), **a))
-    collision = Collision(**d["collision"]) if "collision" in d else None
+    collision = None
+    if "collision" in d:
+        pairs = [PairDistance(agents=tuple(q["agents"]), min_distance=q["min_distance"])
+                 for q in d["collision"].pop("pair_distances", [])]
+        collision = Collision(**d["collision"], pair_distances=pairs)
     obstacles = [Obstacle(positions=np.asarray(o["positions"], float), min_distance=o["min_distance"])
                  for o in d.get("obstacles", [])]
     horizon = d["horizon"]
@@ -131,8 +137,14 @@ def problem_to_dict(problem: GameProblem, solver: dict | None = None) -> dict:
             entry["lead_weight"], entry["lead_index"] = a.lead_weight, a.lead_index
         agents.append(entry)
     out: dict = {"dt": problem.dt, "horizon": problem.horizon}
-    if problem.collision is not None:
-        out["collision"] = {"min_distance": _number_or_list(problem.collision.min_distance), "form": problem.collision.form}
+    col = problem.collision
+    if col is not None:
+        out["collision"] = {"min_distance": _number_or_list(col.min_distance), "form": col.form,
+                            "enabled": col.enabled, "pos_x": col.pos_x, "pos_y": col.pos_y}
+        if col.pair_distances:
+            out["collision"]["pair_distances"] = [{"agents": [int(a) for a in q.agents],
+                                                   "min_distance": _number_or_list(q.min_distance)}
+                                                  for q in col.pair_distances]
     out["agents"] = agents
     if problem.obstacles:
         out["obstacles"] = [{"positions": np.asarray(o.positions).tolist(), "min_distance": _number_or_list(o.min_distance)}

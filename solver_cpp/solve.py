@@ -161,7 +161,7 @@ class Solver:
     def update(self, problem: GameProblem) -> None:
         """New data without a new set-up: problem must have the set-up's agents, horizon, models,
         collision form and position indices and number of obstacles; everything else (x0, costs, lead
-        terms, bounds, collision distances, obstacle positions and distances) may change. ValueError
+        terms, bounds, collision distances (per pair too), obstacle positions and distances) may change. ValueError
         names the field at fault, and the solver keeps its previous problem."""
         for i, (new, old) in enumerate(zip(problem.agents, self.problem.agents)):
             if new.dynamics is not old.dynamics and not _same_model(new.dynamics, old.dynamics):

@@ -132,7 +132,7 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
 
 
 def write_json(result: SysidResult, path: Path, car_params_out: str) -> Path:
-    fileio.atomic_write_text(path, json.dumps(result_json(result, car_params_out), indent=2) + "\n")
+    fileio.atomic_write_text(path, json.dumps(result_json(result, car_params_out), indent=2) + "\n", stream=True)
     return path
 
 

@@ -4,14 +4,15 @@
 2. The solver's Newton system: the residual r (stationarity rows, dynamics rows, constraint rows) against
    finite differences of each player's Lagrangian written here from the problem definition, and the
    dense Jacobian J against finite differences of r, for both barrier modes and both collision forms,
-   with bounds and an obstacle, at points where some constraints are violated and some satisfied.
+   with bounds, an obstacle and three distinct pair distances (the default, a per-pair number and a per-pair
+   per-step list), at points where some constraints are violated and some satisfied.
 """
 import numpy as np
 import pytest
 
 from bench.verify import player_cost
 from solver_cpp import (Agent, Collision, GameProblem, KinematicBicycle, KinematicBicycleFrenet, LinearModel,
-                        Obstacle, QuadraticCost, Solver)
+                        Obstacle, PairDistance, QuadraticCost, Solver)
 
 EPS = 1e-6
 
@@ -102,14 +103,19 @@ def _residual_problem(form: str, rng) -> GameProblem:
                             x_max=[np.inf, 2.5, 2.5, np.inf], lead_weight=0.3 * (i + 1), lead_index=0))
     obstacle = Obstacle(positions=np.column_stack([np.linspace(1.0, 4.0, T_RES + 1), np.full(T_RES + 1, 0.5)]),
                         min_distance=1.2)
-    return GameProblem(dt=0.2, horizon=T_RES, agents=agents, collision=Collision(min_distance=2.0, form=form),
-                       obstacles=[obstacle])
+    # Pair (0, 1) keeps the default distance; (2, 0) and (1, 2) have their own, the second one per step.
+    pairs = [PairDistance(agents=(2, 0), min_distance=1.4),
+             PairDistance(agents=(1, 2), min_distance=np.linspace(1.7, 2.6, T_RES))]
+    return GameProblem(dt=0.2, horizon=T_RES, agents=agents,
+                       collision=Collision(min_distance=2.0, form=form, pair_distances=pairs), obstacles=[obstacle])
 
 
 def _constraint_values(problem: GameProblem, constraints, x, u, form):
     """h of every constraint in the solver's order (its constraint list names kind, agents, step,
     component), written from the problem definition. Returns [(h, involved players)]."""
-    d_min = problem.collision.min_distance
+    T = problem.horizon
+    d_pair = {frozenset(q.agents): np.broadcast_to(q.min_distance, (T,)) for q in problem.collision.pair_distances}
+    d_default = np.broadcast_to(problem.collision.min_distance, (T,))
 
     def dist_h(d, dmin):
         return dmin - np.linalg.norm(d) if form == "distance" else dmin ** 2 - d @ d
@@ -119,6 +125,7 @@ def _constraint_values(problem: GameProblem, constraints, x, u, form):
         kind = c.kind.name
         a = problem.agents[c.i]
         if kind == "pair":
+            d_min = d_pair.get(frozenset((c.i, c.j)), d_default)[c.k - 1]
             out.append((dist_h(x[c.i, c.k, :2] - x[c.j, c.k, :2], d_min), (c.i, c.j)))
         elif kind == "obstacle":
             o = problem.obstacles[c.j]

@@ -69,7 +69,7 @@ def test_fuzz_failure_is_reported_with_a_reproducer(tmp_path):
 
 def test_solver_api_fuzz_in_a_subprocess(tmp_path):
     """Random shapes, NaN/inf and extreme values through solver_cpp.solve in a child process: a native
-    crash would be caught there and reported with the pickled input (bench.fuzz solver-replay)."""
+    crash would be caught there and reported with the pickled input (`python -m app bench fuzz --replay`)."""
     report = fuzz.fuzz_solver(60, seed=1, timeout_s=300, workdir=tmp_path)
     counts = report["counts"]
     assert sum(counts.values()) == 60 and "failure" not in counts

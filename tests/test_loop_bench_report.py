@@ -29,12 +29,12 @@ def test_no_discordant_pairs_means_no_evidence_of_a_difference():
 def test_pool_adds_the_runs_seed_pairs(tmp_path, capsys):
     import json
 
-    from app.realtime.bench import main
+    from app.cli import main
 
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     a.write_text(json.dumps([_row("rd3g", "opponent"), _row("opponent", "rd3g")]))
     b.write_text(json.dumps([_row("opponent", "rd3g"), _row("rd3g", "rd3g")]))
-    assert main(["--pool", str(a), str(b)]) == 0
+    assert main(["bench", "loop", "--pool", str(a), str(b)]) == 0
     out = capsys.readouterr().out
     # 4 pairs: simulation-only 1, HIL-only 2 -> p = 2 * P(X <= 1), X ~ Bin(3, 1/2) = 1
     assert "2 runs, 4 seed pairs: RD3G won 2 in simulation and 3 in HIL" in out

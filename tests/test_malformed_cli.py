@@ -1,7 +1,7 @@
 """Malformed versions of the project's real files through the command line (app/malformed_cli.py):
 every case exits 2 naming the file and the field / row / byte, with no traceback, hang or partial output,
 or is a file the format allows. A short seeded sample per format here; the long run is
-`python -m app.malformed_cli` (docs/file-formats.md). The exact messages of what it found are
+`python -m app bench malformed` (docs/file-formats.md). The exact messages of what it found are
 written out by hand below."""
 from __future__ import annotations
 

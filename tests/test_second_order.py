@@ -3,7 +3,8 @@
   has the analytic reduced-Hessian eigenvalue 6R - 4F (a saddle for F > 1.5 R, a strict minimum below);
 - unconstrained LQ games, where each player's reduced Hessian is the batch Hessian 2 blkdiag(R) + S'QS of its
   cost in its controls, built here from A, B and the weights;
-- merging games with active collision constraints and control bounds, against a finite-difference Hessian of
+- merging games with active collision constraints (one with its own distance per pair) and control bounds, against
+  a finite-difference Hessian of
   each player's shooting Lagrangian U -> J(x(U), U) + sum_c mu_c h_c(x(U), U) projected on the null space of
   its active constraints (scipy), computed from the trajectories and multipliers the solver returns;
 - the lscg case in tests/test_merging_equilibria.py (a first-order point that unilateral deviations improve) is
@@ -14,7 +15,7 @@ from scipy.linalg import null_space
 
 from bench.merging import merging_problem
 from bench.verify import best_response_gap, player_cost, stationarity_residual
-from solver_cpp import Agent, Collision, GameProblem, LinearModel, Obstacle, QuadraticCost, solve
+from solver_cpp import Agent, Collision, GameProblem, LinearModel, Obstacle, PairDistance, QuadraticCost, solve
 from solver_cpp.problem_file import result_to_dict
 
 
@@ -90,7 +91,6 @@ def _fd_reduced_min_eigenvalue(problem, result, a, gap=1e-2, step=1e-4):
     (the kinds the cases use), written from their definitions."""
     T, nu = result.u.shape[1], result.u.shape[2]
     f = problem.agents[a].dynamics.build(problem.dt)
-    d = problem.collision.min_distance
     agent = problem.agents[a]
     pairs = [(ci, c.k, c.j if c.i == a else c.i) for ci, c in enumerate(result.constraints)
              if c.kind.name == "pair" and a in (c.i, c.j)]
@@ -100,6 +100,7 @@ def _fd_reduced_min_eigenvalue(problem, result, a, gap=1e-2, step=1e-4):
     pk = np.array([k for _, k, _ in pairs], dtype=int)
     pj = np.array([j for _, _, j in pairs], dtype=int)
     others = result.x[pj, pk, :2]
+    d = problem.collision.pair_min_distances(problem.num_agents, T)[a, pj, pk - 1]  # each pair's own d_min
     mu = result.mu[[ci for ci, _, _ in pairs] + [ci for ci, _, _, _ in bounds]]
 
     def constraint_values(U):
@@ -139,13 +140,15 @@ def _merge_with_bounds():
     return GameProblem(dt=0.2, horizon=10, agents=agents, collision=Collision(2.0, form="squared"))
 
 
-@pytest.mark.parametrize("case", ["merge3_seed4", "bounds"])
+@pytest.mark.parametrize("case", ["merge3_seed4", "bounds", "pair_distances"])
 def test_reduced_hessian_matches_finite_differences(case):
     if case == "bounds":
         problem = _merge_with_bounds()
     else:
         problem = merging_problem(3, 4)
         problem.horizon = 12
+    if case == "pair_distances":  # the active pair (0, 1) at its own 2.4 m, another pair with its own 1.7 m
+        problem.collision.pair_distances = [PairDistance((0, 1), 2.4), PairDistance((2, 0), [1.7] * 12)]
     result = solve(problem, tol=1e-9, linear_solver="sparse_lu")
     assert result.status == "converged"
     n_active = 0

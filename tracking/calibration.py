@@ -26,6 +26,7 @@ import fileio
 from fileio import unknown_key_message
 
 from tracking.geometry import PinholeCamera
+from vehicles.params import MARKER_DICTIONARY
 
 CALIBRATION_FORMAT_VERSION = 1
 
@@ -86,7 +87,8 @@ def marker_corners_track(x, y, heading, size, z=0.0) -> np.ndarray:
 def aruco_dictionary_id(name: str, field_name: str = "dictionary") -> int:
     value = getattr(cv2.aruco, str(name), None)
     if not isinstance(name, str) or not name.startswith("DICT_") or not isinstance(value, int):
-        raise CalibrationError(f"{field_name}: unknown ArUco dictionary {name!r} (e.g. 'DICT_4X4_50')")
+        raise CalibrationError(f"{field_name}: unknown ArUco dictionary {name!r} (an OpenCV name such as "
+                               f"{MARKER_DICTIONARY!r} or 'DICT_6X6_250')")
     return value
 
 
@@ -106,7 +108,7 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
     for key in data:
         if key not in ("dictionary", "markers", "description"):
             raise CalibrationError(f"{source}: {key}: {unknown_key_message(key, ('dictionary', 'markers', 'description'))}")
-    dictionary = data.get("dictionary", "DICT_4X4_50")
+    dictionary = data.get("dictionary", MARKER_DICTIONARY)
     dict_id = aruco_dictionary_id(dictionary, f"{source}: dictionary")
     n_ids = cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0]
     raw = data.get("markers")
@@ -120,6 +122,9 @@ def parse_fixed_markers(data, source: str = "fixed markers") -> FixedMarkerSet:
         marker_id = int(key)
         if not 0 <= marker_id < n_ids:
             raise CalibrationError(f"{where}: id outside {dictionary} (0..{n_ids - 1})")
+        if marker_id in markers:  # "40" and "040" are one marker: which survey would be used?
+            twin = next(k for k in raw if k != key and int(k) == marker_id)
+            raise CalibrationError(f"{where}: marker id {marker_id} appears twice (also as {twin!r})")
         if not isinstance(entry, dict):
             raise CalibrationError(f"{where}: must be an object with x, y, size")
         for key in entry:
@@ -196,6 +201,10 @@ def _validate_intrinsics(k: np.ndarray, dist: np.ndarray, size, source: str) -> 
     for name, value in (("image_width", width), ("image_height", height)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 2**31 or int(value) != value:
             raise CalibrationError(f"{source}: {name}: must be a positive integer, got {value!r}")
+    for axis, c, name, n in (("x", k[0, 2], "image_width", width), ("y", k[1, 2], "image_height", height)):
+        if not 0 <= c <= n:  # each valid alone, together a camera whose optical axis misses its own image
+            raise CalibrationError(f"{source}: camera_matrix: principal point {axis} ({c:g} px) must lie inside the "
+                                   f"image (0..{name} = {int(n)})")
     return Intrinsics(k, dist if dist.size else np.zeros(5), (int(width), int(height)))
 
 
@@ -261,7 +270,7 @@ class CameraCalibration:
     the track plane (or to the plane of a raised marker) with ``camera.pixels_to_plane``."""
 
     camera: PinholeCamera
-    dictionary: str = "DICT_4X4_50"
+    dictionary: str = MARKER_DICTIONARY
     intrinsics_source: str = "file"  # "file" or "estimated" (single-view, see docs/tracking.md)
     focal_std_px: float | None = None  # estimated focal length: standard deviation, both sources below combined
     focal_std_markers_px: float | None = None  # spread over marker bootstrap resamples (noise, lens misfit)
@@ -521,7 +530,7 @@ def load_calibration(path) -> CameraCalibration:
     for name, shape in (("camera_position_m", (3,)), ("homography_track_to_image", (3, 3))):
         if name in data:
             _matrix(data[name], shape, f"{src}: {name}")
-    dictionary = data.get("dictionary", "DICT_4X4_50")
+    dictionary = data.get("dictionary", MARKER_DICTIONARY)
     aruco_dictionary_id(dictionary, f"{src}: dictionary")
     source = data.get("intrinsics_source", "file")
     if source not in ("file", "estimated"):
@@ -530,9 +539,16 @@ def load_calibration(path) -> CameraCalibration:
     errors = data.get("marker_errors_px", {})
     if not isinstance(errors, dict) or not all(k.isdigit() for k in errors):
         raise CalibrationError(f"{src}: marker_errors_px: expected an object mapping marker id -> pixels")
+    if len({int(k) for k in errors}) < len(errors):
+        twins = sorted(k for k in errors if sum(int(j) == int(k) for j in errors) > 1)
+        raise CalibrationError(f"{src}: marker_errors_px: marker id {int(twins[0])} appears twice ({', '.join(map(repr, twins))})")
     missing = data.get("markers_missing", [])
     if not isinstance(missing, list) or not all(isinstance(m, int) and not isinstance(m, bool) for m in missing):
         raise CalibrationError(f"{src}: markers_missing: expected a list of marker ids")
+    used_and_missing = sorted(set(missing) & {int(k) for k in errors})
+    if used_and_missing:  # calibrate lists a marker in one or the other
+        raise CalibrationError(f"{src}: markers_missing: marker id {used_and_missing[0]} is also in marker_errors_px "
+                               f"(a marker the calibration used)")
 
     def number(value, where):  # the stored quality figures may be NaN (no estimate)
         if value is None or (isinstance(value, float) and math.isnan(value)):

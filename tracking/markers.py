@@ -20,7 +20,7 @@ import numpy as np
 
 from tracking.calibration import CameraCalibration, FixedMarker, marker_corners_track
 from tracking.camera import Frame
-from vehicles.params import MarkerParams
+from vehicles.params import MARKER_DICTIONARY, MarkerParams
 
 
 def default_detector_parameters() -> cv2.aruco.DetectorParameters:
@@ -79,7 +79,7 @@ class MarkerDetector:
     ``pattern_mismatches``.
     """
 
-    def __init__(self, dictionary: int = cv2.aruco.DICT_4X4_50,
+    def __init__(self, dictionary: int = getattr(cv2.aruco, MARKER_DICTIONARY),
                  parameters: cv2.aruco.DetectorParameters | None = None, downscale: float = 1.0,
                  refine: str = "ecc", min_pattern_correlation: float = MIN_PATTERN_CORRELATION):
         if not 0 < downscale <= 1:
@@ -273,6 +273,8 @@ class ArucoTracker:
     ``car_ids``: ids worn by cars (None = every id that is not a fixed marker).
     ``fixed_ids``: ids of the fixed markers, or ``{id: FixedMarker}`` (e.g. ``FixedMarkerSet.markers``);
     with surveyed markers, a fixed id is kept only near the projection of its surveyed centre.
+    The dictionary is the calibration's (``dictionary`` overrides it); ``car_dictionary``, the car file's
+    ``marker.dictionary``, must be the same (ValueError otherwise).
     ``marker_height_m``: marker height above the track; ``correct_height=False`` maps the
     corners on the track plane instead (only for comparison, it is biased).
     ROI mode: :meth:`process` with ``predictions`` ({id: (x, y)}) searches only squares of
@@ -292,7 +294,8 @@ class ArucoTracker:
     def __init__(self, calibration: CameraCalibration, marker_size_m: float,
                  marker_height_m: float = MarkerParams.height_m, marker_offset_m: float = 0.0, car_ids=None,
                  fixed_ids=(), correct_height: bool = True, dictionary: int | None = None,
-                 downscale: float = 1.0, refine: str = "ecc", roi_radius_m: float = 0.2, full_search_every: int = 30,
+                 car_dictionary: str | None = None, downscale: float = 1.0, refine: str = "ecc",
+                 roi_radius_m: float = 0.2, full_search_every: int = 30,
                  parameters: cv2.aruco.DetectorParameters | None = None, max_side_error: float = 0.2):
         if marker_size_m <= 0:
             raise ValueError(f"marker_size_m: must be positive, got {marker_size_m}")
@@ -303,6 +306,10 @@ class ArucoTracker:
             raise ValueError(f"full_search_every: must be >= 1, got {full_search_every}")
         if not max_side_error > 0:
             raise ValueError(f"max_side_error: must be positive, got {max_side_error}")
+        if car_dictionary is not None and car_dictionary != calibration.dictionary:
+            raise ValueError(f"car marker dictionary {car_dictionary} (car file marker.dictionary) differs from the "
+                             f"calibration's {calibration.dictionary} (its fixed-marker file's): one detector reads one "
+                             "dictionary, so print the car markers and the fixed markers from the same one")
         if dictionary is None:
             dictionary = getattr(cv2.aruco, calibration.dictionary)
         n_ids = cv2.aruco.getPredefinedDictionary(dictionary).bytesList.shape[0]
@@ -311,6 +318,10 @@ class ArucoTracker:
             if bad:  # an id the dictionary does not have is never seen: the car would be "lost" forever
                 raise ValueError(f"{what}: marker id {bad[0]} is not in the ArUco dictionary "
                                  f"in use (ids 0..{n_ids - 1})")
+        shared = sorted(set(int(i) for i in car_ids or ()) & set(int(i) for i in fixed_ids))
+        if shared:  # a car wearing a fixed marker's id would be taken for the fixed marker, or move it
+            raise ValueError(f"car_ids: marker id {shared[0]} is also a fixed marker of the track "
+                             f"(fixed ids {', '.join(map(str, sorted(int(i) for i in fixed_ids)))})")
         self.calibration = calibration
         self.marker_size_m = float(marker_size_m)
         self.marker_height_m = float(marker_height_m)

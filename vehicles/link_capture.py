@@ -48,6 +48,7 @@ class LinkCapture:
         self._clock = clock
         self.origin = clock() if origin is None else float(origin)
         self._lock = threading.Lock()
+        fileio.check_output_path(self.path)  # a regular file (a link to one) or new; written as it goes, not renamed
         self._file = self.path.open("w", encoding="ascii")
         self.lines = 0
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
+import cv2
+
 import fileio
 from fileio import unknown_key_message
 
@@ -53,6 +55,10 @@ def _num(default: float, check: Callable[[float], str | None] = _positive, doc: 
 
 def _int(default: int, check: Callable[[float], str | None] = _non_negative, doc: str = "") -> Any:
     return field(default=default, metadata={"check": check, "doc": doc, "int": True})
+
+
+def _text(default: str, check: Callable[[str], str | None], doc: str = "") -> Any:
+    return field(default=default, metadata={"check": check, "doc": doc, "text": True})
 
 
 @dataclass(frozen=True)
@@ -114,11 +120,28 @@ class ModelParams:
     kinematic_relax_time_s: float = _num(0.02, doc="time constant pulling vy, r to kinematic values")
 
 
+# The ArUco dictionary of the cars' markers: the simulated camera's (sim/camera.py) and the default of
+# fixed-marker files and calibrations (tracking/calibration.py). An id it lacks is never detected.
+MARKER_DICTIONARY = "DICT_4X4_50"
+
+
+def aruco_dictionary_size(name: str) -> int | None:
+    """Ids in OpenCV's predefined ArUco dictionary ``name`` (0 .. size - 1); None if OpenCV has none of that name."""
+    value = getattr(cv2.aruco, name, None) if isinstance(name, str) and name.startswith("DICT_") else None
+    return int(cv2.aruco.getPredefinedDictionary(value).bytesList.shape[0]) if isinstance(value, int) else None
+
+
+def _aruco_dictionary(name: str) -> str | None:
+    return None if aruco_dictionary_size(name) else f"must be an OpenCV ArUco dictionary name such as {MARKER_DICTIONARY!r}"
+
+
 @dataclass(frozen=True)
 class MarkerParams:
-    aruco_id: int = _int(0, _between(0, 999))
+    aruco_id: int = _int(0, _between(0, 999), doc="within marker.dictionary's ids")
     height_m: float = _num(0.045, _non_negative, doc="marker plane above the ground")
     size_m: float = _num(0.055, doc="side of the printed ArUco marker (outer black border)")
+    dictionary: str = _text(MARKER_DICTIONARY, _aruco_dictionary,
+                            doc="ArUco dictionary of the printed marker; the track's fixed markers use the same")
 
 
 @dataclass(frozen=True)
@@ -275,6 +298,10 @@ def _check_cross_fields(p: CarParams, source: str) -> None:
         for f in fields(obj):
             _validate_value(source, f"{sec}.{f.name}", f, getattr(obj, f.name))
     _check_radio(p.radio, source)
+    ids = aruco_dictionary_size(p.marker.dictionary)  # each valid alone; a marker its dictionary lacks is never seen
+    if not p.marker.aruco_id < ids:
+        raise CarParamsError(f"{source}: marker.aruco_id: {p.marker.aruco_id} is not an id of marker.dictionary "
+                             f"{p.marker.dictionary} (ids 0..{ids - 1})")
 
 
 def _sections_of(p: CarParams) -> list[tuple[str, Any]]:
@@ -285,6 +312,12 @@ def _validate_value(source: str, key: str, f: dataclasses.Field, value: Any) -> 
     is_int = f.metadata.get("int", False)
     if value is None and f.metadata.get("optional"):
         return None
+    if f.metadata.get("text"):  # a name (the marker's dictionary): a string the field's check accepts
+        problem = None if isinstance(value, str) else "must be a string"
+        problem = problem or f.metadata["check"](value)
+        if problem:
+            raise CarParamsError(f"{source}: {key}: {problem}, got {value!r}")
+        return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         kind = "an integer" if is_int else "a number"
         raise CarParamsError(f"{source}: {key}: must be {kind}, got {value!r}")

@@ -22,7 +22,7 @@ from app.commands.race import FLAGS, add_fleet_arguments, add_race_arguments, ma
 from app.fleet_batch import (DEFAULT_FLEET_RACES, FLEET_CELLS, fleet_record, fleet_roster, fleet_table, summarise_fleet,
                              the_rd3g_car)
 from app.race_plots import plot_examples
-from fileio import atomic_write_text
+from fileio import atomic_write_text, check_output_dir, check_output_path
 from race.setup import RaceSetupError
 from race.simulation import run_race
 
@@ -294,6 +294,10 @@ def run(args) -> int:
     if not 0 < slow < fast:
         raise UserError(f"--slow-speed must be between 0 and the fast speed {fast}, got {slow}")
     make_setup(args, 0, "front", fast, slow)  # validate track/car files before starting workers
+    if args.json:
+        check_output_path(args.json, stream=True)
+    if args.figures:
+        check_output_dir(args.figures)
     keep = bool(args.figures)
     jobs = [(args, cell, r, fast, slow, keep) for r in range(args.races) for cell in CELLS]
     records = run_races(jobs, args.workers, args.cluster, args.cluster_timeout)
@@ -302,7 +306,7 @@ def run(args) -> int:
           f"slow {slow} m/s (ratio {slow / fast:.2f}); win rate ours / paper")
     print(table(cells))
     if args.json:
-        atomic_write_text(args.json, json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n", stream=True)
     if keep:
         for path in plot_examples(records, args, Path(args.figures)):
             print(f"figure: {path}")
@@ -318,6 +322,8 @@ def _run_fleet(args) -> int:
     car = the_rd3g_car(roster_of(args))
     for arm in ("rd3g", "counterfactual"):
         _fleet_setup(args, arm, args.seed)  # validate the roster, track and car files before starting workers
+    if args.json:
+        check_output_path(args.json, stream=True)
     jobs = [(args, cell, r, None, None, False) for r in range(args.races) for cell in FLEET_CELLS]
     records = run_races(jobs, args.workers, args.cluster, args.cluster_timeout)
     fleet = summarise_fleet(records)
@@ -326,5 +332,5 @@ def _run_fleet(args) -> int:
     print(fleet_table(fleet, car))
     if args.json:
         races = [{k: v for k, v in r.items() if k != "cell"} | {"arm": r["cell"][1]} for r in records]
-        atomic_write_text(args.json, json.dumps({"fleet": fleet, "races": races}, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps({"fleet": fleet, "races": races}, indent=2) + "\n", stream=True)
     return 0

@@ -1,4 +1,5 @@
-"""`python -m app bench ...`: benchmarks (results in docs/benchmarks.md)."""
+"""`python -m app bench ...`: benchmarks (results in docs/benchmarks.md). Every benchmark is a subcommand here;
+the modules that own their options (`add_arguments(parser)`, `run(args)`) are listed in MODULE_BENCHES."""
 from __future__ import annotations
 
 import json
@@ -7,8 +8,10 @@ import sys
 import time
 
 from app.cli import UserError
-from fileio import atomic_write_text, check_output_path
-from bench import merge_bench, problem_size, saddles, solver_bench
+from app.realtime import bench as loop_bench
+from fileio import atomic_write_text, check_output_dir, check_output_path
+from bench import (baselines, charuco_coverage, merge_bench, problem_size, race_perturbations, saddles, solver_bench,
+                   time_limit, track_video, tracking_bench)
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
 from solver_cpp import make_settings
@@ -29,6 +32,22 @@ def parse_range(text: str) -> list[int]:
     if not out or min(out) < 2:
         raise UserError("--cars needs car counts of at least 2")
     return out
+
+
+# (name, module, help) of the benchmarks whose module defines its options and its run.
+MODULE_BENCHES = [
+    ("loop", loop_bench, "HIL loop: the same seeds as pure simulation and as --hil races (rate, deadline misses, "
+                         "stage timings, tracking error, winners)"),
+    ("race-perturbations", race_perturbations, "simulated races with the loop's control-path imperfections (late "
+                                               "commands, neutral pulses, solver cap): which change the winners"),
+    ("baselines", baselines, "RD3G, iLQGames and ALGames on merging seeds: convergence count and median time"),
+    ("time-limit", time_limit, "how well the solver's time_limit holds, per linear-solver path"),
+    ("tracking", tracking_bench, "rendering, marker detection and EKF update times on synthetic frames"),
+    ("track-video", track_video, "python -m app track on a rendered 1280x800 clip of cars on known trajectories: "
+                                 "frames per second and pose errors"),
+    ("charuco", charuco_coverage, "calibrate-camera on rendered ChArUco views with known intrinsics: largest errors "
+                                  "and how often the reported standard deviations cover them"),
+]
 
 
 def register(sub) -> None:
@@ -98,6 +117,23 @@ def register(sub) -> None:
     f.add_argument("--no-docs", action="store_true", help="print only; do not update docs/benchmarks.md")
     f.set_defaults(func=run_fuzz)
 
+    for name, module, text in MODULE_BENCHES:
+        b = kinds.add_parser(name, help=text, description=text)
+        module.add_arguments(b)
+        b.set_defaults(func=module.run)
+
+    g = kinds.add_parser("malformed", help="the project's real files, mutated by hand-written rules, through the "
+                                           "command line (app/malformed_cli.py, docs/file-formats.md)")
+    g.add_argument("--formats", default="all", help="comma-separated, or all: problem, car, track, fixed_markers, "
+                                                    "intrinsics, calibration, sysid_csv, link_capture, recording")
+    g.add_argument("--per-format", type=int, default=0, help="at most this many cases per format (0 = all)")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--offsets", type=int, default=40, help="truncation offsets per file")
+    g.add_argument("--workdir", help="keep the failures' inputs here (default: a temporary folder)")
+    g.add_argument("--json", help="write the report here")
+    g.add_argument("--verbose", action="store_true")
+    g.set_defaults(func=run_malformed)
+
 
 def run_solver(args) -> int:
     cars = parse_range(args.cars)
@@ -159,7 +195,9 @@ def _merge_options(args, default_solvers: str) -> tuple[list[str], list[int]]:
         raise UserError(f"--max-iter must be an integer from 1 to 2^31 - 1, got {args.max_iter}")
     args.rd3g_settings = _rd3g_settings(args.rd3g_setting)
     if args.json:
-        check_output_path(args.json)  # fail before the long run, not after it
+        check_output_path(args.json, stream=True)  # fail before the long run, not after it
+    if getattr(args, "figures", None):
+        check_output_dir(args.figures)
     return solvers, seeds
 
 
@@ -205,7 +243,7 @@ def run_merge(args) -> int:
     fig_dir = Path(args.figures) if args.figures else None if args.no_docs else Path("docs/figures")
     figures = []
     if fig_dir is not None:
-        fig_dir.mkdir(parents=True, exist_ok=True)
+        check_output_dir(fig_dir)
         figures = [merge_bench.plot_times(summary, str(fig_dir / "merge_times.png")),
                    merge_bench.plot_merge(3, 1, str(fig_dir / "merge_3cars.png")),
                    merge_bench.plot_merge(8, 1, str(fig_dir / "merge_8cars.png"))]
@@ -217,7 +255,7 @@ def run_merge(args) -> int:
     for r in summary:
         print(f"{r['solver']:9s} {r['cars']} cars: {r['converged']}/{r['instances']} successful")
     if args.json:
-        atomic_write_text(args.json, json.dumps(merge_bench.records_json(summary), indent=1))
+        atomic_write_text(args.json, json.dumps(merge_bench.records_json(summary), indent=1), stream=True)
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('merge-bench-' + '-'.join(solvers), md)}")
@@ -244,6 +282,7 @@ def run_fuzz(args) -> int:
         return 0
     if args.examples < 1:
         raise UserError("--examples must be at least 1")
+    check_output_dir(args.out)
     report = fuzz.campaign(args.target, args.examples, args.seed, Path(args.out))
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else \
         f"python -m app bench fuzz --target {args.target} --examples {args.examples} --seed {args.seed}"
@@ -254,6 +293,14 @@ def run_fuzz(args) -> int:
     if not args.no_docs:
         print(f"recorded in {write_section('fuzz-' + args.target, md)}")
     return 1 if report["failures"] else 0
+
+
+def run_malformed(args) -> int:
+    try:  # app.malformed_cli renders TOML with bench.fuzz, which needs hypothesis (an optional extra, .[test])
+        from app import malformed_cli
+    except ImportError as exc:
+        raise UserError(f"bench malformed needs hypothesis (pip install -e '.[test]'): {exc}") from None
+    return malformed_cli.command(args)
 
 
 def run_size(args) -> int:
@@ -338,7 +385,7 @@ def run_saddles(args) -> int:
     if args.seeds < 1 or args.workers < 1 or args.best_response < 0:
         raise UserError("--seeds and --workers must be >= 1, --best-response >= 0")
     if args.json:
-        check_output_path(args.json)  # fail before the long run, not after it
+        check_output_path(args.json, stream=True)  # fail before the long run, not after it
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     if args.cases:
@@ -363,7 +410,7 @@ def run_saddles(args) -> int:
     md = saddles.markdown(summary, runs, command, machine, time.perf_counter() - t0, scanned)
     print(md)
     if args.json:
-        atomic_write_text(args.json, json.dumps([dataclasses.asdict(r) for r in runs], indent=1))
+        atomic_write_text(args.json, json.dumps([dataclasses.asdict(r) for r in runs], indent=1), stream=True)
         print(f"wrote {args.json}")
     if not args.no_docs:
         print(f"recorded in {write_section('saddles', md)}")

@@ -12,6 +12,7 @@ import time
 from app.cli import UserError
 from app.commands.race import add_fleet_arguments, add_race_arguments, make_setup
 from app.realtime.check import CheckTiming, PreRaceCheck
+from fileio import check_output_path
 from race.hil import FIXED_MARKERS
 from app.realtime.run import _check_mode, _open_hardware, _open_hil, add_link_arguments, open_capture, plan_link
 from race.config import LoopConfig
@@ -96,6 +97,8 @@ def run(args) -> int:
         raise UserError(f"--throttle: must be in (0, 0.5] (a short, low pulse), got {args.throttle}")
     if not args.fps > 0:
         raise UserError(f"--fps must be positive, got {args.fps}")
+    if args.link_capture:
+        check_output_path(args.link_capture)  # before the world or the serial port opens
     setup = make_setup(args, args.seed, "rear", args.rd3g_speed, args.opponent_speed)
     config = LoopConfig()
     link_plan = plan_link(args, mode, setup, config.link_hz)

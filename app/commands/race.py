@@ -157,7 +157,7 @@ def run(args) -> int:
         raise UserError(f"--out must be a .rrd file, got {args.out!r}")
     check_output_path(out)
     if args.json:
-        check_output_path(args.json)
+        check_output_path(args.json, stream=True)
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     if getattr(args, "grid_plot", None):
         check_output_path(args.grid_plot)
@@ -206,7 +206,7 @@ def run(args) -> int:
               f"first: {first.car} at {first.time_s:.2f} s: {first.message}")
     print(f"telemetry: {out}")
     if args.json:
-        atomic_write_text(args.json, json.dumps(s, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(s, indent=2) + "\n", stream=True)
     if o.interrupted:
         print(f"interrupted (Ctrl-C) after {o.race_time_s:.2f} s of race time; the summary covers the race so far")
         return 130

@@ -46,7 +46,7 @@ def run(args) -> int:
     summary = summarize(data)
     print(format_summary(summary, data))
     if args.json:
-        check_output_path(args.json)
+        check_output_path(args.json, stream=True)
     folder = Path(args.plots) if args.plots else path.with_name(path.stem + "_review")
     if not args.no_plots and folder.exists() and not folder.is_dir():
         raise UserError(f"--plots: {folder} is a file, not a folder for the plots")
@@ -54,7 +54,7 @@ def run(args) -> int:
         written = save_plots(data, folder)
         print("plots: " + ", ".join(str(p) for p in written))
     if args.json:
-        atomic_write_text(args.json, json.dumps(summary, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(summary, indent=2) + "\n", stream=True)
         print(f"summary: {args.json}")
     if args.viewer:
         cmd = viewer_command(path)

@@ -31,7 +31,7 @@ def run(args) -> int:
     if args.time_limit is not None and not (math.isfinite(args.time_limit) and args.time_limit >= 0):
         raise UserError(f"--time-limit must be a number of seconds >= 0, got {args.time_limit}")
     if args.out:
-        check_output_path(args.out)  # before the solve, not after it
+        check_output_path(args.out, stream=True)  # before the solve, not after it
     problem, settings, warm = load_problem(args.problem)
     if not args.allow_large:
         try:
@@ -50,6 +50,6 @@ def run(args) -> int:
     print(f"status {result.status}  iterations {result.iterations}  |r| {result.residual_norm:.2e}  "
           f"max violation {result.max_violation:.2e}  solve time {1e3 * result.solve_time_s:.1f} ms")
     if args.out:
-        atomic_write_text(args.out, json.dumps(result_to_dict(result)))
+        atomic_write_text(args.out, json.dumps(result_to_dict(result)), stream=True)
         print(f"wrote {args.out}", file=sys.stderr)
     return 0 if result.converged else 1

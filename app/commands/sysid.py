@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from app.cli import UserError
-from fileio import atomic_write_text, check_output_path
+from fileio import atomic_write_text, check_output_dir, check_output_path
 from planning import PlannerConfig
 from race.setup import RaceSpec
 from sim import SimEffectsError
@@ -89,9 +89,12 @@ def run(args) -> int:
     if args.fit_windows < 20:
         raise UserError(f"--fit-windows must be >= 20, got {args.fit_windows}")
     started = time.perf_counter()
-    for out in (args.report, args.params_out or Path(args.report).with_suffix(".toml"), args.json):
+    for out, stream in ((args.report, False), (args.params_out or Path(args.report).with_suffix(".toml"), False),
+                        (args.json, True)):
         if out:
-            check_output_path(out)  # before the identification, not after it
+            check_output_path(out, stream=stream)  # before the identification, not after it
+    if args.figures:
+        check_output_dir(args.figures)
     car = load_car_params(args.car_params)
     log = read_log(args.log)
     if args.car is None:
@@ -219,7 +222,11 @@ def run_closed_loop_command(args) -> int:
     if not seeds:
         raise UserError("--seeds: give at least one seed")
     if args.json:
-        check_output_path(args.json)
+        check_output_path(args.json, stream=True)
+    if args.plot:
+        check_output_path(args.plot)
+    if args.recordings:
+        check_output_dir(args.recordings)
     if args.laps < 1:
         raise UserError(f"--laps must be at least 1, got {args.laps}")
     try:
@@ -269,7 +276,7 @@ def run_closed_loop_command(args) -> int:
                        "one_step_rmse_m": rms(m.one_step_errors_m), "horizon_rmse_m": rms(m.horizon_errors_m)}
                       for m in races],
         }
-        atomic_write_text(out, json.dumps(record, indent=2) + "\n")
+        atomic_write_text(out, json.dumps(record, indent=2) + "\n", stream=True)
         print(f"wrote {out}")
     if args.plot:
         print(f"wrote {plot(races, summary, f'{args.effects}: nominal vs corrected ({Path(args.corrected).name})', Path(args.plot), cfg.plan_dt_s)}")

@@ -2,7 +2,7 @@
 error, loop rate, deadline misses and the stage breakdown. Writes the loop-bench section of
 docs/benchmarks.md.
 
-    .venv/bin/python -m app.realtime.bench --seeds 6 [--rt-priority 20] [--json runs/loop_bench.json]
+    .venv/bin/python -m app bench loop --seeds 6 [--rt-priority 20] [--json runs/loop_bench.json]
 """
 from __future__ import annotations
 
@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from app import cli
 from app.commands import race
 from bench.report import machine_description, write_section
-from fileio import atomic_write_text, atomic_write_with
+from fileio import OutputFileError, atomic_write_text, atomic_write_with, check_output_path
 
 
 def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = "",
@@ -37,8 +38,8 @@ def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effe
     return p.parse_args(argv)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m app.realtime.bench")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `python -m app bench loop`."""
     parser.add_argument("--seeds", type=int, default=6)
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--rt-priority", type=int, default=20,
@@ -57,7 +58,9 @@ def main(argv=None) -> int:
     parser.add_argument("--pool", nargs="+", metavar="JSON",
                         help="only print the winner distribution pooled over saved --json runs (a 20-seed run's HIL "
                              "win count alone moved from 4 to 10 between two runs of one build)")
-    args = parser.parse_args(argv)
+
+
+def run(args) -> int:
     if args.pool:
         rows = [row for path in args.pool for row in json.loads(Path(path).read_text())]
         d = winner_distribution(rows)
@@ -69,6 +72,11 @@ def main(argv=None) -> int:
         print(plot(json.loads(Path(args.replot).read_text()), args.figure))
         return 0
 
+    try:  # before the races, not after them
+        check_output_path(args.json, stream=True)
+        check_output_path(args.figure)
+    except OutputFileError as exc:
+        parser.error(str(exc))
     runs = Path("runs/loop_bench")
     runs.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -89,7 +97,7 @@ def main(argv=None) -> int:
             rec[mode]["steal_s"] = None if steal0 is None else steal_seconds() - steal0
             print(f"seed {seed} {mode}: winner {rec[mode]['winner']}", flush=True)
         rows.append(rec)
-    atomic_write_text(args.json, json.dumps(rows, indent=2) + "\n")
+    atomic_write_text(args.json, json.dumps(rows, indent=2) + "\n", stream=True)
     body = report(rows, args, machine_description())
     print(body)
     print(plot(rows, args.figure))
@@ -140,7 +148,7 @@ def report(rows, args, machine: str) -> str:
     ticks = sum(h["ticks"] for h in hil)
     misses = sum(h["deadline_misses"] for h in hil)
     lines = [
-        f"Command: `.venv/bin/python -m app.realtime.bench --seeds {args.seeds} --first-seed {args.first_seed}"
+        f"Command: `.venv/bin/python -m app bench loop --seeds {args.seeds} --first-seed {args.first_seed}"
         + f" --rt-priority {args.rt_priority}"
         + (f" --sim-effects {args.sim_effects}" if args.sim_effects else "")
         + (f" --link-protocol {args.link_protocol}" if args.link_protocol else "") + "`"
@@ -231,5 +239,5 @@ def plot(rows, path: str) -> str:
     return path
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # the old entry point, forwarded
+    sys.exit(cli.main(["bench", "loop", *sys.argv[1:]]))

@@ -16,7 +16,7 @@ import numpy as np
 from app.cli import UserError
 from app.realtime.hardware import CameraFeed
 from race.hil import HilWorld, WorldSpec
-from fileio import atomic_write_text
+from fileio import OutputFileError, atomic_write_text, check_output_path
 from race.config import LoopConfig, LoopConfigError, check_fault_cars, parse_fault
 from race.loop import CarBinding, LoopError, RaceLoop, setup_document
 from race.planning import RacePlanners
@@ -178,6 +178,9 @@ def _run_realtime(args, mode: str) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     if args.out == DEFAULT_OUT:  # one file per race
         out = out.parent / f"{mode}-seed{args.seed}-{stamp}.rrd"
+    for path, stream in ((out, False), (args.json, True), (args.link_capture, False)):
+        if path:
+            check_output_path(path, stream=stream)  # before the HIL processes or the hardware open
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
     roster = race_roster(args, setup)
     try:
@@ -197,7 +200,6 @@ def _run_realtime(args, mode: str) -> int:
     recorder = loop = capture = None
     try:
         planners = RacePlanners(setup, roster)
-        out.parent.mkdir(parents=True, exist_ok=True)
         recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars])
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults,
@@ -235,7 +237,7 @@ def _run_realtime(args, mode: str) -> int:
             capture.close()
     _print(outcome, setup, args, mode, opponent)
     if args.json:
-        atomic_write_text(args.json, json.dumps(outcome.summary(), indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(outcome.summary(), indent=2) + "\n", stream=True)
     return 0 if outcome.reason in ("finished", "time_limit") else 1
 
 
@@ -334,8 +336,9 @@ def open_capture(args):
         return None
     path = Path(args.link_capture)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         return LinkCapture(path)
+    except OutputFileError as exc:
+        raise UserError(f"--link-capture: {exc}") from None
     except OSError as exc:
         raise UserError(f"--link-capture: cannot write {path}: {exc}") from None
 
@@ -355,7 +358,7 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
         camera = world.camera
         fixed_ids = ()
         note = "calibration: true synthetic camera (no fixed markers for this track)"
-        calibration = CameraCalibration(camera)
+        calibration = CameraCalibration(camera, dictionary=setup.car.marker.dictionary)
         if info["fixed_markers"]:
             # Calibrate like on the real track: camera pose from the fixed markers in a grid frame,
             # with known intrinsics.
@@ -370,7 +373,8 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
             note = (f"calibration from {len(calibration.markers_used)} fixed markers: reprojection rms "
                     f"{calibration.reprojection_rms_px:.3f} px, camera position error {err:.1f} mm")
         tracker = ArucoTracker(calibration, info["marker_size_m"], info["marker_height_m"],
-                               car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9)
+                               car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9,
+                               car_dictionary=setup.car.marker.dictionary)
     except Exception:
         world.close()
         raise
@@ -393,7 +397,7 @@ def _open_hardware(args, setup, cars, config):
     except CameraError as exc:
         raise UserError(f"--camera: {exc}") from None
     tracker = ArucoTracker(calibration, setup.car.marker.size_m, setup.car.marker.height_m, car_ids=[c.marker_id for c in cars],
-                           full_search_every=10 ** 9)
+                           full_search_every=10 ** 9, car_dictionary=setup.car.marker.dictionary)
     return None, CameraFeed(camera), tracker, MultiCarEstimator(), args.serial, None
 
 

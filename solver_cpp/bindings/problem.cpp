@@ -22,11 +22,18 @@ void bind_problem(py::module_& m) {
   py::enum_<CollisionForm>(m, "CollisionForm")
       .value("distance", CollisionForm::Distance)
       .value("squared", CollisionForm::Squared);
+  py::class_<PairDistance>(m, "PairDistance")
+      .def(py::init<>())
+      .def_readwrite("i", &PairDistance::i)
+      .def_readwrite("j", &PairDistance::j)
+      .def_readwrite("min_distance", &PairDistance::min_distance)
+      .def_readwrite("min_distance_steps", &PairDistance::min_distance_steps);
   py::class_<CollisionSpec>(m, "CollisionSpec")
       .def(py::init<>())
       .def_readwrite("enabled", &CollisionSpec::enabled)
       .def_readwrite("min_distance", &CollisionSpec::min_distance)
       .def_readwrite("min_distance_steps", &CollisionSpec::min_distance_steps)
+      .def_readwrite("pair_distances", &CollisionSpec::pair_distances)
       .def_readwrite("form", &CollisionSpec::form)
       .def_readwrite("pos_x", &CollisionSpec::pos_x)
       .def_readwrite("pos_y", &CollisionSpec::pos_y);

@@ -1,10 +1,12 @@
 // Iterated best response (Settings::best_response_rounds): each agent in turn solves its own problem alone, the
-// others' current rolled-out positions as moving obstacles (best_response_margin beyond the collision distance),
-// with the same solver (one agent). Used as the initial guess of one restart attempt (docs/solver.md, "Restarts")
-// and, through Solver::best_response, by solver_cpp.best_response_guess.
+// others' current rolled-out positions as moving obstacles (best_response_margin beyond each pair's collision
+// distance), with the same solver (one agent). Used as the initial guess of one restart attempt (docs/solver.md,
+// "Restarts") and, through Solver::best_response, by solver_cpp.best_response_guess.
 #include <algorithm>
 #include <string>
 #include <stdexcept>
+#include <tuple>
+#include <utility>
 
 #include "rd3g/clock.hpp"
 #include "rd3g/solver.hpp"
@@ -15,10 +17,13 @@ namespace rd3g {
 int Solver::best_response_sweeps(int rounds, int budget) {
   const bool others = prob_.collision.enabled && N_ > 1;  // the others are obstacles only if collisions count
   const int n_obs = static_cast<int>(prob_.obstacles.size());
-  // The others are kept at the collision distance plus the margin: the guess then starts strictly inside.
+  // The others are kept at their pair's collision distance plus the margin: the guess then starts strictly inside.
   const double inflate = 1.0 + settings_.best_response_margin;
-  const double keep_distance = inflate * prob_.collision.min_distance;
-  const Vec keep_distance_steps = inflate * prob_.collision.min_distance_steps;
+  auto keep_distance = [&](int i, int j) {  // (d_min, per-step d_min) at which agent i keeps agent j
+    const PairDistance* q = prob_.collision.pair_distance(i, j);
+    const Vec& steps = q ? q->min_distance_steps : prob_.collision.min_distance_steps;
+    return std::make_pair(inflate * (q ? q->min_distance : prob_.collision.min_distance), Vec(inflate * steps));
+  };
   if (br_stale_ || static_cast<int>(br_.size()) != N_) {
     // One single-agent problem per agent: its model, cost, bounds and the problem's obstacles, then one moving
     // obstacle per other agent at the inflated distance (positions filled before each sub-solve). The lead term
@@ -47,11 +52,11 @@ int Solver::best_response_sweeps(int rounds, int budget) {
       p.x_max = {prob_.x_max[i]};
       p.obstacles = prob_.obstacles;
       if (others)
-        for (int j = 0; j < N_ - 1; ++j) {
+        for (int j = 0; j < N_; ++j) {
+          if (j == i) continue;
           Obstacle o;
           o.positions = br_positions_;
-          o.min_distance = keep_distance;
-          o.min_distance_steps = keep_distance_steps;
+          std::tie(o.min_distance, o.min_distance_steps) = keep_distance(i, j);
           p.obstacles.push_back(std::move(o));
         }
       if (!br_[i]) br_[i] = std::make_unique<Solver>();
@@ -73,7 +78,8 @@ int Solver::best_response_sweeps(int rounds, int budget) {
           if (j == i) continue;
           br_positions_.col(0) = y_.x[j].row(px).transpose();
           br_positions_.col(1) = y_.x[j].row(py).transpose();
-          s.update_obstacle(o++, br_positions_, keep_distance, keep_distance_steps);
+          const auto [d, steps] = keep_distance(i, j);
+          s.update_obstacle(o++, br_positions_, d, steps);
         }
       s.settings_.max_iter = std::min(settings_.best_response_max_iter, left);
       s.settings_.time_limit = time;

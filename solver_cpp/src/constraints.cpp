@@ -60,7 +60,7 @@ void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Ma
   switch (c.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(x[c.i](px, c.k) - x[c.j](px, c.k), x[c.i](py, c.k) - x[c.j](py, c.k));
-      distance_constraint(p.collision.form, d, p.collision.at(c.k), out.h, &gd, &Hd);
+      distance_constraint(p.collision.form, d, p.collision.at(c.i, c.j, c.k), out.h, &gd, &Hd);
       out.n = 4;
       const int ag[4] = {c.i, c.i, c.j, c.j}, cp[4] = {px, py, px, py};
       const double gg[4] = {gd[0], gd[1], -gd[0], -gd[1]};

@@ -269,7 +269,7 @@ void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d
   switch (cn.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
-      distance_constraint(prob_.collision.form, d, prob_.collision.at(cn.k), h, g, H);
+      distance_constraint(prob_.collision.form, d, prob_.collision.at(cn.i, cn.j, cn.k), h, g, H);
       return;
     }
     case K::Obstacle: {
@@ -981,7 +981,7 @@ bool Solver::deep_overlap() const {
     double dmin;
     Eigen::Vector2d d;
     if (cn.kind == Constraint::Kind::Pair) {
-      dmin = prob_.collision.at(cn.k);
+      dmin = prob_.collision.at(cn.i, cn.j, cn.k);
       d << y_.x[cn.i](px, cn.k) - y_.x[cn.j](px, cn.k), y_.x[cn.i](py, cn.k) - y_.x[cn.j](py, cn.k);
     } else if (cn.kind == Constraint::Kind::Obstacle) {
       const Obstacle& o = prob_.obstacles[cn.j];

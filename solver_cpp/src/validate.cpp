@@ -70,14 +70,16 @@ void validate_bounds(const Vec& lower, const Vec& upper, int n, const std::strin
 
 void validate_min_distance(double min_distance, const Vec& steps, int horizon, const std::string& where) {
   if (steps.size() == 0) {
-    require(std::isfinite(min_distance) && min_distance > 0, where + " must be positive, got " + num(min_distance));
+    require(std::isfinite(min_distance) && min_distance > 0,
+            where + " must be a positive finite number (m), got " + num(min_distance));
     return;
   }
   require(steps.size() == horizon, where + " must be a positive number or " + std::to_string(horizon) +
                                        " positive numbers (one per step k = 1..T), got " + std::to_string(steps.size()));
   for (int k = 0; k < horizon; ++k)
     require(std::isfinite(steps[k]) && steps[k] > 0,
-            where + "[" + std::to_string(k) + "] (step k = " + std::to_string(k + 1) + ") must be positive, got " + num(steps[k]));
+            where + "[" + std::to_string(k) + "] (step k = " + std::to_string(k + 1) +
+                ") must be a positive finite number (m), got " + num(steps[k]));
 }
 
 void validate_obstacle(const Obstacle& o, int horizon, const std::string& where) {
@@ -95,6 +97,9 @@ void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int
     try {
       check_index(c.pos_x, nx, "collision.pos_x");
       check_index(c.pos_y, nx, "collision.pos_y");
+      // One state for both coordinates would measure sqrt(2) |x_i - x_j| along a diagonal, not a distance.
+      require(c.pos_x != c.pos_y, "collision.pos_x and collision.pos_y must be different states, got " +
+                                      std::to_string(c.pos_x) + " for both");
     } catch (const std::invalid_argument& e) {
       if (pairs) throw;
       throw std::invalid_argument(std::string(e.what()) +
@@ -102,7 +107,26 @@ void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int
     }
   }
   require(c.form == CollisionForm::Distance || c.form == CollisionForm::Squared, "collision.form is not a known form");
-  if (pairs) validate_min_distance(c.min_distance, c.min_distance_steps, horizon, "collision.min_distance");
+  if (!pairs) return;
+  validate_min_distance(c.min_distance, c.min_distance_steps, horizon, "collision.min_distance");
+  const auto& pd = c.pair_distances;
+  for (size_t n = 0; n < pd.size(); ++n) {
+    const PairDistance& q = pd[n];
+    const std::string where = "collision.pair_distances[" + std::to_string(n) + "]";
+    const std::string agents = "[" + std::to_string(q.i) + ", " + std::to_string(q.j) + "]";
+    require(q.i >= 0 && q.i < num_agents && q.j >= 0 && q.j < num_agents,
+            where + ".agents must be two agent indices in [0, " + std::to_string(num_agents) + "), got " + agents);
+    require(q.i != q.j, where + ".agents must be two different agents, got " + agents);
+    for (size_t m = 0; m < n; ++m)
+      require(!((pd[m].i == q.i && pd[m].j == q.j) || (pd[m].i == q.j && pd[m].j == q.i)),
+              where + ".agents: the pair " + agents + " already has a distance in collision.pair_distances[" +
+                  std::to_string(m) + "]");
+    try {
+      validate_min_distance(q.min_distance, q.min_distance_steps, horizon, where + ".min_distance");
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(std::string(e.what()) + " (agents " + agents + ")");
+    }
+  }
 }
 
 void validate_problem(const Problem& p) {

@@ -33,19 +33,40 @@ struct LeadCost {
 
 enum class CollisionForm { Distance, Squared };
 
+/// d_min of one pair of agents, replacing CollisionSpec::min_distance (and its per-step values) for that pair: e.g.
+/// a receding-horizon planner relaxes the one pair that starts closer than d_min and keeps the others nominal.
+struct PairDistance {
+  int i = 0, j = 0;           ///< the two agents (distinct, either order: the pair is unordered)
+  double min_distance = 0.0;  ///< d_min (m)
+  Vec min_distance_steps;     ///< optional d_min per step k = 1..T (m), length T; empty = min_distance at every step
+  /// d_min at step k (1..T), m.
+  double at(int k) const { return min_distance_steps.size() ? min_distance_steps[k - 1] : min_distance; }
+};
+
 /// Pairwise collision avoidance between every pair of agents at k = 1..T:
 ///   Distance: h = d_min - ||p^i - p^j|| <= 0;  Squared: h = d_min^2 - ||p^i - p^j||^2 <= 0,
-/// with p the state components (pos_x, pos_y).
+/// with p the state components (pos_x, pos_y) and d_min the pair's entry of pair_distances, else min_distance.
 struct CollisionSpec {
   bool enabled = true;
-  double min_distance = 0.0;  ///< d_min (m)
+  double min_distance = 0.0;  ///< d_min (m) of every pair not in pair_distances
   /// Optional d_min per step k = 1..T (m), length T; empty = min_distance at every step. Lets a
   /// receding-horizon planner start from a separation below d_min and demand its recovery.
   Vec min_distance_steps;
+  /// Pairs with their own d_min (at most one entry per pair); usually empty or a few entries, so looked up by a scan.
+  std::vector<PairDistance> pair_distances;
   CollisionForm form = CollisionForm::Distance;
   int pos_x = 0, pos_y = 1;   ///< state indices of the position used by the constraint
-  /// d_min at step k (1..T), m.
-  double at(int k) const { return min_distance_steps.size() ? min_distance_steps[k - 1] : min_distance; }
+  /// The entry of pair_distances for agents i and j, or nullptr (the pair uses min_distance).
+  const PairDistance* pair_distance(int i, int j) const {
+    for (const PairDistance& q : pair_distances)
+      if ((q.i == i && q.j == j) || (q.i == j && q.j == i)) return &q;
+    return nullptr;
+  }
+  /// d_min of agents i and j at step k (1..T), m.
+  double at(int i, int j, int k) const {
+    if (const PairDistance* q = pair_distance(i, j)) return q->at(k);
+    return min_distance_steps.size() ? min_distance_steps[k - 1] : min_distance;
+  }
 };
 
 /// A moving obstacle every agent avoids (used by a single-agent MPC that predicts its opponent):
@@ -220,9 +241,9 @@ struct Settings {
   int best_response_rounds = 1;
   int best_response_attempt = 1;
   int best_response_max_iter = 100;  ///< per single-agent sub-solve (Newton iterations)
-  /// The sub-solves keep the others at (1 + best_response_margin) times the collision distance (per step too), so
-  /// that the guess starts strictly inside every collision constraint: a guess whose contacts sit exactly at d_min
-  /// leaves the barrier no room, and the attempt from it stalls within a few iterations (docs/solver.md).
+  /// The sub-solves keep the others at (1 + best_response_margin) times their pair's collision distance (per step
+  /// too), so that the guess starts strictly inside every collision constraint: a guess whose contacts sit exactly at
+  /// d_min leaves the barrier no room, and the attempt from it stalls within a few iterations (docs/solver.md).
   double best_response_margin = 0.1;  ///< fraction of the collision distance, >= 0
   /// Non-monotone violation test (attempt 0; restarts use restart_violation_memory): a trial may not raise the
   /// total violation above the largest of the last violation_memory iterates' (1 = monotone, the paper's rule).

@@ -29,7 +29,8 @@ void validate_bounds(const Vec& lower, const Vec& upper, int n, const std::strin
 /// d_min (m) and its optional per-step values (k = 1..T).
 void validate_min_distance(double min_distance, const Vec& steps, int horizon, const std::string& where);
 void validate_obstacle(const Obstacle& o, int horizon, const std::string& where);
-/// Position indices of pairs and obstacles; checked whenever either kind of constraint exists.
+/// Position indices of pairs and obstacles, checked whenever either kind of constraint exists; with pairs, d_min
+/// and every entry of pair_distances (agents in [0, num_agents), distinct, one entry per pair, d_min > 0).
 void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int nx, bool has_obstacles);
 
 }  // namespace rd3g
