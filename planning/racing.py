@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, QuadraticCost, Solver, WarmStart
+from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, PairDistance, QuadraticCost, Solver, WarmStart
 
 from .commands import CommandMapper
 from .config import PlannerConfig, solver_settings
@@ -163,10 +163,9 @@ class _RecedingHorizon:
         towards the centre line over the horizon, if that exceeds the nominal bound (the lateral cost
         then pulls the car back); distance: at most the current separation and the one at k = 1 with
         zero controls, minus 1 cm (the bound gets 3 cm of room: with 1-2 cm the solves from such states
-        stalled), but never below _MIN_COLLISION_DISTANCE_M. Returns (bound, distance, the distance each
-        pair would need alone: a symmetric matrix over x0s then obstacle_positions). The solver's
-        collision specification has one distance for every pair, so the closest pair relaxes all of
-        them; a per-pair distance in the specification would take the matrix instead."""
+        stalled), but never below _MIN_COLLISION_DISTANCE_M. Returns (bound, the smallest pair's
+        distance, each pair's distance: a symmetric matrix over x0s then obstacle_positions; only the
+        pairs that start too close are relaxed, the others keep d_min)."""
         c = self.config
         model = self.tm.rollout_model(c.plan_dt_s)
         first = []
@@ -300,16 +299,18 @@ class _RecedingHorizon:
         k = np.arange(1, self.config.horizon + 1)
         return np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
 
-    def _violation(self, problem: GameProblem, x: np.ndarray, d_min, ey_bound: float) -> float:
-        """Largest violation (m or m/s) of track limits, top speed and separation along trajectories x."""
+    def _violation(self, problem: GameProblem, x: np.ndarray, ey_bound: float) -> float:
+        """Largest violation (m or m/s) of track limits, top speed and separation (each pair at its own
+        distance) along trajectories x."""
         worst = float(np.max(np.abs(x[:, 1:, EY])) - ey_bound)
         for i, a in enumerate(problem.agents):
             worst = max(worst, float(np.max(x[i, 1:, V]) - a.x_max[V]))
         n = len(problem.agents)
         positions = [x[i, 1:, :2] for i in range(n)]
+        d_pair = problem.collision.pair_min_distances(n, problem.horizon) if n > 1 else None
         for i in range(n):
             for j in range(i + 1, n):
-                worst = max(worst, float(np.max(d_min - np.hypot(*(positions[i] - positions[j]).T))))
+                worst = max(worst, float(np.max(d_pair[i, j] - np.hypot(*(positions[i] - positions[j]).T))))
             for o in problem.obstacles:  # each obstacle at its own distance
                 worst = max(worst, float(np.max(o.min_distance - np.hypot(*(positions[i] - o.positions[1:]).T))))
         return max(worst, 0.0)
@@ -338,7 +339,7 @@ class _RecedingHorizon:
             used = "fallback"
             if finite:
                 x = self._rollout(problem, result.u)
-                if np.all(np.isfinite(x)) and self._violation(problem, x, d_min, ey_bound) <= self.config.accept_violation_m:
+                if np.all(np.isfinite(x)) and self._violation(problem, x, ey_bound) <= self.config.accept_violation_m:
                     used, u_all = "accepted", result.u
         if used == "fallback":
             if warm is None:  # nothing to track yet: the best the solver found
@@ -464,18 +465,23 @@ class RacingPlanner(_RecedingHorizon):
             own_cost.x_ref = [own_cost.x_ref[0], defend_ey, *own_cost.x_ref[2:]]
             own_cost.Q_ref = [own_cost.Q_ref[0], c.q_defend, *own_cost.Q_ref[2:]]
         nominal_d_min = d_min
-        # Per-pair distances (pair) would go into the collision specification here once it takes them;
-        # today every pair gets the closest pair's relaxed distance d_min.
         predicted = [self.predict_other(x) for x in far]
         ey_bound, d_min, pair = self._feasible_limits([x_self, *rows], ey_bound, d_min, predicted)
         top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
         agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
                   *(self._agent(x, t, ey_bound, self._cost(t), c.lead_weight) for x, t in zip(rows, other_top))]
-        d_steps = self._distance_steps(d_min, nominal_d_min)
-        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
-                              collision=Collision(min_distance=d_steps, form="distance", pos_x=S, pos_y=EY),
-                              obstacles=[Obstacle(positions=o, min_distance=d_steps) for o in predicted])
-        plan = self._finish(problem, d_steps, ey_bound, ids)
+        # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
+        # plan), the others keep the nominal one; so does each obstacle.
+        n = len(agents)
+        steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min)
+                 for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
+        collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,
+                              pair_distances=[PairDistance(agents=ij, min_distance=d) for ij, d in steps.items()
+                                              if ij[1] < n])
+        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents, collision=collision,
+                              obstacles=[Obstacle(positions=o, min_distance=steps.get((0, n + k), nominal_d_min))
+                                         for k, o in enumerate(predicted)])
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound, ids)
         if far:
             plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in far)], axis=0)
         return plan
@@ -508,7 +514,7 @@ class MPCOpponent(_RecedingHorizon):
                               agents=[self._agent(x_self, top, ey_bound, cost, 0.0)],
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
                               obstacles=[Obstacle(positions=o, min_distance=d) for o, d in zip(others, steps)])
-        plan = self._finish(problem, min(steps, key=np.min), ey_bound)
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound)
         plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in rows)], axis=0)
         return plan
 

@@ -190,6 +190,27 @@ def test_mpc_relaxes_only_the_car_that_is_too_close(track, car, monkeypatch):
     assert first[1] == pytest.approx(nominal)             # the other car keeps the nominal distance
 
 
+def test_game_relaxes_only_the_pair_that_starts_too_close(track, car, monkeypatch):
+    setup = RaceSpec().load()
+    p = make_planner(RacingPlanner, setup, 2.0, opponent_top_speed_mps=1.8)
+    seen = {}
+    original = RacingPlanner._finish
+
+    def capture(self, problem, d, ey, ids=()):
+        seen["problem"] = problem
+        return original(self, problem, d, ey, ids)
+
+    monkeypatch.setattr(RacingPlanner, "_finish", capture)
+    me = np.array([1.0, 0.0, 1.0, 0.0])
+    close, far = np.array([1.12, 0.05, 1.0, 0.0]), np.array([2.5, 0.0, 1.0, 0.0])
+    p.plan(me, np.array([close, far]), other_tops=[1.8, 1.8])
+    collision = seen["problem"].collision
+    nominal = p.tm.collision_distance([1.0, 1.12, 2.5], [0.0, 0.05, 0.0])
+    d = collision.pair_min_distances(3, p.config.horizon)
+    assert d[0, 1, 0] < np.hypot(0.12, 0.05) < nominal          # us and the close car: relaxed at k = 1
+    assert np.allclose(d[0, 2], nominal) and np.allclose(d[1, 2], nominal)  # the far car: nominal with both
+
+
 def test_follow_cap_and_defence_take_the_strictest_other_car(track, car):
     setup = RaceSpec().load()
     p = make_planner(RacingPlanner, setup, 2.0, opponent_top_speed_mps=1.8)
