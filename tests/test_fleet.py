@@ -170,45 +170,33 @@ def test_interacting_cars_are_within_reach_of_the_horizon_nearest_first():
     assert interacting_cars(3, progress, [2.0] * 5, 1.0, 0.2, 10.0) == [2]
 
 
-def test_mpc_relaxes_only_the_car_that_is_too_close(track, car, monkeypatch):
+@pytest.mark.parametrize("cls", [MPCOpponent, RacingPlanner])
+def test_only_the_car_that_starts_too_close_is_relaxed(cls, monkeypatch):
+    """Us at s = 1 m, one car 13 cm away (inside the collision distance), one 1.5 m ahead: the close
+    car's distance is relaxed below the current separation, the far car keeps the nominal one (MPC: as
+    an obstacle; RD3G: as a player, with us and with the close car)."""
     setup = RaceSpec().load()
-    mpc = make_planner(MPCOpponent, setup, 1.8)
+    planner = make_planner(cls, setup, 1.8, **({"opponent_top_speed_mps": 1.8} if cls is RacingPlanner else {}))
     seen = {}
-    original = MPCOpponent._finish
+    original = cls._finish
 
     def capture(self, problem, d, ey, ids=()):
         seen["problem"] = problem
         return original(self, problem, d, ey, ids)
 
-    monkeypatch.setattr(MPCOpponent, "_finish", capture)
-    me = np.array([1.0, 0.0, 1.0, 0.0])
-    close, far = np.array([1.12, 0.05, 1.0, 0.0]), np.array([2.5, 0.0, 1.0, 0.0])
-    mpc.plan(me, np.array([close, far]))
-    first = [float(np.atleast_1d(o.min_distance)[0]) for o in seen["problem"].obstacles]
-    nominal = mpc.tm.collision_distance([1.0, 1.12, 2.5], [0.0, 0.05, 0.0])
-    assert first[0] < np.hypot(0.12, 0.05) < nominal      # relaxed to the current separation
-    assert first[1] == pytest.approx(nominal)             # the other car keeps the nominal distance
-
-
-def test_game_relaxes_only_the_pair_that_starts_too_close(track, car, monkeypatch):
-    setup = RaceSpec().load()
-    p = make_planner(RacingPlanner, setup, 2.0, opponent_top_speed_mps=1.8)
-    seen = {}
-    original = RacingPlanner._finish
-
-    def capture(self, problem, d, ey, ids=()):
-        seen["problem"] = problem
-        return original(self, problem, d, ey, ids)
-
-    monkeypatch.setattr(RacingPlanner, "_finish", capture)
-    me = np.array([1.0, 0.0, 1.0, 0.0])
-    close, far = np.array([1.12, 0.05, 1.0, 0.0]), np.array([2.5, 0.0, 1.0, 0.0])
-    p.plan(me, np.array([close, far]), other_tops=[1.8, 1.8])
-    collision = seen["problem"].collision
-    nominal = p.tm.collision_distance([1.0, 1.12, 2.5], [0.0, 0.05, 0.0])
-    d = collision.pair_min_distances(3, p.config.horizon)
-    assert d[0, 1, 0] < np.hypot(0.12, 0.05) < nominal          # us and the close car: relaxed at k = 1
-    assert np.allclose(d[0, 2], nominal) and np.allclose(d[1, 2], nominal)  # the far car: nominal with both
+    monkeypatch.setattr(cls, "_finish", capture)
+    me, close, far = np.array([1.0, 0.0, 1.0, 0.0]), np.array([1.12, 0.05, 1.0, 0.0]), np.array([2.5, 0.0, 1.0, 0.0])
+    planner.plan(me, np.array([close, far]))
+    nominal = planner.tm.collision_distance([1.0, 1.12, 2.5], [0.0, 0.05, 0.0])
+    problem = seen["problem"]
+    if cls is MPCOpponent:
+        d_close, d_far = (np.atleast_1d(o.min_distance) for o in problem.obstacles)
+        d_others = []
+    else:
+        d = problem.collision.pair_min_distances(3, planner.config.horizon)
+        d_close, d_far, d_others = d[0, 1], d[0, 2], d[1, 2]
+    assert d_close[0] < np.hypot(0.12, 0.05) < nominal      # relaxed at k = 1 below the current separation
+    assert np.allclose(d_far, nominal) and np.allclose(d_others, nominal)
 
 
 def test_follow_cap_and_defence_take_the_strictest_other_car(track, car):
