@@ -70,8 +70,8 @@ class PlannerConfig:
     # Fleet races (race.planning.interacting_cars): an RD3G car's game has at most this many players,
     # itself and the nearest cars that can interact with it; further such cars are constant-speed
     # obstacles, as for MPC (0: every such car is a player). Two: in 4-car races (2 RD3G, 2 MPC, seeds
-    # 0-7) two-player games fell back in 1 in 50 plans with no collision, four-player games in 1 in 4
-    # plans with one RD3G-at-fault collision (docs/racing.md, "Fleet races"). Warm-started games of more
+    # 0-7) two-player games fell back in 1 in 50 plans, four-player games in 1 in 4 and took about twice
+    # as long (docs/racing.md, "Fleet races"). Warm-started games of more
     # than two players get max_iter_per_extra_player more solver iterations per extra player: with 15,
     # three- and four-player games stopped at the cap in most plans and the cars fell back.
     game_players: int = 2
