@@ -66,6 +66,15 @@ class PlannerConfig:
     max_brake_mps2: float = 4.0       # planner's braking bound (tyre-limited; the motor could brake harder)
     steering_margin: float = 0.95     # fraction of the steering range the planner may use
     curvature_table_ds_m: float = 0.02
+    # Fleet races (race.planning.interacting_cars): an RD3G car's game has at most this many players,
+    # itself and the nearest cars that can interact with it; further such cars are constant-speed
+    # obstacles, as for MPC (0: every such car is a player). Two: in 4-car races (2 RD3G, 2 MPC, seeds
+    # 0-7) two-player games fell back in 1 in 50 plans, four-player games in 1 in 4 and took about twice
+    # as long (docs/racing.md, "Fleet races"). Warm-started games of more
+    # than two players get max_iter_per_extra_player more solver iterations per extra player: with 15,
+    # three- and four-player games stopped at the cap in most plans and the cars fell back.
+    game_players: int = 2
+    max_iter_per_extra_player: int = 10
     # Solver settings of the warm-started plans, under the solver's own names (solver_cpp Settings; any
     # key not given keeps the solver's default from solver_cpp/include/rd3g/problem.hpp). A deterministic
     # iteration cap rather than a wall-clock limit (time_limit 0: races do not depend on machine speed); the
@@ -95,7 +104,7 @@ class PlannerConfig:
 
     def __post_init__(self) -> None:
         positive = {"plan_dt_s", "top_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "steering_margin"}
-        ints = {"horizon": 1}
+        ints = {"horizon": 1, "game_players": 0, "max_iter_per_extra_player": 0}
         for name in ("solver", "cold_start_solver"):
             try:
                 solver_settings(getattr(self, name))
@@ -121,5 +130,7 @@ class PlannerConfig:
                 raise PlannerConfigError(f"planner.{f.name}: must be > 0, got {v!r}")
             if v < 0:
                 raise PlannerConfigError(f"planner.{f.name}: must be >= 0, got {v!r}")
+        if self.game_players == 1:
+            raise PlannerConfigError("planner.game_players: must be 0 (every car) or at least 2, got 1")
         if self.steering_margin > 1:
             raise PlannerConfigError(f"planner.steering_margin: must be in (0, 1], got {self.steering_margin!r}")
