@@ -224,7 +224,7 @@ def problem_seeds() -> list:
                           "u_min": [-1], "u_max": [1], "x_min": [-float("inf"), -2], "x_max": [float("inf"), 2],
                           "lead_weight": 0.5, "lead_index": 0} for _ in range(2)],
               "obstacles": [{"positions": [[3.0, 0.0]] * (T + 1), "min_distance": 0.5}],
-              "solver": {"linear_solver": "sparse_lu", "verbose": False, "max_iter": 20}}
+              "solver": {"verbose": False, "max_iter": 20, "linear": {"solver": "sparse_lu"}}}
     return [merge, linear]
 
 

@@ -21,7 +21,7 @@ def measure_one(cars: int, horizon: int, iterations: int = 3) -> dict:
 
     problem = dataclasses.replace(merging_problem(cars, 0), horizon=horizon)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    result = Solver(problem, max_iter=iterations, restarts=0).solve()
+    result = Solver(problem, max_iter=iterations, restart=dict(count=0)).solve()
     size = estimate_size(problem)
     return {"cars": cars, "horizon": horizon, "block": size.block,
             "peak_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, "bytes_before": rss_before,

@@ -21,18 +21,16 @@ from solver_cpp import solve
 
 # Solver settings of each method (on top of the C++ defaults, docs/solver.md "Second-order test").
 METHODS = {
-    "restart": {"saddle_escapes": 0, "saddle_inertia": 0.0},  # restart_on_saddle alone (the schedule from the guess)
-    "escape": {"saddle_escapes": 2, "saddle_inertia": 0.0},   # + restart from the saddle along negative curvature
-    "inertia": {"saddle_escapes": 0, "saddle_inertia": 1.5, "saddle_inertia_restarts": True},  # + inertia correction
-    "both": {"saddle_escapes": 2, "saddle_inertia": 1.5},      # the default: inertia in the escape attempts only
-    "both+restarts": {"saddle_escapes": 2, "saddle_inertia": 1.5, "saddle_inertia_restarts": True},
+    "restart": {"second_order": {"escapes": 0, "inertia": 0.0}},  # restart_on_saddle alone (the schedule from the guess)
+    "escape": {"second_order": {"escapes": 2, "inertia": 0.0}},   # + restart from the saddle along negative curvature
+    "both": {"second_order": {"escapes": 2, "inertia": 1.5}},      # the default: inertia in the escape attempts only
 }
 
 Case = tuple[str, int, int]  # (family, cars, seed)
 
 
 def _scan_one(case: Case) -> tuple[Case, str]:
-    r = solve(family_problem(*case), restart_on_saddle=False)
+    r = solve(family_problem(*case), second_order=dict(restart_on_saddle=False))
     return case, r.status
 
 

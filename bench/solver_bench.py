@@ -35,7 +35,7 @@ def run(cars: list[int], instances: int, linear_solvers: list[str], time_limit_s
             for n in cars:
                 times, iters, per_it, lin_it, conv = [], [], [], [], 0
                 for seed in range(instances):
-                    r = solve(merging_problem(n, seed), linear_solver=ls, time_limit=time_limit_s)
+                    r = solve(merging_problem(n, seed), time_limit=time_limit_s, linear=dict(solver=ls))
                     bar.update()
                     if r.converged:
                         conv += 1

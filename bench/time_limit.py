@@ -19,7 +19,7 @@ from bench.merging import merging_problem
 from fileio import atomic_write_text, check_output_path
 from solver_cpp import solve
 
-PATHS = {"sparse_lu": {}, "sparse_qr": {}, "lscg": {"lscg_tol": 1e-16, "lscg_max_iter": 10**6}}
+PATHS = {"sparse_lu": {}, "sparse_qr": {}, "lscg": {"linear": {"lscg_tol": 1e-16, "lscg_max_iter": 10**6}}}
 
 
 def allowed_s(limit: float) -> float:
@@ -72,7 +72,7 @@ def summary(cases, limits: list[float], paths: dict) -> dict:
         problem = make()
         for path, extra in paths.items():
             for limit in limits:
-                status, wall, cpu = timed(problem, limit, linear_solver=path, **extra)
+                status, wall, cpu = timed(problem, limit, **extra, linear=dict(solver=path))
                 key = f"{path} {limit:g}"
                 row = rows.setdefault(key, {"solves": 0, "within": 0, "within_cpu": 0, "time_limit": 0, "max_over_s": -1e9})
                 row["solves"] += 1
@@ -121,7 +121,7 @@ def run(args) -> int:
         for name, extra in paths.items():
             for limit in limits:
                 for seed in range(args.seeds):
-                    status, wall, _ = timed(merging_problem(cars[0], seed), limit, linear_solver=name, **extra)
+                    status, wall, _ = timed(merging_problem(cars[0], seed), limit, **extra, linear=dict(solver=name))
                     print(f"{name:<13}  {limit:7.3f}  {seed:4d}  {status:<10}  {wall:6.3f}  {wall - limit:11.3f}")
         return 0
     if args.json:

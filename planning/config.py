@@ -5,7 +5,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 
-from solver_cpp import make_settings
+from solver_cpp import make_settings, merge_settings
 
 
 class PlannerConfigError(ValueError):
@@ -13,14 +13,13 @@ class PlannerConfigError(ValueError):
 
 
 def solver_settings(*layers: Mapping):
-    """The solver's Settings from overrides under its own names (a later layer overrides an earlier one);
-    a None value means the solver's default (solver_cpp.make_settings names any unknown key or bad value)."""
-    merged: dict = {}
+    """The solver's Settings from overrides under its own (grouped) names, a later layer overriding an earlier one
+    field by field; a None value means the solver's default (solver_cpp.make_settings names any unknown key or bad
+    value)."""
     for layer in layers:
         if not isinstance(layer, Mapping):
             raise ValueError(f"must be a mapping of solver settings, got {type(layer).__name__}")
-        merged.update(layer)
-    return make_settings(**{k: v for k, v in merged.items() if v is not None})
+    return make_settings(**merge_settings(*layers))
 
 
 @dataclass(frozen=True)
@@ -67,6 +66,15 @@ class PlannerConfig:
     max_brake_mps2: float = 4.0       # planner's braking bound (tyre-limited; the motor could brake harder)
     steering_margin: float = 0.95     # fraction of the steering range the planner may use
     curvature_table_ds_m: float = 0.02
+    # Fleet races (race.planning.interacting_cars): an RD3G car's game has at most this many players,
+    # itself and the nearest cars that can interact with it; further such cars are constant-speed
+    # obstacles, as for MPC (0: every such car is a player). Two: in 4-car races (2 RD3G, 2 MPC, seeds
+    # 0-7) two-player games fell back in 1 in 50 plans, four-player games in 1 in 4 and took about twice
+    # as long (docs/racing.md, "Fleet races"). Warm-started games of more
+    # than two players get max_iter_per_extra_player more solver iterations per extra player: with 15,
+    # three- and four-player games stopped at the cap in most plans and the cars fell back.
+    game_players: int = 2
+    max_iter_per_extra_player: int = 10
     # Solver settings of the warm-started plans, under the solver's own names (solver_cpp Settings; any
     # key not given keeps the solver's default from solver_cpp/include/rd3g/problem.hpp). A deterministic
     # iteration cap rather than a wall-clock limit (time_limit 0: races do not depend on machine speed); the
@@ -78,13 +86,14 @@ class PlannerConfig:
     # > 1: never switched): with the solver's default restart rules and deep_overlap 0.5, `python -m app race` took
     # 11 fallbacks instead of 10, and tests/test_planning.py's closed loop behind a car left the track.
     solver: dict = field(default_factory=lambda: dict(
-        max_iter=15, rho_progress=1.0, restarts=0, ls_max_steps=8, lm_tries=0, rho_init=0.001,
-        deep_overlap=2.0, restart_rho_progress=1.0, restart_violation_memory=1, restart_rho_on_stall=False))
+        max_iter=15, barrier=dict(rho_progress=1.0, rho_init=0.001), line_search=dict(max_steps=8, lm_tries=0),
+        restart=dict(count=0, deep_overlap=2.0, rho_progress=1.0, violation_memory=1, rho_on_stall=False)))
     # The first (cold) plan, computed before the start outside the real-time budget: `solver` with these
     # overrides; None = the solver's own default (here its full globalisation: restarts, Levenberg-Marquardt
     # steps, line-search steps, rho_init).
     cold_start_solver: dict = field(default_factory=lambda: dict(
-        max_iter=200, restarts=3, lm_tries=None, ls_max_steps=None, rho_init=None))
+        max_iter=200, restart=dict(count=3), line_search=dict(lm_tries=None, max_steps=None),
+        barrier=dict(rho_init=None)))
     # A non-converged solve is still used if its constraint violation is at most this (m), otherwise
     # the car tracks the previous plan in closed loop (fallback_* gains below).
     accept_violation_m: float = 0.01
@@ -95,7 +104,7 @@ class PlannerConfig:
 
     def __post_init__(self) -> None:
         positive = {"plan_dt_s", "top_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "steering_margin"}
-        ints = {"horizon": 1}
+        ints = {"horizon": 1, "game_players": 0, "max_iter_per_extra_player": 0}
         for name in ("solver", "cold_start_solver"):
             try:
                 solver_settings(getattr(self, name))
@@ -121,5 +130,7 @@ class PlannerConfig:
                 raise PlannerConfigError(f"planner.{f.name}: must be > 0, got {v!r}")
             if v < 0:
                 raise PlannerConfigError(f"planner.{f.name}: must be >= 0, got {v!r}")
+        if self.game_players == 1:
+            raise PlannerConfigError("planner.game_players: must be 0 (every car) or at least 2, got 1")
         if self.steering_margin > 1:
             raise PlannerConfigError(f"planner.steering_margin: must be in (0, 1], got {self.steering_margin!r}")

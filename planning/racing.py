@@ -1,13 +1,18 @@
 """Receding-horizon racing planners on the track (Frenet kinematic bicycle, state [s, ey, v, epsi],
 control [a, delta]); both solved with the project's C++ solver (solver_cpp).
 
-RacingPlanner (RD3G): a 2-agent game, agent 0 = our car, agent 1 = the opponent, both with the racing
-cost (lead term lead_weight * (s_j - s_i) per step plus tracking terms), a shared collision constraint
-on (s, ey), track limits as bounds on ey, the car's acceleration/steering limits as control bounds.
+RacingPlanner (RD3G): a game of our car (agent 0) and the other cars it plans with (agents 1..M, the
+race layer picks them: race.planning.interacting_cars), all with the racing cost (lead term
+lead_weight * (s_j - s_i) per step and opponent plus tracking terms), a shared collision constraint on
+(s, ey) between every pair, track limits as bounds on ey, the car's acceleration/steering limits as
+control bounds.
 
-MPCOpponent: one agent with the same cost; the other car is predicted at constant speed along the track
-at its current lateral offset and avoided as a moving obstacle. It does not model that the other car
-reacts to it. With a single agent the solver's lead term has no opponent, so the progress reward
+MPCOpponent: one agent with the same cost; every other car is predicted at constant speed along the
+track at its current lateral offset and avoided as a moving obstacle. It does not model that the
+other cars react to it.
+
+Both take the other cars as rows of an (M, 4) array (one (4,) state is one car); their s must be in
+the planning car's frame (the race layer unwraps laps: race.planning.RacePlanners). With a single agent the solver's lead term has no opponent, so the progress reward
 -lead_weight * s is written as the quadratic lead_weight/(2D) (s - (s0 + D))^2 with D far ahead
 (its gradient is -lead_weight (1 - (s - s0)/D), within 2 % over the plan for D = 100 m); the
 opponent's progress is a constant for this planner.
@@ -20,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, QuadraticCost, Solver, WarmStart
+from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, PairDistance, QuadraticCost, Solver, WarmStart
 
 from .commands import CommandMapper
 from .config import PlannerConfig, solver_settings
@@ -73,10 +78,13 @@ class _RecedingHorizon:
         self._prev: GameResult | None = None
         # Set up at the first plan, then updated every plan (same structure all race long).
         self._solver: Solver | None = None
+        self._solvers: dict[int, Solver] = {}       # one per number of agents (the game's player set changes)
+        self._prev_ids: tuple = ()                  # the cars (ids) of _prev's agents 1.., to map its warm start
         self._warm_settings = solver_settings(config.solver)
+        self._game_settings: dict[int, object] = {}  # warm settings of games of more than two players
         self._cold_settings = solver_settings(config.solver, config.cold_start_solver)
         # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
-        self._retry_settings = solver_settings(config.solver, {"rho_init": None})
+        self._retry_settings = solver_settings(config.solver, {"barrier": {"rho_init": None}})
         self._shift_weights: dict[int, tuple] = {}  # _shifted's interpolation per series length
 
     def reset(self) -> None:
@@ -107,11 +115,23 @@ class _RecedingHorizon:
         w = w.reshape((1, n) + (1,) * (a.ndim - 2))
         return (1 - w) * a[:, i0] + w * a[:, i1]
 
-    def _warm_start(self) -> WarmStart | None:
-        """Previous plan shifted by one control period."""
+    def _warm_start(self, ids: tuple = ()) -> WarmStart | None:
+        """Previous plan shifted by one control period. ``ids``: the cars of this plan's agents 1.. ;
+        when they differ from the previous plan's, each car keeps its own rows (own controls and
+        dynamics multipliers) and a car new to the game starts from zero controls."""
         if self._prev is None:
             return None
-        return WarmStart(u=self._shifted(self._prev.u), lam=self._shifted(self._prev.lam))
+        u, lam = self._shifted(self._prev.u), self._shifted(self._prev.lam)
+        if ids == self._prev_ids:
+            return WarmStart(u=u, lam=lam)
+        rows = {car: k + 1 for k, car in enumerate(self._prev_ids)}
+        pick = [0] + [rows.get(car, -1) for car in ids]
+        u_new = np.zeros((len(pick),) + u.shape[1:])
+        lam_new = np.zeros((len(pick),) + lam.shape[1:])
+        for k, r in enumerate(pick):
+            if r >= 0:
+                u_new[k], lam_new[k] = u[r], lam[r]
+        return WarmStart(u=u_new, lam=lam_new)
 
     def tracking_control(self, x0, x_ref, a_ref: float, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
         """Closed-loop fallback control [a, delta] when no usable plan exists: the Stanley lateral
@@ -134,7 +154,7 @@ class _RecedingHorizon:
         a = min(a, (top - x0[V]) / c.plan_dt_s)  # never plan past the top speed
         return np.array([np.clip(a, a_min, a_max), np.clip(delta, self.mapper.delta_min, self.mapper.delta_max)])
 
-    def _feasible_limits(self, x0s, ey_bound: float, d_min: float, obstacle_positions=()) -> tuple[float, float]:
+    def _feasible_limits(self, x0s, ey_bound: float, d_min: float, obstacle_positions=()) -> tuple[float, float, np.ndarray]:
         """Track-limit bound and collision distance relaxed just enough that the problem is feasible
         from the current states. A car beyond the bound (or heading out of it) cannot be back inside
         at k = 1 (the first planned position hardly depends on the controls), nor can two cars closer
@@ -143,7 +163,9 @@ class _RecedingHorizon:
         towards the centre line over the horizon, if that exceeds the nominal bound (the lateral cost
         then pulls the car back); distance: at most the current separation and the one at k = 1 with
         zero controls, minus 1 cm (the bound gets 3 cm of room: with 1-2 cm the solves from such states
-        stalled), but never below _MIN_COLLISION_DISTANCE_M."""
+        stalled), but never below _MIN_COLLISION_DISTANCE_M. Returns (bound, the smallest pair's
+        distance, each pair's distance: a symmetric matrix over x0s then obstacle_positions; only the
+        pairs that start too close are relaxed, the others keep d_min)."""
         c = self.config
         model = self.tm.rollout_model(c.plan_dt_s)
         first = []
@@ -160,11 +182,14 @@ class _RecedingHorizon:
                 ey_bound = reach + 0.03  # interior room for the barrier
             first.append(np.asarray(model.rollout(x0, np.zeros((1, 2))))[:, :2])
         positions = first + [np.asarray(o)[:2] for o in obstacle_positions]
-        for i in range(len(positions)):
+        nominal = float(d_min)
+        pair = np.full((len(positions), len(positions)), nominal)
+        for i in range(len(first)):  # obstacles constrain the agents only, not each other
             for j in range(i + 1, len(positions)):
                 d = float(np.min(np.hypot(*(positions[i] - positions[j]).T)))
+                pair[i, j] = pair[j, i] = max(min(nominal, d - 0.01), _MIN_COLLISION_DISTANCE_M)
                 d_min = min(d_min, d - 0.01)
-        return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M)
+        return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M), pair
 
     def corner_speed_cap(self, x, top_speed: float) -> float:
         """Speed bound (m/s) for a plan from state x: top_speed, lowered to sqrt(max_lateral_accel /
@@ -183,10 +208,11 @@ class _RecedingHorizon:
         v_corner = math.sqrt(c.max_lateral_accel_mps2 / kappa)
         return float(min(top_speed, max(v_corner, float(x[V]) - _BOUND_DROP_MPS)))
 
-    def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
-        """Controls (N, T, 2) of the previous plan shifted by one control period, the planning car's
-        first control replaced by the closed-loop tracking control towards that plan."""
-        u_all = self._shifted(self._prev.u)
+    def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None, u_all=None) -> np.ndarray:
+        """Controls (N, T, 2) of the previous plan shifted by one control period (``u_all``: those
+        controls already mapped to this plan's agents, _warm_start), the planning car's first control
+        replaced by the closed-loop tracking control towards that plan."""
+        u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
         x_ref = self._shifted(self._prev.x)[0, 0]
         u_all[0, 0] = self.tracking_control(x0, x_ref, float(u_all[0, 0, 0]), ey_bound, top_speed)
         return u_all
@@ -204,15 +230,14 @@ class _RecedingHorizon:
         x[:, S], x[:, EY], x[:, V] = other[:, 0], other[:, 1], max(float(x_other[V]), 0.0)
         return x
 
-    def fallback_plan(self, x_self, x_other, error: str) -> Plan:
+    def fallback_plan(self, x_self, x_others, error: str) -> Plan:
         """The plan for a step whose planning raised (an invalid problem, a solver error): as for a
         failed solve, the car tracks the previous plan in closed loop (tracking_control); before the
         first plan, or from a non-finite state, it coasts straight (neutral: zero throttle and zero
-        steering command). The other car is shown at constant speed. Never raises for finite input;
+        steering command). The other cars are shown at constant speed. Never raises for finite input;
         the next step plans again, warm-started from this step's controls."""
         c = self.config
         x_self = np.asarray(x_self, dtype=float)
-        x_other = np.asarray(x_other, dtype=float)
         finite = bool(np.all(np.isfinite(x_self)))
         ey_bound = self.tm.ey_bound([x_self[S]]) if finite else math.nan
         if self._prev is not None and finite:
@@ -228,16 +253,29 @@ class _RecedingHorizon:
             u = np.tile(neutral, (c.horizon, 1))
         own = (np.asarray(self.tm.rollout_model(c.plan_dt_s).rollout(x_self, u)) if finite
                else np.tile(x_self, (c.horizon + 1, 1)))
-        other = (self._predicted_other_states(x_other) if np.all(np.isfinite(x_other))
-                 else np.tile(x_other, (c.horizon + 1, 1)))
-        return Plan(x=np.stack([own, other]), u=np.asarray(u), status="error", iterations=0, solve_time_s=0.0,
+        others = [self._predicted_other_states(x) if np.all(np.isfinite(x)) else np.tile(x, (c.horizon + 1, 1))
+                  for x in _rows(x_others)]
+        return Plan(x=np.stack([own, *others]), u=np.asarray(u), status="error", iterations=0, solve_time_s=0.0,
                     max_violation=math.nan, used="fallback", d_min=math.nan, ey_bound=ey_bound, error=error)
 
+    def _warm_settings_for(self, n_agents: int):
+        """The warm settings, with PlannerConfig.max_iter_per_extra_player more iterations per player
+        beyond two."""
+        extra = max(n_agents - 2, 0) * self.config.max_iter_per_extra_player
+        if extra == 0:
+            return self._warm_settings
+        if n_agents not in self._game_settings:
+            base = self.config.solver.get("max_iter", self._warm_settings.max_iter)
+            self._game_settings[n_agents] = solver_settings(self.config.solver, {"max_iter": base + extra})
+        return self._game_settings[n_agents]
+
     def _solver_for(self, problem: GameProblem, settings) -> Solver:
-        """The planner's solver with this plan's problem and settings: set up at the first plan, updated
-        (no new set-up) at every later one."""
+        """The planner's solver with this plan's problem and settings: set up at the first plan with this
+        many agents, updated (no new set-up) at every later one."""
+        n = len(problem.agents) + 1000 * len(problem.obstacles)
+        self._solver = self._solvers.get(n)
         if self._solver is None:
-            self._solver = Solver(problem, settings)
+            self._solver = self._solvers[n] = Solver(problem, settings)
         else:
             self._solver.update(problem)
             if self._solver.settings is not settings:
@@ -261,26 +299,32 @@ class _RecedingHorizon:
         k = np.arange(1, self.config.horizon + 1)
         return np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
 
-    def _violation(self, problem: GameProblem, x: np.ndarray, d_min, ey_bound: float) -> float:
-        """Largest violation (m or m/s) of track limits, top speed and separation along trajectories x."""
+    def _violation(self, problem: GameProblem, x: np.ndarray, ey_bound: float) -> float:
+        """Largest violation (m or m/s) of track limits, top speed and separation (each pair at its own
+        distance) along trajectories x."""
         worst = float(np.max(np.abs(x[:, 1:, EY])) - ey_bound)
         for i, a in enumerate(problem.agents):
             worst = max(worst, float(np.max(x[i, 1:, V]) - a.x_max[V]))
-        positions = [x[i, 1:, :2] for i in range(len(problem.agents))] + [o.positions[1:] for o in problem.obstacles]
-        for i in range(len(positions)):
-            for j in range(i + 1, len(positions)):
-                worst = max(worst, float(np.max(d_min - np.hypot(*(positions[i] - positions[j]).T))))
+        n = len(problem.agents)
+        positions = [x[i, 1:, :2] for i in range(n)]
+        d_pair = problem.collision.pair_min_distances(n, problem.horizon) if n > 1 else None
+        for i in range(n):
+            for j in range(i + 1, n):
+                worst = max(worst, float(np.max(d_pair[i, j] - np.hypot(*(positions[i] - positions[j]).T))))
+            for o in problem.obstacles:  # each obstacle at its own distance
+                worst = max(worst, float(np.max(o.min_distance - np.hypot(*(positions[i] - o.positions[1:]).T))))
         return max(worst, 0.0)
 
-    def _finish(self, problem: GameProblem, d_min: float, ey_bound: float) -> Plan:
+    def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = ()) -> Plan:
         """Solve; a converged solve is used as is. A non-converged one is used only if its controls,
         re-simulated with the planning model (removing any dynamics defect), keep every constraint
         within accept_violation_m; otherwise ("fallback") the car tracks the previous plan in closed
         loop (tracking_control) for this step."""
-        warm = self._warm_start()
+        warm = self._warm_start(ids)
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
         # its full globalisation (config.cold_start_solver).
-        solver = self._solver_for(problem, self._warm_settings if warm is not None else self._cold_settings)
+        solver = self._solver_for(problem, self._warm_settings_for(len(problem.agents)) if warm is not None
+                                  else self._cold_settings)
         result = solver.solve(warm)
         if warm is not None and not result.converged and result.iterations == 0:
             # The warm start itself was unusable (line search failed at once, e.g. a stale fallback
@@ -295,28 +339,28 @@ class _RecedingHorizon:
             used = "fallback"
             if finite:
                 x = self._rollout(problem, result.u)
-                if np.all(np.isfinite(x)) and self._violation(problem, x, d_min, ey_bound) <= self.config.accept_violation_m:
+                if np.all(np.isfinite(x)) and self._violation(problem, x, ey_bound) <= self.config.accept_violation_m:
                     used, u_all = "accepted", result.u
         if used == "fallback":
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
-                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V])
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V], warm.u)
         x = self._rollout(problem, u_all)
         lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
-        self._prev = result
+        self._prev, self._prev_ids = result, tuple(ids)
         return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
                     solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
                     d_min=float(np.min(d_min)), ey_bound=ey_bound)
 
 
 class RacingPlanner(_RecedingHorizon):
-    """RD3G racing planner: the 2-car game of our car (agent 0) and the opponent (agent 1).
+    """RD3G racing planner: the game of our car (agent 0) and the other cars it plans with (agents 1..M).
 
-    The opponent is modelled with the same cost and car model and its own top speed
-    (`opponent_top_speed_mps`, known before the race)."""
+    The other cars are modelled with the same cost and car model and their own top speeds (known
+    before the race: ``other_tops`` of plan, default `opponent_top_speed_mps` for each)."""
 
     n_agents = 2
 
@@ -325,7 +369,7 @@ class RacingPlanner(_RecedingHorizon):
         super().__init__(track_model, mapper, config, control_period_s)
         self.opponent_top_speed = float(opponent_top_speed_mps)
 
-    def follow_speed_cap(self, x_self, x_other, inside_collision_distance: bool) -> float:
+    def follow_speed_cap(self, x_self, x_others, inside_collision_distance) -> float:
         """Our car's speed bound for this plan: normally its top speed. In line behind the other car
         (it is ahead in s and the lateral gap |ey gap| is below the clearance W_c = 2 * the
         footprint's lateral half-extent at the allowed yaw + collision_margin_m, so our front can
@@ -340,7 +384,16 @@ class RacingPlanner(_RecedingHorizon):
         asks for at most 0.2 m/s less than our current speed per plan (2 m/s^2 over the first
         planning step) so it stays reachable; the fallback's speed loop uses it too. Lateral moves
         stay free: once the lateral gap reaches W_c (pulling out to pass) or the separation is back
-        above the collision distance, the bound is lifted."""
+        above the collision distance, the bound is lifted.
+
+        Several other cars (rows of x_others, inside_collision_distance one flag per car or one for
+        all): the lowest of the bounds for each."""
+        rows = _rows(x_others)
+        inside = np.broadcast_to(np.asarray(inside_collision_distance, dtype=bool), (len(rows),))
+        return min([self._follow_cap(x_self, x, bool(f)) for x, f in zip(rows, inside)],
+                   default=self.config.top_speed_mps)
+
+    def _follow_cap(self, x_self, x_other, inside_collision_distance: bool) -> float:
         top = self.config.top_speed_mps
         ahead = float(x_other[S] - x_self[S])
         clearance = 2.0 * self.tm.lateral_half_extent + self.config.collision_margin_m
@@ -353,7 +406,7 @@ class RacingPlanner(_RecedingHorizon):
         v_match = other_rate * max(stretch[0], 0.2) / max(math.cos(float(x_self[EPSI])), 0.5)
         return min(top, max(v_match, float(x_self[V]) - _BOUND_DROP_MPS))
 
-    def defend_reference(self, x_self, x_other, ey_bound: float) -> float | None:
+    def defend_reference(self, x_self, x_others, ey_bound: float, other_tops=None) -> float | None:
         """Lateral reference (m) while defending, or None. Defending = the other car has the higher
         top speed and is behind us along the track by between defend_min_gap_m and
         defend_distance_m; the reference is then the inside of the turn ahead (sign of the mean
@@ -370,66 +423,102 @@ class RacingPlanner(_RecedingHorizon):
         From defend_min_gap_m on, the other car's nose is beside ours: pulling in then would turn us
         into its side. Crossing over in front of a car that already has the inside, closer than
         defend_cross_gap_m, is a chop: a 50-race batch (front/slow) had 4 contacts in which the faster
-        car ran into our back corner, and 2 in 50 more races (one our fault); without chops, none."""
+        car ran into our back corner, and 2 in 50 more races (one our fault); without chops, none.
+
+        Several other cars (rows of x_others, top speeds other_tops, default opponent_top_speed_mps):
+        our car defends if any of them is such a car, and not if crossing would chop any of them."""
         c = self.config
-        behind = float(x_self[S] - x_other[S])
-        if not (self.opponent_top_speed > c.top_speed_mps and c.defend_min_gap_m < behind < c.defend_distance_m):
+        rows = _rows(x_others)
+        tops = [self.opponent_top_speed] * len(rows) if other_tops is None else list(other_tops)
+        behind = [float(x_self[S] - x[S]) for x in rows]
+        chasers = [k for k in range(len(rows))
+                   if tops[k] > c.top_speed_mps and c.defend_min_gap_m < behind[k] < c.defend_distance_m]
+        if not chasers:
             return None
         ahead = np.mod(float(x_self[S]) + np.linspace(0.0, c.defend_lookahead_m, 31), self.tm.track.length)
         kappa = float(np.mean(self.tm.track.curvature(ahead)))
         if abs(kappa) < 1e-3:
             return None
-        if behind < c.defend_cross_gap_m and math.copysign(1.0, kappa) * float(x_other[EY] - x_self[EY]) > 0:
-            return None  # it already has the inside: crossing in front of it now would be a chop
+        for k in chasers:
+            if behind[k] < c.defend_cross_gap_m and math.copysign(1.0, kappa) * float(rows[k][EY] - x_self[EY]) > 0:
+                return None  # it already has the inside: crossing in front of it now would be a chop
         return math.copysign(max(ey_bound - c.defend_margin_m, 0.0), kappa)
 
-    def plan(self, x_self, x_other) -> Plan:
-        """x_self, x_other: [s (unwrapped, same origin), ey, v, epsi]; x_self already delay-predicted."""
+    def plan(self, x_self, x_others, other_tops=None, other_ids=None, obstacles=None) -> Plan:
+        """x_self, x_others (rows): [s (unwrapped, same origin), ey, v, epsi]; x_self already
+        delay-predicted. other_tops: the other cars' top speeds (default opponent_top_speed_mps);
+        other_ids: names that identify them from plan to plan (warm starts per car, default their rows);
+        obstacles: states (rows) of cars avoided at constant speed instead of played with (predict_other)."""
         c = self.config
-        s_now = [x_self[S], x_other[S]]
+        rows = _rows(x_others)
+        far = [] if obstacles is None or len(obstacles) == 0 else list(_rows(obstacles))
+        tops = [self.opponent_top_speed] * len(rows) if other_tops is None else [float(v) for v in other_tops]
+        ids = tuple(range(len(rows))) if other_ids is None else tuple(other_ids)
+        s_now = [x_self[S], *(x[S] for x in rows), *(x[S] for x in far)]
         ey_bound = self.tm.ey_bound(s_now)
-        d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
-        x_other = np.array(x_other, dtype=float)
+        d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
         own_top = self.corner_speed_cap(x_self, c.top_speed_mps)
-        other_top = self.corner_speed_cap(x_other, self.opponent_top_speed)
+        other_top = [self.corner_speed_cap(x, top) for x, top in zip(rows, tops)]
         own_cost = self._cost(own_top)
-        defend_ey = self.defend_reference(x_self, x_other, ey_bound)
+        defend_ey = self.defend_reference(x_self, rows, ey_bound, tops)
         if defend_ey is not None:
             own_cost.x_ref = [own_cost.x_ref[0], defend_ey, *own_cost.x_ref[2:]]
             own_cost.Q_ref = [own_cost.Q_ref[0], c.q_defend, *own_cost.Q_ref[2:]]
         nominal_d_min = d_min
-        ey_bound, d_min = self._feasible_limits([x_self, x_other], ey_bound, d_min)
-        top = min(own_top, self.follow_speed_cap(x_self, x_other, d_min < nominal_d_min))
+        predicted = [self.predict_other(x) for x in far]
+        ey_bound, d_min, pair = self._feasible_limits([x_self, *rows], ey_bound, d_min, predicted)
+        top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
         agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
-                  self._agent(x_other, other_top, ey_bound, self._cost(other_top), c.lead_weight)]
-        d_steps = self._distance_steps(d_min, nominal_d_min)
-        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents,
-                              collision=Collision(min_distance=d_steps, form="distance", pos_x=S, pos_y=EY))
-        return self._finish(problem, d_steps, ey_bound)
+                  *(self._agent(x, t, ey_bound, self._cost(t), c.lead_weight) for x, t in zip(rows, other_top))]
+        # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
+        # plan), the others keep the nominal one; so does each obstacle.
+        n = len(agents)
+        steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min)
+                 for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
+        collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,
+                              pair_distances=[PairDistance(agents=ij, min_distance=d) for ij, d in steps.items()
+                                              if ij[1] < n])
+        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents, collision=collision,
+                              obstacles=[Obstacle(positions=o, min_distance=steps.get((0, n + k), nominal_d_min))
+                                         for k, o in enumerate(predicted)])
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound, ids)
+        if far:
+            plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in far)], axis=0)
+        return plan
 
 
 class MPCOpponent(_RecedingHorizon):
-    """Single-car MPC with the racing cost, avoiding a constant-speed prediction of the other car
-    (predict_other)."""
+    """Single-car MPC with the racing cost, avoiding a constant-speed prediction of every other car
+    (predict_other), one moving obstacle each."""
 
-    def plan(self, x_self, x_other) -> Plan:
+    def plan(self, x_self, x_others, other_tops=None, other_ids=None) -> Plan:
+        """x_others: rows [s, ey, v, epsi] of every other car (other_tops, other_ids: unused, the
+        obstacles are constant-speed predictions)."""
         c = self.config
-        s_now = [x_self[S], x_other[S]]
+        rows = _rows(x_others)
+        s_now = [x_self[S], *(x[S] for x in rows)]
         ey_bound = self.tm.ey_bound(s_now)
-        d_min = self.tm.collision_distance(s_now, [x_self[EY], x_other[EY]])
+        d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows)])
         top = self.corner_speed_cap(x_self, c.top_speed_mps)
         cost = self._cost(top)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
             cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]
             cost.Q_ref = [c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M), *cost.Q_ref[1:]]
-        other = self.predict_other(x_other)
+        others = [self.predict_other(x) for x in rows]
         nominal_d_min = d_min
-        ey_bound, d_min = self._feasible_limits([x_self], ey_bound, d_min, [other])
-        d_steps = self._distance_steps(d_min, nominal_d_min)
+        # Each obstacle has its own distance: relaxing one car that is too close leaves the others at
+        # the nominal distance.
+        ey_bound, d_min, pair = self._feasible_limits([x_self], ey_bound, d_min, others)
+        steps = [self._distance_steps(float(pair[0, k + 1]), nominal_d_min) for k in range(len(others))]
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon,
                               agents=[self._agent(x_self, top, ey_bound, cost, 0.0)],
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
-                              obstacles=[Obstacle(positions=other, min_distance=d_steps)])
-        plan = self._finish(problem, d_steps, ey_bound)
-        plan.x = np.concatenate([plan.x, self._predicted_other_states(x_other)[None]], axis=0)
+                              obstacles=[Obstacle(positions=o, min_distance=d) for o, d in zip(others, steps)])
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound)
+        plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in rows)], axis=0)
         return plan
+
+
+def _rows(x_others) -> np.ndarray:
+    """The other cars' states as rows (M, 4): one (4,) state is one car."""
+    return np.atleast_2d(np.asarray(x_others, dtype=float))

@@ -113,7 +113,8 @@ class LoopConfig:
 @dataclass(frozen=True)
 class FaultSpec:
     """One injected fault: `kind` (FAULT_KINDS) from race time `start_s` for `duration_s` seconds
-    (0 for instantaneous/permanent kinds), on car `car` ("rd3g", "opponent") or every car (None)."""
+    (0 for instantaneous/permanent kinds), on car `car` (a roster name, checked against the race's
+    roster by :func:`check_fault_cars`) or every car (None)."""
 
     kind: str
     start_s: float
@@ -130,8 +131,6 @@ class FaultSpec:
             raise LoopConfigError(f"fault {self.kind}: needs a duration > 0 s (KIND@START+DURATION)")
         if not needs_duration and self.duration_s:
             raise LoopConfigError(f"fault {self.kind}: takes no duration")
-        if self.car not in (None, "rd3g", "opponent"):
-            raise LoopConfigError(f"fault {self.kind}: car must be rd3g or opponent, got {self.car!r}")
 
     def active(self, t: float) -> bool:
         return self.start_s <= t < self.start_s + self.duration_s
@@ -154,6 +153,13 @@ def parse_fault(text: str) -> FaultSpec:
     except ValueError:
         raise LoopConfigError(f"--fault {text!r}: START and DURATION must be numbers (s)") from None
     return FaultSpec(m["kind"], start, duration, m["car"])
+
+
+def check_fault_cars(faults, names) -> None:
+    """Every fault's car is one of the race's cars ``names`` (LoopConfigError naming the fault)."""
+    for f in faults:
+        if f.car is not None and f.car not in names:
+            raise LoopConfigError(f"fault {f.kind}: car must be one of {', '.join(names)}, got {f.car!r}")
 
 
 def lower_realtime_priority(by: int) -> None:

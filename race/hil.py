@@ -37,13 +37,12 @@ import numpy as np
 
 from race.commands import physical_command
 from race.config import FaultSpec, lower_realtime_priority
-from race.referee import event_text, fault_of
-from race.setup import CAR_NAMES
+from race.referee import Referee
+from race.roster import two_car_roster
 from race.world import WorldPacket
 from sim import Simulator
 from sim.camera import CarAppearance, CarPose, SyntheticCamera, TrackDrawing, overhead_camera
 from sim.camera_profile import CameraProfile, DelayedDelivery
-from sim.collision import footprint_gap
 from tracking.calibration import aruco_dictionary_id, load_fixed_markers
 from tracking.camera import Frame
 from vehicles import fhss
@@ -57,12 +56,15 @@ FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[1] / "tracking" / "dat
 @dataclass(frozen=True)
 class WorldSpec:
     track: object
-    car: object                       # CarParams of both cars
-    start_states: np.ndarray          # (2, 6)
-    marker_ids: tuple[int, int]
-    radio_ids: tuple[int, int]
+    car: object                       # CarParams of every car
+    start_states: np.ndarray          # (n, 6), roster order
+    marker_ids: tuple[int, ...]
+    radio_ids: tuple[int, ...]
     laps: int
     seed: int
+    # the roster's names (roster order; default: the two-car race's)
+    names: tuple[str, ...] = tuple(c.name for c in two_car_roster("mpc", 1.0, 1.0))
+    finish: str = "first"             # race.setup.FINISHES: the race is decided at the first or the last finish
     fps: float = 60.0
     image_size: tuple[int, int] = (1280, 800)
     faults: tuple[FaultSpec, ...] = ()
@@ -332,10 +334,11 @@ def world_main(spec: WorldSpec, conn, shm_name: str, box_conn) -> None:
 class _World:
     def __init__(self, spec: WorldSpec, conn, shm, box_conn) -> None:
         self.spec, self.conn, self.shm = spec, conn, shm
-        self.CarPose, self.fault_of, self.footprint_gap = CarPose, fault_of, footprint_gap
+        self.CarPose = CarPose
+        n = len(spec.names)
         w, h = spec.image_size
         self.frames = np.ndarray((spec.slots, h, w), dtype=np.uint8, buffer=shm.buf)
-        self.sim = Simulator(spec.track, [spec.car, spec.car], seed=spec.seed, physics_dt=spec.physics_dt_s,
+        self.sim = Simulator(spec.track, [spec.car] * n, seed=spec.seed, physics_dt=spec.physics_dt_s,
                              laps_to_win=spec.laps, check_dt=spec.check_dt_s)
         self.sim.reset(np.asarray(spec.start_states, dtype=float))
         self.box = BoxMirror(box_conn, spec.failsafe_timeout_s)
@@ -345,14 +348,13 @@ class _World:
             self.box.pump()
         self.synth, self.camera, self.fixed_path, self.appearance = make_camera(spec)
         self.events: list[tuple] = []      # (race time, kind, text) not yet sent
-        self.collisions: list[dict] = []
-        self.min_gap = math.inf
+        self.referee = Referee(spec.track, spec.car, spec.names)  # gap, collisions with fault, off-track
         self.neutral_at_box = True
         self.render_ms: list[float] = []
         # When the box's output for a car changed, as the simulated car got it: (t_abs, car, throttle,
         # steering rad); the loop matches these to its commands (command latency, RaceLoop.command_lag_ms).
         self.applied_changes: list[tuple[float, int, float, float]] = []
-        self._last_applied = np.zeros((2, 2))
+        self._last_applied = np.zeros((n, 2))
         self.dropped = 0
         self.rendered = 0
         self._fault_state: dict[int, bool] = {}
@@ -373,7 +375,7 @@ class _World:
     def _commands(self, t_abs: float) -> np.ndarray:
         """(throttle, wheel angle rad) per car: the box's output through each car's receiver."""
         cmds = self.box.commands_at(t_abs)
-        out = np.zeros((2, 2))
+        out = np.zeros((len(self.spec.names), 2))
         if self.spec.receivers is not None:  # FHSS: pulses, through the car's own calibration
             for i, cal in enumerate(self.spec.receivers):
                 c = cmds.get(cal.modem_id)
@@ -391,7 +393,7 @@ class _World:
         poses = []
         for i, state in enumerate(states):
             hidden = self.spec.marker_ids[i] in self.spec.hidden_markers or t_race is not None and any(
-                f.kind == "occlude" and f.active(t_race) and f.applies_to(CAR_NAMES[i]) for f in self.spec.faults)
+                f.kind == "occlude" and f.active(t_race) and f.applies_to(self.spec.names[i]) for f in self.spec.faults)
             if hidden:  # the marker is covered: the car is not drawn at all
                 continue
             speed = math.hypot(state[3], state[4])
@@ -407,7 +409,7 @@ class _World:
         snap = {"index": index, "slot": index % self.spec.slots, "t_capture": t_cap, "t_race": t_race,
                 "truth": self.sim.states, "dropped": 0,
                 "box_corrupt": box.line_errors, "box_failsafe_events": len(box.failsafe_log),
-                "winner": None if status.winner is None else CAR_NAMES[status.winner]}
+                "winner": self._decided(status)}
         with self._render_cv:
             events, self.events = self.events, []
             if self._pending is not None:
@@ -421,6 +423,12 @@ class _World:
             # Let the renderer take it before the physics runs on: a physics thread that is behind
             # would otherwise keep the GIL and every frame would be replaced before it is drawn.
             self._render_cv.wait_for(lambda: self._pending is not snap, timeout=1.0 / self.spec.fps)
+
+    def _decided(self, status) -> str | None:
+        """The winner once the race is decided (WorldSpec.finish: at the first finish or the last)."""
+        if status.winner is None or (self.spec.finish == "all" and len(status.finish_order) < len(self.spec.names)):
+            return None
+        return self.spec.names[status.winner]
 
     def _render_loop(self) -> None:
         while True:
@@ -499,12 +507,9 @@ class _World:
                                         "every car neutral at the box" if neutral else "commands reach the cars"))
                     self.neutral_at_box = neutral
             for ev in sim.step(cmds, dt):
-                if ev.kind == "collision":
-                    who = CAR_NAMES[self.fault_of(sim.states)]
-                    self.collisions.append({"time_s": ev.time, "at_fault": who})
-                    self.events.append((ev.time, "collision", event_text(ev, who)))
-                elif ev.kind in ("lap", "finished", "off_track"):
-                    self.events.append((ev.time, ev.kind, event_text(ev)))
+                entry = self.referee.sim_event(ev, sim.states)
+                if entry is not None:
+                    self.events.append((ev.time, *entry))
 
     # ---- main loop
     def run(self) -> None:
@@ -553,7 +558,7 @@ class _World:
                     self.conn.send(("box", {"box_corrupt": self.box.line_errors}))
             self._advance(t_go, sim_target)
             self._box_events(self.sim.time)
-            self.min_gap = min(self.min_gap, self.footprint_gap(self.sim.states, spec.car.geometry))
+            self.referee.observe(self.sim.time, self.sim.states)
             self._snapshot(index, t_go + self.sim.time, self.sim.time)
             index += 1
             k += 1
@@ -568,11 +573,15 @@ class _World:
         box_summary = self.box.stop()
         if self.t_go is not None:
             self._box_events(self.sim.time)  # failsafe events of the last moments (e.g. the final hang-up)
+        names = self.spec.names
+        order = [names[i] for i in status.finish_order]
+        lap_times = {name: list(status.lap_times[i]) for i, name in enumerate(names)}
         summary = {
-            "winner": None if status.winner is None else CAR_NAMES[status.winner],
-            "lap_times_s": {name: list(status.lap_times[i]) for i, name in enumerate(CAR_NAMES)},
-            "min_gap_m": float(self.min_gap), "collisions": self.collisions, "race_time_s": self.sim.time,
-            "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(CAR_NAMES)},
+            "winner": None if status.winner is None else names[status.winner],
+            "lap_times_s": lap_times, "finish_order": order, "results": self.referee.results(order, lap_times, self.spec.laps),
+            "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
+            "race_time_s": self.sim.time,
+            "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(names)},
             "frames_rendered": self.rendered, "frames_dropped": self.dropped,
             "render_ms": np.array(self.render_ms, dtype=np.float32),
             "applied_changes": self.applied_changes,

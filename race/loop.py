@@ -51,8 +51,7 @@ from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between, 
 from race.recording import record_car, record_plan
 from race.referee import Referee, event_text
 from race.safety import SafetyHolds
-from race.setup import CAR_NAMES
-from race.summary import percentile, race_summary
+from race.summary import fleet_keys, percentile, race_summary
 from race.world import (CLOCK_ROUNDING_S, Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, SimulatedClock,
                         Tracker, World)
 from tracking.estimator import EstimatorConfig
@@ -65,7 +64,7 @@ class LoopError(RuntimeError):
 
 @dataclass(frozen=True)
 class CarBinding:
-    name: str          # "rd3g" or "opponent"
+    name: str          # the roster's name of the car
     marker_id: int     # ArUco id on the roof
     radio_id: int      # id in the serial protocol
 
@@ -176,7 +175,7 @@ class LoopOutcome:
     stage_overruns: dict = field(default_factory=dict)
     solve_ms: dict = field(default_factory=dict)  # per car, planning wall time (ms) of every plan after the cold one
     prestart_ms: float = 0.0                     # the cold plan before the start (wall time, ms)
-    fallbacks: int = 0                           # applied RD3G plans that were the planner's fallback
+    fallbacks: int = 0                           # applied RD3G plans (every RD3G car) that were the planner's fallback
     planner_errors: list = field(default_factory=list)  # PlannerErrorRecord of every failed car plan
     # Per plan: when the loop first applied it minus the instant its states were predicted to
     # (t_plan = job tick + plan_latency_s); >= -command_delay_s when applied at its tick, > 0 when late.
@@ -196,11 +195,17 @@ class LoopOutcome:
     recording: str | None = None
     load_average: tuple | None = None
     box: dict | None = None                      # HIL: virtual box and relay counters (diagnostics)
+    planners: dict = field(default_factory=dict)  # roster order: car name -> planner
+    results: list = field(default_factory=list)   # race.referee.CarResult per car
+    finish_order: list = field(default_factory=list)
 
     def summary(self) -> dict:
         """The `race --hil/--camera --json` record: the simulated race's keys plus loop statistics."""
         pct = percentile
-        solve = self.solve_ms.get("rd3g", np.zeros(0))
+        rd3g = [name for name, kind in self.planners.items() if kind == "rd3g"]
+        solve = np.concatenate([self.solve_ms.get(name, np.zeros(0)) for name in rd3g] or [np.zeros(0)])
+        others = [name for name, kind in self.planners.items() if kind == "mpc"]
+        other_solve = np.concatenate([self.solve_ms.get(name, np.zeros(0)) for name in others] or [np.zeros(0)])
         kinds: dict[str, int] = {}
         for _, kind, _ in self.events:
             kinds[kind] = kinds.get(kind, 0) + 1
@@ -215,7 +220,7 @@ class LoopOutcome:
             "stage_ms_p99": {k: pct(v, 99) for k, v in self.stage_ms.items()},
             "busy_ms_p50": pct(self.busy_ms, 50), "busy_ms_p99": pct(self.busy_ms, 99),
             "stage_overruns": self.stage_overruns,
-            "opponent_solve_ms_p50": pct(self.solve_ms.get("opponent", np.zeros(0)), 50),
+            "opponent_solve_ms_p50": pct(other_solve, 50),
             "plans": self.plans, "plan_failures": self.plan_failures,
             "plan_lag_ms_p50": pct(self.plan_lag_ms, 50), "plan_lag_ms_p99": pct(self.plan_lag_ms, 99),
             "command_lag_ms_p50": pct(self.command_lag_ms, 50), "command_lag_ms_p99": pct(self.command_lag_ms, 99),
@@ -227,6 +232,10 @@ class LoopOutcome:
             "events": kinds, "recording": self.recording,
             "load_average": list(self.load_average) if self.load_average else None,
             "box": self.box,
+            "rd3g_at_fault": sum(self.planners.get(c.at_fault) == "rd3g" for c in self.collisions),
+            **fleet_keys(self.results, self.planners, {n: v for n, v in self.solve_ms.items()
+                                                       if self.planners.get(n) in ("rd3g", "mpc")},
+                         self.finish_order, self.collisions),
         }
 
 
@@ -283,7 +292,9 @@ class RaceLoop:
         self.stage_ms = {s: [] for s in STAGES}
         self.overruns = {s: 0 for s in STAGES}
         self.deadline_misses = 0
-        self.solve_ms = {name: [] for name in CAR_NAMES}
+        self.names = [c.name for c in cars]
+        self.planner_kinds = {c.name: c.planner for c in getattr(planners, "cars", setup.cars)}
+        self.solve_ms = {name: [] for name in self.names}
         self.prestart_ms = 0.0
         self.fallbacks = 0
         self.planner_errors: list[PlannerErrorRecord] = []
@@ -382,9 +393,9 @@ class RaceLoop:
         if self.world is not None:
             self.world.go(self.t_go)
         if self.mode == "hardware":
-            self.referee = Referee(self.track, self.setup.car, self.setup.laps)
+            self.referee = Referee(self.track, self.setup.car, self.names, self.setup.laps)
             at_go = self.perception.states_at(self.t_go)
-            self.referee.observe(0.0, np.array([at_go[name] for name in CAR_NAMES]))
+            self.referee.observe(0.0, np.array([at_go[name] for name in self.names]))
         self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
                     t_race=0.0)
 
@@ -462,12 +473,13 @@ class RaceLoop:
             if self.rec is not None:
                 self.rec.scalar("planner/plan_lag_ms", max(self.k, 0), t_race, lag)
         for name, cp in result.cars.items():
+            rd3g = self.planner_kinds.get(name) == "rd3g"
             if cold:  # the cold plan is made on the grid before the start, outside the real-time budget
-                if name == "rd3g":
-                    self.prestart_ms = cp.solve_ms
+                if rd3g:
+                    self.prestart_ms = max(self.prestart_ms, cp.solve_ms)
             elif cp.plan is not None:  # pure pursuit has no planning call to time
                 self.solve_ms[name].append(cp.solve_ms)
-                self.fallbacks += name == "rd3g" and cp.plan is not None and cp.plan.used == "fallback"
+                self.fallbacks += rd3g and cp.plan is not None and cp.plan.used == "fallback"
             # The cold plan is recorded where the loop drives it (its first plan_ticks ticks); in
             # lock-step the tick-0 plan replaces it before any command.
             if self.rec is None or cp.plan is None or (cold and self.cfg.plan_ticks == 0):
@@ -573,7 +585,7 @@ class RaceLoop:
         t_cap = self.race_time(packet.frame.t_capture_s)
         for m in perceived.measurements:
             name = self.by_marker[m.marker_id].name
-            truth = packet.truth[CAR_NAMES.index(name)]
+            truth = packet.truth[self.names.index(name)]
             det_err = 1e3 * math.hypot(m.x - truth[0], m.y - truth[1])
             self.detection_error_mm.append(det_err)
             if self.rec is not None:
@@ -630,7 +642,7 @@ class RaceLoop:
                 commands[c.radio_id] = link_command(self.car, cp.throttle, cp.steering_rad)
                 sent[c.name] = (cp.throttle, cp.steering_rad)
                 if self._last_sent.get(c.name) != sent[c.name] and self._active.job.tick >= 0:
-                    self._plan_commands.append((self._active.job.t_plan, CAR_NAMES.index(c.name), *sent[c.name]))
+                    self._plan_commands.append((self._active.job.t_plan, self.names.index(c.name), *sent[c.name]))
             else:
                 commands[c.radio_id] = CarCommand(0.0, 0.0)
             speed = float(states[c.name][3]) if c.name in states else 0.0
@@ -662,9 +674,9 @@ class RaceLoop:
 
     def _end_of_race(self, t_race: float, now: float, states: dict, packet) -> str | None:
         if self.referee is not None and len(states) == len(self.cars):
-            for ev in self.referee.observe(t_race, np.array([states[name] for name in CAR_NAMES])):
-                self._event(ev.kind, event_text(ev))
-            if self.referee.winner is not None:
+            for ev in self.referee.observe(t_race, np.array([states[name] for name in self.names])):
+                self._event(ev.kind, event_text(ev, self.names))
+            if self.referee.winner is not None and (self.setup.finish == "first" or self.referee.all_finished):
                 self.winner_seen = self.referee.winner
                 return "finished"
         stop = self.safety.stop_reason(now)
@@ -714,7 +726,7 @@ class RaceLoop:
             truth_states = {n: s for n, s in states.items()}  # hardware: the estimate is the best we have
             t_truth = t_race
         elif truth is not None:
-            truth_states = {name: truth[i] for i, name in enumerate(CAR_NAMES)}
+            truth_states = {name: truth[i] for i, name in enumerate(self.names)}
             t_truth = packet.t_race
         else:
             return
@@ -774,24 +786,31 @@ class RaceLoop:
             out.frames_dropped = summary["frames_dropped"]
             out.render_ms = np.asarray(summary["render_ms"], dtype=float)
             out.box = summary.get("box")
+            out.finish_order = list(summary.get("finish_order", []))
+            out.results = list(summary.get("results", []))
         else:
             out.winner = self.winner_seen
             out.race_time_s = self.race_time() if self.t_go else 0.0
             if self.referee is not None:
                 out.lap_times_s = self.referee.lap_times_s
                 out.min_gap_m = self.referee.min_gap_m if math.isfinite(self.referee.min_gap_m) else None
+                out.finish_order = self.referee.finish_order
+                out.results = self.referee.results(out.finish_order, out.lap_times_s, self.setup.laps)
+        out.planners = dict(self.planner_kinds)
         if self.rec is not None:
             out.recording = str(self.rec.path)
         return out
 
 
 def setup_document(setup, config: LoopConfig, mode: str, cars: list[CarBinding], opponent: str, faults,
-                   estimator: EstimatorConfig = EstimatorConfig()) -> str:
-    """The race/setup TextDocument of a real-time race (JSON); ``loop.lost_after_s`` is the estimator's."""
+                   estimator: EstimatorConfig = EstimatorConfig(), planners: dict | None = None) -> str:
+    """The race/setup TextDocument of a real-time race (JSON); ``loop.lost_after_s`` is the estimator's,
+    ``planners`` {car: planner} (default: the set-up's roster)."""
     doc = {"mode": mode, "track": setup.track.name, "car": setup.car.name, "seed": setup.seed, "laps": setup.laps,
            "start": setup.start, "opponent": opponent, "rd3g_top_speed_mps": setup.rd3g_top_speed_mps,
            "opponent_top_speed_mps": setup.opponent_top_speed_mps, "max_time_s": setup.max_time_s,
            "planning_period_s": setup.control_period_s,
            "loop": {**dataclasses.asdict(config), "lost_after_s": estimator.lost_after_s},
-           "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults]}
+           "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults],
+           "planners": planners or {c.name: c.planner for c in setup.cars}}
     return json.dumps(doc, indent=2)

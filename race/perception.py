@@ -138,7 +138,7 @@ class TruthPerception:
     """The simulated world's true states as the observation (race.world.WorldPacket.truth): no camera,
     no estimator, never lost. The states are those at the poll; the loop's simulated timing plans
     from them at once (LoopConfig.plan_ticks = 0, command_delay_s = 0: t_plan is the observation's
-    time), so there is nothing to predict. ``cars``: objects with ``name`` (CAR_NAMES order)."""
+    time), so there is nothing to predict. ``cars``: objects with ``name`` (roster order, the rows of ``truth``)."""
 
     lost_after_s = math.inf
     estimated = False

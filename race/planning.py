@@ -1,9 +1,15 @@
-"""The planning step of every race mode: RD3G for our car and the opponent's planner (MPC, pure
-pursuit or none for a human-driven car).
+"""The planning step of every race mode: each roster car's planner (race.roster: RD3G, MPC, pure
+pursuit, or none for a human-driven car).
 
 * :func:`make_planner` builds a planner from the race set-up; :func:`plan_step` is one planning step
   (predict the own car over its actuation delay, plan, map the planned [a, delta] to [throttle,
   steering angle]).
+* Which cars an RD3G car plans with (:func:`interacting_cars`): its game has the cars that can come
+  within the collision distance of it within its horizon, i.e. whose gap along the track is at most
+  the faster car's top speed times the horizon plus the collision distance (at least the nearest car:
+  the lead term against it is the car's progress reward); an MPC car avoids every
+  other car (one moving obstacle each). Every car's s is taken in the planning car's frame (the
+  other car's nearest image along the track), so a car a lap ahead is where it is on the track.
 * Planner failure, one policy: a planning call that raises (an invalid problem, a solver error) never
   escapes :func:`plan_step`; that step gets the planner's fallback plan (closed-loop tracking of the
   previous plan, neutral before the first one) with the exception text in ``plan.error``
@@ -28,7 +34,7 @@ from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwra
 from planning.commands import rollout_controls
 from planning.frenet import S, V
 from race.config import lower_realtime_priority
-from race.setup import CAR_NAMES, RaceSetup
+from race.setup import RaceSetup
 
 OPPONENT_MODES = ("mpc", "pursuit", "human")
 # Under --rt-priority the planner thread runs this far below the loop thread: above the HIL world
@@ -54,25 +60,28 @@ def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, floa
     return out
 
 
-def make_planner(cls, setup: RaceSetup, top: float, **kw):
-    """A RacingPlanner or MPCOpponent (``cls``) with the race's planner settings and top speed (m/s)."""
+def make_planner(cls, setup: RaceSetup, top: float, car=None, **kw):
+    """A RacingPlanner or MPCOpponent (``cls``) with the race's planner settings and top speed (m/s),
+    for car file ``car`` (default: the race's)."""
+    car = setup.car if car is None else car
     cfg = dataclasses.replace(setup.planner, top_speed_mps=top)
-    tm = FrenetTrackModel(setup.track, setup.car, cfg)
-    mapper = CommandMapper(setup.car, setup.control_period_s, cfg.max_brake_mps2, cfg.steering_margin)
+    tm = FrenetTrackModel(setup.track, car, cfg)
+    mapper = CommandMapper(car, setup.control_period_s, cfg.max_brake_mps2, cfg.steering_margin)
     return cls(tm, mapper, cfg, setup.control_period_s, **kw)
 
 
-def plan_step(planner, own_state, other_state) -> tuple[object, np.ndarray, float]:
-    """One planning step from Frenet states [s, ey, v, epsi]: the own state predicted over the car's
-    actuation delay, the plan (the fallback plan if planning raised, see the module doc) and its command
-    [throttle, steering angle rad]. Returns (plan, command, wall time ms)."""
+def plan_step(planner, own_state, other_states, **others) -> tuple[object, np.ndarray, float]:
+    """One planning step from Frenet states [s, ey, v, epsi] (other_states: one per row; ``others``:
+    the planner's other_tops / other_ids): the own state predicted over the car's actuation delay, the
+    plan (the fallback plan if planning raised, see the module doc) and its command [throttle,
+    steering angle rad]. Returns (plan, command, wall time ms)."""
     t0 = time.perf_counter()
     x = np.asarray(own_state, dtype=float)
     try:
         x = planner.mapper.predict(planner.tm, own_state)
-        plan = planner.plan(x, other_state)
+        plan = planner.plan(x, other_states, **others)
     except Exception as exc:  # noqa: BLE001 - any planner failure is one fallback step (module doc)
-        plan = planner.fallback_plan(x, other_state, f"{type(exc).__name__}: {exc}")
+        plan = planner.fallback_plan(x, other_states, f"{type(exc).__name__}: {exc}")
     command = planner.mapper.commands(*plan.control, speed=float(x[V]) if math.isfinite(x[V]) else 0.0)
     return plan, command, 1e3 * (time.perf_counter() - t0)
 
@@ -108,53 +117,105 @@ class PlanResult:
     error: str | None = None
     t_done: float = 0.0
     seq: int = 0
-    progress: np.ndarray | None = None  # unwrapped s of both cars
+    progress: np.ndarray | None = None  # unwrapped s of every car (roster order)
+
+
+def interacting_cars(i: int, progress, tops, horizon_s: float, d_min: float, length: float) -> list[int]:
+    """The cars RD3G car i plans its game with (module doc): every j != i whose gap along the track
+    (nearest image, ``length`` the lap) is at most max(top_i, top_j) * horizon_s + d_min, nearest first;
+    with none that close, the nearest car (the game's lead term is then the car's progress reward)."""
+    gaps = sorted((abs(math.remainder(float(progress[j]) - float(progress[i]), length)), j)
+                  for j in range(len(progress)) if j != i)
+    near = [j for gap, j in gaps if gap <= max(tops[i], tops[j]) * horizon_s + d_min]
+    return near or [gaps[0][1]]  # alone: the nearest car, whose lead term is the game's progress reward
 
 
 class RacePlanners:
-    """The two cars' planners with the simulated race's settings (make_planner)."""
+    """Every roster car's planner with the race's settings (make_planner): RD3G (RacingPlanner), MPC
+    (MPCOpponent), pure pursuit; a human-driven car has none and is not commanded. ``roster``
+    defaults to the set-up's."""
 
-    def __init__(self, setup, opponent: str = "mpc") -> None:
-        if opponent not in OPPONENT_MODES:
-            raise ValueError(f"opponent: must be one of {OPPONENT_MODES}, got {opponent!r}")
+    def __init__(self, setup, roster=None) -> None:
         self.setup = setup
         self.track = setup.track
-        self.opponent_mode = opponent
-        self.ours = make_planner(RacingPlanner, setup, setup.rd3g_top_speed_mps,
-                                  opponent_top_speed_mps=setup.opponent_top_speed_mps)
-        self.theirs = make_planner(MPCOpponent, setup, setup.opponent_top_speed_mps) if opponent == "mpc" else None
-        self.pursuit = (PurePursuitController(setup.track, setup.car, target_speed_mps=setup.opponent_top_speed_mps)
-                        if opponent == "pursuit" else None)
+        self.cars = tuple(setup.cars if roster is None else roster)
+        self.names = tuple(c.name for c in self.cars)
+        self.tops = [c.top_speed_mps for c in self.cars]
+        self.models: dict[str, object] = {}      # name -> RacingPlanner / MPCOpponent
+        self.pursuit: dict[str, PurePursuitController] = {}
+        for i, c in enumerate(self.cars):
+            car = setup.car_file(i)
+            if c.planner == "rd3g":
+                self.models[c.name] = make_planner(RacingPlanner, setup, c.top_speed_mps, car=car,
+                                                   opponent_top_speed_mps=setup.opponent_top_speed_mps)
+            elif c.planner == "mpc":
+                self.models[c.name] = make_planner(MPCOpponent, setup, c.top_speed_mps, car=car)
+            elif c.planner == "pursuit":
+                self.pursuit[c.name] = PurePursuitController(setup.track, car, target_speed_mps=c.top_speed_mps)
         self.unwrap: ProgressUnwrapper | None = None
-        self.commanded = ("rd3g",) if opponent == "human" else CAR_NAMES
+        self.commanded = tuple(c.name for c in self.cars if c.planner != "human")
 
     def plan(self, job: PlanJob) -> PlanResult:
         """One planning step for every commanded car; a car whose planner failed has its fallback plan
         (:func:`planner_errors`). Raises SolverFailure on a non-finite command."""
-        fs = np.array([frenet_state(self.track, job.states[name]) for name in CAR_NAMES])
+        fs = np.array([frenet_state(self.track, job.states[name]) for name in self.names])
         if self.unwrap is None:
             self.unwrap = ProgressUnwrapper(self.track, fs[:, S])
         fs[:, S] = self.unwrap.update(fs[:, S])
         result = PlanResult(job=job, progress=fs[:, S].copy())
-        # Both cars at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
-        at_plan = [self._own_state(job, name, fs[i]) for i, name in enumerate(CAR_NAMES)]
-        plan, (throttle, steer), ms = plan_step(self.ours, at_plan[0], at_plan[1])
-        result.cars["rd3g"] = CarPlan(float(throttle), float(steer), plan, ms)
-        if self.theirs is not None:
-            oplan, (throttle, steer), ms = plan_step(self.theirs, at_plan[1], at_plan[0])
-            result.cars["opponent"] = CarPlan(float(throttle), float(steer), oplan, ms)
-        elif self.pursuit is not None:
-            throttle, steer = self.pursuit.command(job.states["opponent"], self.setup.control_period_s)
-            result.cars["opponent"] = CarPlan(float(throttle), float(steer))
+        # Every car at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
+        at_plan = np.array([self._own_state(job, name, fs[i]) for i, name in enumerate(self.names)])
+        for i, c in enumerate(self.cars):
+            if c.name in self.models:
+                planner = self.models[c.name]
+                extra = {}
+                if c.planner == "rd3g":
+                    others, far = self._others(i, planner, at_plan)
+                    extra = {"obstacles": self._in_frame(at_plan, i, far)} if far else {}
+                else:
+                    others = [j for j in range(len(self.cars)) if j != i]
+                rows = self._in_frame(at_plan, i, others)
+                plan, (throttle, steer), ms = plan_step(planner, at_plan[i], rows,
+                                                        other_tops=[self.tops[j] for j in others],
+                                                        other_ids=tuple(self.names[j] for j in others), **extra)
+                result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms)
+            elif c.name in self.pursuit:
+                throttle, steer = self.pursuit[c.name].command(job.states[c.name], self.setup.control_period_s)
+                result.cars[c.name] = CarPlan(float(throttle), float(steer))
         for name, cp in result.cars.items():
             if not (math.isfinite(cp.throttle) and math.isfinite(cp.steering_rad)):
                 raise SolverFailure(f"{name}: planner produced a non-finite command "
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
         return result
 
+    def _others(self, i: int, planner, at_plan: np.ndarray) -> tuple[list[int], list[int]]:
+        """(players, obstacles) of car i's game: interacting_cars at the plan's states (nominal collision
+        distance on the straight), the nearest PlannerConfig.game_players - 1 of them players, the rest
+        constant-speed obstacles."""
+        cfg = planner.config
+        if not np.all(np.isfinite(at_plan[:, S])):
+            near = [j for j in range(len(self.cars)) if j != i]
+        else:
+            d_min = 2.0 * planner.tm.footprint_radius + cfg.collision_margin_m
+            near = interacting_cars(i, at_plan[:, S], self.tops, cfg.horizon * cfg.plan_dt_s, d_min,
+                                    float(self.track.length))
+        keep = len(near) if cfg.game_players == 0 else cfg.game_players - 1
+        return near[:keep], near[keep:]
+
+    def _in_frame(self, at_plan: np.ndarray, i: int, others: list[int]) -> np.ndarray:
+        """The states of cars ``others`` with s moved to their nearest image from car i's s (a car more
+        than half a lap away in unwrapped progress is a lap ahead or behind)."""
+        rows = at_plan[others].copy()
+        half = 0.5 * float(self.track.length)
+        for row in rows:
+            d = float(row[S] - at_plan[i, S])
+            if abs(d) > half:
+                row[S] = at_plan[i, S] + math.remainder(d, float(self.track.length))
+        return rows
+
     def _planner_of(self, name: str):
-        """The planner commanding car `name` (None: pure pursuit or a human)."""
-        return self.ours if name == "rd3g" else self.theirs
+        """The model planner commanding car `name` (None: pure pursuit or a human)."""
+        return self.models.get(name)
 
     def executed_control(self, name: str, car_plan: CarPlan | None, speed: float) -> tuple[float, float] | None:
         """The planning-model control [a m/s^2, delta rad] car `name` executes when it gets `car_plan`'s

@@ -16,6 +16,7 @@ sorted by ``sim_time``. Entity paths: docs/racing.md (simulated race) and docs/r
 from __future__ import annotations
 
 import ast
+import dataclasses
 import json
 import math
 import queue
@@ -31,6 +32,7 @@ import numpy as np
 from fileio import check_output_path
 from planning.frenet import EY, S
 from race.config import lower_realtime_priority
+from race.roster import PLANNERS, two_car_roster
 from recording.blueprint import race_blueprint  # the top-level package recording/, not this module
 from recording.integrity import read_verified
 from sim.collision import footprint_corners
@@ -38,7 +40,14 @@ from sim.collision import footprint_corners
 APPLICATION_ID = "rd3g_race"
 EVENTS_ENTITY = "race/events"
 SETUP_ENTITY = "race/setup"
-CAR_COLORS = {"rd3g": (230, 60, 40), "opponent": (40, 110, 230)}
+# Each car's colour by its place in the roster (recordings and review plots): red, blue, green, orange,
+# purple, brown.
+CAR_PALETTE = ((230, 60, 40), (40, 110, 230), (40, 160, 70), (240, 150, 20), (150, 70, 190), (140, 90, 50))
+
+
+def car_colors(names: Sequence[str]) -> dict[str, tuple[int, int, int]]:
+    """{car name: (r, g, b)} in roster order (CAR_PALETTE, repeated past six cars)."""
+    return {name: CAR_PALETTE[i % len(CAR_PALETTE)] for i, name in enumerate(names)}
 
 
 class RecordingError(ValueError):
@@ -83,7 +92,11 @@ class RaceRecorder:
         self._put(("points", entity, step, t, np.asarray(xy, dtype=np.float32).reshape(-1, 2)))
 
     def strip(self, entity: str, step: int, t: float, xy) -> None:
-        self._put(("strips", entity, step, t, np.asarray(xy, dtype=np.float32).reshape(-1, 2)))
+        self.strips(entity, step, t, [xy])
+
+    def strips(self, entity: str, step: int, t: float, xys) -> None:
+        """Several line strips in one row (e.g. a planner's predictions of every other car)."""
+        self._put(("strips", entity, step, t, [np.asarray(xy, dtype=np.float32).reshape(-1, 2) for xy in xys]))
 
     def event(self, t: float, kind: str, text: str, step: int | None = None) -> None:
         self._put(("event", EVENTS_ENTITY, step, t, f"{kind}: {text}"))
@@ -118,10 +131,10 @@ class RaceRecorder:
         archetype = {"points": self.rr.Points2D, "strips": self.rr.LineStrips2D}[kind]
         self.rec.log(entity, archetype.from_fields(colors=[list(rgb)]), static=True)
 
-    def static_car_colors(self) -> None:
-        """Each car's colour on its position, footprint and plan (CAR_COLORS), the other car's predicted
-        plan in grey."""
-        for name, rgb in CAR_COLORS.items():
+    def static_car_colors(self, names: Sequence[str]) -> None:
+        """Each car's colour (car_colors, roster order) on its position, footprint and plan, its
+        predictions of the other cars in grey."""
+        for name, rgb in car_colors(names).items():
             for entity, kind in (("position", "points"), ("footprint", "strips"), ("plan", "strips")):
                 self.static_color(f"world/cars/{name}/{entity}", kind, rgb)
             self.static_color(f"world/cars/{name}/predicted_other", "strips", (150, 150, 150))
@@ -196,7 +209,8 @@ class RaceRecorder:
                 columns = rr.Points2D.columns(positions=np.concatenate([r[2] for r in items])).partition(
                     [len(r[2]) for r in items])
             else:
-                columns = rr.LineStrips2D.columns(strips=[r[2] for r in items]).partition([1] * len(items))
+                columns = rr.LineStrips2D.columns(strips=[s for r in items for s in r[2]]).partition(
+                    [len(r[2]) for r in items])
             self.rec.send_columns(entity, indexes=indexes, columns=columns)
             self.rows_written += len(items)
 
@@ -212,11 +226,12 @@ def record_car(rec: RaceRecorder, step: int, t: float, name: str, state, geometr
 
 
 def record_plan(rec: RaceRecorder, step: int, t: float, track, name: str, plan, solve_ms: float) -> None:
-    """One plan's rows (every mode): the car's planned trajectory and its prediction of the other car
-    (world frame), the first planned control, the planning wall time (ms) and the solver iterations."""
-    for row, entity in ((0, "plan"), (1, "predicted_other")):
-        x, y = track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])
-        rec.strip(f"world/cars/{name}/{entity}", step, t, np.column_stack([x, y]))
+    """One plan's rows (every mode): the car's planned trajectory and its predictions of the other cars
+    it planned with (world frame, one strip each), the first planned control, the planning wall time
+    (ms) and the solver iterations."""
+    xy = [np.column_stack(track.to_cartesian(plan.x[row, :, S], plan.x[row, :, EY])) for row in range(len(plan.x))]
+    rec.strip(f"world/cars/{name}/plan", step, t, xy[0])
+    rec.strips(f"world/cars/{name}/predicted_other", step, t, xy[1:])
     rec.scalar(f"cars/{name}/planned/accel_mps2", step, t, plan.u[0, 0])
     rec.scalar(f"cars/{name}/planned/delta_rad", step, t, plan.u[0, 1])
     rec.scalar(f"planner/{name}/solve_ms", step, t, solve_ms)
@@ -288,6 +303,22 @@ class RecordingData:
             except (ValueError, SyntaxError):
                 return {}
             return value if isinstance(value, dict) else {}
+
+    def roster(self) -> list[dict]:
+        """The recorded race's cars in roster order, each {"name", "marker_id", "planner", ...}: the
+        simulated race's ``roster``, the real-time race's ``cars`` with their ``planners``; a recording
+        made before rosters were recorded has the two-car roster of its ``opponent``."""
+        setup = self.setup()
+        entries = setup.get("roster") or setup.get("cars") or []
+        cars = [dict(e) for e in entries if isinstance(e, dict) and isinstance(e.get("name"), str)]
+        planners = setup.get("planners") if isinstance(setup.get("planners"), dict) else {}
+        opponent = setup.get("opponent") if setup.get("opponent") in PLANNERS else "mpc"
+        two_car = {c.name: dataclasses.asdict(c) for c in two_car_roster(opponent, 1.0, 1.0)}
+        if not cars:
+            return list(two_car.values())
+        for c in cars:
+            c.setdefault("planner", planners.get(c["name"], two_car.get(c["name"], {}).get("planner")))
+        return cars
 
 
 def load_recording(path) -> RecordingData:

@@ -7,13 +7,14 @@ statistics from the logged timings, deadline misses and collisions from race/eve
 """
 from __future__ import annotations
 
+import itertools
 import re
 from pathlib import Path
 
 import numpy as np
 
 from fileio import atomic_write_with, check_output_dir
-from race.recording import EVENTS_ENTITY, RecordingData
+from race.recording import EVENTS_ENTITY, RecordingData, car_colors
 from race.summary import percentile
 from sim.collision import rectangle_gap
 from sim.race import LapBookkeeper
@@ -26,9 +27,14 @@ _SKIPPED = re.compile(r"(\d+) tick\(s\) skipped")
 
 
 def car_names(data: RecordingData) -> list[str]:
+    """The recorded cars, in roster order (RecordingData.roster), then any others by name."""
     names = {e.split("/")[2] for e in data.entities if e.startswith("world/cars/") and e.endswith("/position")}
-    order = {"rd3g": 0, "opponent": 1}
-    return sorted(names, key=lambda n: (order.get(n, 2), n))
+    order = {c["name"]: i for i, c in enumerate(data.roster())}
+    return sorted(names, key=lambda n: (order.get(n, len(order)), n))
+
+
+def rd3g_cars(data: RecordingData) -> list[str]:
+    return [c["name"] for c in data.roster() if c.get("planner") == "rd3g"]
 
 
 def events(data: RecordingData) -> list[dict]:
@@ -86,19 +92,21 @@ def lap_times(data: RecordingData, track, laps_to_win: int) -> dict[str, list[fl
 
 
 def min_gap(data: RecordingData) -> float | None:
+    """The smallest gap between the logged footprints of any two cars at a common time."""
     names = car_names(data)
     if len(names) < 2:
         return None
     series = []
-    for car in names[:2]:
+    for car in names:
         t, strips = data.strips(f"world/cars/{car}/footprint")
         keep = [i for i, s in enumerate(strips) if s and len(s[0]) >= 4]
         series.append((np.round(t[keep] * 1e6).astype(np.int64), np.array([strips[i][0][:4] for i in keep])))
-    (ta, ca), (tb, cb) = series
-    common, ia, ib = np.intersect1d(ta, tb, return_indices=True)
-    if len(common) == 0:
-        return None
-    return float(np.min(rectangle_gap(ca[ia], cb[ib])))
+    gaps = []
+    for (ta, ca), (tb, cb) in itertools.combinations(series, 2):
+        common, ia, ib = np.intersect1d(ta, tb, return_indices=True)
+        if len(common):
+            gaps.append(float(np.min(rectangle_gap(ca[ia], cb[ib]))))
+    return min(gaps) if gaps else None
 
 
 def summarize(data: RecordingData) -> dict:
@@ -115,7 +123,7 @@ def summarize(data: RecordingData) -> dict:
         if e["kind"] == "deadline_miss":
             m = _SKIPPED.search(e["text"])
             misses += int(m.group(1)) if m else 1
-    _, solve = data.scalars("planner/rd3g/solve_ms")
+    solve = np.concatenate([data.scalars(f"planner/{c}/solve_ms")[1] for c in rd3g_cars(data)] or [np.zeros(0)])
     errors = np.concatenate([data.scalars(f"tracking/{c}/error_mm")[1] for c in car_names(data)] or [np.zeros(0)])
     frames = len(data.scalars("camera/latency_ms")[0]) if data.has("camera/latency_ms") else None
     return {
@@ -154,10 +162,10 @@ def save_plots(data: RecordingData, folder: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     check_output_dir(folder)
-    colors = {"rd3g": "tab:red", "opponent": "tab:blue"}
     out = []
     track = load_track_of(data)
     names = car_names(data)
+    colors = {name: tuple(v / 255 for v in rgb) for name, rgb in car_colors(names).items()}
     # 1. track with trajectories
     fig, ax = plt.subplots(figsize=(9, 5.6))
     if track is not None:
@@ -199,9 +207,9 @@ def save_plots(data: RecordingData, folder: Path) -> list[Path]:
     out.append(_save(fig, folder / "speed.png", plt))
     # 3. timing over time
     fig, ax = plt.subplots(figsize=(9, 4.2))
+    solves = [(f"planner/{car}/solve_ms", f"{car} solve") for car in names]
     for entity, label in (("loop/period_ms", "loop period"), ("loop/busy_ms", "loop busy (frame..command)"),
-                          ("loop/stage/detect_ms", "detect"), ("planner/rd3g/solve_ms", "RD3G solve"),
-                          ("planner/opponent/solve_ms", "opponent solve"), ("camera/render_ms", "render (HIL, own process)")):
+                          ("loop/stage/detect_ms", "detect"), *solves, ("camera/render_ms", "render (HIL, own process)")):
         t, v = data.scalars(entity)
         if len(t):
             ax.plot(t, v, lw=0.8, label=label)
@@ -244,7 +252,8 @@ def format_summary(s: dict, data: RecordingData) -> str:
                      f"deadline misses {s['deadline_misses']}, frames {s['frames']}")
         for name, p50, p99, mx in stage_table(data):
             lines.append(f"  stage {name:9s} p50 {p50:6.2f} ms  p99 {p99:6.2f} ms  max {mx:6.2f} ms")
-    lines.append(f"RD3G solve: p50 {f(s['solve_ms_p50'])} ms, p99 {f(s['solve_ms_p99'])} ms")
+    lines.append(f"RD3G solve ({', '.join(rd3g_cars(data)) or 'no RD3G car'}): p50 {f(s['solve_ms_p50'])} ms, "
+                 f"p99 {f(s['solve_ms_p99'])} ms")
     if s["tracking_error_mm_median"] is not None:
         lines.append(f"tracking error vs truth: median {s['tracking_error_mm_median']:.2f} mm, "
                      f"p95 {s['tracking_error_mm_p95']:.2f} mm")

@@ -1,5 +1,5 @@
-"""What defines a race, in one place: the cars' names, the typed set-up with its defaults (the `race`
-command's defaults, docs/racing.md) and the seeded standing start.
+"""What defines a race, in one place: the roster (race.roster), the typed set-up with its defaults (the
+`race` command's defaults, docs/racing.md) and the seeded standing start (single file or the grid).
 
 * :class:`RaceSetup` -- loaded objects (track, car files) and numbers; every mode (simulation, HIL,
   hardware), `batch`, `sysid-closed-loop` and the benches race one of these.
@@ -15,15 +15,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planning import PlannerConfig
+from planning.config import PlannerConfigError
 from planning.frenet import lateral_half_extent
+from race.roster import RosterCar, RosterError, make_roster, two_car_roster
 from sim.effects import SimEffects, SimEffectsError, parse_effects, sim_effects
 from tracks import TrackFormatError, load_track
 from tracks.io import UnknownTrackError
 from vehicles.params import CarParams, CarParamsError, load_car_params
 
-CAR_NAMES = ("rd3g", "opponent")  # car 0 is ours (RD3G), car 1 the opponent
 OPPONENTS = ("mpc", "pursuit")
 STARTS = ("front", "rear")
+# single_file: the two-car race's start (RaceSetup.start says which car is in front); roster / random:
+# the grid of rows of two (grid_states), slots in roster order (RosterCar.start_slot) or shuffled.
+GRIDS = ("single_file", "roster", "random")
+# first: the race ends when the first car finishes (the two-car race); all: when every car has
+# finished (a fleet race: finishing order and unfinished cars), or at max_time_s either way.
+FINISHES = ("first", "all")
 CONTROL_HZ = 30.0                # planning (control) rate of the race's planners
 
 
@@ -65,8 +72,20 @@ class RaceSetup:
     # model-identification loop, docs/sysid.md): sim_car (default: car) plus hidden sim_effects, both cars.
     sim_car: CarParams | None = None
     sim_effects: SimEffects = field(default_factory=SimEffects)
+    # The cars (race.roster.make_roster); None: the two-car roster of `opponent` and the two top speeds.
+    roster: tuple[RosterCar, ...] | None = None
+    car_files: tuple[CarParams, ...] | None = None  # per roster car (its planner and simulated car); None: `car`
+    grid: str = "single_file"
+    finish: str = "first"
+    grid_row_gap_car_lengths: tuple[float, float] = (1.9, 2.1)  # grid rows centre to centre: about one car length free
+    grid_lane_ey_m: float = 0.15        # a row's two cars at ey = +-grid_lane_ey_m ...
+    grid_jitter_m: float = 0.01         # ... each jittered uniformly by up to this along and across the track
 
     def __post_init__(self) -> None:
+        if self.grid not in GRIDS:
+            raise RaceSetupError("grid", f"must be one of {GRIDS}, got {self.grid!r}")
+        if self.finish not in FINISHES:
+            raise RaceSetupError("finish", f"must be one of {FINISHES}, got {self.finish!r}")
         if self.opponent not in OPPONENTS:
             raise RaceSetupError("opponent", f"must be one of {OPPONENTS}, got {self.opponent!r}")
         if self.start not in STARTS:
@@ -81,6 +100,32 @@ class RaceSetup:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise RaceSetupError(name, f"must be a positive number, got {v!r}")
+        try:
+            cars = self.cars
+        except RosterError as exc:
+            raise RaceSetupError("roster", str(exc)) from None
+        if self.grid == "single_file" and len(cars) != 2:
+            raise RaceSetupError("grid", f"single_file is the two-car start; {len(cars)} cars need roster or random")
+        if self.car_files is not None and len(self.car_files) != len(cars):
+            raise RaceSetupError("car_files", f"one car file per car: {len(cars)} cars, {len(self.car_files)} files")
+
+    @property
+    def cars(self) -> tuple[RosterCar, ...]:
+        """The race's roster (``roster``, or the two-car one: ``rd3g`` and ``opponent``)."""
+        if self.roster is not None:
+            return make_roster(self.roster)
+        return two_car_roster(self.opponent, self.rd3g_top_speed_mps, self.opponent_top_speed_mps)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.cars)
+
+    def car_file(self, i: int) -> CarParams:
+        """The car file of roster car i (its planner's model; the simulated car unless sim_car is set)."""
+        return self.car if self.car_files is None else self.car_files[i]
+
+    def sim_car_file(self, i: int) -> CarParams:
+        return self.car_file(i) if self.sim_car is None else self.sim_car
 
 
 @dataclass(frozen=True)
@@ -100,6 +145,11 @@ class RaceSpec:
     max_time_s: float | None = None     # None: default_max_time_s(laps)
     sim_car_params: str | None = None   # car file the simulator runs (default: car_params)
     sim_effects: str = ""               # hidden simulator effects, "name=value,..." (sim.effects.GENERATOR_EFFECTS)
+    # A fleet race (race.roster): the parsed --cars or --roster (None: the two-car race of `opponent`);
+    # its grid (None: "roster"; the two-car race keeps its single-file start unless a grid is named).
+    roster: tuple[RosterCar, ...] | None = None
+    grid: str | None = None
+    game_players: int = PlannerConfig.game_players  # players of an RD3G car's game (0: every car in reach)
 
     def load(self) -> RaceSetup:
         """Read the files and build the RaceSetup; RaceSetupError names the field at fault."""
@@ -117,7 +167,10 @@ class RaceSpec:
         if not math.isfinite(raceline) or abs(raceline) >= track.min_width / 2:
             raise RaceSetupError("raceline_ey_m", f"must be a finite offset inside the track "
                                                   f"(|M| < {track.min_width / 2:g} m), got {raceline}")
-        planner = PlannerConfig(raceline_ey_m=raceline)
+        try:
+            planner = PlannerConfig(raceline_ey_m=raceline, game_players=self.game_players)
+        except PlannerConfigError as exc:
+            raise RaceSetupError("game_players", str(exc).removeprefix("planner.game_players: ")) from None
         # Before any output is opened: the planner refuses a car wider than the track in its first plan.
         need = lateral_half_extent(car.geometry, planner.heading_allowance_rad) + planner.track_margin_m
         if need >= track.min_width / 2:
@@ -135,17 +188,46 @@ class RaceSpec:
                        else SimEffects())
         except (SimEffectsError, ValueError) as exc:
             raise RaceSetupError("sim_effects", str(exc)) from None
+        fleet = {}
+        if self.roster is not None:
+            fleet = dict(roster=self.roster, finish="all", grid=self.grid or "roster",
+                         car_files=self._car_files(car, track, need))
+        elif self.grid is not None:
+            fleet = dict(grid=self.grid)
         return RaceSetup(track=track, car=car, seed=self.seed, laps=self.laps, opponent=self.opponent,
                          start=self.start, rd3g_top_speed_mps=self.rd3g_top_speed_mps,
                          opponent_top_speed_mps=self.opponent_top_speed_mps, control_period_s=1.0 / self.control_hz,
                          max_time_s=self.max_time_s, sim_car=sim_car, sim_effects=effects,
-                         planner=planner)
+                         planner=planner, **fleet)
+
+    def _car_files(self, car: CarParams, track, need: float) -> tuple[CarParams, ...] | None:
+        """Each roster car's car file (None: every car uses `car`). One footprint for every car: the
+        referee's gap and the planners' collision distance assume it (RaceSetupError naming the car)."""
+        if all(c.car_params is None for c in self.roster):
+            return None
+        files = []
+        for c in self.roster:
+            if c.car_params is None:
+                files.append(car)
+                continue
+            try:
+                files.append(load_car_params(c.car_params))
+            except CarParamsError as exc:
+                raise RaceSetupError("roster", f"car {c.name}: car_params: {exc}") from None
+            if files[-1].geometry != car.geometry:
+                raise RaceSetupError("roster", f"car {c.name}: car_params: {c.car_params}: geometry differs from "
+                                               f"{self.car_params}'s; every car of a race has one footprint")
+        return tuple(files)
 
 
 def start_states(setup: RaceSetup) -> np.ndarray:
-    """Seeded standing start: the front car just after the line, the other about one car
-    lengths of free space (2 +- 0.25 car lengths centre to centre) behind along the track, each at a random lateral offset, aligned with
-    the track, at rest. Rows: [x, y, heading, vx, vy, yaw_rate] for (rd3g, opponent)."""
+    """Seeded standing start, rows [x, y, heading, vx, vy, yaw_rate] in roster order, every car at rest
+    and aligned with the track: the two-car single file (``grid = "single_file"``: the front car just
+    after the line, the other about one car length of free space, 2 +- 0.25 car lengths centre to
+    centre, behind along the track, each at a random lateral offset; ``start`` says which is in front)
+    or the grid (grid_states)."""
+    if setup.grid != "single_file":
+        return grid_states(setup)
     rng = np.random.default_rng(setup.seed)
     tr = setup.track
     s_front = rng.uniform(*setup.start_s_m)
@@ -155,3 +237,35 @@ def start_states(setup: RaceSetup) -> np.ndarray:
     s = np.mod(s, tr.length)
     x, y, heading = tr.to_cartesian(s, ey, np.zeros(2))
     return np.column_stack([x, y, heading, np.zeros((2, 3))])
+
+
+def grid_slots(setup: RaceSetup) -> np.ndarray:
+    """Each roster car's grid slot: its ``start_slot`` (``grid = "roster"``) or a seeded shuffle of
+    the slots (``grid = "random"``, drawn from the race's seed)."""
+    slots = np.array([c.start_slot for c in setup.cars])
+    if setup.grid == "random":
+        slots = np.random.default_rng([setup.seed, 1]).permutation(len(slots))
+    return slots
+
+
+def grid_frenet(setup: RaceSetup) -> tuple[np.ndarray, np.ndarray]:
+    """(s, ey) of every roster car on the grid: rows of two, the front row's s drawn from start_s_m;
+    slot k in row k // 2, on the left (ey = +grid_lane_ey_m) for even k and the right for odd k; row
+    r is r row gaps (grid_row_gap_car_lengths car lengths centre to centre, drawn once per race)
+    behind the front row; each car jittered by up to grid_jitter_m along and across the track."""
+    rng = np.random.default_rng(setup.seed)
+    n = len(setup.cars)
+    s_front = rng.uniform(*setup.start_s_m)
+    row_gap = rng.uniform(*setup.grid_row_gap_car_lengths) * setup.car.geometry.footprint_length_m
+    jitter = rng.uniform(-setup.grid_jitter_m, setup.grid_jitter_m, size=(n, 2))
+    slots = grid_slots(setup)
+    s = s_front - (slots // 2) * row_gap + jitter[:, 0]
+    ey = np.where(slots % 2 == 0, setup.grid_lane_ey_m, -setup.grid_lane_ey_m) + jitter[:, 1]
+    return np.mod(s, setup.track.length), ey
+
+
+def grid_states(setup: RaceSetup) -> np.ndarray:
+    """The grid (grid_frenet) as start states [x, y, heading, 0, 0, 0], roster order."""
+    s, ey = grid_frenet(setup)
+    x, y, heading = setup.track.to_cartesian(s, ey, np.zeros(len(s)))
+    return np.column_stack([x, y, heading, np.zeros((len(s), 3))])

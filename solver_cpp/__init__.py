@@ -2,10 +2,11 @@
 from . import _core
 from .models import KinematicBicycle, KinematicBicycleFrenet, LinearModel
 from .problem import Agent, Collision, GameProblem, Obstacle, PairDistance, QuadraticCost
-from .solve import GameResult, Solver, WarmStart, make_settings, settings_dict, solve
+from .solve import GameResult, Solver, WarmStart, make_settings, merge_settings, settings_dict, solve
 
 __all__ = [
     "_core", "KinematicBicycle", "KinematicBicycleFrenet", "LinearModel", "Agent", "Collision", "GameProblem",
-    "Obstacle", "PairDistance", "QuadraticCost", "GameResult", "Solver", "WarmStart", "make_settings", "settings_dict",
+    "Obstacle", "PairDistance", "QuadraticCost", "GameResult", "Solver", "WarmStart", "make_settings", "merge_settings",
+    "settings_dict",
     "solve",
 ]

@@ -13,7 +13,7 @@ from fileio import Array, FieldSpec, ListOf, Number, String, Table, Tagged
 from . import _core
 from .models import KinematicBicycle, LinearModel
 from .problem import Agent, Collision, GameProblem, Obstacle, PairDistance, QuadraticCost
-from .solve import GameResult, WarmStart, settings_dict
+from .solve import FLAT_SETTING_NAMES, SETTING_GROUPS, GameResult, WarmStart, grouped_settings, settings_dict
 
 MAX_FILE_BYTES = 64 * 2**20
 
@@ -29,20 +29,39 @@ _DISTANCE = fileio.AnyOf((Number(gt=0), Array(1, Number(gt=0))))
 _BOUND = Array(1, Number(allow_inf=True))
 
 
-def _solver_table() -> Table:
-    """Every C++ solver setting by name, typed by its default (docs/solver.md)."""
+def _setting_spec(default, choices):
+    if isinstance(default, bool):
+        return fileio.Boolean()
+    if isinstance(default, int):
+        return Number(integer=True, ge=-fileio.schema.INT32_MAX, le=fileio.schema.INT32_MAX)
+    if isinstance(default, float):
+        return Number()
+    return String(choices=choices)  # a C++ enum, named by its value
+
+
+def _settings_table(settings, where: str, flat: dict) -> Table:
+    """The fields of a C++ settings struct (or group) by name, typed by its defaults; groups nest."""
     fields = {}
-    for name, default in settings_dict(_core.Settings()).items():
-        if isinstance(default, bool):
-            spec = fileio.Boolean()
-        elif isinstance(default, int):
-            spec = Number(integer=True, ge=-fileio.schema.INT32_MAX, le=fileio.schema.INT32_MAX)
-        elif isinstance(default, float):
-            spec = Number()
-        else:  # a C++ enum, named by its value
-            spec = String(choices=tuple(type(getattr(_core.Settings(), name)).__members__))
+    for name, default in settings_dict(settings).items():
+        if name in SETTING_GROUPS:
+            spec = _settings_table(getattr(settings, name), f"{where}.{name}", {})
+        else:
+            spec = _setting_spec(default, tuple(getattr(type(getattr(settings, name)), "__members__", ())))
         fields[name] = FieldSpec(spec, required=False)
-    return Table(fields, "solver")
+    for old, new in flat.items():  # the previous release's flat names (deprecated), typed as their new field
+        group, name = new.split(".")
+        value = getattr(getattr(settings, group), name)
+        spec = _setting_spec(settings_dict(getattr(settings, group))[name],
+                             tuple(getattr(type(value), "__members__", ())))
+        if old in fields:  # "barrier": a group, or the old barrier-form name
+            spec = fileio.AnyOf((fields[old].spec, spec))
+        fields[old] = FieldSpec(spec, required=False)
+    return Table(fields, where)
+
+
+def _solver_table() -> Table:
+    """Every C++ solver setting by its grouped name (docs/problem-format.md), and the deprecated flat names."""
+    return _settings_table(_core.Settings(), "solver", FLAT_SETTING_NAMES)
 
 
 def _schema() -> Table:
@@ -91,7 +110,7 @@ def problem_from_dict(data, source: str = "<problem>") -> tuple[GameProblem, dic
                  for o in d.get("obstacles", [])]
     horizon = d["horizon"]
     problem = GameProblem(dt=d["dt"], horizon=horizon, agents=agents, collision=collision, obstacles=obstacles)
-    settings = d.get("solver", {})
+    settings = grouped_settings(d.get("solver") or {}, stacklevel=2, source=f"{source}: ")
     try:
         problem.to_core()  # sizes and cross-field rules, with names
     except ValueError as exc:

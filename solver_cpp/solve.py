@@ -1,8 +1,10 @@
 """solve(): run RD3G on a GameProblem and return numpy results; settings map one-to-one onto the
-C++ Settings struct (defaults live only there, in solver_cpp/include/rd3g/problem.hpp)."""
+C++ Settings struct and its groups (defaults live only there, in solver_cpp/include/rd3g/problem.hpp)."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,21 +14,94 @@ from .problem import GameProblem
 
 
 
+# Settings are grouped by concern as in the C++ struct (solver_cpp/include/rd3g/problem.hpp): top-level
+# tol, max_iter, time_limit, ... and one group per concern, given as a mapping, e.g.
+# make_settings(tol=1e-4, stall=dict(window=8), restart=dict(count=3)); problem files use the same nesting.
+SETTING_GROUPS = ("barrier", "line_search", "linear", "stall", "restart", "best_response", "second_order")
+
+# The flat names of the previous release, accepted with a DeprecationWarning until the next one.
+FLAT_SETTING_NAMES = {
+    "rho_init": "barrier.rho_init", "rho_floor_factor": "barrier.rho_floor_factor", "rho_kappa": "barrier.rho_kappa",
+    "rho_beta": "barrier.rho_beta", "rho_progress": "barrier.rho_progress", "barrier_margin": "barrier.margin",
+    "fraction_to_boundary": "barrier.fraction_to_boundary", "barrier": "barrier.mode",
+    "ls_alpha": "line_search.alpha", "ls_beta": "line_search.beta", "ls_max_steps": "line_search.max_steps",
+    "violation_memory": "line_search.violation_memory", "lm_tries": "line_search.lm_tries",
+    "lm_below_step": "line_search.lm_below_step", "lm_nu_init": "line_search.lm_nu_init",
+    "linear_solver": "linear.solver", "refinement_steps": "linear.refinement_steps", "lscg_tol": "linear.lscg_tol",
+    "lscg_max_iter": "linear.lscg_max_iter",
+    "stall_window": "stall.window", "stall_floor_window": "stall.floor_window", "crawl_window": "stall.crawl_window",
+    "crawl_ratio": "stall.crawl_ratio", "polish_gap": "stall.polish_gap",
+    "restarts": "restart.count", "restart_u_std": "restart.u_std", "restart_rho_progress": "restart.rho_progress",
+    "restart_violation_memory": "restart.violation_memory", "restart_rho_on_stall": "restart.rho_on_stall",
+    "deep_overlap": "restart.deep_overlap",
+    "best_response_rounds": "best_response.rounds",
+    "best_response_max_iter": "best_response.max_iter", "best_response_margin": "best_response.margin",
+    "second_order_gap": "second_order.gap", "second_order_tol": "second_order.tol",
+    "restart_on_saddle": "second_order.restart_on_saddle", "saddle_escapes": "second_order.escapes",
+    "saddle_step": "second_order.escape_step", "saddle_rho": "second_order.escape_rho",
+    "saddle_inertia": "second_order.inertia",
+}
+
+
+def grouped_settings(overrides: Mapping, where: str = "solver", stacklevel: int = 3, source: str = "") -> dict:
+    """Overrides in the grouped form: a flat name of the previous release moves into its group with a
+    DeprecationWarning naming the new name (``barrier="primal"`` becomes ``barrier={"mode": "primal"}``)."""
+    out: dict = {}
+    for name, value in overrides.items():
+        if name in SETTING_GROUPS and isinstance(value, Mapping):
+            out.setdefault(name, {}).update(value)
+        elif name in FLAT_SETTING_NAMES:
+            group, field_name = FLAT_SETTING_NAMES[name].split(".")
+            warnings.warn(f"{source}{where}.{name} is deprecated: use {where}.{group}.{field_name}", DeprecationWarning,
+                          stacklevel=stacklevel)
+            out.setdefault(group, {})[field_name] = value
+        else:
+            out[name] = value
+    return out
+
+
+def merge_settings(*layers: Mapping) -> dict:
+    """Grouped overrides from layers of overrides (flat names warned about), a later layer overriding an earlier
+    one field by field; a None value means the solver's default (the key is dropped)."""
+    merged: dict = {}
+    for layer in layers:
+        for name, value in grouped_settings(layer, stacklevel=4).items():
+            if isinstance(value, Mapping):
+                merged.setdefault(name, {}).update(value)
+            else:
+                merged[name] = value
+    out = {}
+    for name, value in merged.items():
+        if isinstance(value, Mapping):
+            value = {k: v for k, v in value.items() if v is not None}
+        if value is not None:
+            out[name] = value
+    return out
+
+
 def make_settings(**overrides) -> _core.Settings:
-    """C++ defaults, with keyword overrides; unknown names, bad types or values out of range raise
-    ValueError naming them."""
-    s = fill_settings(_core.Settings(), "solver", overrides)
+    """C++ defaults, with keyword overrides in the grouped form (``make_settings(tol=1e-4, stall=dict(window=8))``;
+    flat names of the previous release are accepted with a DeprecationWarning); unknown names, bad types or values
+    out of range raise ValueError naming them (``solver.stall.window``)."""
+    s = _core.Settings()
+    for name, value in grouped_settings(overrides).items():
+        if name in SETTING_GROUPS:
+            if not isinstance(value, Mapping):
+                raise ValueError(f"solver.{name} must be a mapping of {name} settings, got {value!r:.80}")
+            fill_settings(getattr(s, name), f"solver.{name}", value, kind="solver")
+        else:
+            fill_settings(s, "solver", {name: value})
     _core.validate_settings(s)  # ranges, with the C++ set-up's messages
     return s
 
 
-def fill_settings(s, where: str, overrides: dict):
-    """Set the fields of a C++ settings struct (RD3G's or a baseline's) from keyword overrides, converting
-    each to the field's type; unknown names, wrong types, non-finite floats and integers beyond the C++
+def fill_settings(s, where: str, overrides: Mapping, kind: str | None = None):
+    """Set the fields of a C++ settings struct (RD3G's, one of its groups or a baseline's) from keyword overrides,
+    converting each to the field's type; unknown names, wrong types, non-finite floats and integers beyond the C++
     int raise ValueError naming ``where.name`` (never pybind11's own TypeError)."""
     for name, value in overrides.items():
-        if name.startswith("_") or not hasattr(s, name):
-            raise ValueError(f"{where}.{name} is not a {where} setting")
+        if name.startswith("_") or not hasattr(s, name) or (where == "solver" and name in SETTING_GROUPS):
+            raise ValueError(f"{where}.{name} is not a {kind or where} setting")
         current = getattr(s, name)
         try:
             if hasattr(type(current), "__members__"):  # a C++ enum: accept its value names
@@ -54,7 +129,8 @@ def fill_settings(s, where: str, overrides: dict):
     return s
 
 
-def settings_dict(settings: _core.Settings) -> dict:
+def settings_dict(settings) -> dict:
+    """The settings as a dict in the grouped form (enums by their value names), e.g. for make_settings(**d)."""
     out = {}
     for name in dir(settings):
         if name.startswith("_"):
@@ -62,7 +138,10 @@ def settings_dict(settings: _core.Settings) -> dict:
         v = getattr(settings, name)
         if callable(v):
             continue
-        out[name] = v.name if hasattr(type(v), "__members__") else v
+        if name in SETTING_GROUPS:
+            out[name] = settings_dict(v)
+        else:
+            out[name] = v.name if hasattr(type(v), "__members__") else v
     return out
 
 
@@ -89,8 +168,8 @@ class GameResult:
     active_constraints: int
     symbolic_factorizations: int
     attempts: int = 1  # 1 + restarts used (escapes from saddles included)
-    saddle_escapes: int = 0  # attempts started from a saddle along negative curvature (setting saddle_escapes)
-    best_response_attempts: int = 0    # attempts started from an iterated-best-response guess (best_response_rounds)
+    saddle_escapes: int = 0  # attempts started from a saddle along negative curvature (setting second_order.escapes)
+    best_response_attempts: int = 0    # attempts started from an iterated-best-response guess (best_response.rounds)
     best_response_iterations: int = 0  # Newton iterations of its single-agent sub-solves (1/N each in iterations)
     # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
     # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
@@ -173,7 +252,7 @@ class Solver:
     def update_settings(self, settings: _core.Settings | None = None, **overrides) -> None:
         """New settings: a complete Settings, or keyword overrides of the current ones."""
         if settings is None:
-            settings = make_settings(**{**settings_dict(self.settings), **overrides})
+            settings = make_settings(**merge_settings(settings_dict(self.settings), overrides))
         self._solver.update_settings(settings)
         self.settings = settings
 
@@ -198,7 +277,7 @@ class Solver:
 
     def best_response(self, rounds: int, warm_start: WarmStart | None = None) -> WarmStart:
         """Controls (N, T, nu) after `rounds` (>= 1) Gauss-Seidel sweeps of iterated best response from the warm
-        start's controls (zero without), with the C++ sweeps of the best-response restart (best_response_rounds)."""
+        start's controls (zero without), with the C++ sweeps of the best-response restart (best_response.rounds)."""
         ws = None if warm_start is None else _to_core_warm(warm_start, self._sizes, len(self.constraints))
         return WarmStart(u=np.stack(self._solver.best_response(int(rounds), ws).u))
 
@@ -233,5 +312,6 @@ def _to_core_warm(w: WarmStart, sizes: tuple[int, int, int, int], n_constraints:
 
 def solve(problem: GameProblem, settings: _core.Settings | None = None, warm_start: WarmStart | None = None,
           **overrides) -> GameResult:
-    """Solve a game once. Keyword overrides are solver settings (tol, max_iter, linear_solver, ...)."""
+    """Solve a game once. Keyword overrides are solver settings, grouped as in make_settings
+    (tol=1e-4, linear=dict(solver="sparse_lu"), ...)."""
     return Solver(problem, settings, **overrides).solve(warm_start)

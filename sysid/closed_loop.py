@@ -27,12 +27,14 @@ import numpy as np
 
 import fileio
 from race.recording import load_recording
+from race.roster import two_car_roster
 from race.setup import RaceSpec
 from race.simulation import run_race
 from sim import SimEffects
 from vehicles.params import CarParams
 
-PLANNER_CAR = "rd3g"
+# The RD3G car of the two-car race these closed loops run (race.roster.two_car_roster).
+PLANNER_CAR = next(c.name for c in two_car_roster("mpc", 2.0, 1.8) if c.planner == "rd3g")
 VARIANTS = ("clean", "nominal", "corrected")
 VARIANT_TEXT = {
     "clean": "no effect, nominal parameters (reference)",

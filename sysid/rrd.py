@@ -32,7 +32,6 @@ from sysid.log import DriveLog, LogFormatError, check_values
 
 # Car ids of a pure-simulation recording (no marker ids there): the race's car order, which is also the
 # real-time stack's default --marker-ids 0,1.
-SIMULATION_CAR_IDS = {"rd3g": 0, "opponent": 1}
 
 
 @dataclass(frozen=True)
@@ -60,16 +59,13 @@ def read_rrd(path: Path) -> DriveLog:
 
 
 def _car_ids(data, names: list[str]) -> dict[str, int]:
-    """Marker (ArUco) ids from the real-time setup document, else the simulated race's order."""
-    ids = {c["name"]: int(c["marker_id"]) for c in data.setup().get("cars", []) if isinstance(c, dict)
-           and "name" in c and "marker_id" in c}
-    out, used = {}, set(ids.values()) | set(SIMULATION_CAR_IDS.values())
+    """Marker (ArUco) ids from the recording's roster (race.recording.RecordingData.roster)."""
+    ids = {c["name"]: int(c["marker_id"]) for c in data.roster() if isinstance(c.get("marker_id"), int)}
+    out, used = {}, set(ids.values()) | {-1}
     for name in names:
         if name in ids:
             out[name] = ids[name]
-        elif name in SIMULATION_CAR_IDS:
-            out[name] = SIMULATION_CAR_IDS[name]
-        else:  # a car name this stack does not use: next free id
+        else:  # a car the roster does not name: next free id
             out[name] = max(used) + 1
             used.add(out[name])
     return out
@@ -171,7 +167,8 @@ def recording_cars(data) -> list[str]:
     if not names:
         raise LogFormatError(f"{data.path}: no entity 'cars/<car>/command/throttle' (commands sent to a car); "
                              f"not a race-stack recording (docs/sysid.md)")
-    return sorted(names, key=lambda n: (SIMULATION_CAR_IDS.get(n, 99), n))
+    order = {c["name"]: i for i, c in enumerate(data.roster())}
+    return sorted(names, key=lambda n: (order.get(n, len(order)), n))
 
 
 def drive_log_from_recording(data) -> DriveLog:

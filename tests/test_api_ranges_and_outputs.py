@@ -24,7 +24,7 @@ def test_horizon_beyond_the_cpp_int_names_the_field(horizon):
 
 @pytest.mark.parametrize("call,field", [
     (lambda: make_settings(max_iter=2**31), "solver.max_iter"),
-    (lambda: make_settings(lscg_max_iter=-2**40), "solver.lscg_max_iter"),
+    (lambda: make_settings(linear=dict(lscg_max_iter=-2**40)), "solver.linear.lscg_max_iter"),
     (lambda: solve_ilqgames(merging_problem(2, 0), max_iter=2**31), "ilqgames.max_iter"),
     (lambda: solve_algames(merging_problem(2, 0), max_iter=2**63), "algames.max_iter"),
     (lambda: solve_algames(merging_problem(2, 0), max_iter=1.5), "algames.max_iter"),

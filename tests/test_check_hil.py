@@ -1,6 +1,7 @@
 """`python -m app check --hil`: the pre-race check against the emulated hardware passes on a correct
 set-up and fails, naming the car and the fault, on faulty ones (set up in the HIL world with --hil-fault).
-Three check runs of ~10 s each: the correct set-up, then two runs with two independent faults each."""
+Four check runs of ~10 s each: the correct set-up, two runs with two independent faults each, and four cars
+with two radio ids swapped."""
 from __future__ import annotations
 
 import math
@@ -74,3 +75,15 @@ def test_displacement_in_the_car_frame():
 def test_throttle_pulse_verdicts(moves, ok, says):
     verdict, text = judge_throttle_pulse("a", moves)
     assert verdict is ok and says in text
+
+
+def test_two_swapped_radio_ids_among_four_cars(capsys):
+    """A fleet roster: each car's radio is checked in turn; the two swapped ones fail naming each other."""
+    code, lines = run_check(capsys, "--cars", "rd3g,mpc,mpc,mpc", "--hil-fault", "swapped_radio_ids")
+    assert code == 1
+    for car, other in (("rd3g1", "mpc2"), ("mpc2", "rd3g1")):
+        radio = item(lines, f"radio {car}")
+        assert radio.startswith("[FAIL]") and f"{other} moved" in radio and "radio ids swapped" in radio
+    for car in ("mpc3", "mpc4"):
+        assert item(lines, f"radio {car}").startswith("[PASS]")
+        assert item(lines, f"marker {car}").startswith("[PASS]")

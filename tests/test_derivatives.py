@@ -183,7 +183,7 @@ def _random_point(problem, constraints, rng):
 def test_newton_residual_and_jacobian_match_finite_differences(barrier, form):
     rng = np.random.default_rng(11 if form == "distance" else 12)
     problem = _residual_problem(form, rng)
-    solver = Solver(problem, barrier=barrier)
+    solver = Solver(problem, barrier=dict(mode=barrier))
     core = solver._solver
     constraints = core.constraints()
     kinds = [c.kind.name for c in constraints]

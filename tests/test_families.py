@@ -87,7 +87,7 @@ def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw()
     # Seed 1: the sub-solves converge within best_response_max_iter (at seed 0 with domain_fraction 0.99 agent 1's
     # does not, against agent 0's plan steering at 1.3 rad, and the guess keeps its unconverged controls).
     problem = family_problem("head-on", 2, 1)
-    guess = best_response_guess(problem, rounds=1, tol=1e-8, best_response_margin=0.0)
+    guess = best_response_guess(problem, rounds=1, tol=1e-8, best_response=dict(margin=0.0))
     x = problem.rollout(guess.u)
     assert max_collision_violation_m(problem, x) <= 1e-6
     alone = GameProblem(dt=problem.dt, horizon=problem.horizon, agents=[problem.agents[1]],
@@ -119,11 +119,11 @@ def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
                       for j in range(N) if j != i]
             alone = GameProblem(dt=problem.dt, horizon=T, agents=[problem.agents[i]], collision=col,
                                 obstacles=list(problem.obstacles) + others)
-            r = solve(alone, warm_start=WarmStart(u=u[i:i + 1]), max_iter=100, restarts=1, best_response_rounds=0)
+            r = solve(alone, warm_start=WarmStart(u=u[i:i + 1]), max_iter=100, restart=dict(count=1), best_response=dict(rounds=0))
             assert np.all(np.isfinite(r.u))
             u[i] = r.u[0]
             x = problem.rollout(u)
-    guess = best_response_guess(problem, rounds=2, best_response_margin=margin)
+    guess = best_response_guess(problem, rounds=2, best_response=dict(margin=margin))
     assert np.abs(u).max() > 0.1  # the sub-solves moved the cars
     np.testing.assert_allclose(guess.u, u, atol=1e-9, rtol=0)
 
@@ -160,7 +160,7 @@ def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     problem = family_problem("merge-dense", 8, 15)
     records = {}
     for rounds in (0, 1):
-        r = solve(problem, time_limit=0, max_iter=300, best_response_rounds=rounds)
+        r = solve(problem, time_limit=0, max_iter=300, best_response=dict(rounds=rounds))
         records[rounds] = (r, merge_bench.record("rd3g", problem, r, 0.0, 8, 15, "merge-dense"))
     old, new = records[0], records[1]
     assert not old[1].success and old[0].best_response_attempts == 0
@@ -180,7 +180,7 @@ def test_best_response_guess_keeps_every_pair_beyond_the_margin():
         problem = family_problem(name, cars, seed)
         col = problem.collision
         for margin in (0.0, 0.1, 0.25):
-            guess = best_response_guess(problem, rounds=1, best_response_margin=margin)
+            guess = best_response_guess(problem, rounds=1, best_response=dict(margin=margin))
             xy = problem.rollout(guess.u)[:, 1:, [col.pos_x, col.pos_y]]
             gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(cars, 1)]
             assert gaps.min() >= (1 + margin) * col.min_distance - 1e-4, (name, margin)  # sub-solve tolerance (m)
@@ -197,7 +197,7 @@ def test_best_response_margin_rescues_an_attempt_stuck_at_a_contact():
     from solver_cpp import solve
 
     problem = family_problem("merge-narrow", 4, 34)
-    stuck = solve(problem, time_limit=0, max_iter=1000, best_response_margin=0.0)
+    stuck = solve(problem, time_limit=0, max_iter=1000, best_response=dict(margin=0.0))
     freed = solve(problem, time_limit=0, max_iter=1000)
     assert stuck.status == "max_iterations"
     assert freed.status == "converged" and freed.attempts == 2

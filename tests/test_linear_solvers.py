@@ -11,8 +11,8 @@ from solver_cpp import Solver, solve
 
 @pytest.mark.parametrize("cars, seed", [(2, 0), (3, 1), (5, 2), (8, 1)])
 def test_riccati_matches_sparse_lu(cars, seed):
-    a = solve(merging_problem(cars, seed), linear_solver="riccati")
-    b = solve(merging_problem(cars, seed), linear_solver="sparse_lu")
+    a = solve(merging_problem(cars, seed), linear=dict(solver="riccati"))
+    b = solve(merging_problem(cars, seed), linear=dict(solver="sparse_lu"))
     assert a.status == b.status == "converged"
     assert a.iterations == b.iterations
     np.testing.assert_allclose(a.x, b.x, atol=1e-9, rtol=0)
@@ -33,7 +33,7 @@ def test_riccati_with_active_bounds_matches_sparse_lu(cars, seed):
     cap = [a.x0[2] - 0.2 for a in p.agents]
     p = dataclasses.replace(p, agents=[dataclasses.replace(a, x_max=np.array([np.inf, np.inf, c, np.inf]))
                                        for a, c in zip(p.agents, cap)])
-    ric, lu = Solver(p, linear_solver="riccati")._solver.solve(None), Solver(p, linear_solver="sparse_lu")._solver.solve(None)
+    ric, lu = Solver(p, linear=dict(solver="riccati"))._solver.solve(None), Solver(p, linear=dict(solver="sparse_lu"))._solver.solve(None)
     assert ric.info.active_constraints > 0 and lu.info.symbolic_factorizations > 0  # equality rows present
     assert ric.info.symbolic_factorizations == 0 and ric.info.riccati_solves == ric.info.iterations
     assert ric.info.iterations == lu.info.iterations

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from race.config import FaultSpec, LoopConfig, LoopConfigError, StageBudgets, parse_fault
+from race.config import FaultSpec, LoopConfig, LoopConfigError, StageBudgets, check_fault_cars, parse_fault
 from race.loop import DeadlineMonitor
 from race.planning import controls_between
 from test_loop_support import load_json, run_cli
@@ -26,11 +26,18 @@ def test_parse_fault_forms():
 
 @pytest.mark.parametrize("text, field", [
     ("occlude@2", "needs a duration"), ("serial_vanish@2+1", "takes no duration"), ("boom@1+1", "fault kind"),
-    ("occlude@2+1:truck", "car must be"), ("occlude 2", "expected KIND@START"),
+    ("occlude 2", "expected KIND@START"),
 ])
 def test_parse_fault_errors_name_the_problem(text, field):
     with pytest.raises(LoopConfigError, match=field):
         parse_fault(text)
+
+
+def test_fault_car_must_be_in_the_roster():
+    faults = (parse_fault("occlude@2+1:mpc3"), parse_fault("serial_vanish@3"))
+    check_fault_cars(faults, ("rd3g1", "rd3g2", "mpc3"))
+    with pytest.raises(LoopConfigError, match="car must be one of rd3g, opponent, got 'truck'"):
+        check_fault_cars((parse_fault("occlude@2+1:truck"),), ("rd3g", "opponent"))
 
 
 def test_loop_config_validation():

@@ -18,7 +18,7 @@ import pytest
 from race.config import FaultSpec, LoopConfig
 from race.loop import CarBinding, RaceLoop, SimulatedDeadlineMonitor
 from race.planning import CarPlan, PlanResult, SyncPlanRunner
-from race.setup import CAR_NAMES, RaceSetup
+from race.setup import RaceSetup
 from race.world import SimulatedClock
 from tracking.estimator import EstimatorConfig, MultiCarEstimator
 from tracking.markers import CarMeasurement
@@ -126,10 +126,10 @@ class Link:
 
 
 class Planners:
-    commanded = CAR_NAMES
+    commanded = tuple(c.name for c in CARS)
 
     def plan(self, job):
-        return PlanResult(job=job, cars={name: DRIVE for name in CAR_NAMES})
+        return PlanResult(job=job, cars={name: DRIVE for name in self.commanded})
 
     def executed_control(self, name, car_plan, speed):
         return None

@@ -111,13 +111,13 @@ def test_lq_game_matches_stacked_kkt_and_newton_converges_in_one_step(num_player
 
     # rho_init = tol/10 skips the barrier-weight schedule, which has nothing to act on here (no
     # inequality constraints); see test_unconstrained_game_converges_with_default_barrier_schedule.
-    result = solve(problem, tol=TOL, restarts=0, rho_init=TOL / 10)
+    result = solve(problem, tol=TOL, restart=dict(count=0), barrier=dict(rho_init=TOL / 10))
     assert result.status == "converged"
     assert result.iterations <= 2
     np.testing.assert_allclose(result.x, x_ref, atol=1e-6, rtol=0)
     np.testing.assert_allclose(result.u, u_ref, atol=1e-6, rtol=0)
     # Newton on a linear KKT system: one step lands on the solution whatever the barrier weight.
-    default = solve(problem, tol=TOL, restarts=0)
+    default = solve(problem, tol=TOL, restart=dict(count=0))
     assert default.residual_history[1] < TOL
     np.testing.assert_allclose(default.u, u_ref, atol=1e-6, rtol=0)
 
@@ -130,12 +130,12 @@ def test_lead_weight_changes_the_equilibrium():
         a.lead_weight = 0.0
     x_none, u_none, _ = _nash_kkt(problem)
     assert np.abs(u_lead - u_none).max() > 1e-2
-    result = solve(problem, tol=TOL, restarts=0, rho_init=TOL / 10)
+    result = solve(problem, tol=TOL, restart=dict(count=0), barrier=dict(rho_init=TOL / 10))
     np.testing.assert_allclose(result.u, u_none, atol=1e-6, rtol=0)
 
 
 def test_unconstrained_game_converges_with_default_barrier_schedule():
     problem = _random_game(3, 1)
-    result = solve(problem, tol=TOL, restarts=0)
+    result = solve(problem, tol=TOL, restart=dict(count=0))
     assert result.status == "converged"
     assert result.iterations <= 2

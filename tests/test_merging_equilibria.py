@@ -11,12 +11,12 @@ from bench.families import family_problem
 from bench.merging import MIN_DISTANCE, merging_problem
 from bench.verify import (best_response_gap, collision_gaps_m, dynamics_defect, max_collision_violation_m,
                           player_cost, stationarity_residual, verify_equilibrium)
-from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, Obstacle, QuadraticCost, solve
+from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, Obstacle, QuadraticCost, merge_settings, solve
 
 INSTANCES = [(3, 2), (3, 4), (3, 10), (5, 3)]  # (cars, seed)
 # The paper's globalisation rules in every attempt (rho lowered every iteration, monotone violation test) and its
 # restart schedule (no attempt from a best-response guess).
-PAPER_RULES = dict(deep_overlap=2.0, restart_rho_progress=0.0, restart_violation_memory=1, best_response_rounds=0)
+PAPER_RULES = dict(restart=dict(deep_overlap=2.0, rho_progress=0.0, violation_memory=1), best_response=dict(rounds=0))
 SOLVE_TOL = 1e-8
 _solutions = {}
 
@@ -25,7 +25,7 @@ def _solved(num_cars, seed, linear_solver="sparse_lu"):
     key = (num_cars, seed, linear_solver)
     if key not in _solutions:
         problem = merging_problem(num_cars, seed)
-        _solutions[key] = (problem, solve(problem, tol=SOLVE_TOL, linear_solver=linear_solver))
+        _solutions[key] = (problem, solve(problem, tol=SOLVE_TOL, linear=dict(solver=linear_solver)))
     return _solutions[key]
 
 
@@ -150,7 +150,7 @@ def test_polish_rescues_a_stalled_merge():
     # holding those constraints as equalities converges in the first attempt. (PAPER_RULES has no best-response
     # attempt: from its guess this merge converges without the polish.)
     problem = merging_problem(7, 12)
-    without = solve(problem, polish_gap=0.0, restarts=3, **PAPER_RULES)
+    without = solve(problem, **merge_settings(PAPER_RULES, dict(stall=dict(polish_gap=0.0), restart=dict(count=3))))
     assert without.status == "stalled"
     result = solve(problem)
     assert result.converged

@@ -55,17 +55,17 @@ def test_frenet_and_linear_domains():
 
 def test_iterates_stay_in_the_steering_box():
     problem = UNBOUNDED_MERGE_LONG.problem(6, 7)
-    off = solve(problem, time_limit=0, max_iter=12, restarts=0, domain_fraction=0.0)
+    off = solve(problem, time_limit=0, max_iter=12, domain_fraction=0.0, restart=dict(count=0))
     assert np.abs(off.u[..., 1]).max() > HALF_PI  # the full Newton step crosses the jump
     for fraction in (0.99, 0.9):
         for it in (5, 12, 20, 40):
-            r = solve(problem, time_limit=0, max_iter=it, restarts=0, domain_fraction=fraction)
+            r = solve(problem, time_limit=0, max_iter=it, domain_fraction=fraction, restart=dict(count=0))
             assert np.abs(r.u[..., 1]).max() <= fraction * HALF_PI + 1e-12
 
 
 def test_merge_long_failure_converges_in_the_domain():
     problem = UNBOUNDED_MERGE_LONG.problem(7, 4)
-    r = solve(problem, time_limit=0, max_iter=1000, domain_fraction=0.99, best_response_rounds=0)
+    r = solve(problem, time_limit=0, max_iter=1000, domain_fraction=0.99, best_response=dict(rounds=0))
     assert r.status == "converged"  # the solver's second-order test passed
     assert np.all(np.asarray(r.second_order) >= -1e-6)
     assert np.abs(r.u[..., 1]).max() <= 0.99 * HALF_PI + 1e-12

@@ -93,7 +93,7 @@ def test_best_response_guess_keeps_each_pair_at_its_own_distance():
     the relaxed pair, 2.2 m for the others, and all pulled to the origin they sit there."""
     margin = 0.1
     problem = _triangle("distance", RELAX_01)
-    guess = best_response_guess(problem, rounds=2, best_response_margin=margin)
+    guess = best_response_guess(problem, rounds=2, best_response=dict(margin=margin))
     d = _distances(problem.rollout(guess.u))
     for (i, j), own in OWN.items():
         assert d[i, j].min() >= (1 + margin) * own - 1e-6, (i, j)

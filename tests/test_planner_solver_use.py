@@ -20,10 +20,11 @@ def test_solver_settings_are_the_solvers_own_names():
     defaults = _core.Settings()  # the C++ defaults, read from the struct itself
     warm = solver_settings(cfg.solver)
     cold = solver_settings(cfg.solver, cfg.cold_start_solver)
-    assert (warm.max_iter, warm.restarts, warm.lm_tries, warm.rho_init) == (15, 0, 0, 1e-3)
+    assert (warm.max_iter, warm.restart.count, warm.line_search.lm_tries, warm.barrier.rho_init) == (15, 0, 0, 1e-3)
     # None = the solver's default: the cold start gets the solver's own globalisation.
-    assert (cold.lm_tries, cold.ls_max_steps, cold.rho_init) == (defaults.lm_tries, defaults.ls_max_steps, defaults.rho_init)
-    assert (cold.max_iter, cold.restarts, cold.rho_progress) == (200, 3, warm.rho_progress)
+    assert (cold.line_search.lm_tries, cold.line_search.max_steps, cold.barrier.rho_init) == \
+        (defaults.line_search.lm_tries, defaults.line_search.max_steps, defaults.barrier.rho_init)
+    assert (cold.max_iter, cold.restart.count, cold.barrier.rho_progress) == (200, 3, warm.barrier.rho_progress)
     assert warm.tol == cold.tol == defaults.tol
 
 

@@ -29,7 +29,8 @@ def test_short_race_finishes_without_collision(race, track):
     assert o.trace_progress[-1].max() - o.trace_progress[0].max() > track.length - 0.5
     assert set(o.summary()) == {"winner", "clean_winner", "lap_times_s", "min_gap_m", "collisions", "rd3g_at_fault",
                                 "off_track", "fallbacks", "solve_ms_p50", "solve_ms_p99", "prestart_ms",
-                                "control_period_ms", "planner_errors", "interrupted", "race_time_s"}
+                                "control_period_ms", "planner_errors", "interrupted", "race_time_s",
+                                "cars", "finishing_order", "collision_events"}
     assert o.planner_errors == [] and o.summary()["planner_errors"] == 0
     assert o.summary()["interrupted"] is False and o.summary()["race_time_s"] == o.race_time_s
 
@@ -93,10 +94,10 @@ def test_off_track_win_is_not_clean_and_not_counted(track, car):
     assert RaceOutcome(winner="rd3g", off_track={"rd3g": 0, "opponent": 2}, **base).clean_winner == "rd3g"
     rec = dict(cell=("rear", "fast"), collisions=0, rd3g_at_fault=0, solve_ms=np.ones(3), min_gap_m=0.1,
                fallbacks=0, opponent_off_track=0)
-    records = [{**rec, "seed": 0, "winner": "rd3g", "rd3g_off_track": 1},   # shortcut: not counted
-               {**rec, "seed": 1, "winner": "rd3g", "rd3g_off_track": 0},
-               {**rec, "seed": 2, "winner": "opponent", "rd3g_off_track": 0},
-               {**rec, "seed": 3, "winner": "rd3g", "rd3g_off_track": 0}]
+    records = [{**rec, "seed": 0, "winner": "rd3g", "rd3g_won": True, "rd3g_off_track": 1},   # shortcut: not counted
+               {**rec, "seed": 1, "winner": "rd3g", "rd3g_won": True, "rd3g_off_track": 0},
+               {**rec, "seed": 2, "winner": "opponent", "rd3g_won": False, "rd3g_off_track": 0},
+               {**rec, "seed": 3, "winner": "rd3g", "rd3g_won": True, "rd3g_off_track": 0}]
     cell = {(c["start"], c["speed"]): c for c in summarise(records, 4)}[("rear", "fast")]
     assert cell["rd3g_wins"] == 2 and cell["win_rate"] == 0.5
     assert cell["rd3g_off_track_races"] == 1 and cell["rd3g_wins_off_track"] == 1
@@ -114,12 +115,12 @@ def _raising_plan(monkeypatch, cls, calls_that_raise):
     original = cls.plan
     n = {"calls": 0}
 
-    def plan(self, x_self, x_other):
+    def plan(self, x_self, x_others, **others):
         k = n["calls"]
         n["calls"] += 1
         if k in calls_that_raise:
             raise ValueError(f"injected planner failure {k}")
-        return original(self, x_self, x_other)
+        return original(self, x_self, x_others, **others)
 
     monkeypatch.setattr(cls, "plan", plan)
 
@@ -185,9 +186,9 @@ def test_simulated_race_does_not_depend_on_solve_time(track, car, monkeypatch):
     fast = run_race(setup)
     original = RacingPlanner.plan
 
-    def slow_plan(self, x_self, x_other):
+    def slow_plan(self, x_self, x_others, **others):
         time.sleep(0.005)
-        return original(self, x_self, x_other)
+        return original(self, x_self, x_others, **others)
 
     monkeypatch.setattr(RacingPlanner, "plan", slow_plan)
     slow = run_race(setup)

@@ -149,7 +149,7 @@ def test_reduced_hessian_matches_finite_differences(case):
         problem.horizon = 12
     if case == "pair_distances":  # the active pair (0, 1) at its own 2.4 m, another pair with its own 1.7 m
         problem.collision.pair_distances = [PairDistance((0, 1), 2.4), PairDistance((2, 0), [1.7] * 12)]
-    result = solve(problem, tol=1e-9, linear_solver="sparse_lu")
+    result = solve(problem, tol=1e-9, linear=dict(solver="sparse_lu"))
     assert result.status == "converged"
     n_active = 0
     for a in range(problem.num_agents):
@@ -166,7 +166,7 @@ def test_restart_on_saddle_finds_a_local_equilibrium():
     from bench.families import family_problem
 
     problem = family_problem("head-on", 2, 2)
-    kept = solve(problem, restart_on_saddle=False)
+    kept = solve(problem, second_order=dict(restart_on_saddle=False))
     assert kept.status == "saddle"
     assert max(best_response_gap(problem, kept.x, kept.u, i) for i in range(2)) > 1e-3
     r = solve(problem)  # restart_on_saddle is the default
@@ -182,8 +182,8 @@ def test_restart_on_saddle_returns_the_saddle_when_no_attempt_does_better():
     curvature and the attempt from the best-response guess (each player alone ends at the same saddle) included, so
     after the whole restart schedule the kept saddle is returned, unchanged, with the work of all attempts."""
     problem = _disc_game(1.0, 2.0)
-    off = solve(problem, tol=1e-9, restart_on_saddle=False)
-    on = solve(problem, tol=1e-9, restarts=3)
+    off = solve(problem, tol=1e-9, second_order=dict(restart_on_saddle=False))
+    on = solve(problem, tol=1e-9, restart=dict(count=3))
     assert on.status == "saddle" and on.saddle_escapes == 2 and on.best_response_attempts == 1
     assert on.attempts == 4 + 2 + 1
     assert on.iterations > off.iterations
@@ -214,14 +214,14 @@ def test_escape_along_negative_curvature_reaches_the_analytic_minima():
     curvature and Newton from there reaches a minimum p = (-2/3, +-sqrt(5)/3) with eigenvalue 5/3, where SLSQP
     finds no profitable deviation; the escape's iterations are counted."""
     problem = _slide_game()
-    kept = solve(problem, tol=1e-9, restarts=3, saddle_escapes=0)
+    kept = solve(problem, tol=1e-9, restart=dict(count=3), second_order=dict(escapes=0))
     assert kept.status == "saddle" and kept.saddle_escapes == 0
     np.testing.assert_allclose(kept.x[:, 1], [[-1.0, 0.0], [-1.0, 100.0]], atol=1e-6)
     np.testing.assert_allclose(kept.second_order, [-1.0, -1.0], rtol=1e-5)
     assert min(best_response_gap(problem, kept.x, kept.u, i) for i in range(2)) > 1e-2
 
-    first = solve(problem, tol=1e-9, restart_on_saddle=False)
-    r = solve(problem, tol=1e-9, restarts=3, saddle_escapes=1)
+    first = solve(problem, tol=1e-9, second_order=dict(restart_on_saddle=False))
+    r = solve(problem, tol=1e-9, restart=dict(count=3), second_order=dict(escapes=1))
     assert r.status == "converged" and r.saddle_escapes == 1 and r.attempts == 2
     assert r.iterations > first.iterations  # the saddle's attempt and the escape, counted together
     np.testing.assert_allclose(np.abs(r.x[:, 1] - [[0.0, 0.0], [0.0, 100.0]]), [[2 / 3, np.sqrt(5) / 3]] * 2, atol=1e-6)
@@ -237,7 +237,7 @@ def test_inertia_correction_keeps_the_roots():
     from bench.families import family_problem
 
     problem = family_problem("head-on", 2, 2)
-    r = solve(problem, saddle_escapes=0, saddle_inertia=1.5)
+    r = solve(problem, second_order=dict(escapes=0, inertia=1.5))
     assert r.status == "converged" and r.saddle_escapes == 0
     assert np.all(r.second_order > 0)
     assert np.all(stationarity_residual(problem, r.x, r.u, relative=True) <= 1e-3)

@@ -81,8 +81,8 @@ def test_bad_problem_is_rejected_naming_the_field(mutate, field):
 
 BAD_SETTINGS = [
     ({"foo": 1}, "solver.foo"),
-    ({"linear_solver": "cholesky"}, "solver.linear_solver"),
-    ({"barrier": "dual"}, "solver.barrier"),
+    ({"linear": {"solver": "cholesky"}}, "solver.linear.solver"),
+    ({"barrier": {"mode": "dual"}}, "solver.barrier.mode"),
     ({"max_iter": 2.5}, "solver.max_iter"),
     ({"tol": float("nan")}, "solver.tol"),
 ]
@@ -99,32 +99,31 @@ def test_bad_setting_is_rejected_naming_the_field(settings, field):
 SETTINGS_WITHOUT_FIELD_NAME = [
     ({"tol": -1.0}, "solver.tol"),
     ({"max_iter": -1}, "solver.max_iter"),
-    ({"rho_kappa": 1.5}, "solver.rho_kappa"),
-    ({"ls_beta": 2.0}, "solver.ls_beta"),
+    ({"barrier": {"rho_kappa": 1.5}}, "solver.barrier.rho_kappa"),
+    ({"line_search": {"beta": 2.0}}, "solver.line_search.beta"),
     ({"tol": "abc"}, "solver.tol"),  # float('abc') error text, no field
-    ({"linear_solver": 3}, "solver.linear_solver"),  # pybind TypeError
-    ({"restarts": -1}, "solver.restarts"),  # accepted: no attempt runs, x returned as zeros (not x0)
-    ({"fraction_to_boundary": 0.0}, "solver.fraction_to_boundary"),  # accepted: line search fails
+    ({"linear": {"solver": 3}}, "solver.linear.solver"),  # pybind TypeError
+    ({"restart": {"count": -1}}, "solver.restart.count"),  # accepted: no attempt runs, x returned as zeros (not x0)
+    ({"barrier": {"fraction_to_boundary": 0.0}}, "solver.barrier.fraction_to_boundary"),  # accepted: line search fails
     ({"violation_tol": -1.0}, "solver.violation_tol"),  # accepted: can never converge
     ({"time_limit": -1.0}, "solver.time_limit"),  # accepted as "no limit"
-    ({"polish_gap": -1.0}, "solver.polish_gap"),
-    ({"stall_floor_window": -1}, "solver.stall_floor_window"),
-    ({"crawl_window": -1}, "solver.crawl_window"),
-    ({"crawl_ratio": 0.0}, "solver.crawl_ratio"),
-    ({"crawl_ratio": 1.5}, "solver.crawl_ratio"),
-    ({"violation_memory": 0}, "solver.violation_memory"),
-    ({"restart_violation_memory": 0}, "solver.restart_violation_memory"),
-    ({"restart_rho_progress": -1.0}, "solver.restart_rho_progress"),
-    ({"deep_overlap": -0.5}, "solver.deep_overlap"),
-    ({"saddle_escapes": -1}, "solver.saddle_escapes"),
-    ({"saddle_step": 0.0}, "solver.saddle_step"),
-    ({"saddle_rho": -1e-3}, "solver.saddle_rho"),
-    ({"saddle_inertia": -1.0}, "solver.saddle_inertia"),
-    ({"best_response_rounds": -1}, "solver.best_response_rounds"),
-    ({"best_response_attempt": 0}, "solver.best_response_attempt"),  # attempt 0 keeps the initial guess
-    ({"best_response_max_iter": 0}, "solver.best_response_max_iter"),
-    ({"best_response_margin": -0.1}, "solver.best_response_margin"),
-    ({"best_response_margin": float("inf")}, "solver.best_response_margin"),
+    ({"stall": {"polish_gap": -1.0}}, "solver.stall.polish_gap"),
+    ({"stall": {"floor_window": -1}}, "solver.stall.floor_window"),
+    ({"stall": {"crawl_window": -1}}, "solver.stall.crawl_window"),
+    ({"stall": {"crawl_ratio": 0.0}}, "solver.stall.crawl_ratio"),
+    ({"stall": {"crawl_ratio": 1.5}}, "solver.stall.crawl_ratio"),
+    ({"line_search": {"violation_memory": 0}}, "solver.line_search.violation_memory"),
+    ({"restart": {"violation_memory": 0}}, "solver.restart.violation_memory"),
+    ({"restart": {"rho_progress": -1.0}}, "solver.restart.rho_progress"),
+    ({"restart": {"deep_overlap": -0.5}}, "solver.restart.deep_overlap"),
+    ({"second_order": {"escapes": -1}}, "solver.second_order.escapes"),
+    ({"second_order": {"escape_step": 0.0}}, "solver.second_order.escape_step"),
+    ({"second_order": {"escape_rho": -1e-3}}, "solver.second_order.escape_rho"),
+    ({"second_order": {"inertia": -1.0}}, "solver.second_order.inertia"),
+    ({"best_response": {"rounds": -1}}, "solver.best_response.rounds"),
+    ({"best_response": {"max_iter": 0}}, "solver.best_response.max_iter"),
+    ({"best_response": {"margin": -0.1}}, "solver.best_response.margin"),
+    ({"best_response": {"margin": float("inf")}}, "solver.best_response.margin"),
     ({"domain_fraction": 1.0}, "solver.domain_fraction"),
     ({"domain_fraction": -0.1}, "solver.domain_fraction"),
 ]

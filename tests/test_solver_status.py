@@ -53,8 +53,8 @@ def test_time_limit():
 
 
 # Every window rule of the attempt off, one attempt, no polish: what the rules tests below switch on one at a time.
-RULES_OFF = dict(restarts=0, stall_window=0, stall_floor_window=0, crawl_window=0, polish_gap=0, time_limit=0,
-                 max_iter=300)
+RULES_OFF = dict(time_limit=0, max_iter=300, restart=dict(count=0),
+                 stall=dict(window=0, floor_window=0, crawl_window=0, polish_gap=0))
 
 
 def _first_firing(history, window: int, ratio: float) -> int | None:
@@ -66,8 +66,8 @@ def _first_firing(history, window: int, ratio: float) -> int | None:
 def test_stalled():
     # A hair-trigger crawl rule (||r|| must fall 1e6-fold every 2 iterations) ends every attempt, whatever path the
     # iterates take: with one restart (the attempt from the initial guess and attempt 1) the solve ends stalled.
-    result = solve(merging_problem(3, 2), restarts=1, crawl_window=2, crawl_ratio=1e-6, polish_gap=0,
-                   restart_rho_on_stall=False, best_response_rounds=0, time_limit=0)
+    result = solve(merging_problem(3, 2), time_limit=0, restart=dict(count=1, rho_on_stall=False),
+                   stall=dict(crawl_window=2, crawl_ratio=1e-6, polish_gap=0), best_response=dict(rounds=0))
     assert result.status == "stalled" and not result.converged
     assert result.attempts == 2 and result.best_response_attempts == 0
     assert result.residual_norm > 5e-4
@@ -78,7 +78,8 @@ def test_line_search_failed():
     # One backtracking step and no Levenberg-Marquardt tries, with a sufficient-decrease factor that asks a step of
     # t <= 1 to cut ||r|| by 99 t %: the first Newton step of a 3-car merge from rest (||r|| 2.7, ~18 iterations to
     # converge) cannot, so the line search fails at iteration 0.
-    result = solve(merging_problem(3, 2), restarts=0, ls_max_steps=1, lm_tries=0, ls_alpha=0.99, time_limit=0)
+    result = solve(merging_problem(3, 2), time_limit=0, restart=dict(count=0),
+                   line_search=dict(max_steps=1, lm_tries=0, alpha=0.99))
     assert result.status == "line_search_failed"
     assert result.iterations == 0 and result.residual_norm > 5e-4
 
@@ -87,13 +88,13 @@ def test_line_search_failed():
     # crawl with a hair trigger: fires at iteration `window` on any path
     ((3, 2), "crawl_window", 3, 1e-6, {}),
     ((4, 36), "crawl_window", 10, 0.5, {}),  # the default ratio on an instance that crawls
-    ((4, 36), "stall_window", 8, 0.99, {}),
-    # rho starts at its floor (tol * rho_floor_factor), where the floor rule applies
-    ((3, 2), "stall_floor_window", 1, 1 - 1e-4, {"rho_init": 5e-4 * 0.01}),
+    ((4, 36), "window", 8, 0.99, {}),
+    # rho starts at its floor (tol * barrier.rho_floor_factor), where the floor rule applies
+    ((3, 2), "floor_window", 1, 1 - 1e-4, {"barrier": {"rho_init": 5e-4 * 0.01}}),
 ])
 def test_a_window_rule_ends_the_attempt_where_its_definition_says(problem_args, rule, window, ratio, extra):
-    """Each stall rule (stall_window at 0.99, stall_floor_window at 1 - 1e-4 with rho at its floor, crawl_window at
-    crawl_ratio) ends the attempt at the first iteration where ||r|| is above ratio times its value `window` iterations
+    """Each stall rule (stall.window at 0.99, stall.floor_window at 1 - 1e-4 with rho at its floor, stall.crawl_window
+    at stall.crawl_ratio) ends the attempt at the first iteration where ||r|| is above ratio times its value `window` iterations
     earlier, and not before. The iterates up to there do not depend on the rule, so the solve without it (same
     process, same build) gives the history the rule is read on; where it never fires the two solves are the same."""
     problem = merging_problem(*problem_args)
@@ -101,9 +102,9 @@ def test_a_window_rule_ends_the_attempt_where_its_definition_says(problem_args, 
     # Convergence is tested before the rules, so a solve that converged at its last iteration never fires there.
     readable = free.residual_history[:-1] if free.converged else free.residual_history
     fire_at = _first_firing(readable, window, ratio)
-    ruled_settings = {**RULES_OFF, **extra, rule: window}
+    ruled_settings = {**RULES_OFF, **extra, "stall": {**RULES_OFF["stall"], rule: window}}
     if rule == "crawl_window":
-        ruled_settings["crawl_ratio"] = ratio
+        ruled_settings["stall"]["crawl_ratio"] = ratio
     ruled = solve(problem, **ruled_settings)
     if fire_at is None:
         assert (ruled.status, ruled.iterations) == (free.status, free.iterations)
@@ -148,10 +149,10 @@ def test_more_restarts_change_only_solves_that_used_every_restart():
     from bench.families import family_problem
 
     problem = family_problem("crossing", 2, 21)
-    needed = next((r for r in range(20) if solve(problem, time_limit=0, restarts=r).status == "converged"), None)
+    needed = next((r for r in range(20) if solve(problem, time_limit=0, restart=dict(count=r)).status == "converged"), None)
     assert needed is not None, "crossing 2 cars seed 21 does not converge within 19 restarts"
-    enough = solve(problem, time_limit=0, restarts=needed)
+    enough = solve(problem, time_limit=0, restart=dict(count=needed))
     for restarts in (needed + 1, 19, 40):
-        more = solve(problem, time_limit=0, restarts=max(restarts, needed))
+        more = solve(problem, time_limit=0, restart=dict(count=max(restarts, needed)))
         assert (more.status, more.iterations, more.attempts) == (enough.status, enough.iterations, enough.attempts)
         assert np.array_equal(more.u, enough.u)

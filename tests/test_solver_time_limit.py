@@ -15,15 +15,15 @@ LIMIT_S = 0.05
 
 @pytest.mark.parametrize("settings,cars", [
     # 10 cars: 6 now converge within the limit on the regularised least-squares steps.
-    (dict(linear_solver="sparse_qr"), 10),
+    (dict(linear=dict(solver="sparse_qr")), 10),
     # LSCG that would run 10^6 iterations per step at this tolerance.
-    (dict(linear_solver="lscg", lscg_tol=1e-16, lscg_max_iter=1_000_000), 6),
+    (dict(linear=dict(solver="lscg", lscg_tol=1e-16, lscg_max_iter=1_000_000)), 6),
 ], ids=["sparse_qr", "lscg"])
 def test_slow_path_stops_at_the_time_limit_with_the_best_iterate(settings, cars):
     problem = merging_problem(cars, 3)
     # One iteration's linear solve: a SparseQR factorisation cannot be interrupted, so the documented
     # overshoot is at most one of them (LSCG is checked every 50 iterations).
-    one_step = solve(problem, max_iter=1, **settings).linear_solve_time_s if settings["linear_solver"] == "sparse_qr" else 0.0
+    one_step = solve(problem, max_iter=1, **settings).linear_solve_time_s if settings["linear"]["solver"] == "sparse_qr" else 0.0
     t0 = time.perf_counter()
     result = solve(problem, time_limit=LIMIT_S, **settings)
     wall = time.perf_counter() - t0
@@ -43,10 +43,10 @@ def test_no_second_order_test_after_the_deadline():
     (second_order empty, as with the test turned off); a result within the limit still gets one value
     per agent, here the same as without any limit (max_iter stops both runs at the same iterate)."""
     problem = merging_problem(8, 0)
-    timed_out = solve(problem, time_limit=0.01, linear_solver="sparse_lu")
+    timed_out = solve(problem, time_limit=0.01, linear=dict(solver="sparse_lu"))
     assert timed_out.status == "time_limit" and timed_out.second_order.size == 0
-    within = solve(problem, time_limit=1e6, max_iter=2, linear_solver="sparse_lu")
-    reference = solve(problem, max_iter=2, linear_solver="sparse_lu")
+    within = solve(problem, time_limit=1e6, max_iter=2, linear=dict(solver="sparse_lu"))
+    reference = solve(problem, max_iter=2, linear=dict(solver="sparse_lu"))
     assert within.status == reference.status == "max_iterations"
     np.testing.assert_allclose(within.second_order, reference.second_order, rtol=1e-9)
     assert within.second_order.size == 8
@@ -55,7 +55,7 @@ def test_no_second_order_test_after_the_deadline():
 def test_without_a_limit_the_same_problem_runs_past_it():
     """The reference for the test above: the QR path really needs longer than the limit here."""
     t0 = time.perf_counter()
-    result = solve(merging_problem(6, 3), linear_solver="sparse_qr", max_iter=8)
+    result = solve(merging_problem(6, 3), max_iter=8, linear=dict(solver="sparse_qr"))
     assert time.perf_counter() - t0 > LIMIT_S
     assert result.iterations == 8 or result.converged
 
@@ -65,9 +65,9 @@ def test_unmeasured_sparse_qr_is_replaced_by_the_bounded_least_squares_step(capf
     least-squares step (sparse LDLT of J'J, cost known before it starts) takes its place. Its steps reach
     the same equilibrium as the square system solved by sparse LU without any limit (the reference)."""
     problem = merging_problem(6, 0)
-    reference = solve(problem, linear_solver="sparse_lu")
+    reference = solve(problem, linear=dict(solver="sparse_lu"))
     assert reference.converged
-    result = solve(problem, linear_solver="sparse_qr", time_limit=1.0, verbose=True)
+    result = solve(problem, time_limit=1.0, verbose=True, linear=dict(solver="sparse_qr"))
     assert "regularised least squares" in capfd.readouterr().out
     # The steps make progress; on an unloaded machine the solve converges within the limit (on a heavily
     # loaded one it may end with time_limit first, so equality with the reference is checked when it did).

@@ -56,7 +56,7 @@ PROBLEM_CASES = [
     (("collision", "enabled"), "no", "collision.enabled: expected true or false, got \"no\""),
     (("solver",), {"verbose": "false"}, "solver.verbose: expected true or false, got \"false\""),
     (("solver",), {"max_iter": 2**40}, "solver.max_iter: expected an integer"),
-    (("solver",), {"linear_solver": "sparse-lu"}, "solver.linear_solver: expected one of"),
+    (("solver",), {"linear": {"solver": "sparse-lu"}}, "solver.linear.solver: expected one of"),
     (("dtt",), 0.1, "dtt: unknown key 'dtt'; did you mean 'dt'?"),
     (("agents", 0, "x_0"), [0, 0, 0, 0], "agents[0].x_0: unknown key 'x_0'; did you mean 'x0'?"),
     (("agents", 0, "cost", "Rr"), [1, 1], "agents[0].cost.Rr: unknown key 'Rr'; did you mean 'R'?"),

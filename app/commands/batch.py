@@ -1,5 +1,7 @@
 """`python -m app batch`: the paper's racing experiment, RD3G vs MPC in a 2x2 grid (RD3G starts in
-front/behind x has the higher/lower top speed); win rates beside the paper's (docs/racing.md).
+front/behind x has the higher/lower top speed); win rates beside the paper's (docs/racing.md). With
+`--cars` a fleet batch instead: one RD3G car's finishing position against its MPC counterfactual
+(app.fleet_batch).
 
 Races run one per task on the local process (`--workers 1`), a local process pool (`--workers N`) or
 an existing Dask distributed cluster (`--cluster ADDRESS`, optional extra `cluster`). Every executor
@@ -7,6 +9,7 @@ runs the same job tuples through `_one`, so the records are the same for the sam
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import json
 import pkgutil
 import uuid
@@ -15,9 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import UserError
-from app.commands.race import add_race_arguments, make_setup
+from app.commands.race import FLAGS, add_fleet_arguments, add_race_arguments, make_setup, race_spec, roster_of
+from app.fleet_batch import (DEFAULT_FLEET_RACES, FLEET_CELLS, fleet_record, fleet_roster, fleet_table, summarise_fleet,
+                             the_rd3g_car)
 from app.race_plots import plot_examples
 from fileio import atomic_write_text, check_output_dir, check_output_path
+from race.setup import RaceSetupError
 from race.simulation import run_race
 
 # Paper (Zhang & Tsiotras, RD3G), physical races RD3G vs MPC: win rate of RD3G per cell.
@@ -35,7 +41,8 @@ class RaceFailed(RuntimeError):
 
 def register(sub) -> None:
     p = sub.add_parser("batch", help="RD3G vs MPC win rates in the paper's 2x2 grid (start x top speed)")
-    p.add_argument("--races", type=int, default=200, help="races per cell (default 200)")
+    p.add_argument("--races", type=int, default=None,
+                   help=f"races per cell (default 200; a fleet batch: {DEFAULT_FLEET_RACES} seeds, each raced twice)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1); not with --cluster")
     p.add_argument("--cluster", metavar="ADDRESS",
                    help="run the races on this Dask scheduler (e.g. tcp://host:8786) instead of locally; "
@@ -49,24 +56,42 @@ def register(sub) -> None:
     p.add_argument("--figures", help="write an overtake and a block plot (race_overtake.png, race_block.png) here")
     p.add_argument("--slow-speed", type=float, default=None, help="slow car's top speed (m/s); default rd3g-speed * 0.8")
     add_race_arguments(p)
+    add_fleet_arguments(p, roster_file=False, grid_default="random for a fleet batch")
     p.set_defaults(func=run)
 
 
 def _one(job):
     """Worker: one race -> small picklable record (and the trace if asked for figures)."""
     args, cell, r, fast, slow, keep_trace = job
-
+    if cell in FLEET_CELLS:
+        return _fleet_one(args, cell, args.seed + r)
     start, speed = cell
     rd3g, opp = (fast, slow) if speed == "fast" else (slow, fast)
     setup = make_setup(args, args.seed + r, start, rd3g, opp, max_time=args.max_time)
     o = run_race(setup)
-    rec = {"cell": cell, "seed": args.seed + r, "winner": o.winner, "collisions": len(o.collisions),
-           "rd3g_at_fault": sum(c.at_fault == "rd3g" for c in o.collisions), "solve_ms": o.solve_ms.astype(np.float32),
-           "min_gap_m": o.min_gap_m, "fallbacks": o.fallbacks,
-           "rd3g_off_track": o.off_track["rd3g"], "opponent_off_track": o.off_track["opponent"]}
+    ours, theirs = (c.name for c in sorted(setup.cars, key=lambda c: c.planner != "rd3g"))  # the RD3G car first
+    rec = {"cell": cell, "seed": args.seed + r, "winner": o.winner, "rd3g_won": o.winner == ours,
+           "collisions": len(o.collisions), "rd3g_at_fault": o.summary()["rd3g_at_fault"],
+           "solve_ms": o.solve_ms.astype(np.float32), "min_gap_m": o.min_gap_m, "fallbacks": o.fallbacks,
+           "rd3g_off_track": o.off_track[ours], "opponent_off_track": o.off_track[theirs]}
     if keep_trace:
         rec["trace"] = (o.trace_t, o.trace_states, o.trace_progress)
     return rec
+
+
+def _fleet_setup(args, arm: str, seed: int):
+    """The set-up of one fleet race: the --cars roster (the RD3G car swapped to MPC in the
+    counterfactual arm), the grid, this seed."""
+    spec = race_spec(args, seed, "rear", args.rd3g_speed, args.opponent_speed, max_time=args.max_time)
+    try:
+        return dataclasses.replace(spec, roster=fleet_roster(spec.roster, arm)).load()
+    except RaceSetupError as exc:
+        raise UserError(f"{FLAGS.get(exc.field, exc.field)}: {exc.message}") from None
+
+
+def _fleet_one(args, cell, seed: int) -> dict:
+    setup = _fleet_setup(args, cell[1], seed)
+    return fleet_record(setup, run_race(setup), cell, seed, the_rd3g_car(roster_of(args)))
 
 
 def describe_job(job) -> str:
@@ -203,14 +228,14 @@ def summarise(records, races: int) -> list[dict]:
         rs = [r for r in records if tuple(r["cell"]) == (start, speed)]
         ms = np.concatenate([r["solve_ms"] for r in rs]) if rs else np.zeros(0)
         # Only clean wins count: a car that left the drivable area may have cut the infield.
-        wins = sum(r["winner"] == "rd3g" and r["rd3g_off_track"] == 0 for r in rs)
+        wins = sum(r["rd3g_won"] and r["rd3g_off_track"] == 0 for r in rs)
         cells.append({"start": start, "speed": speed, "races": len(rs), "rd3g_wins": int(wins),
                       "win_rate": wins / len(rs) if rs else None,
                       "collisions": int(sum(r["collisions"] for r in rs)),
                       "rd3g_at_fault": int(sum(r["rd3g_at_fault"] for r in rs)),
                       "unfinished": int(sum(r["winner"] is None for r in rs)),
                       "rd3g_off_track_races": int(sum(r["rd3g_off_track"] > 0 for r in rs)),
-                      "rd3g_wins_off_track": int(sum(r["winner"] == "rd3g" and r["rd3g_off_track"] > 0 for r in rs)),
+                      "rd3g_wins_off_track": int(sum(r["rd3g_won"] and r["rd3g_off_track"] > 0 for r in rs)),
                       "opponent_off_track_races": int(sum(r["opponent_off_track"] > 0 for r in rs)),
                       "fallbacks": int(sum(r["fallbacks"] for r in rs)),
                       "control_steps": int(sum(len(r["solve_ms"]) for r in rs)),
@@ -250,6 +275,8 @@ def race_json(rec) -> dict:
 
 
 def run(args) -> int:
+    if args.races is None:
+        args.races = DEFAULT_FLEET_RACES if args.cars else 200
     if args.races < 1:
         raise UserError(f"--races must be at least 1, got {args.races}")
     if args.workers < 1:
@@ -260,6 +287,8 @@ def run(args) -> int:
         raise UserError(f"--cluster-timeout must be positive, got {args.cluster_timeout}")
     if args.max_time is not None and not args.max_time > 0:
         raise UserError(f"--max-time must be positive, got {args.max_time}")
+    if args.cars:
+        return _run_fleet(args)
     fast = args.rd3g_speed
     slow = args.slow_speed if args.slow_speed is not None else 0.8 * fast
     if not 0 < slow < fast:
@@ -281,4 +310,27 @@ def run(args) -> int:
     if keep:
         for path in plot_examples(records, args, Path(args.figures)):
             print(f"figure: {path}")
+    return 0
+
+
+def _run_fleet(args) -> int:
+    """The fleet batch (app.fleet_batch): every seed as given and as its counterfactual."""
+    if args.figures:
+        raise UserError("--figures: the example plots are of the two-car batch; plot one fleet race with "
+                        "`race --cars ... --out RUN.rrd` and `review RUN.rrd --plots DIR`")
+    args.grid = args.grid or "random"
+    car = the_rd3g_car(roster_of(args))
+    for arm in ("rd3g", "counterfactual"):
+        _fleet_setup(args, arm, args.seed)  # validate the roster, track and car files before starting workers
+    if args.json:
+        check_output_path(args.json, stream=True)
+    jobs = [(args, cell, r, None, None, False) for r in range(args.races) for cell in FLEET_CELLS]
+    records = run_races(jobs, args.workers, args.cluster, args.cluster_timeout)
+    fleet = summarise_fleet(records)
+    print(f"\nfleet batch on {args.track}: {args.cars}, grid {args.grid}, {args.races} seeds from {args.seed}; "
+          f"{car} planned by RD3G vs by MPC")
+    print(fleet_table(fleet, car))
+    if args.json:
+        races = [{k: v for k, v in r.items() if k != "cell"} | {"arm": r["cell"][1]} for r in records]
+        atomic_write_text(args.json, json.dumps({"fleet": fleet, "races": races}, indent=2) + "\n", stream=True)
     return 0

@@ -14,7 +14,7 @@ from bench import (baselines, camera_profiles, charuco_coverage, merge_bench, pr
                    time_limit, track_video, tracking_bench)
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
-from solver_cpp import make_settings
+from solver_cpp import make_settings, merge_settings
 
 
 def parse_range(text: str) -> list[int]:
@@ -71,7 +71,8 @@ def register(sub) -> None:
     m.add_argument("--max-iter", type=int, help="RD3G's max_iter per solve (default: the solver's, "
                                                  "solver_cpp/include/rd3g/problem.hpp)")
     m.add_argument("--rd3g-setting", action="append", default=[], metavar="NAME=VALUE",
-                   help="override one RD3G setting (solver_cpp/include/rd3g/problem.hpp), e.g. domain_fraction=0; "
+                   help="override one RD3G setting (solver_cpp/include/rd3g/problem.hpp), e.g. domain_fraction=0 or "
+                        "stall.window=8 (GROUP.FIELD); "
                         "repeatable")
     m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
     m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "
@@ -204,8 +205,9 @@ def _merge_options(args, default_solvers: str) -> tuple[list[str], list[int]]:
 
 
 def _rd3g_settings(items: list[str]) -> tuple:
-    """--rd3g-setting NAME=VALUE items as (name, value) pairs, checked by solver_cpp.make_settings (values parsed as
-    JSON where they can be: numbers, true/false; else kept as strings, e.g. enum names)."""
+    """--rd3g-setting NAME=VALUE items (NAME grouped as GROUP.FIELD, e.g. stall.window, or top-level, e.g. tol) as
+    (name, value) pairs in make_settings' grouped form (a group's value a dict), checked by solver_cpp.make_settings
+    (values parsed as JSON where they can be: numbers, true/false; else kept as strings, e.g. enum names)."""
     pairs = []
     for item in items:
         name, sep, text = item.partition("=")
@@ -215,12 +217,14 @@ def _rd3g_settings(items: list[str]) -> tuple:
             value = json.loads(text)
         except ValueError:
             value = text
-        pairs.append((name.strip(), value))
+        group, dot, field_name = name.strip().partition(".")
+        pairs.append({group: {field_name: value}} if dot else {group: value})
+    grouped = merge_settings(*pairs)
     try:
-        make_settings(**dict(pairs))
+        make_settings(**grouped)
     except ValueError as exc:
         raise UserError(f"--rd3g-setting: {exc}") from None
-    return tuple(pairs)
+    return tuple(grouped.items())
 
 
 def _repeats(args) -> int:

@@ -10,7 +10,7 @@ import sys
 import time
 
 from app.cli import UserError
-from app.commands.race import add_race_arguments, make_setup
+from app.commands.race import add_fleet_arguments, add_race_arguments, make_setup
 from app.realtime.check import CheckTiming, PreRaceCheck
 from fileio import check_output_path
 from race.hil import FIXED_MARKERS
@@ -20,7 +20,7 @@ from tracking.calibration import CalibrationError, load_fixed_markers
 from vehicles.serial_link import SerialCarLink
 
 SETUP_FAULTS = ("swapped_radio_ids", "reversed_throttle:CAR", "missing_marker:CAR", "covered_fixed_marker:ID")
-_SETUP_FAULT = re.compile(r"^(swapped_radio_ids|reversed_throttle:(rd3g|opponent)|missing_marker:(rd3g|opponent)"
+_SETUP_FAULT = re.compile(r"^(swapped_radio_ids|reversed_throttle:[a-z0-9_]+|missing_marker:[a-z0-9_]+"
                           r"|covered_fixed_marker:[0-9]+)$")
 
 
@@ -45,6 +45,7 @@ def register(sub) -> None:
                    help="HIL: a faulty set-up for the check to catch (repeatable)")
     add_link_arguments(p)
     add_race_arguments(p)
+    add_fleet_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -59,10 +60,14 @@ def _world_options(args, link_plan, cars, fixed_ids) -> dict:
         if not _SETUP_FAULT.match(text):
             raise UserError(f"--hil-fault {text!r}: expected one of {', '.join(SETUP_FAULTS)}")
         kind, _, arg = text.partition(":")
-        index = {"rd3g": 0, "opponent": 1}.get(arg)
-        if kind == "swapped_radio_ids":
-            radio_ids.reverse()
-            receivers = [dataclasses.replace(r, modem_id=o.modem_id) for r, o in zip(receivers, receivers[::-1])]
+        index = {c.name: i for i, c in enumerate(cars)}.get(arg)
+        if kind in ("reversed_throttle", "missing_marker") and index is None:
+            raise UserError(f"--hil-fault {text!r}: no car {arg!r} (cars: {', '.join(c.name for c in cars)})")
+        if kind == "swapped_radio_ids":  # the first two cars' radios swapped (in a two-car race: both)
+            radio_ids[0], radio_ids[1] = radio_ids[1], radio_ids[0]
+            if receivers:
+                receivers[0], receivers[1] = (dataclasses.replace(receivers[0], modem_id=receivers[1].modem_id),
+                                              dataclasses.replace(receivers[1], modem_id=receivers[0].modem_id))
         elif kind == "reversed_throttle":
             if not receivers:
                 raise UserError("--hil-fault reversed_throttle needs --link-protocol buzzracer-fhss (the receivers' "

@@ -1,4 +1,5 @@
-"""`python -m app race`: one simulated race, RD3G vs the MPC opponent (or pure pursuit); docs/racing.md."""
+"""`python -m app race`: one simulated race, RD3G vs the MPC opponent (or pure pursuit), or a fleet of 2
+to 6 cars (--cars, --roster); docs/racing.md."""
 from __future__ import annotations
 
 import dataclasses
@@ -6,9 +7,11 @@ import json
 from pathlib import Path
 
 from app.cli import UserError
+from app.race_plots import plot_grid
 from app.realtime.run import add_realtime_arguments, open_capture, plan_link, run_realtime, wants_realtime
 from fileio import atomic_write_text, check_output_path
-from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
+from race.roster import RosterError, RosterFileError, load_roster, parse_cars
+from race.setup import GRIDS, OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
 from sim import Simulator
 from vehicles.link_capture import SimulatedLink
@@ -20,7 +23,8 @@ DEFAULT_OUT = "runs/race.rrd"
 FLAGS = {"track": "--track", "car_params": "--car-params", "seed": "--seed", "laps": "--laps", "opponent": "--opponent",
          "start": "--start", "rd3g_top_speed_mps": "--rd3g-speed", "opponent_top_speed_mps": "--opponent-speed",
          "control_hz": "--control-hz", "control_period_s": "--control-hz", "raceline_ey_m": "--raceline-ey",
-         "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects"}
+         "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects",
+         "roster": "--cars/--roster", "grid": "--grid", "game_players": "--game-players"}
 
 
 def add_race_arguments(p) -> None:
@@ -39,6 +43,26 @@ def add_race_arguments(p) -> None:
                         "400 batch races (docs/racing.md)")
 
 
+def add_fleet_arguments(p, roster_file: bool = True,
+                        grid_default: str = "roster for --cars/--roster; without them the two-car race starts "
+                                            "in single file, --start") -> None:
+    """--cars / --roster / --grid / --game-players: a fleet race (docs/racing.md, "Fleet races")."""
+    fleet = p.add_mutually_exclusive_group() if roster_file else p
+    fleet.add_argument("--cars", metavar="PLANNERS",
+                       help="a fleet race of 2-6 cars, one planner each (rd3g, mpc, pursuit, human), e.g. "
+                            "rd3g,mpc,mpc,pursuit; names are planner + position (rd3g1, mpc2, ...). Replaces "
+                            "--opponent/--start/--rd3g-speed/--opponent-speed (docs/racing.md, Fleet races)")
+    if roster_file:
+        fleet.add_argument("--roster", metavar="FILE.toml",
+                           help="a fleet race from a roster file, one [[car]] table per car (docs/file-formats.md)")
+    p.add_argument("--grid", choices=GRIDS[1:], default=None,
+                   help=f"start grid of rows of two: slots in roster order or shuffled by the seed (default {grid_default})")
+    p.add_argument("--game-players", type=int, default=RaceSpec.game_players, metavar="N",
+                   help=f"players in each RD3G car's game: itself and its nearest cars within reach of the horizon; "
+                        f"further cars are constant-speed obstacles; 0: every car within reach "
+                        f"(default {RaceSpec.game_players})")
+
+
 def register(sub) -> None:
     p = sub.add_parser("race", help="simulate one race RD3G vs MPC and record telemetry (rerun .rrd)")
     p.add_argument("--laps", type=int, default=RaceSpec.laps)
@@ -49,6 +73,8 @@ def register(sub) -> None:
     p.add_argument("--max-time", type=float, default=None,
                    help="give up after this many seconds of race time (default 30 s per lap + 30 s)")
     add_race_arguments(p)
+    add_fleet_arguments(p)
+    p.add_argument("--grid-plot", metavar="FILE.png", help="draw this race's start grid as a PNG and exit (no race)")
     # --- closing the model-identification loop (docs/sysid.md): the planners use --car-params (e.g. a
     # file written by `sysid`), the simulator runs the physical car below
     p.add_argument("--sim-car-params", default=None,
@@ -63,10 +89,25 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def roster_of(args):
+    """The roster of --cars or --roster (None without either); UserError naming the flag, car and field."""
+    try:
+        if getattr(args, "cars", None):
+            return parse_cars(args.cars)
+        if getattr(args, "roster", None):
+            return load_roster(args.roster)
+    except RosterError as exc:
+        raise UserError(f"--cars: {exc}") from None
+    except RosterFileError as exc:
+        raise UserError(f"--roster: {exc}") from None
+    return None
+
+
 def race_spec(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1,
               max_time=None) -> RaceSpec:
     """The RaceSpec of parsed race options (batch's arguments have no --raceline-ey/--sim-* of their own)."""
-    return RaceSpec(track=args.track, car_params=args.car_params, seed=seed, laps=laps, opponent=args.opponent,
+    return RaceSpec(roster=roster_of(args), grid=getattr(args, "grid", None),
+                    game_players=getattr(args, "game_players", RaceSpec.game_players),track=args.track, car_params=args.car_params, seed=seed, laps=laps, opponent=args.opponent,
                     start=start, rd3g_top_speed_mps=rd3g_speed, opponent_top_speed_mps=opponent_speed,
                     control_hz=args.control_hz, raceline_ey_m=getattr(args, "raceline_ey", RaceSpec.raceline_ey_m),
                     max_time_s=max_time or None, sim_car_params=getattr(args, "sim_car_params", None),
@@ -118,6 +159,13 @@ def run(args) -> int:
     if args.json:
         check_output_path(args.json, stream=True)
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
+    if getattr(args, "grid_plot", None):
+        check_output_path(args.grid_plot)
+        print(f"start grid: {plot_grid(setup, Path(args.grid_plot))}")
+        return 0
+    human = [c.name for c in setup.cars if c.planner == "human"]
+    if human:
+        raise UserError(f"--cars/--roster: car {human[0]}: planner: human drives real cars only (--hil or --camera)")
     simulator_cls, link, capture = _simulated_link(args, setup)
     try:
         o = run_race(setup, telemetry_path=out, **({"simulator_cls": simulator_cls} if link else {}))
@@ -127,23 +175,30 @@ def run(args) -> int:
         if capture is not None:
             capture.close()
     s = o.summary()
-    print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
-          f"({args.rd3g_speed} m/s) vs {args.opponent} ({args.opponent_speed} m/s), control {s['control_period_ms']:.1f} ms")
+    if setup.roster is None:
+        print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
+              f"({args.rd3g_speed} m/s) vs {args.opponent} ({args.opponent_speed} m/s), control {s['control_period_ms']:.1f} ms")
+    else:
+        print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, {len(setup.cars)} cars, grid {setup.grid}: "
+              + ", ".join(f"{c.name} ({c.planner}, {c.top_speed_mps:g} m/s)" for c in setup.cars)
+              + f", control {s['control_period_ms']:.1f} ms")
     if setup.sim_car is not None or setup.sim_effects != type(setup.sim_effects)():
         hidden = {k: v for k, v in dataclasses.asdict(setup.sim_effects).items()
                   if v != getattr(type(setup.sim_effects)(), k)}
         print(f"planners: car {setup.car.name}; simulator: car {(setup.sim_car or setup.car).name}, hidden effects {hidden or 'none'}")
     print(f"winner: {s['winner'] or 'none (time limit)'}"
           + (" (NOT a clean win: it left the track)" if s["winner"] and not s["clean_winner"] else ""))
-    print(f"off-track excursions: rd3g {s['off_track']['rd3g']}, opponent {s['off_track']['opponent']}")
-    for name, laps in s["lap_times_s"].items():
-        print(f"  {name:9s} lap times: {', '.join(f'{t:.3f} s' for t in laps) or '-'}")
+    print("off-track excursions: " + ", ".join(f"{name} {n}" for name, n in s["off_track"].items()))
+    for car in s["cars"]:
+        place = f"P{car['finish_position']}" if car["finish_position"] else "unfinished"
+        print(f"  {car['name']:9s} {place:10s} lap times: {', '.join(f'{t:.3f} s' for t in car['lap_times_s']) or '-'}")
     faults = ", ".join(f"{c.at_fault} at fault at {c.time_s:.2f} s" for c in o.collisions)
     print(f"minimum gap between footprints: {s['min_gap_m']:.3f} m; collisions: {s['collisions']}" + (f" ({faults})" if faults else ""))
     # a race interrupted before its first control step has no planner times
     times = (f"p50 {s['solve_ms_p50']:.1f} ms, p99 {s['solve_ms_p99']:.1f} ms, max {o.solve_ms.max():.1f} ms"
              if o.solve_ms.size else "no control step yet")
-    print(f"RD3G planner (wall time per control step): {times}; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
+    print(f"RD3G planner{'s' if sum(c.planner == 'rd3g' for c in setup.cars) > 1 else ''} "
+          f"(wall time per control step): {times}; control period {s['control_period_ms']:.1f} ms; fallbacks {o.fallbacks}; "
           f"first (cold) plan before the start {s['prestart_ms']:.0f} ms")
     if o.planner_errors:
         first = o.planner_errors[0]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import sys
+import warnings
 
 from app.cli import UserError
 from fileio import atomic_write_text, check_output_path
@@ -32,7 +33,11 @@ def run(args) -> int:
         raise UserError(f"--time-limit must be a number of seconds >= 0, got {args.time_limit}")
     if args.out:
         check_output_path(args.out, stream=True)  # before the solve, not after it
-    problem, settings, warm = load_problem(args.problem)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DeprecationWarning)
+        problem, settings, warm = load_problem(args.problem)
+    for w in caught:  # flat setting names of the previous release: shown to the user, who edits the file
+        print(f"warning: {w.message}", file=sys.stderr)
     if not args.allow_large:
         try:
             check_size(estimate_size(problem))

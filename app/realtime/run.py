@@ -2,6 +2,7 @@
 build the real-time loop's parts from the command line and run one race (docs/race-stack.md)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -16,7 +17,7 @@ from app.cli import UserError
 from app.realtime.hardware import CameraFeed
 from race.hil import HilWorld, WorldSpec
 from fileio import OutputFileError, atomic_write_text, check_output_path
-from race.config import LoopConfig, LoopConfigError, parse_fault
+from race.config import LoopConfig, LoopConfigError, check_fault_cars, parse_fault
 from race.loop import CarBinding, LoopError, RaceLoop, setup_document
 from race.planning import RacePlanners
 from race.recording import RaceRecorder
@@ -186,6 +187,11 @@ def _run_realtime(args, mode: str) -> int:
         if path:
             check_output_path(path, stream=stream)  # before the HIL processes or the hardware open
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
+    roster = race_roster(args, setup)
+    try:
+        check_fault_cars(faults, setup.names)
+    except LoopConfigError as exc:
+        raise UserError(f"--fault: {exc}") from None
     opponent = "human" if args.human_opponent else args.opponent
     link_plan = plan_link(args, mode, setup, config.link_hz)  # everything about the link valid before it opens
     cars = link_plan.cars
@@ -198,11 +204,12 @@ def _run_realtime(args, mode: str) -> int:
     world, feed, tracker, estimator, link_port, note = parts
     recorder = loop = capture = None
     try:
-        planners = RacePlanners(setup, opponent)
+        planners = RacePlanners(setup, roster)
         recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars])
         recorder.static_track(setup.track)
-        recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults))
-        recorder.static_car_colors()
+        recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults,
+                                                                  planners={c.name: c.planner for c in roster}))
+        recorder.static_car_colors([c.name for c in cars])
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
                         planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
         commanded = [c.radio_id for c in cars if c.name in planners.commanded]
@@ -239,6 +246,16 @@ def _run_realtime(args, mode: str) -> int:
     return 0 if outcome.reason in ("finished", "time_limit") else 1
 
 
+def race_roster(args, setup):
+    """The cars this real-time race drives: the set-up's roster; ``--human-opponent`` (the two-car race)
+    makes the second car human-driven (tracked, never commanded)."""
+    if not args.human_opponent:
+        return setup.cars
+    if setup.roster is not None:
+        raise UserError("--human-opponent: a --cars/--roster race names its human-driven cars with planner human")
+    return (setup.cars[0], dataclasses.replace(setup.cars[1], planner="human"))
+
+
 @dataclass(frozen=True)
 class LinkPlan:
     """The transmitter link as configured from the command line, validated before anything opens."""
@@ -258,6 +275,8 @@ def plan_link(args, mode: str, setup, link_hz: float) -> LinkPlan:
         check_protocol(protocol)
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    if setup.roster is not None:
+        return _fleet_link(args, protocol, setup, link_hz)
     markers = _ids(args.marker_ids, "--marker-ids")
     files = [setup.car, setup.car]
     if args.car_files:
@@ -272,7 +291,7 @@ def plan_link(args, mode: str, setup, link_hz: float) -> LinkPlan:
         radios = _ids(args.radio_ids, "--radio-ids")
     elif args.car_files and protocol == "buzzracer-fhss":
         radios = tuple(car.radio.modem_id for car in files)
-        for name, path, radio in zip(("rd3g", "opponent"), paths, radios):
+        for name, path, radio in zip(setup.names, paths, radios):
             if radio is None:
                 raise UserError(f"--car-files: {path}: radio.modem_id is not set (car {name}: the FHSS box "
                                 f"slot that drives it)")
@@ -280,12 +299,35 @@ def plan_link(args, mode: str, setup, link_hz: float) -> LinkPlan:
             raise UserError(f"--car-files: both cars have radio.modem_id {radios[0]}; each car needs its own")
     else:
         radios = markers
-    cars = [CarBinding("rd3g", markers[0], radios[0]), CarBinding("opponent", markers[1], radios[1])]
+    cars = [CarBinding(name, marker, radio) for name, marker, radio in zip(setup.names, markers, radios)]
     calibrations = ()
     try:
         if protocol == "buzzracer-fhss":
             calibrations = tuple(servo_calibration(car, c.radio_id, setup.car.actuators.max_steering_rad)
                                  for car, c in zip(files, cars))
+        encoder = make_encoder(protocol, calibrations)
+    except ProtocolError as exc:
+        raise UserError(f"--link-protocol {protocol}: {exc}") from None
+    rate = min(link_hz, encoder.max_rate_hz or link_hz)
+    return LinkPlan(protocol, cars, calibrations, encoder, rate)
+
+
+def _fleet_link(args, protocol: str, setup, link_hz: float) -> LinkPlan:
+    """The link of a --cars/--roster race: each car's marker and radio id from the roster (the FHSS box
+    drives at most 6 cars), each car's receiver calibration from its car file."""
+    for flag in ("marker_ids", "radio_ids", "car_files"):
+        if getattr(args, flag, None) and getattr(args, flag) != "0,1":
+            raise UserError(f"--{flag.replace('_', '-')}: a --cars/--roster race takes the ids and car files from the roster")
+    cars = [CarBinding(c.name, c.marker_id, c.radio_id) for c in setup.cars]
+    calibrations = ()
+    try:
+        if protocol == "buzzracer-fhss":
+            for c in setup.cars:
+                if not 0 <= c.radio_id < 6:
+                    raise UserError(f"--cars/--roster: car {c.name}: radio_id: the FHSS box has modem ids 0-5, "
+                                    f"got {c.radio_id}")
+            calibrations = tuple(servo_calibration(setup.car_file(i), c.radio_id, setup.car.actuators.max_steering_rad)
+                                 for i, c in enumerate(cars))
         encoder = make_encoder(protocol, calibrations)
     except ProtocolError as exc:
         raise UserError(f"--link-protocol {protocol}: {exc}") from None
@@ -309,7 +351,8 @@ def open_capture(args):
 def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
 
     fields = dict(track=setup.track, car=setup.car, start_states=start_states(setup),
-                  marker_ids=(cars[0].marker_id, cars[1].marker_id), radio_ids=(cars[0].radio_id, cars[1].radio_id),
+                  marker_ids=tuple(c.marker_id for c in cars), radio_ids=tuple(c.radio_id for c in cars),
+                  names=tuple(c.name for c in cars), finish=setup.finish,
                   laps=setup.laps, seed=setup.seed, fps=args.fps, faults=faults, link_protocol=link_plan.protocol,
                   receivers=link_plan.calibrations if link_plan.protocol == "buzzracer-fhss" else None,
                   camera_profile=camera_profile(getattr(args, "camera_profile", "ideal")))

@@ -12,11 +12,36 @@ void bind_settings(py::module_& m) {
   py::enum_<BarrierMode>(m, "BarrierMode")
       .value("primal", BarrierMode::Primal)
       .value("primal_dual", BarrierMode::PrimalDual);
-  py::class_<Settings> s(m, "Settings");
-  s.def(py::init<>());
-#define RW(f) s.def_readwrite(#f, &Settings::f)
-  RW(tol); RW(max_iter); RW(time_limit); RW(rho_init); RW(rho_floor_factor); RW(rho_kappa); RW(rho_beta); RW(rho_progress); RW(ls_alpha); RW(ls_beta);
-  RW(ls_max_steps); RW(violation_tol); RW(dynamics_tol); RW(multiplier_tol); RW(barrier_margin); RW(lm_tries); RW(lm_below_step); RW(lm_nu_init);
-  RW(linear_solver); RW(refinement_steps); RW(barrier); RW(fraction_to_boundary); RW(domain_fraction); RW(lscg_tol); RW(lscg_max_iter); RW(restarts); RW(stall_window); RW(stall_floor_window); RW(crawl_window); RW(crawl_ratio); RW(polish_gap); RW(restart_u_std); RW(second_order_gap); RW(second_order_tol); RW(restart_on_saddle); RW(saddle_escapes); RW(saddle_step); RW(saddle_rho); RW(saddle_inertia); RW(saddle_inertia_restarts); RW(violation_memory); RW(rho_on_stall); RW(restart_rho_progress); RW(restart_violation_memory); RW(restart_rho_on_stall); RW(deep_overlap); RW(best_response_rounds); RW(best_response_attempt); RW(best_response_max_iter); RW(best_response_margin); RW(verbose);
+#define RW(T, f) .def_readwrite(#f, &T::f)
+  py::class_<BarrierSettings>(m, "BarrierSettings").def(py::init<>())
+      RW(BarrierSettings, mode) RW(BarrierSettings, rho_init) RW(BarrierSettings, rho_floor_factor)
+      RW(BarrierSettings, rho_kappa) RW(BarrierSettings, rho_beta) RW(BarrierSettings, rho_progress)
+      RW(BarrierSettings, margin) RW(BarrierSettings, fraction_to_boundary);
+  py::class_<LineSearchSettings>(m, "LineSearchSettings").def(py::init<>())
+      RW(LineSearchSettings, alpha) RW(LineSearchSettings, beta) RW(LineSearchSettings, max_steps)
+      RW(LineSearchSettings, violation_memory) RW(LineSearchSettings, lm_tries) RW(LineSearchSettings, lm_below_step)
+      RW(LineSearchSettings, lm_nu_init);
+  py::class_<LinearSettings>(m, "LinearSettings").def(py::init<>())
+      RW(LinearSettings, solver) RW(LinearSettings, refinement_steps) RW(LinearSettings, lscg_tol)
+      RW(LinearSettings, lscg_max_iter);
+  py::class_<StallSettings>(m, "StallSettings").def(py::init<>())
+      RW(StallSettings, window) RW(StallSettings, floor_window) RW(StallSettings, crawl_window)
+      RW(StallSettings, crawl_ratio) RW(StallSettings, polish_gap);
+  py::class_<RestartSettings>(m, "RestartSettings").def(py::init<>())
+      RW(RestartSettings, count) RW(RestartSettings, u_std) RW(RestartSettings, rho_progress)
+      RW(RestartSettings, violation_memory) RW(RestartSettings, rho_on_stall) RW(RestartSettings, deep_overlap);
+  py::class_<BestResponseSettings>(m, "BestResponseSettings").def(py::init<>())
+      RW(BestResponseSettings, rounds) RW(BestResponseSettings, max_iter)
+      RW(BestResponseSettings, margin);
+  py::class_<SecondOrderSettings>(m, "SecondOrderSettings").def(py::init<>())
+      RW(SecondOrderSettings, gap) RW(SecondOrderSettings, tol) RW(SecondOrderSettings, restart_on_saddle)
+      RW(SecondOrderSettings, escapes) RW(SecondOrderSettings, escape_step) RW(SecondOrderSettings, escape_rho)
+      RW(SecondOrderSettings, inertia);
+  // Groups are returned by reference (settings.stall.window = 8 changes the settings).
+  py::class_<Settings>(m, "Settings").def(py::init<>())
+      RW(Settings, tol) RW(Settings, max_iter) RW(Settings, time_limit) RW(Settings, violation_tol)
+      RW(Settings, dynamics_tol) RW(Settings, multiplier_tol) RW(Settings, domain_fraction) RW(Settings, verbose)
+      RW(Settings, barrier) RW(Settings, line_search) RW(Settings, linear) RW(Settings, stall) RW(Settings, restart)
+      RW(Settings, best_response) RW(Settings, second_order);
 #undef RW
 }

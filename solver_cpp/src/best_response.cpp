@@ -1,5 +1,5 @@
-// Iterated best response (Settings::best_response_rounds): each agent in turn solves its own problem alone, the
-// others' current rolled-out positions as moving obstacles (best_response_margin beyond each pair's collision
+// Iterated best response (Settings::best_response.rounds): each agent in turn solves its own problem alone, the
+// others' current rolled-out positions as moving obstacles (best_response.margin beyond each pair's collision
 // distance), with the same solver (one agent). Used as the initial guess of one restart attempt (docs/solver.md,
 // "Restarts") and, through Solver::best_response, by solver_cpp.best_response_guess.
 #include <algorithm>
@@ -18,7 +18,7 @@ int Solver::best_response_sweeps(int rounds, int budget) {
   const bool others = prob_.collision.enabled && N_ > 1;  // the others are obstacles only if collisions count
   const int n_obs = static_cast<int>(prob_.obstacles.size());
   // The others are kept at their pair's collision distance plus the margin: the guess then starts strictly inside.
-  const double inflate = 1.0 + settings_.best_response_margin;
+  const double inflate = 1.0 + settings_.best_response.margin;
   auto keep_distance = [&](int i, int j) {  // (d_min, per-step d_min) at which agent i keeps agent j
     const PairDistance* q = prob_.collision.pair_distance(i, j);
     const Vec& steps = q ? q->min_distance_steps : prob_.collision.min_distance_steps;
@@ -30,9 +30,9 @@ int Solver::best_response_sweeps(int rounds, int budget) {
     // sums over the other agents and is absent from a one-agent problem: being linear in their states, it does not
     // change agent i's best response except through its own -(N-1) weight x_i[index] term, which the guess omits.
     Settings sub = settings_;
-    sub.best_response_rounds = 0;
-    sub.restarts = std::min(settings_.restarts, 1);  // a guess, not an answer: one restart
-    sub.max_iter = settings_.best_response_max_iter;
+    sub.best_response.rounds = 0;
+    sub.restart.count = std::min(settings_.restart.count, 1);  // a guess, not an answer: one restart
+    sub.max_iter = settings_.best_response.max_iter;
     sub.time_limit = 0;
     sub.verbose = false;
     br_.resize(N_);
@@ -81,7 +81,7 @@ int Solver::best_response_sweeps(int rounds, int budget) {
           const auto [d, steps] = keep_distance(i, j);
           s.update_obstacle(o++, br_positions_, d, steps);
         }
-      s.settings_.max_iter = std::min(settings_.best_response_max_iter, left);
+      s.settings_.max_iter = std::min(settings_.best_response.max_iter, left);
       s.settings_.time_limit = time;
       br_warm_.u[0] = y_.u[i].transpose();
       const Result r = s.solve(&br_warm_);
@@ -102,7 +102,7 @@ int Solver::start_best_response_attempt(int budget) {
     y_.lam[i].setZero();
     roll_out(y_, i);
   }
-  const int used = best_response_sweeps(settings_.best_response_rounds, budget);
+  const int used = best_response_sweeps(settings_.best_response.rounds, budget);
   y_.mu.setZero();
   y_.mu2.setZero();
   y_.z.setZero();
@@ -110,8 +110,8 @@ int Solver::start_best_response_attempt(int budget) {
   // faster (measured: the restart rules here lost merge-long 7 cars seed 4, docs/solver.md).
   const bool restart_rules = deep_overlap();
   use_rules(restart_rules);
-  rho_ = settings_.rho_init;
-  barrier_ = settings_.barrier;
+  rho_ = settings_.barrier.rho_init;
+  barrier_ = settings_.barrier.mode;
   return used;
 }
 

@@ -196,16 +196,16 @@ bool Solver::check_second_order(Info& info) {
   constraint_weights(w_i, w_j);
   const auto& agents = second_order_->check(
       prob_, cons_, [&](int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H) { eval_constraint(y_, c, h, &g, &H); },
-      y_.x, y_.u, y_.lam, w_i, w_j, settings_.second_order_gap, settings_.second_order_tol);
+      y_.x, y_.u, y_.lam, w_i, w_j, settings_.second_order.gap, settings_.second_order.tol);
   info.second_order.resize(N_);
   for (int a = 0; a < N_; ++a) info.second_order[a] = agents[a].min_eigenvalue;
-  return second_order_->passes(settings_.second_order_tol);
+  return second_order_->passes(settings_.second_order.tol);
 }
 
 }  // namespace rd3g
 
-// Steering away from a saddle: a restart along negative curvature (Settings::saddle_escapes) and the per-agent
-// inertia correction (Settings::saddle_inertia).
+// Steering away from a saddle: a restart along negative curvature (Settings::second_order.escapes) and the per-agent
+// inertia correction (Settings::second_order.inertia).
 namespace rd3g {
 
 double Solver::agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const Vec& w_j, double& max_h) const {
@@ -235,17 +235,17 @@ double Solver::agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const V
 
 bool Solver::leave_saddle(int escapes) {
   const auto& agents = second_order_->agents();
-  const double tol = settings_.second_order_tol;
-  if (settings_.saddle_inertia > 0)
+  const double tol = settings_.second_order.tol;
+  if (settings_.second_order.inertia > 0)
     for (int a = 0; a < N_; ++a)
       if (!second_order_->agent_passes(a, tol) && std::isfinite(agents[a].min_eigenvalue))
-        inertia_delta_[a] = std::max(inertia_delta_[a], settings_.saddle_inertia * std::abs(agents[a].min_eigenvalue));
-  if (escapes >= settings_.saddle_escapes) return false;
+        inertia_delta_[a] = std::max(inertia_delta_[a], settings_.second_order.inertia * std::abs(agents[a].min_eigenvalue));
+  if (escapes >= settings_.second_order.escapes) return false;
 
   Vec w_i, w_j;
   constraint_weights(w_i, w_j);
   const Vec h0 = h_;  // the saddle's constraint values (write_result evaluated them at y_)
-  const double margin = settings_.barrier_margin;
+  const double margin = settings_.barrier.margin;
   trial_ = y_;
   // Agent a's constraints stay feasible: those inside by more than the barrier margin stay so (the restart hands
   // them to the barrier), the nearly active ones (the test's null space, moved along to first order only) may
@@ -265,8 +265,8 @@ bool Solver::leave_saddle(int escapes) {
     double max_h;
     const double L0 = agent_lagrangian(a, trial_, w_i, w_j, max_h);
     const Mat u0 = trial_.u[a];
-    double step = settings_.saddle_step, best_sign = 0;
-    for (int q = 0; q < settings_.ls_max_steps && best_sign == 0; ++q, step *= settings_.ls_beta) {
+    double step = settings_.second_order.escape_step, best_sign = 0;
+    for (int q = 0; q < settings_.line_search.max_steps && best_sign == 0; ++q, step *= settings_.line_search.beta) {
       // Along +-d the quadratic model predicts L0 + 0.5 step^2 lambda_min; ask for a tenth of that decrease.
       double best_L = L0 + 0.05 * step * step * ag.min_eigenvalue;
       for (const double sign : {1.0, -1.0}) {
@@ -290,7 +290,7 @@ bool Solver::leave_saddle(int escapes) {
   std::swap(y_, trial_);
   // Multipliers: the others' kept; constraints now inside the margin go to the barrier on the central path of a
   // moderate rho (at rho's floor the barrier would hold the moved agent near the saddle's contacts).
-  rho_ = settings_.saddle_rho;
+  rho_ = settings_.second_order.escape_rho;
   eval_all_constraints(y_, h_);
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
     if (h_[c] < -margin) {
@@ -304,7 +304,7 @@ bool Solver::leave_saddle(int escapes) {
 }
 
 void Solver::add_inertia_correction(double rnorm) {
-  if (!inertia_on_ || settings_.saddle_inertia <= 0 || inertia_delta_.empty() || merits_.empty()) return;
+  if (!inertia_on_ || settings_.second_order.inertia <= 0 || inertia_delta_.empty() || merits_.empty()) return;
   // Vanishes with the residual: superlinear convergence near the root is kept.
   const double scale = std::min(1.0, rnorm / std::max(merits_.front(), 1e-300));
   for (int a = 0; a < N_; ++a) {

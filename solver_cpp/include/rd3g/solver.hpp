@@ -56,7 +56,7 @@ class Solver {
   /// Solves from zero controls or from a warm start; the initial states are the rollout of the controls.
   Result solve(const WarmStart* warm = nullptr);
 
-  /// Iterated best response alone (the guess of Settings::best_response_rounds): `rounds` (>= 1) Gauss-Seidel sweeps
+  /// Iterated best response alone (the guess of Settings::best_response.rounds): `rounds` (>= 1) Gauss-Seidel sweeps
   /// from the warm start's controls (zero without), the sub-solves' iterations together at most N max_iter (max_iter
   /// game-iteration equivalents, as in the restart). Result: x, u and info (iterations = best_response_iterations,
   /// timings.total); no multipliers.
@@ -97,7 +97,7 @@ class Solver {
   /// Why an attempt (one pass of Newton iterations from the initial guess) ended.
   enum class AttemptEnd { Finished, Restart };
 
-  /// Attempt from an iterated-best-response guess (Settings::best_response_rounds): y_ from the initial controls,
+  /// Attempt from an iterated-best-response guess (Settings::best_response.rounds): y_ from the initial controls,
   /// the sweeps (at most `budget` sub-solve iterations), then rho_init and attempt 0's rules. Returns the iterations.
   int start_best_response_attempt(int budget);
   /// Gauss-Seidel sweeps on y_'s controls (best_response.cpp); returns the sub-solves' iterations (<= budget).
@@ -111,15 +111,40 @@ class Solver {
   /// States x_1..x_T of agent i in y from x_0 and its controls (the dynamics then hold exactly).
   void roll_out(Iterate& y, int i);
   AttemptEnd run_attempt(Info& info, int& total_iter);
+  /// Where the solve is in its restart schedule (solve()).
+  struct Schedule {
+    int total_iter = 0;
+    int escapes = 0;           // attempts started from a saddle (leave_saddle); they do not use up the schedule
+    int br_attempts = 0;       // attempts from the best-response guess (inserted, as the escapes)
+    bool from_saddle = false;  // the next attempt starts where leave_saddle left y_
+    bool have_saddle = false;
+    Result saddle;             // the first converged attempt the second-order test rejected (restart_on_saddle)
+  };
+  /// Timings, counters, initial guess and the restart offsets' random sequence at the start of a solve.
+  void begin_solve(Info& info, const WarmStart* warm);
+  /// y_, rho_ and the rules of the next attempt: from the best-response guess, the schedule's start or a saddle.
+  void start_scheduled_attempt(int attempt, bool best_response, const WarmStart* warm, Schedule& sc, Info& info);
+  /// A finished attempt converged and an attempt is left to look for a point that passes the second-order test.
+  bool look_past_saddle(int attempt, bool best_response, const Schedule& sc, const Info& info) const;
+  /// The kept saddle with the solve's counters and time.
+  Result saddle_result(Schedule& sc, const Info& info) const;
+  /// Appends an iterate's merit to the histories (and keeps the best one under a time limit).
+  void record_iterate(double rnorm, int total_iter, Info& info);
+  /// rho <- max(floor, min(rho_kappa rho, rho^rho_beta)).
+  void lower_rho();
+  /// One of the stall rules (Settings::stall) fires at this iteration's merit.
+  bool stalling(double rnorm) const;
+  /// On a stall: lower rho (restart rules) or polish; false ends the attempt (stalled or a numerical error).
+  bool handle_stall(bool& polished, double& merit_now, bool& stalled, Info& info);
   /// The rolled-out iterate y_ brings two agents (or an agent and an obstacle) closer than
-  /// (1 - settings_.deep_overlap) times their collision distance at some step.
+  /// (1 - settings_.restart.deep_overlap) times their collision distance at some step.
   bool deep_overlap() const;
   /// The globalisation rules of an attempt: the settings' first-attempt ones or the restart ones (rules_).
   void use_rules(bool restart_rules);
   /// Partition, multiplier numbering, residual and Jacobian at y_; false if the residual is undefined.
   bool assemble(bool first, Info& info);
   bool converged(double rnorm) const;
-  /// rho's floor, tol * rho_floor_factor, and whether rho has reached it (to rounding).
+  /// rho's floor, tol * barrier.rho_floor_factor, and whether rho has reached it (to rounding).
   double rho_floor() const;
   bool at_rho_floor() const;
   /// Newton (or Levenberg-Marquardt) step from y_ into y_ with the line search; the accepted t, or 0.
@@ -147,12 +172,31 @@ class Solver {
   /// Also fills rc (complementarity (-h) z - rho of barrier constraints, primal-dual mode) and, if jac,
   /// rhs_ (the condensed right-hand side, i.e. the paper's barrier residual) and the triplets.
   bool evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc);
+  /// Rows of the variables constraint c acts on: agent i's position (or bounded component) and, for a pair, agent j's.
+  struct ConstraintRows {
+    int ci[2] = {-1, -1}, cj[2] = {-1, -1};
+    int n = 1;          // 2 for a position, 1 for a bounded component
+    bool pair = false;  // cj is used
+    bool pos = false;   // acts on a position (pairs and obstacles): has a Hessian
+  };
+  ConstraintRows constraint_rows(int c) const;
+  /// Constraint c's terms of evaluate (c not released); false if it is a barrier constraint with h >= 0.
+  bool add_constraint_terms(const Iterate& y, int c, bool jac, Vec& r, Vec& rc);
+  void add_active_jacobian(int c, const ConstraintRows& q, const Eigen::Vector2d& g, const Eigen::Matrix2d& H,
+                           double wi, double wj);
+  void add_barrier_jacobian(const Iterate& y, int c, const ConstraintRows& q, double hv, const Eigen::Vector2d& g,
+                            const Eigen::Matrix2d& H, double wi);
   double merit(const Vec& r, const Vec& rc) const { return std::sqrt(r.head(n_vars_).squaredNorm() + rc.squaredNorm()); }
   /// Primal-dual: recover dz of the barrier constraints from the condensed step.
   void recover_dual_step(const Iterate& y, const Vec& h, const Vec& rc, const Vec& dy, Vec& dz) const;
   /// Newton step into dy; false if every linear solver failed (or, with a time limit, the deadline passed
   /// before the SparseQR fallback: then timed_out_ is set).
   bool solve_linear(Vec& dy, Info& info);
+  /// The linear solvers of solve_linear on rhs_ (Riccati) or neg_rhs_ and J_ (the others); false if one fails.
+  bool solve_riccati(Vec& dy, Info& info);  // also false if its step fails the residual check
+  bool solve_lu(Vec& dy, Info& info);
+  bool solve_lscg(Vec& dy, bool& timed_out);
+  bool solve_qr(Vec& dy, Info& info);  // or the bounded least-squares step under a time limit
   bool solve_levenberg_marquardt(double nu, Vec& dy);
   /// Backtracking line search along dy_ from y_ into trial_; returns the accepted t or 0.
   double line_search(double merit0);
@@ -176,8 +220,8 @@ class Solver {
   int n_vars_ = 0;
   double rho_ = 0;
   BarrierMode barrier_ = BarrierMode::PrimalDual;  // barrier form of the current attempt
-  /// Globalisation rules of the current attempt (start_attempt): the settings' rho_progress, violation_memory and
-  /// rho_on_stall in attempt 0, the restart_* rules in later attempts.
+  /// Globalisation rules of the current attempt (start_attempt): barrier.rho_progress and
+  /// line_search.violation_memory (rho never lowered on a stall) in attempt 0, the restart group's in later attempts.
   struct AttemptRules {
     double rho_progress = 0;
     int violation_memory = 1;
@@ -235,13 +279,13 @@ class Solver {
   /// barrier dual (or -rho/h), 0 if released.
   void constraint_weights(Vec& w_i, Vec& w_j) const;
   /// Steering away from the saddle in y_, whose second-order test just failed (second_order.cpp): records the
-  /// inertia correction of the failing agents (saddle_inertia) and, if an escape is left (escapes <
-  /// saddle_escapes), moves them along negative curvature and prepares y_, rho_ and the partition for an attempt
+  /// inertia correction of the failing agents (second_order.inertia) and, if an escape is left (escapes <
+  /// second_order.escapes), moves them along negative curvature and prepares y_, rho_ and the partition for an attempt
   /// from there. Returns true if it did (y_ is unchanged otherwise).
   bool leave_saddle(int escapes);
   /// Agent a's shooting Lagrangian J^a + sum_c w_c h_c at y (its constraints only) and the largest of their h.
   double agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const Vec& w_j, double& max_h) const;
-  /// Adds the inertia correction (saddle_inertia) to this iteration's Newton matrix (trip_).
+  /// Adds the inertia correction (second_order.inertia) to this iteration's Newton matrix (trip_).
   void add_inertia_correction(double rnorm);
   bool inertia_on_ = false;  // this attempt applies the inertia correction
   std::vector<double> inertia_delta_;  // per agent: delta of the inertia correction (cost units per control unit^2)

@@ -1,0 +1,148 @@
+// One Newton (or Levenberg-Marquardt) step: the backtracking line search, the fraction-to-boundary and
+// model-domain step limits.
+#include "rd3g/solver.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+
+#include "rd3g/clock.hpp"
+
+namespace rd3g {
+
+void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const {
+  // Plain loops over the stage blocks (this runs for every line-search trial; Eigen's expressions on 2- and
+  // 4-element dynamic columns cost several times the arithmetic).
+  const double* d = dy.data();
+  for (int i = 0; i < N_; ++i) {
+    const double *yu = y.u[i].data(), *yl = y.lam[i].data(), *yx = y.x[i].data();
+    double *ou = out.u[i].data(), *ol = out.lam[i].data(), *ox = out.x[i].data();
+    for (int q = 0; q < nx_; ++q) ox[q] = yx[q];
+    for (int k = 0; k < T_; ++k) {
+      const double *du = d + col_u(i, k), *dl = d + col_lam(i, k), *dx = d + col_x(i, k + 1);
+      for (int q = 0; q < nu_; ++q) ou[k * nu_ + q] = yu[k * nu_ + q] + t * du[q];
+      for (int q = 0; q < nx_; ++q) ol[k * nx_ + q] = yl[k * nx_ + q] + t * dl[q];
+      for (int q = 0; q < nx_; ++q) ox[(k + 1) * nx_ + q] = yx[(k + 1) * nx_ + q] + t * dx[q];
+    }
+  }
+  const int C = static_cast<int>(cons_.size());
+  for (int c = 0; c < C; ++c) {
+    out.mu[c] = mu_col_[c] >= 0 ? y.mu[c] + t * d[mu_col_[c]] : y.mu[c];
+    out.mu2[c] = mu2_col_[c] >= 0 ? y.mu2[c] + t * d[mu2_col_[c]] : y.mu2[c];
+    out.z[c] = y.z[c] + t * dz_[c];
+  }
+}
+
+// Backtracking line search (paper, Algorithm 1), with the partition and rho of this iteration:
+// accept t when ||r(y + t dy)|| <= (1 - alpha t) ||r(y)|| and the total violation does not exceed the
+// largest of the last violation_memory iterates' (1: does not grow).
+double Solver::line_search(double merit0) {
+  double hsum = violation_sum(h_);
+  const int mem = std::min<int>(rules_.violation_memory, static_cast<int>(violations_.size()));
+  for (int q = 0; q < mem; ++q) hsum = std::max(hsum, violations_[violations_.size() - 1 - q]);
+  double t = 1.0;
+  if (barrier_ == BarrierMode::PrimalDual) {
+    recover_dual_step(y_, h_, rc_, dy_, dz_);
+    // Fraction to the boundary: barrier duals stay positive.
+    for (int c = 0; c < static_cast<int>(cons_.size()); ++c)
+      if (state_[c] == ConstraintState::Barrier && dz_[c] < 0)
+        t = std::min(t, -settings_.barrier.fraction_to_boundary * y_.z[c] / dz_[c]);
+  } else {
+    dz_.setZero();
+  }
+  if (settings_.domain_fraction > 0) {
+    t = domain_step(t);
+    if (t <= 0) return 0.0;  // a held control is at its box and the step points out of it
+  }
+  for (int ls = 0; ls < settings_.line_search.max_steps; ++ls, t *= settings_.line_search.beta) {
+    apply_step(y_, dy_, t, trial_);
+    eval_all_constraints(trial_, h_trial_);
+    if (violation_sum(h_trial_) > hsum + 1e-12) {
+      if (settings_.verbose) std::printf("   t %.2e rejected: violation %.3e > %.3e\n", t, violation_sum(h_trial_), hsum);
+      continue;
+    }
+    if (!evaluate(trial_, h_trial_, false, r_trial_, rc_trial_)) {
+      if (settings_.verbose) std::printf("   t %.2e rejected: barrier constraint crossed\n", t);
+      continue;
+    }
+    const double mt = merit(r_trial_, rc_trial_);
+    if (mt <= (1.0 - settings_.line_search.alpha * t) * merit0) return t;
+    if (settings_.verbose) std::printf("   t %.2e rejected: |r| %.3e vs %.3e\n", t, mt, merit0);
+  }
+  return 0.0;
+}
+
+// The models' control domains: a full Newton step can carry a steering angle across |delta| = pi/2, where the
+// bicycle's slip angle jumps by pi; the residual there is a different (wrong-way) car, and the iterates do not come
+// back (merge-long, docs/solver.md "Staying in the model's domain"). Each held control stays in its domain's box
+// shrunk about the centre to domain_fraction of its half-width (a fixed margin: a fraction of the distance left
+// would let a control creep to the singular point itself).
+bool Solver::domain_box(int q, double& lo, double& hi) const {
+  if (!std::isfinite(dom_lo_[q]) || !std::isfinite(dom_hi_[q])) return false;  // one-sided: not held
+  const double c = 0.5 * (dom_lo_[q] + dom_hi_[q]), w = 0.5 * settings_.domain_fraction * (dom_hi_[q] - dom_lo_[q]);
+  lo = c - w;
+  hi = c + w;
+  return true;
+}
+
+double Solver::domain_step(double t) {
+  for (int i = 0; i < N_; ++i) {
+    prob_.dynamics[i]->control_domain(dom_lo_, dom_hi_);
+    for (int q = 0; q < nu_; ++q) {
+      double lo, hi;
+      if (!domain_box(q, lo, hi)) continue;
+      for (int k = 0; k < T_; ++k) {
+        const double u = y_.u[i](q, k), du = dy_[col_u(i, k) + q];
+        if (!(u >= lo && u <= hi)) continue;  // outside already (a warm start): not held
+        if (du > 0) t = std::min(t, (hi - u) / du);
+        else if (du < 0) t = std::min(t, (lo - u) / du);
+      }
+    }
+  }
+  return std::max(t, 0.0);
+}
+
+double Solver::take_step(double rnorm, Info& info) {
+  add_inertia_correction(rnorm);
+  auto t0 = Clock::now();
+  const bool solved = solve_linear(dy_, info);
+  info.timings.linear_solve += seconds_since(t0);
+  if (!solved) return timed_out_ ? 0.0 : -1.0;
+
+  t0 = Clock::now();
+  double t = line_search(rnorm);
+  if (t > 0 && t < settings_.line_search.lm_below_step) {
+    // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
+    // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it: from the
+    // largest nu down (it wins most often), until a smaller nu no longer lowers the merit; each try
+    // costs a factorisation.
+    best_ = trial_;
+    double best_m = merit(r_trial_, rc_trial_);
+    double last_m = HUGE_VAL;
+    bool lm_won = false;
+    for (int q = settings_.line_search.lm_tries - 1; q >= 0 && !past_deadline(); --q) {
+      if (!solve_levenberg_marquardt(settings_.line_search.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+      const double tl = line_search(rnorm);
+      const double m = tl > 0 ? merit(r_trial_, rc_trial_) : HUGE_VAL;
+      if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
+      if (m >= last_m) break;
+      last_m = m;
+    }
+    std::swap(trial_, best_);
+    if (lm_won) info.lm_steps++;
+  }
+  for (int q = 0; t == 0.0 && q < settings_.line_search.lm_tries; ++q) {
+    if (past_deadline()) { timed_out_ = true; break; }
+    if (!solve_levenberg_marquardt(settings_.line_search.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+    t = line_search(rnorm);
+    if (t > 0) info.lm_steps++;
+  }
+  info.timings.line_search += seconds_since(t0);
+  if (t > 0) {
+    timed_out_ = false;  // a step was found after all: take it
+    std::swap(y_, trial_);
+  }
+  return t;
+}
+
+}  // namespace rd3g
