@@ -96,7 +96,7 @@ def run(args) -> int:
         except OutputFileError as exc:
             raise ValueError(str(exc)) from None
     sim_cls = perturbed_simulator(args.late_ms, args.tail, args.neutral, seed_offset=args.rng_seed)
-    winners = {}
+    winners, rd3g_won = {}, {}
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         spec = RaceSpec(track=args.track, car_params=args.car_params, seed=seed, opponent=args.opponent,
                         start=args.start, rd3g_top_speed_mps=args.rd3g_speed, opponent_top_speed_mps=args.opponent_speed,
@@ -109,8 +109,9 @@ def run(args) -> int:
             solver = {**setup.planner.solver, "max_iter": args.max_iterations}
             setup = dataclasses.replace(setup, planner=dataclasses.replace(setup.planner, solver=solver))
         winners[seed] = run_race(setup, simulator_cls=sim_cls).winner
+        rd3g_won[seed] = winners[seed] in {car.name for car in setup.cars if car.planner == "rd3g"}
         print(f"seed {seed}: {winners[seed]}", flush=True)
-    wins = [s for s, w in winners.items() if w == "rd3g"]
+    wins = [s for s, won in rd3g_won.items() if won]
     print(f"RD3G won {len(wins)} of {len(winners)}: seeds {wins}")
     if args.json:
         atomic_write_text(args.json, json.dumps({"argv": sys.argv[1:], "winners": winners}, indent=2) + "\n", stream=True)
