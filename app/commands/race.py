@@ -183,8 +183,13 @@ def run(args) -> int:
             capture.close()
     s = o.summary()
     if setup.roster is None:
+        rd3g, opp = setup.cars
+        speeds = ((f"({rd3g.top_speed_mps:g} m/s) vs {args.opponent} ({opp.top_speed_mps:g} m/s)")
+                  if rd3g.reference_speed_mps is None else
+                  (f"(reference {rd3g.reference_speed_mps:g} m/s) vs {args.opponent} (reference "
+                   f"{opp.reference_speed_mps:g} m/s), top speed {rd3g.top_speed_mps:g} m/s both"))
         print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
-              f"({args.rd3g_speed} m/s) vs {args.opponent} ({args.opponent_speed} m/s), control {s['control_period_ms']:.1f} ms")
+              f"{speeds}, control {s['control_period_ms']:.1f} ms")
     else:
         print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, {len(setup.cars)} cars, grid {setup.grid}: "
               + ", ".join(f"{c.name} ({c.planner}, {c.top_speed_mps:g} m/s)" for c in setup.cars)
