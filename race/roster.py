@@ -84,11 +84,12 @@ def make_roster(cars, max_cars: int = MAX_CARS) -> tuple[RosterCar, ...]:
         speed = DEFAULT_TOP_SPEED_MPS[c.planner] if c.top_speed_mps is None else c.top_speed_mps
         if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not (math.isfinite(speed) and speed > 0):
             raise RosterError(label, "top_speed_mps", f"must be a positive number (m/s), got {speed!r}")
-        for f, v, lo in (("reference_speed_mps", c.reference_speed_mps, 0.0), ("start_speed_mps", c.start_speed_mps, None)):
-            if v is None and f == "reference_speed_mps":
-                continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or v == lo:
-                raise RosterError(label, f, f"must be a {'positive' if lo == 0.0 else 'non-negative'} number (m/s), got {v!r}")
+        ref, v0 = c.reference_speed_mps, c.start_speed_mps
+        if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float))
+                                or not (math.isfinite(ref) and ref > 0)):
+            raise RosterError(label, "reference_speed_mps", f"must be a positive number (m/s), got {ref!r}")
+        if isinstance(v0, bool) or not isinstance(v0, (int, float)) or not (math.isfinite(v0) and v0 >= 0):
+            raise RosterError(label, "start_speed_mps", f"must be a non-negative number (m/s), got {v0!r}")
         out.append(dataclasses.replace(c, top_speed_mps=float(speed)))
     for f, hi in (("marker_id", 999), ("radio_id", 255), ("start_slot", len(cars) - 1)):
         taken = {getattr(c, f) for c in out}
