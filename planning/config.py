@@ -27,13 +27,17 @@ class PlannerConfig:
     """Receding-horizon racing planner settings shared by RD3G and the MPC opponent.
 
     Costs per planning step (k = 1..T), in the solver's QuadraticCost form:
-    q_speed (v - top_speed)^2 + q_lateral (ey - raceline_ey)^2 + q_heading epsi^2
-    + r_accel a^2 + r_steer delta^2, minus lead_weight * (own progress - opponent progress).
+    q_speed (v - v_ref)^2 + q_lateral (ey - raceline_ey)^2 + q_heading epsi^2
+    + r_accel a^2 + r_steer delta^2, minus lead_weight * (own progress - opponent progress);
+    v_ref = reference_speed_mps (default top_speed_mps), at most the plan's speed bound.
     """
 
     horizon: int = 10                 # planning steps T
     plan_dt_s: float = 0.1            # planning step (s); the plan covers horizon * plan_dt_s
-    top_speed_mps: float = 2.0        # speed reference and upper speed bound of this car
+    top_speed_mps: float = 2.0        # upper speed bound of this car (and its speed reference unless set below)
+    # The cost's speed reference when it differs from the top speed (the authors' "preference" speed
+    # model, docs/racing.md); None: top_speed_mps. Never above the plan's speed bound.
+    reference_speed_mps: float | None = None
     lead_weight: float = 0.5          # Q_d: cost per metre of progress difference per step
     q_speed: float = 1.0              # 1/(m/s)^2
     q_lateral: float = 0.5            # 1/m^2, pulls towards raceline_ey
@@ -103,7 +107,7 @@ class PlannerConfig:
     fallback_speed_gain: float = 2.0
 
     def __post_init__(self) -> None:
-        positive = {"plan_dt_s", "top_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "steering_margin"}
+        positive = {"plan_dt_s", "top_speed_mps", "reference_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "steering_margin"}
         ints = {"horizon": 1, "game_players": 0, "max_iter_per_extra_player": 0}
         for name in ("solver", "cold_start_solver"):
             try:
@@ -118,6 +122,8 @@ class PlannerConfig:
             if f.name in ("solver", "cold_start_solver"):
                 continue
             v = getattr(self, f.name)
+            if f.name == "reference_speed_mps" and v is None:
+                continue
             if f.name in ints:
                 if isinstance(v, bool) or not isinstance(v, int) or v < ints[f.name]:
                     raise PlannerConfigError(f"planner.{f.name}: must be an integer >= {ints[f.name]}, got {v!r}")

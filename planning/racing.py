@@ -91,9 +91,17 @@ class _RecedingHorizon:
         self._prev = None
         self.mapper.reset()
 
-    def _cost(self, top_speed: float) -> QuadraticCost:
+    @property
+    def preferred_speed(self) -> float:
+        """This car's speed reference (m/s): reference_speed_mps, or the top speed."""
         c = self.config
-        return QuadraticCost(x_ref=[0.0, c.raceline_ey_m, top_speed, 0.0], Q_ref=[0.0, c.q_lateral, c.q_speed, c.q_heading],
+        return c.top_speed_mps if c.reference_speed_mps is None else c.reference_speed_mps
+
+    def _cost(self, top_speed: float, reference: float | None = None) -> QuadraticCost:
+        """The racing cost at speed reference min(reference, top_speed) (reference None: top_speed)."""
+        c = self.config
+        v_ref = top_speed if reference is None else min(float(reference), top_speed)
+        return QuadraticCost(x_ref=[0.0, c.raceline_ey_m, v_ref, 0.0], Q_ref=[0.0, c.q_lateral, c.q_speed, c.q_heading],
                              R=[c.r_accel, c.r_steer])
 
     def _agent(self, x0, top_speed: float, ey_bound: float, cost: QuadraticCost, lead: float) -> Agent:
@@ -408,7 +416,7 @@ class RacingPlanner(_RecedingHorizon):
 
     def defend_reference(self, x_self, x_others, ey_bound: float, other_tops=None) -> float | None:
         """Lateral reference (m) while defending, or None. Defending = the other car has the higher
-        top speed and is behind us along the track by between defend_min_gap_m and
+        speed reference (other_tops; ours: preferred_speed; both the top speeds unless set) and is behind us along the track by between defend_min_gap_m and
         defend_distance_m; the reference is then the inside of the turn ahead (sign of the mean
         curvature over defend_lookahead_m), defend_margin_m inside the track-limit bound ey_bound.
         None on a straight with no turn in the lookahead, with defend_distance_m = 0, or when the other
@@ -432,7 +440,7 @@ class RacingPlanner(_RecedingHorizon):
         tops = [self.opponent_top_speed] * len(rows) if other_tops is None else list(other_tops)
         behind = [float(x_self[S] - x[S]) for x in rows]
         chasers = [k for k in range(len(rows))
-                   if tops[k] > c.top_speed_mps and c.defend_min_gap_m < behind[k] < c.defend_distance_m]
+                   if tops[k] > self.preferred_speed and c.defend_min_gap_m < behind[k] < c.defend_distance_m]
         if not chasers:
             return None
         ahead = np.mod(float(x_self[S]) + np.linspace(0.0, c.defend_lookahead_m, 31), self.tm.track.length)
@@ -444,23 +452,25 @@ class RacingPlanner(_RecedingHorizon):
                 return None  # it already has the inside: crossing in front of it now would be a chop
         return math.copysign(max(ey_bound - c.defend_margin_m, 0.0), kappa)
 
-    def plan(self, x_self, x_others, other_tops=None, other_ids=None, obstacles=None) -> Plan:
+    def plan(self, x_self, x_others, other_tops=None, other_ids=None, obstacles=None, other_refs=None) -> Plan:
         """x_self, x_others (rows): [s (unwrapped, same origin), ey, v, epsi]; x_self already
         delay-predicted. other_tops: the other cars' top speeds (default opponent_top_speed_mps);
+        other_refs: their speed references in their costs (default their top speeds);
         other_ids: names that identify them from plan to plan (warm starts per car, default their rows);
         obstacles: states (rows) of cars avoided at constant speed instead of played with (predict_other)."""
         c = self.config
         rows = _rows(x_others)
         far = [] if obstacles is None or len(obstacles) == 0 else list(_rows(obstacles))
         tops = [self.opponent_top_speed] * len(rows) if other_tops is None else [float(v) for v in other_tops]
+        refs = tops if other_refs is None else [float(v) for v in other_refs]
         ids = tuple(range(len(rows))) if other_ids is None else tuple(other_ids)
         s_now = [x_self[S], *(x[S] for x in rows), *(x[S] for x in far)]
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
         own_top = self.corner_speed_cap(x_self, c.top_speed_mps)
         other_top = [self.corner_speed_cap(x, top) for x, top in zip(rows, tops)]
-        own_cost = self._cost(own_top)
-        defend_ey = self.defend_reference(x_self, rows, ey_bound, tops)
+        own_cost = self._cost(own_top, c.reference_speed_mps)
+        defend_ey = self.defend_reference(x_self, rows, ey_bound, refs)
         if defend_ey is not None:
             own_cost.x_ref = [own_cost.x_ref[0], defend_ey, *own_cost.x_ref[2:]]
             own_cost.Q_ref = [own_cost.Q_ref[0], c.q_defend, *own_cost.Q_ref[2:]]
@@ -469,7 +479,8 @@ class RacingPlanner(_RecedingHorizon):
         ey_bound, d_min, pair = self._feasible_limits([x_self, *rows], ey_bound, d_min, predicted)
         top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
         agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
-                  *(self._agent(x, t, ey_bound, self._cost(t), c.lead_weight) for x, t in zip(rows, other_top))]
+                  *(self._agent(x, t, ey_bound, self._cost(t, r), c.lead_weight)
+                    for x, t, r in zip(rows, other_top, refs))]
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
         n = len(agents)
@@ -491,16 +502,16 @@ class MPCOpponent(_RecedingHorizon):
     """Single-car MPC with the racing cost, avoiding a constant-speed prediction of every other car
     (predict_other), one moving obstacle each."""
 
-    def plan(self, x_self, x_others, other_tops=None, other_ids=None) -> Plan:
-        """x_others: rows [s, ey, v, epsi] of every other car (other_tops, other_ids: unused, the
-        obstacles are constant-speed predictions)."""
+    def plan(self, x_self, x_others, other_tops=None, other_ids=None, other_refs=None) -> Plan:
+        """x_others: rows [s, ey, v, epsi] of every other car (other_tops, other_ids, other_refs:
+        unused, the obstacles are constant-speed predictions)."""
         c = self.config
         rows = _rows(x_others)
         s_now = [x_self[S], *(x[S] for x in rows)]
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows)])
         top = self.corner_speed_cap(x_self, c.top_speed_mps)
-        cost = self._cost(top)
+        cost = self._cost(top, c.reference_speed_mps)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
             cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]
             cost.Q_ref = [c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M), *cost.Q_ref[1:]]

@@ -60,11 +60,11 @@ def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, floa
     return out
 
 
-def make_planner(cls, setup: RaceSetup, top: float, car=None, **kw):
-    """A RacingPlanner or MPCOpponent (``cls``) with the race's planner settings and top speed (m/s),
-    for car file ``car`` (default: the race's)."""
+def make_planner(cls, setup: RaceSetup, top: float, car=None, reference: float | None = None, **kw):
+    """A RacingPlanner or MPCOpponent (``cls``) with the race's planner settings, top speed and speed
+    reference (m/s; None: the top speed), for car file ``car`` (default: the race's)."""
     car = setup.car if car is None else car
-    cfg = dataclasses.replace(setup.planner, top_speed_mps=top)
+    cfg = dataclasses.replace(setup.planner, top_speed_mps=top, reference_speed_mps=reference)
     tm = FrenetTrackModel(setup.track, car, cfg)
     mapper = CommandMapper(car, setup.control_period_s, cfg.max_brake_mps2, cfg.steering_margin)
     return cls(tm, mapper, cfg, setup.control_period_s, **kw)
@@ -141,15 +141,18 @@ class RacePlanners:
         self.cars = tuple(setup.cars if roster is None else roster)
         self.names = tuple(c.name for c in self.cars)
         self.tops = [c.top_speed_mps for c in self.cars]
+        self.refs = [c.top_speed_mps if c.reference_speed_mps is None else c.reference_speed_mps for c in self.cars]
         self.models: dict[str, object] = {}      # name -> RacingPlanner / MPCOpponent
         self.pursuit: dict[str, PurePursuitController] = {}
         for i, c in enumerate(self.cars):
             car = setup.car_file(i)
             if c.planner == "rd3g":
                 self.models[c.name] = make_planner(RacingPlanner, setup, c.top_speed_mps, car=car,
+                                                   reference=c.reference_speed_mps,
                                                    opponent_top_speed_mps=setup.opponent_top_speed_mps)
             elif c.planner == "mpc":
-                self.models[c.name] = make_planner(MPCOpponent, setup, c.top_speed_mps, car=car)
+                self.models[c.name] = make_planner(MPCOpponent, setup, c.top_speed_mps, car=car,
+                                                   reference=c.reference_speed_mps)
             elif c.planner == "pursuit":
                 self.pursuit[c.name] = PurePursuitController(setup.track, car, target_speed_mps=c.top_speed_mps)
         self.unwrap: ProgressUnwrapper | None = None
@@ -177,6 +180,7 @@ class RacePlanners:
                 rows = self._in_frame(at_plan, i, others)
                 plan, (throttle, steer), ms = plan_step(planner, at_plan[i], rows,
                                                         other_tops=[self.tops[j] for j in others],
+                                                        other_refs=[self.refs[j] for j in others],
                                                         other_ids=tuple(self.names[j] for j in others), **extra)
                 result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms)
             elif c.name in self.pursuit:

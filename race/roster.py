@@ -50,6 +50,10 @@ class RosterCar:
     radio_id: int | None = None        # id in the serial protocol (FHSS modem id)
     top_speed_mps: float | None = None
     start_slot: int | None = None      # 0 = pole; slots 2r and 2r + 1 make grid row r
+    # The speed reference of its planner's cost (None: the top speed) and its speed at the start (m/s):
+    # the authors' "preference" speed model (race.setup.SPEED_MODELS, docs/racing.md).
+    reference_speed_mps: float | None = None
+    start_speed_mps: float = 0.0
 
     @property
     def solves(self) -> bool:
@@ -80,6 +84,12 @@ def make_roster(cars, max_cars: int = MAX_CARS) -> tuple[RosterCar, ...]:
         speed = DEFAULT_TOP_SPEED_MPS[c.planner] if c.top_speed_mps is None else c.top_speed_mps
         if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not (math.isfinite(speed) and speed > 0):
             raise RosterError(label, "top_speed_mps", f"must be a positive number (m/s), got {speed!r}")
+        ref, v0 = c.reference_speed_mps, c.start_speed_mps
+        if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float))
+                                or not (math.isfinite(ref) and ref > 0)):
+            raise RosterError(label, "reference_speed_mps", f"must be a positive number (m/s), got {ref!r}")
+        if isinstance(v0, bool) or not isinstance(v0, (int, float)) or not (math.isfinite(v0) and v0 >= 0):
+            raise RosterError(label, "start_speed_mps", f"must be a non-negative number (m/s), got {v0!r}")
         out.append(dataclasses.replace(c, top_speed_mps=float(speed)))
     for f, hi in (("marker_id", 999), ("radio_id", 255), ("start_slot", len(cars) - 1)):
         taken = {getattr(c, f) for c in out}
@@ -109,10 +119,14 @@ def parse_cars(text: str, flag: str = "--cars") -> tuple[RosterCar, ...]:
 
 
 def two_car_roster(opponent: str, rd3g_top_speed_mps: float, opponent_top_speed_mps: float,
-                   car_params: str | None = None) -> tuple[RosterCar, ...]:
-    """The two-car race without a roster flag: ``rd3g`` (RD3G, id 0) and ``opponent`` (id 1)."""
-    return make_roster([RosterCar("rd3g", "rd3g", car_params, 0, 0, rd3g_top_speed_mps, 0),
-                        RosterCar("opponent", opponent, car_params, 1, 1, opponent_top_speed_mps, 1)])
+                   car_params: str | None = None, reference_speeds_mps=(None, None),
+                   start_speeds_mps=(0.0, 0.0)) -> tuple[RosterCar, ...]:
+    """The two-car race without a roster flag: ``rd3g`` (RD3G, id 0) and ``opponent`` (id 1); the
+    speed references and start speeds in that order."""
+    return make_roster([RosterCar("rd3g", "rd3g", car_params, 0, 0, rd3g_top_speed_mps, 0,
+                                  reference_speeds_mps[0], start_speeds_mps[0]),
+                        RosterCar("opponent", opponent, car_params, 1, 1, opponent_top_speed_mps, 1,
+                                  reference_speeds_mps[1], start_speeds_mps[1])])
 
 
 def _schema() -> Table:
@@ -120,7 +134,8 @@ def _schema() -> Table:
         "name": String(nonempty=True, max_len=32), "planner": String(choices=PLANNERS),
         "car_params": String(nonempty=True), "marker_id": Number(integer=True, ge=0, le=999),
         "radio_id": Number(integer=True, ge=0, le=255), "top_speed_mps": Number(gt=0),
-        "start_slot": Number(integer=True, ge=0, le=MAX_CARS - 1)})
+        "start_slot": Number(integer=True, ge=0, le=MAX_CARS - 1), "reference_speed_mps": Number(gt=0),
+        "start_speed_mps": Number(ge=0)})
     return Table({"car": FieldSpec(ListOf(car, min_len=MIN_CARS, max_len=MAX_CARS))}, "roster")
 
 

@@ -32,6 +32,12 @@ GRIDS = ("single_file", "roster", "random")
 # finished (a fleet race: finishing order and unfinished cars), or at max_time_s either way.
 FINISHES = ("first", "all")
 CONTROL_HZ = 30.0                # planning (control) rate of the race's planners
+# How the two cars of the paper's experiment differ in speed (docs/racing.md, "Two speed models"):
+# limits: the slower car has a lower hard top speed, both cars start at rest (the default);
+# preference: the authors' code (BuzzRacer car_racing.h): one hard top speed for both, soft speed
+# references 1.0 + 0.1 i m/s in the cost (the faster car 1.1, the slower 1.0), rolling start at them.
+SPEED_MODELS = ("limits", "preference")
+PREFERENCE_REFERENCE_MPS = (1.1, 1.0)    # (faster, slower) car's speed reference and start speed
 
 
 def default_max_time_s(laps: int) -> float:
@@ -61,6 +67,10 @@ class RaceSetup:
     start: str = "rear"                 # where our car starts: "front" or "rear"
     rd3g_top_speed_mps: float = 2.0
     opponent_top_speed_mps: float = 1.8
+    # The two-car race's (rd3g, opponent) speed references in their costs (None: their top speeds) and
+    # speeds at the start (m/s, along the heading); the preference speed model sets both.
+    reference_speeds_mps: tuple[float | None, float | None] = (None, None)
+    start_speeds_mps: tuple[float, float] = (0.0, 0.0)
     control_period_s: float = 1.0 / CONTROL_HZ
     physics_dt_s: float = 0.001
     max_time_s: float | None = None     # None: default_max_time_s(laps)
@@ -114,7 +124,8 @@ class RaceSetup:
         """The race's roster (``roster``, or the two-car one: ``rd3g`` and ``opponent``)."""
         if self.roster is not None:
             return make_roster(self.roster)
-        return two_car_roster(self.opponent, self.rd3g_top_speed_mps, self.opponent_top_speed_mps)
+        return two_car_roster(self.opponent, self.rd3g_top_speed_mps, self.opponent_top_speed_mps,
+                              reference_speeds_mps=self.reference_speeds_mps, start_speeds_mps=self.start_speeds_mps)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -150,6 +161,7 @@ class RaceSpec:
     roster: tuple[RosterCar, ...] | None = None
     grid: str | None = None
     game_players: int = PlannerConfig.game_players  # players of an RD3G car's game (0: every car in reach)
+    speed_model: str = "limits"         # SPEED_MODELS; the faster car is the one with the higher top speed given
 
     def load(self) -> RaceSetup:
         """Read the files and build the RaceSetup; RaceSetupError names the field at fault."""
@@ -188,6 +200,7 @@ class RaceSpec:
                        else SimEffects())
         except (SimEffectsError, ValueError) as exc:
             raise RaceSetupError("sim_effects", str(exc)) from None
+        speeds = self._speeds()
         fleet = {}
         if self.roster is not None:
             fleet = dict(roster=self.roster, finish="all", grid=self.grid or "roster",
@@ -195,10 +208,27 @@ class RaceSpec:
         elif self.grid is not None:
             fleet = dict(grid=self.grid)
         return RaceSetup(track=track, car=car, seed=self.seed, laps=self.laps, opponent=self.opponent,
-                         start=self.start, rd3g_top_speed_mps=self.rd3g_top_speed_mps,
-                         opponent_top_speed_mps=self.opponent_top_speed_mps, control_period_s=1.0 / self.control_hz,
+                         start=self.start, control_period_s=1.0 / self.control_hz,
                          max_time_s=self.max_time_s, sim_car=sim_car, sim_effects=effects,
-                         planner=planner, **fleet)
+                         planner=planner, **speeds, **fleet)
+
+    def _speeds(self) -> dict:
+        """The two cars' RaceSetup speed fields under ``speed_model``. preference: both cars get the
+        higher of the two top speeds as their hard limit; the car given the higher top speed (RD3G on a
+        tie) gets the higher PREFERENCE_REFERENCE_MPS as speed reference and start speed."""
+        if self.speed_model not in SPEED_MODELS:
+            raise RaceSetupError("speed_model", f"must be one of {', '.join(SPEED_MODELS)}, got {self.speed_model!r}")
+        tops = dict(rd3g_top_speed_mps=self.rd3g_top_speed_mps, opponent_top_speed_mps=self.opponent_top_speed_mps)
+        if self.speed_model == "limits":
+            return tops
+        if self.roster is not None:
+            raise RaceSetupError("speed_model", "preference is the two-car experiment's speed model; "
+                                                "a fleet race sets speeds per car")
+        top = max(self.rd3g_top_speed_mps, self.opponent_top_speed_mps)
+        faster, slower = PREFERENCE_REFERENCE_MPS
+        refs = (faster, slower) if self.rd3g_top_speed_mps >= self.opponent_top_speed_mps else (slower, faster)
+        return dict(rd3g_top_speed_mps=top, opponent_top_speed_mps=top, reference_speeds_mps=refs,
+                    start_speeds_mps=refs)
 
     def _car_files(self, car: CarParams, track, need: float) -> tuple[CarParams, ...] | None:
         """Each roster car's car file (None: every car uses `car`). One footprint for every car: the
@@ -221,8 +251,8 @@ class RaceSpec:
 
 
 def start_states(setup: RaceSetup) -> np.ndarray:
-    """Seeded standing start, rows [x, y, heading, vx, vy, yaw_rate] in roster order, every car at rest
-    and aligned with the track: the two-car single file (``grid = "single_file"``: the front car just
+    """Seeded start, rows [x, y, heading, vx, vy, yaw_rate] in roster order, every car at its
+    ``start_speed_mps`` (at rest unless set) and aligned with the track: the two-car single file (``grid = "single_file"``: the front car just
     after the line, the other about one car length of free space, 2 +- 0.25 car lengths centre to
     centre, behind along the track, each at a random lateral offset; ``start`` says which is in front)
     or the grid (grid_states)."""
@@ -236,7 +266,7 @@ def start_states(setup: RaceSetup) -> np.ndarray:
     s = np.array([s_front, s_front - gap]) if setup.start == "front" else np.array([s_front - gap, s_front])
     s = np.mod(s, tr.length)
     x, y, heading = tr.to_cartesian(s, ey, np.zeros(2))
-    return np.column_stack([x, y, heading, np.zeros((2, 3))])
+    return np.column_stack([x, y, heading, [c.start_speed_mps for c in setup.cars], np.zeros((2, 2))])
 
 
 def grid_slots(setup: RaceSetup) -> np.ndarray:
@@ -265,7 +295,7 @@ def grid_frenet(setup: RaceSetup) -> tuple[np.ndarray, np.ndarray]:
 
 
 def grid_states(setup: RaceSetup) -> np.ndarray:
-    """The grid (grid_frenet) as start states [x, y, heading, 0, 0, 0], roster order."""
+    """The grid (grid_frenet) as start states [x, y, heading, start speed, 0, 0], roster order."""
     s, ey = grid_frenet(setup)
     x, y, heading = setup.track.to_cartesian(s, ey, np.zeros(len(s)))
-    return np.column_stack([x, y, heading, np.zeros((len(s), 3))])
+    return np.column_stack([x, y, heading, [c.start_speed_mps for c in setup.cars], np.zeros((len(s), 2))])

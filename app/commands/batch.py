@@ -23,7 +23,7 @@ from app.fleet_batch import (DEFAULT_FLEET_RACES, FLEET_CELLS, fleet_record, fle
                              the_rd3g_car)
 from app.race_plots import plot_examples
 from fileio import atomic_write_text, check_output_dir, check_output_path
-from race.setup import RaceSetupError
+from race.setup import PREFERENCE_REFERENCE_MPS, RaceSetupError
 from race.simulation import run_race
 
 # Paper (Zhang & Tsiotras, RD3G), physical races RD3G vs MPC: win rate of RD3G per cell.
@@ -222,6 +222,16 @@ def _check_scheduler(address: str, timeout_s: float) -> None:
         raise UserError(wrong_server.format(f"it is a {kind}"))
 
 
+def wilson_ci95(wins: int, races: int) -> list[float] | None:
+    """95 % Wilson score interval [low, high] of a win rate (None without races)."""
+    if races == 0:
+        return None
+    from scipy.stats import binomtest
+
+    ci = binomtest(int(wins), int(races)).proportion_ci(confidence_level=0.95, method="wilson")
+    return [float(ci.low), float(ci.high)]
+
+
 def summarise(records, races: int) -> list[dict]:
     cells = []
     for start, speed in CELLS:
@@ -231,6 +241,7 @@ def summarise(records, races: int) -> list[dict]:
         wins = sum(r["rd3g_won"] and r["rd3g_off_track"] == 0 for r in rs)
         cells.append({"start": start, "speed": speed, "races": len(rs), "rd3g_wins": int(wins),
                       "win_rate": wins / len(rs) if rs else None,
+                      "win_rate_ci95": wilson_ci95(wins, len(rs)),
                       "collisions": int(sum(r["collisions"] for r in rs)),
                       "rd3g_at_fault": int(sum(r["rd3g_at_fault"] for r in rs)),
                       "unfinished": int(sum(r["winner"] is None for r in rs)),
@@ -246,14 +257,17 @@ def summarise(records, races: int) -> list[dict]:
 
 def table(cells) -> str:
     by = {(c["start"], c["speed"]): c for c in cells}
-    lines = ["| RD3G car | higher top speed (ours / paper) | lower top speed (ours / paper) |", "|---|---|---|"]
+    lines = ["| RD3G car | faster car (ours [95 % interval] / paper) | slower car (ours [95 % interval] / paper) |",
+             "|---|---|---|"]
     for start in ("front", "rear"):
         row = [f"starts {'in front' if start == 'front' else 'behind'}"]
         for speed in ("fast", "slow"):
             c = by[(start, speed)]
-            row.append(f"{c['win_rate']:.2f} / {PAPER_WIN_RATES[(start, speed)]:.2f} ({c['rd3g_wins']}/{c['races']})")
+            lo, hi = c["win_rate_ci95"]
+            row.append(f"{c['win_rate']:.2f} [{lo:.2f}, {hi:.2f}] / {PAPER_WIN_RATES[(start, speed)]:.2f} "
+                       f"({c['rd3g_wins']}/{c['races']})")
         lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "Win rate = clean RD3G wins (RD3G never left the track) / races.", "",
+    lines += ["", "Win rate = clean RD3G wins (RD3G never left the track) / races; 95 % Wilson interval.", "",
               "| cell | races | collisions | RD3G at fault | unfinished | RD3G off track (races / wins not counted) "
               "| MPC off track (races) | fallbacks / control steps | planner p50 / p99 (ms) |",
               "|---|---|---|---|---|---|---|---|---|"]
@@ -293,6 +307,9 @@ def run(args) -> int:
     slow = args.slow_speed if args.slow_speed is not None else 0.8 * fast
     if not 0 < slow < fast:
         raise UserError(f"--slow-speed must be between 0 and the fast speed {fast}, got {slow}")
+    if args.speed_model == "preference" and args.slow_speed is not None:
+        raise UserError("--slow-speed: the preference speed model gives both cars the top speed --rd3g-speed "
+                        "(the cars differ in their speed references); leave --slow-speed out")
     make_setup(args, 0, "front", fast, slow)  # validate track/car files before starting workers
     if args.json:
         check_output_path(args.json, stream=True)
@@ -302,11 +319,16 @@ def run(args) -> int:
     jobs = [(args, cell, r, fast, slow, keep) for r in range(args.races) for cell in CELLS]
     records = run_races(jobs, args.workers, args.cluster, args.cluster_timeout)
     cells = summarise(records, args.races)
-    print(f"\nRD3G vs {args.opponent} on {args.track}: {args.races} races per cell, top speeds fast {fast} m/s, "
-          f"slow {slow} m/s (ratio {slow / fast:.2f}); win rate ours / paper")
+    if args.speed_model == "preference":
+        speeds = (f"speed model preference: top speed {fast} m/s for both, speed references / start speeds "
+                  f"fast {PREFERENCE_REFERENCE_MPS[0]} m/s, slow {PREFERENCE_REFERENCE_MPS[1]} m/s")
+    else:
+        speeds = f"speed model limits: top speeds fast {fast} m/s, slow {slow} m/s (ratio {slow / fast:.2f})"
+    print(f"\nRD3G vs {args.opponent} on {args.track}: {args.races} races per cell, {speeds}; win rate ours / paper")
     print(table(cells))
     if args.json:
-        atomic_write_text(args.json, json.dumps({"cells": cells, "races": [race_json(r) for r in records]}, indent=2) + "\n", stream=True)
+        atomic_write_text(args.json, json.dumps({"speed_model": args.speed_model, "cells": cells,
+                                                "races": [race_json(r) for r in records]}, indent=2) + "\n", stream=True)
     if keep:
         for path in plot_examples(records, args, Path(args.figures)):
             print(f"figure: {path}")

@@ -11,7 +11,7 @@ from app.race_plots import plot_grid
 from app.realtime.run import add_realtime_arguments, open_capture, plan_link, run_realtime, wants_realtime
 from fileio import atomic_write_text, check_output_path
 from race.roster import RosterError, RosterFileError, load_roster, parse_cars
-from race.setup import GRIDS, OPPONENTS, STARTS, RaceSetupError, RaceSpec
+from race.setup import GRIDS, OPPONENTS, SPEED_MODELS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
 from sim import Simulator
 from vehicles.link_capture import SimulatedLink
@@ -24,7 +24,8 @@ FLAGS = {"track": "--track", "car_params": "--car-params", "seed": "--seed", "la
          "start": "--start", "rd3g_top_speed_mps": "--rd3g-speed", "opponent_top_speed_mps": "--opponent-speed",
          "control_hz": "--control-hz", "control_period_s": "--control-hz", "raceline_ey_m": "--raceline-ey",
          "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects",
-         "roster": "--cars/--roster", "grid": "--grid", "game_players": "--game-players"}
+         "roster": "--cars/--roster", "grid": "--grid", "game_players": "--game-players",
+         "speed_model": "--speed-model"}
 
 
 def add_race_arguments(p) -> None:
@@ -35,6 +36,11 @@ def add_race_arguments(p) -> None:
     p.add_argument("--opponent", choices=OPPONENTS, default=RaceSpec.opponent)
     p.add_argument("--rd3g-speed", type=float, default=RaceSpec.rd3g_top_speed_mps, help="RD3G car's top speed (m/s)")
     p.add_argument("--opponent-speed", type=float, default=RaceSpec.opponent_top_speed_mps, help="opponent's top speed (m/s)")
+    p.add_argument("--speed-model", choices=SPEED_MODELS, default=RaceSpec.speed_model,
+                   help="how the two cars' speeds differ: limits = the slower car has a lower hard top speed, "
+                        "standing start (default); preference = the authors' code: one hard top speed (the "
+                        "higher one), soft speed references 1.1 / 1.0 m/s in the cost for the faster / slower "
+                        "car, rolling start at those speeds (docs/racing.md)")
     p.add_argument("--control-hz", type=float, default=RaceSpec.control_hz,
                    help=f"control rate (default {RaceSpec.control_hz:g} Hz)")
     p.add_argument("--raceline-ey", type=float, default=RaceSpec.raceline_ey_m, metavar="M",
@@ -111,7 +117,8 @@ def race_spec(args, seed: int, start: str, rd3g_speed: float, opponent_speed: fl
                     start=start, rd3g_top_speed_mps=rd3g_speed, opponent_top_speed_mps=opponent_speed,
                     control_hz=args.control_hz, raceline_ey_m=getattr(args, "raceline_ey", RaceSpec.raceline_ey_m),
                     max_time_s=max_time or None, sim_car_params=getattr(args, "sim_car_params", None),
-                    sim_effects=getattr(args, "sim_effects", "") or "")
+                    sim_effects=getattr(args, "sim_effects", "") or "",
+                    speed_model=getattr(args, "speed_model", RaceSpec.speed_model))
 
 
 def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1, max_time=None):
@@ -176,8 +183,13 @@ def run(args) -> int:
             capture.close()
     s = o.summary()
     if setup.roster is None:
+        rd3g, opp = setup.cars
+        speeds = ((f"({rd3g.top_speed_mps:g} m/s) vs {args.opponent} ({opp.top_speed_mps:g} m/s)")
+                  if rd3g.reference_speed_mps is None else
+                  (f"(reference {rd3g.reference_speed_mps:g} m/s) vs {args.opponent} (reference "
+                   f"{opp.reference_speed_mps:g} m/s), top speed {rd3g.top_speed_mps:g} m/s both"))
         print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, RD3G starts {args.start} "
-              f"({args.rd3g_speed} m/s) vs {args.opponent} ({args.opponent_speed} m/s), control {s['control_period_ms']:.1f} ms")
+              f"{speeds}, control {s['control_period_ms']:.1f} ms")
     else:
         print(f"race: {setup.track.name}, {args.laps} lap(s), seed {args.seed}, {len(setup.cars)} cars, grid {setup.grid}: "
               + ", ".join(f"{c.name} ({c.planner}, {c.top_speed_mps:g} m/s)" for c in setup.cars)
