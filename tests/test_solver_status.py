@@ -113,7 +113,7 @@ def test_a_window_rule_ends_the_attempt_where_its_definition_says(problem_args, 
         assert ruled.status == "stalled" and ruled.iterations == fire_at
         assert np.array_equal(ruled.residual_history, free.residual_history[:fire_at + 1])
     if ratio < 1e-3:
-        assert fire_at == window  # no iteration of a converging solve cuts ||r| a million-fold
+        assert fire_at == window  # no iteration of a converging solve cuts ||r|| a million-fold
 
 
 def test_numerical_error():
