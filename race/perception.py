@@ -121,7 +121,8 @@ class Perception:
         return out
 
     def _predictions(self, t_capture: float):
-        """ROI centres of the tracked cars at the capture time; None for a full-frame search (every
+        """Predicted (x, y, heading) of the tracked cars at the capture time (the tracker searches around them
+        and aligns an undecodable marker from them); None for a full-frame search (every
         ``lost_search_every`` frames while a car is not tracked)."""
         filters = self.estimator.filters
         tracked = {c.marker_id: filters[c.marker_id] for c in self.cars
@@ -131,7 +132,7 @@ class Perception:
         if len(tracked) < len(self.cars) and self._frames_since_full >= self.lost_search_every:
             self._frames_since_full = 0
             return None
-        return {m: tuple(f.predict_to(t_capture).vector[:2]) for m, f in tracked.items()}
+        return {m: tuple(f.predict_to(t_capture).vector[:3]) for m, f in tracked.items()}
 
 
 class TruthPerception:
