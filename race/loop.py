@@ -189,6 +189,7 @@ class LoopOutcome:
     frames_dropped: int = 0
     render_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tracking_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tracking_heading_error_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
     detection_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     events: list = field(default_factory=list)   # (race time s, kind, text)
     control_period_ms: float = 0.0
@@ -228,6 +229,8 @@ class LoopOutcome:
             "render_ms_p50": pct(self.render_ms, 50), "render_ms_p99": pct(self.render_ms, 99),
             "tracking_error_mm_median": pct(self.tracking_error_mm, 50),
             "tracking_error_mm_p95": pct(self.tracking_error_mm, 95),
+            "tracking_heading_error_deg_median": pct(self.tracking_heading_error_deg, 50),
+            "tracking_heading_error_deg_p95": pct(self.tracking_heading_error_deg, 95),
             "detection_error_mm_median": pct(self.detection_error_mm, 50),
             "events": kinds, "recording": self.recording,
             "load_average": list(self.load_average) if self.load_average else None,
@@ -306,6 +309,7 @@ class RaceLoop:
         self.plan_failures = 0
         self.render_ms: list[float] = []
         self.tracking_error_mm: list[float] = []
+        self.tracking_heading_error_deg: list[float] = []
         self.detection_error_mm: list[float] = []
         self.dropped = 0
         self.winner_seen: str | None = None
@@ -594,6 +598,8 @@ class RaceLoop:
             if f is not None and perceived.results[m.marker_id].accepted:
                 err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
                 self.tracking_error_mm.append(err)
+                self.tracking_heading_error_deg.append(
+                    abs(math.degrees(math.remainder(f.x[2] - truth[2], 2 * math.pi))))
                 if self.rec is not None:
                     self.rec.scalar(f"tracking/{name}/error_mm", k, t_cap, err)
 
@@ -775,6 +781,7 @@ class RaceLoop:
                           command_lag_ms=self._command_lags((summary or {}).get("applied_changes") or []),
                           plan_failures=self.plan_failures, frames=self.frames,
                           render_ms=np.array(self.render_ms), tracking_error_mm=np.array(self.tracking_error_mm),
+                          tracking_heading_error_deg=np.array(self.tracking_heading_error_deg),
                           detection_error_mm=np.array(self.detection_error_mm), events=list(self.events),
                           control_period_ms=1e3 * self.cfg.period_s, load_average=os.getloadavg())
         if summary:

@@ -243,3 +243,6 @@ def test_hil_race_with_the_realistic_camera_and_a_glued_marker(tmp_path, capsys)
     assert summary["end_reason"] == "time_limit"
     assert 1.0 < summary["tracking_error_mm_median"] < 10.0
     assert summary["tracking_error_mm_p95"] < 20.0
+    # the car file's 1.5 degree marker yaw is subtracted: the heading error stays well below it
+    assert summary["tracking_heading_error_deg_median"] < 0.75
+    assert summary["tracking_heading_error_deg_p95"] >= summary["tracking_heading_error_deg_median"]

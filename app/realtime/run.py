@@ -433,6 +433,7 @@ def _print(o, setup, args, mode, opponent) -> None:
           f"render p50 {f(s['render_ms_p50'])} ms (not in the loop budget)")
     if s["tracking_error_mm_median"] is not None:
         print(f"tracking error vs simulator truth: median {s['tracking_error_mm_median']:.2f} mm, "
-              f"p95 {s['tracking_error_mm_p95']:.2f} mm")
+              f"p95 {s['tracking_error_mm_p95']:.2f} mm; heading median {s['tracking_heading_error_deg_median']:.2f} "
+              f"deg, p95 {s['tracking_heading_error_deg_p95']:.2f} deg")
     print(f"events: {s['events']}; load average {', '.join(f'{v:.2f}' for v in s['load_average'] or [])}")
     print(f"telemetry: {o.recording}")
