@@ -361,7 +361,9 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
     world = HilWorld(spec)
     try:
         info = world.info
-        camera = spec.camera_profile.estimated(world.camera)  # the lens as calibrated, not the renderer's truth
+        # The lens as calibrate-camera estimates it from rendered board views (realistic profile; cached), not
+        # the renderer's truth.
+        camera = spec.camera_profile.with_seed(spec.seed).estimated(world.camera)
         fixed_ids = ()
         note = "calibration: true synthetic camera (no fixed markers for this track)"
         calibration = CameraCalibration(camera, dictionary=setup.car.marker.dictionary)
@@ -378,6 +380,8 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
             err = 1e3 * float(np.linalg.norm(calibration.camera.position - camera.position))
             note = (f"calibration from {len(calibration.markers_used)} fixed markers: reprojection rms "
                     f"{calibration.reprojection_rms_px:.3f} px, camera position error {err:.1f} mm")
+            if spec.camera_profile.calibration_views:
+                note += f"; intrinsics from {spec.camera_profile.calibration_views} rendered ChArUco views"
         mk = setup.car.marker
         tracker = ArucoTracker(calibration, info["marker_size_m"], info["marker_height_m"],
                                car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9,
