@@ -376,7 +376,7 @@ class ArucoTracker:
     car file's marker.offset_forward_m, offset_left_m, yaw_rad), subtracted to give the reference point.
     ``marker_height_m``: marker height above the track; ``correct_height=False`` maps the
     corners on the track plane instead (only for comparison, it is biased).
-    ROI mode: :meth:`process` with ``predictions`` ({id: (x, y)}) searches only squares of
+    ROI mode: :meth:`process` with ``predictions`` ({id: (x, y)} or {id: (x, y, heading)}) searches only squares of
     ``roi_radius_m`` around them, with a full-frame search every ``full_search_every`` frames
     to pick up new cars.
 
