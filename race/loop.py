@@ -502,7 +502,7 @@ class RaceLoop:
         t0 = self._stage("plan", t0, times)
         sent = self._command_stage(k, start, deadline, commands, sent)
         t0 = self._stage("command", t0, times)
-        answer = self.world.observe(t_race, perceived.states)
+        answer = self.world.observe(self.race_time(t_plan), perceived.states)  # the states are at t_plan
         seen = packet if packet.truth is not None and packet.t_race is not None else answer
         truth = None if seen.truth is None else {name: seen.truth[i] for i, name in enumerate(self.names)}
         self.recording.tick(k, t_race, times=times, stats=self.ticks, perceived=perceived,
