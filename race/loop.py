@@ -3,7 +3,9 @@
 One loop for every mode; only the world behind it differs: the pure simulation
 (``race.simulation.SimWorld`` on a ``SimulatedClock``, true states as the observation, lock-step
 timing: ``plan_ticks = 0``), the hardware-in-the-loop simulation (``--hil``, ``race.hil.HilWorld``) and
-real hardware (``--camera``, ``app.realtime.hardware.CameraFeed``), both in real time.
+real hardware (``--camera``, ``app.realtime.hardware.CameraFeed`` in ``race.feed_world.FeedWorld``),
+both in real time. The loop's parts are interfaces (race.world: world, link, perception, planners,
+clock); its statistics are race.loop_stats, its recording race.loop_recording.
 
 * Tick k starts at t_go + k T (T = 1 / rate_hz) and must issue its command by t_go + (k+1) T (its
   deadline). Every stage is timed. A tick that starts more than a period late skips the ticks it
@@ -21,7 +23,8 @@ real hardware (``--camera``, ``app.realtime.hardware.CameraFeed``), both in real
   ticks for the instant t_plan = its tick + ``plan_latency_s`` (plan_ticks periods + command_delay_s)
   when its command will act; the plan is applied at tick k + plan_ticks, not earlier, and its first
   control is held (zero-order hold) until the next plan is due. The commanded cars are predicted to
-  t_plan through the controls the loop has sent them (``PlanJob.in_flight``). With plan_ticks = 0
+  t_plan through the controls the loop has sent them (race.command_history: the loop writes, the
+  estimator and the planners read; ``PlanJob.in_flight``). With plan_ticks = 0
   the job is submitted before the tick's plan is chosen, so a synchronous runner
   (``race.planning.SyncPlanRunner``, the simulated race) applies the plan of a tick's observation at
   that tick.
@@ -156,7 +159,8 @@ class SimulatedDeadlineMonitor:
 
 @dataclass
 class LoopOutcome:
-    reason: str                                  # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
+    # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
+    reason: str
     mode: str
     winner: str | None = None
     lap_times_s: dict = field(default_factory=dict)
@@ -388,8 +392,8 @@ class RaceLoop:
         for c in self.commanded:  # on the grid: at rest and neutral until tick 0's command acts
             self.commands.record(c.name, t - 1.0, self.planners.executed_control(c.name, None, 0.0))
         self.world.go(self.t_go)
-        self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
-                    t_race=0.0)
+        self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, "
+                             f"planning {self.cfg.plan_hz:g} Hz)", t_race=0.0)
 
     def _job(self, k: int, t_plan: float, states: dict) -> PlanJob:
         """A planning job with the commanded cars' last measured poses and the commands sent so far."""

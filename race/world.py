@@ -1,7 +1,9 @@
 """The interfaces the race loop runs against (docs/race-stack.md): what it observes of the world, the
 parts it drives, and time. The simulated world (``race.simulation.SimWorld``), the HIL world
-(``race.hil``), the hardware camera feed (``app.realtime.hardware``) and the tests' fakes implement
-them; the loop knows nothing else.
+(``race.hil``), the hardware camera feed (``app.realtime.hardware``, in ``race.feed_world.FeedWorld``)
+and the tests' fakes implement them; the loop knows nothing else. Perception (:class:`Perceiver`) sees
+the sensors only as timed poses per car (:class:`Observation`, from any :class:`PoseSource`: camera
+markers, motion capture).
 
 Time is injected: :class:`MonotonicClock` for real time (HIL, hardware); :class:`SimulatedClock`
 (the pure simulation, the fake-clock tests) advances at once on ``sleep``, so the loop runs as fast
@@ -22,12 +24,14 @@ class WorldPacket:
     poll."""
 
     frame: object | None = None              # tracking.camera.Frame
-    truth: np.ndarray | None = None          # (2, 6) true states at the frame's capture time (HIL) or at the poll (simulation)
+    # (n cars, 6) true states, roster order, at the frame's capture time (HIL) or at the poll (simulation);
+    # race.feed_world.FeedWorld's answer: the perceived states (NaN rows: cars without a state)
+    truth: np.ndarray | None = None
     t_race: float | None = None              # race time of ``truth``
     t_truth: float | None = None             # clock time of ``truth`` (simulation: race.perception.TruthPerception)
     render_ms: list[float] = field(default_factory=list)
     events: list[tuple] = field(default_factory=list)   # (race time s, kind, text)
-    winner: str | None = None                # the world's own referee (HIL simulator) decided the race
+    winner: str | None = None                # the world's own referee decided the race
     box_corrupt: int = 0                     # HIL: frames the transmitter box rejected so far
     box_failsafe_events: int = 0
     dropped: int = 0
@@ -163,8 +167,8 @@ class PoseSource(Protocol):
         the reading counts as taken (:meth:`read` returns its poses)."""
 
     def read(self, packet: WorldPacket, predictions: dict[str, tuple[float, float]] | None) -> Observation:
-        """The poses of the reading :meth:`next_reading` announced. ``predictions``: car name -> (x, y) expected at the reading's time
-        (the tracked cars); None: search for every car."""
+        """The poses of the reading :meth:`next_reading` announced. ``predictions``: car name -> (x, y)
+        expected at the reading's time (the tracked cars); None: search for every car."""
 
 
 class Perceiver(Protocol):
