@@ -50,7 +50,7 @@ from race.config import STAGES, FaultSpec, LoopConfig
 from race.faults import FailingPlanners, NanStateEstimator
 from race.feed_world import FeedWorld
 from race.loop_recording import LoopRecording, NoRecording
-from race.loop_stats import PlannerErrorRecord, PlanStats, TickStats, TrackingStats
+from race.loop_stats import FeedStats, PlannerErrorRecord, PlanStats, TickStats, TrackingStats
 from race.perception import Perception
 from race.planning import PlanJob, PlannerWorker, PlanResult, planner_errors
 from race.safety import SafetyHolds
@@ -299,8 +299,7 @@ class RaceLoop:
         self.planning = PlanStats({name: self.planner_kinds.get(name) for name in self.names})
         self.tracking = TrackingStats()
         self._last_sent: dict[str, tuple[float, float]] = {}
-        self.render_ms: list[float] = []
-        self.dropped = 0
+        self.feed_stats = FeedStats()
         self.winner_seen: str | None = None
 
     # ------------------------------------------------------------------ helpers
@@ -481,8 +480,7 @@ class RaceLoop:
         except RuntimeError as exc:
             self._event("world_error", str(exc).splitlines()[0])
             return "world_error"
-        self.render_ms.extend(packet.render_ms)
-        self.dropped = max(self.dropped, packet.dropped)
+        self.feed_stats.polled(packet)
         if self._world_report(packet):  # the world's referee ended the race
             return "finished"
         if t_race >= self.setup.max_time_s - CLOCK_ROUNDING_S:  # nothing more is planned
@@ -653,10 +651,12 @@ class RaceLoop:
                           command_lag_ms=plans.command_lags(summary.applied_changes if summary else [],
                                                             self.cfg.plan_latency_s),
                           plan_failures=plans.failures, frames=self.frames,
-                          render_ms=np.array(self.render_ms), tracking_error_mm=np.array(tracking.tracking_error_mm),
+                          render_ms=np.array(self.feed_stats.render_ms), frames_dropped=self.feed_stats.frames_dropped,
+                          tracking_error_mm=np.array(tracking.tracking_error_mm),
                           detection_error_mm=np.array(tracking.detection_error_mm), events=list(self.events),
                           control_period_ms=1e3 * self.cfg.period_s, load_average=os.getloadavg(),
-                          planners=dict(self.planner_kinds), recording=None if self.rec is None else str(self.rec.path))
+                          planners=dict(self.planner_kinds),
+                          recording=None if self.rec is None else str(self.rec.path))
         if summary is not None:
             out.winner = summary.winner
             out.lap_times_s = summary.lap_times_s

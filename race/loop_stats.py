@@ -1,7 +1,8 @@
 """Statistics of the race loop (race.loop.RaceLoop), kept apart from its control flow: tick and stage
 timing with deadline misses (:class:`TickStats`), the planners' solves, fallbacks, failures and
-latencies (:class:`PlanStats`) and the HIL tracking errors against the simulator's truth
-(:class:`TrackingStats`). The loop feeds them; race.loop.LoopOutcome reports them."""
+latencies (:class:`PlanStats`), the HIL tracking errors against the simulator's truth
+(:class:`TrackingStats`) and the world's frames (:class:`FeedStats`). The loop feeds them;
+race.loop.LoopOutcome reports them."""
 from __future__ import annotations
 
 import math
@@ -51,6 +52,19 @@ class TickStats:
 
     def commanded(self, start: float, t_cmd: float) -> None:
         self.busy_ms.append(1e3 * (t_cmd - start))
+
+
+class FeedStats:
+    """What the world reports of its frames per poll: render times (HIL: outside the loop's budget) and
+    the frames it dropped so far (the world's summary has the final counts; these stand in without one)."""
+
+    def __init__(self) -> None:
+        self.render_ms: list[float] = []
+        self.frames_dropped = 0
+
+    def polled(self, packet) -> None:
+        self.render_ms.extend(packet.render_ms)
+        self.frames_dropped = max(self.frames_dropped, packet.dropped)
 
 
 class PlanStats:
