@@ -6,7 +6,6 @@ the planners read the controls from a car's last measured pose to their planning
 from __future__ import annotations
 
 import bisect
-import threading
 from typing import Callable
 
 KEEP_S = 1.0
@@ -31,23 +30,23 @@ def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, floa
 
 class CommandHistory:
     """Per car, [(t_effect, a, delta), ...] with a new entry only when the control changes. A car whose
-    command has no planning-model control (pure pursuit) has an empty history: nothing to predict with."""
+    command has no planning-model control (pure pursuit) has an empty history: nothing to predict with.
+    Written, read by the estimator and snapshotted in the loop's thread; a planner thread reads only its
+    job's snapshot."""
 
     def __init__(self, logs: dict | None = None) -> None:
         self._logs: dict[str, list[tuple[float, float, float]]] = logs if logs is not None else {}
-        self._lock = threading.Lock()  # the planner thread takes snapshots while the loop writes
 
     def record(self, name: str, t_effect: float, control: tuple[float, float] | None) -> None:
         """Car ``name`` executes ``control`` from ``t_effect`` on (None: not a model control)."""
-        with self._lock:
-            log = self._logs.setdefault(name, [])
-            if control is None:
-                log.clear()
-                return
-            if not log or log[-1][1:] != control:
-                log.append((t_effect, *control))
-            while len(log) > 1 and log[1][0] < t_effect - KEEP_S:
-                log.pop(0)
+        log = self._logs.setdefault(name, [])
+        if control is None:
+            log.clear()
+            return
+        if not log or log[-1][1:] != control:
+            log.append((t_effect, *control))
+        while len(log) > 1 and log[1][0] < t_effect - KEEP_S:
+            log.pop(0)
 
     def has(self, name: str) -> bool:
         """The loop has commanded car ``name`` (its history exists, perhaps empty)."""
@@ -68,5 +67,4 @@ class CommandHistory:
 
     def snapshot(self) -> "CommandHistory":
         """A copy that later records do not change (a planning job's view of what was sent)."""
-        with self._lock:
-            return CommandHistory({name: list(log) for name, log in self._logs.items()})
+        return CommandHistory({name: list(log) for name, log in self._logs.items()})
