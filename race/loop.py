@@ -247,8 +247,8 @@ class RaceLoop:
     is wrapped in race.feed_world.FeedWorld, which referees the perceived states. ``link`` drives the
     cars. ``perception`` (race.world.Perceiver) defaults to race.perception.Perception(tracker,
     estimator) on the loop's command history ``commands`` (race.command_history.CommandHistory: the loop
-    writes what it sends, the estimator and the planners read it; an injected Perception must share
-    it). ``faults`` are injected by wrapping the estimator and the planners (race.faults); ``clock``
+    writes what it sends, the estimator and the planners read it; default: an injected perception's
+    own ``commands``, else a new one). ``faults`` are injected by wrapping the estimator and the planners (race.faults); ``clock``
     defaults to real time, ``worker_factory(planners, clock)`` to a PlannerWorker thread
     (race.planning.SyncPlanRunner plans in the loop's thread) and ``monitor_factory(on_miss, clock)`` to
     the DeadlineMonitor thread. Statistics: race.loop_stats; recording: race.loop_recording."""
@@ -261,7 +261,9 @@ class RaceLoop:
         self.setup, self.cfg, self.feed = setup, config, feed
         self.link, self.cars, self.mode = link, cars, mode
         self.clock = clock if clock is not None else MonotonicClock()
-        self.commands = commands if commands is not None else CommandHistory()
+        if commands is None:  # an injected Perception brings the history its estimator reads
+            commands = getattr(perception, "commands", None) or CommandHistory()
+        self.commands = commands
         self.faults = tuple(faults)
         if any(f.kind == "nan_state" for f in self.faults):
             estimator = NanStateEstimator(estimator, self.faults, {c.name: c.marker_id for c in cars}, self.race_time,

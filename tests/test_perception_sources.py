@@ -77,7 +77,7 @@ def mocap_loop(setup):
     perception = Perception(None, MultiCarEstimator(), CARS, LoopConfig().lost_search_every, commands=commands,
                             source=source)
     loop = RaceLoop(setup=setup, config=LoopConfig(), feed=world, link=link, planners=Planners(CARS), cars=CARS,
-                    perception=perception, commands=commands, mode="hardware", clock=clock,
+                    perception=perception, mode="hardware", clock=clock,
                     worker_factory=SyncPlanRunner, monitor_factory=SimulatedDeadlineMonitor)
     original = loop._cold_start
 
@@ -86,6 +86,7 @@ def mocap_loop(setup):
         world.t_go = loop.t_go
 
     loop._cold_start = cold_start
+    assert loop.commands is commands  # the loop writes the history the perception's estimator reads
     return loop, world, source, link
 
 
