@@ -39,7 +39,7 @@ from race.commands import physical_command
 from race.config import FaultSpec, lower_realtime_priority
 from race.referee import Referee
 from race.roster import two_car_roster
-from race.world import WorldPacket
+from race.world import WorldPacket, WorldSummary
 from sim import Simulator
 from sim.camera import CarAppearance, CarPose, SyntheticCamera, TrackDrawing, overhead_camera
 from sim.camera_profile import CameraProfile, DelayedDelivery
@@ -576,18 +576,18 @@ class _World:
         names = self.spec.names
         order = [names[i] for i in status.finish_order]
         lap_times = {name: list(status.lap_times[i]) for i, name in enumerate(names)}
-        summary = {
-            "winner": None if status.winner is None else names[status.winner],
-            "lap_times_s": lap_times, "finish_order": order, "results": self.referee.results(order, lap_times, self.spec.laps),
-            "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
-            "race_time_s": self.sim.time,
-            "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(names)},
-            "frames_rendered": self.rendered, "frames_dropped": self.dropped,
-            "render_ms": np.array(self.render_ms, dtype=np.float32),
-            "applied_changes": self.applied_changes,
-            "box": box_summary,
-            "events": (self._pending["events"] if self._pending else []) + self.events,
-        }
+        summary = WorldSummary(
+            winner=None if status.winner is None else names[status.winner],
+            lap_times_s=lap_times, finish_order=order, results=self.referee.results(order, lap_times, self.spec.laps),
+            min_gap_m=float(self.referee.min_gap_m), collisions=list(self.referee.collisions),
+            race_time_s=self.sim.time,
+            off_track={name: int(status.off_track_count[i]) for i, name in enumerate(names)},
+            frames_rendered=self.rendered, frames_dropped=self.dropped,
+            render_ms=np.array(self.render_ms, dtype=np.float32),
+            applied_changes=self.applied_changes,
+            box=box_summary,
+            events=(self._pending["events"] if self._pending else []) + self.events,
+        )
         self.conn.send(("summary", summary))
         self.shm.close()
 
@@ -616,7 +616,7 @@ class HilWorld:
         self.process.start()
         for end in (child, box_world_end, box_end):
             end.close()
-        self.summary: dict | None = None
+        self.summary: WorldSummary | None = None
         self._closed = False
         try:
             if not self.conn.poll(start_timeout_s):
@@ -662,7 +662,11 @@ class HilWorld:
             packet.t_race = newest["t_race"]
         return packet
 
-    def close(self) -> dict | None:
+    def observe(self, t_race: float, states: dict) -> WorldPacket:
+        """Nothing to add: the world process judges the race on its true states (race.world.World)."""
+        return WorldPacket()
+
+    def close(self) -> WorldSummary | None:
         """Stop the world; returns its race summary (None if it could not be collected)."""
         if self._closed:
             return self.summary

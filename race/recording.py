@@ -66,6 +66,7 @@ class RaceRecorder:
 
         self.rr = rr
         self.path = Path(path)
+        self.realtime = realtime  # loop timing is recorded (race.loop_recording)
         check_output_path(self.path)  # a regular file (a link to one) or new; Rerun writes it as the race goes
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         self.rec.save(str(self.path), default_blueprint=race_blueprint(car_names, realtime=realtime))

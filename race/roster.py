@@ -22,6 +22,9 @@ PLANNERS = ("rd3g", "mpc", "pursuit", "human")
 MIN_CARS, MAX_CARS = 2, 6
 # Top speeds (m/s) by planner when the roster gives none: RaceSetup's defaults of the two-car race
 # (RD3G 2.0, the opponent 1.8).
+# Every speed of a car (top, reference, start): far above a 1/28 car's few m/s; a planner's grids grow
+# with it (--rd3g-speed 1e6 hung the race, a roster's 1e308 overflowed an array).
+MAX_SPEED_MPS = 20.0
 DEFAULT_TOP_SPEED_MPS = {"rd3g": 2.0, "mpc": 1.8, "pursuit": 1.8, "human": 1.8}
 
 
@@ -82,14 +85,14 @@ def make_roster(cars, max_cars: int = MAX_CARS) -> tuple[RosterCar, ...]:
         if c.car_params is not None and (not isinstance(c.car_params, str) or not c.car_params.strip()):
             raise RosterError(label, "car_params", f"must be a car file name or path, got {c.car_params!r}")
         speed = DEFAULT_TOP_SPEED_MPS[c.planner] if c.top_speed_mps is None else c.top_speed_mps
-        if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not (math.isfinite(speed) and speed > 0):
-            raise RosterError(label, "top_speed_mps", f"must be a positive number (m/s), got {speed!r}")
+        if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not 0 < speed <= MAX_SPEED_MPS:
+            raise RosterError(label, "top_speed_mps", f"must be a number in (0, {MAX_SPEED_MPS:g}] m/s, got {speed!r}")
         ref, v0 = c.reference_speed_mps, c.start_speed_mps
         if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float))
-                                or not (math.isfinite(ref) and ref > 0)):
-            raise RosterError(label, "reference_speed_mps", f"must be a positive number (m/s), got {ref!r}")
-        if isinstance(v0, bool) or not isinstance(v0, (int, float)) or not (math.isfinite(v0) and v0 >= 0):
-            raise RosterError(label, "start_speed_mps", f"must be a non-negative number (m/s), got {v0!r}")
+                                or not 0 < ref <= MAX_SPEED_MPS):
+            raise RosterError(label, "reference_speed_mps", f"must be a number in (0, {MAX_SPEED_MPS:g}] m/s, got {ref!r}")
+        if isinstance(v0, bool) or not isinstance(v0, (int, float)) or not 0 <= v0 <= MAX_SPEED_MPS:
+            raise RosterError(label, "start_speed_mps", f"must be a number in [0, {MAX_SPEED_MPS:g}] m/s, got {v0!r}")
         out.append(dataclasses.replace(c, top_speed_mps=float(speed)))
     for f, hi in (("marker_id", 999), ("radio_id", 255), ("start_slot", len(cars) - 1)):
         taken = {getattr(c, f) for c in out}
@@ -133,9 +136,9 @@ def _schema() -> Table:
     car = table_from_dataclass(RosterCar, overrides={
         "name": String(nonempty=True, max_len=32), "planner": String(choices=PLANNERS),
         "car_params": String(nonempty=True), "marker_id": Number(integer=True, ge=0, le=999),
-        "radio_id": Number(integer=True, ge=0, le=255), "top_speed_mps": Number(gt=0),
-        "start_slot": Number(integer=True, ge=0, le=MAX_CARS - 1), "reference_speed_mps": Number(gt=0),
-        "start_speed_mps": Number(ge=0)})
+        "radio_id": Number(integer=True, ge=0, le=255), "top_speed_mps": Number(gt=0, le=MAX_SPEED_MPS),
+        "start_slot": Number(integer=True, ge=0, le=MAX_CARS - 1), "reference_speed_mps": Number(gt=0, le=MAX_SPEED_MPS),
+        "start_speed_mps": Number(ge=0, le=MAX_SPEED_MPS)})
     return Table({"car": FieldSpec(ListOf(car, min_len=MIN_CARS, max_len=MAX_CARS))}, "roster")
 
 

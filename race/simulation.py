@@ -39,7 +39,7 @@ from race.recording import SETUP_ENTITY, RaceRecorder
 from race.referee import CarResult, CollisionRecord, Referee
 from race.setup import RaceSetup, start_states
 from race.summary import fleet_keys, race_summary
-from race.world import CLOCK_ROUNDING_S, SimulatedClock, WorldPacket
+from race.world import CLOCK_ROUNDING_S, SimulatedClock, WorldPacket, WorldSummary
 from sim import Simulator
 from vehicles.protocol import check_command_value
 
@@ -198,16 +198,19 @@ class SimWorld:
                 self.progress(self.steps)
             self.steps += 1
 
-    def close(self) -> dict:
+    def observe(self, t_race: float, states: dict) -> WorldPacket:
+        """Nothing to add: the race is judged on the simulator's true states (race.world.World)."""
+        return WorldPacket()
+
+    def close(self) -> WorldSummary:
         """The race summary the loop takes (as from race.hil.HilWorld.close)."""
         status = self.sim.race_status()
         order, results = self.results()
-        return {"winner": None if status.winner is None else self.names[status.winner],
-                "finish_order": order, "results": results,
-                "lap_times_s": {name: list(status.lap_times[i]) for i, name in enumerate(self.names)},
-                "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
-                "race_time_s": self.sim.time,
-                "off_track": self.off_track(), "frames_dropped": 0, "render_ms": np.zeros(0), "events": []}
+        return WorldSummary(winner=None if status.winner is None else self.names[status.winner],
+                            finish_order=order, results=results,
+                            lap_times_s={name: list(status.lap_times[i]) for i, name in enumerate(self.names)},
+                            min_gap_m=float(self.referee.min_gap_m), collisions=list(self.referee.collisions),
+                            race_time_s=self.sim.time, off_track=self.off_track())
 
     def off_track(self) -> dict[str, int]:
         """Off-track excursions per car so far."""

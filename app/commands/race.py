@@ -126,7 +126,10 @@ def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: f
     try:
         return race_spec(args, seed, start, rd3g_speed, opponent_speed, laps, max_time).load()
     except RaceSetupError as exc:
-        raise UserError(f"{FLAGS.get(exc.field, exc.field)}: {exc.message}") from None
+        flag = FLAGS.get(exc.field, exc.field)
+        if exc.field == "roster" and getattr(args, "roster", None):  # a car of the roster file: name the file
+            flag = f"--roster: {args.roster}"
+        raise UserError(f"{flag}: {exc.message}") from None
 
 
 def _simulated_link(args, setup):
