@@ -50,6 +50,7 @@ from race.perception import Perception
 from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between, planner_errors
 from race.recording import record_car, record_plan
 from race.referee import Referee, event_text
+from race.operator import END_REASON as OPERATOR_STOP, OperatorInput, OperatorStop
 from race.safety import SafetyHolds
 from race.summary import fleet_keys, percentile, race_summary
 from race.world import (CLOCK_ROUNDING_S, Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, SimulatedClock,
@@ -160,7 +161,7 @@ class PlannerErrorRecord:
 
 @dataclass
 class LoopOutcome:
-    reason: str                                  # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
+    reason: str                                  # finished, time_limit, held_neutral, serial_fault, interrupted, operator_stop, world_error
     mode: str
     winner: str | None = None
     lap_times_s: dict = field(default_factory=dict)
@@ -247,12 +248,14 @@ class RaceLoop:
     world's true states, no tracker or estimator). ``faults`` are injected by wrapping the estimator
     and the planners (race.faults); ``clock`` defaults to real time, ``worker_factory(planners, clock)``
     to a PlannerWorker thread (race.planning.SyncPlanRunner plans in the loop's thread) and
-    ``monitor_factory(on_miss, clock)`` to the DeadlineMonitor thread."""
+    ``monitor_factory(on_miss, clock)`` to the DeadlineMonitor thread. ``operator`` (race.operator) is
+    polled once a tick for the operator's stop key (None: no stop key, the simulated race)."""
 
     def __init__(self, *, setup, config: LoopConfig, feed: Feed, link: Link, planners: Planners,
                  cars: list[CarBinding], tracker: Tracker | None = None, estimator=None, perception=None,
                  recorder=None, faults: tuple[FaultSpec, ...] = (), world: World | None = None, mode: str = "hil",
-                 clock: Clock | None = None, worker_factory=None, monitor_factory=DeadlineMonitor) -> None:
+                 clock: Clock | None = None, worker_factory=None, monitor_factory=DeadlineMonitor,
+                 operator: OperatorInput | None = None) -> None:
         self.setup, self.cfg, self.feed = setup, config, feed
         self.link, self.cars, self.rec, self.world, self.mode = link, cars, recorder, world, mode
         self.clock = clock if clock is not None else MonotonicClock()
@@ -268,6 +271,7 @@ class RaceLoop:
         self.perception = perception if perception is not None else Perception(tracker, estimator, cars,
                                                                                 config.lost_search_every)
         self.safety = SafetyHolds(self._neutral_now, self._event, config.stop_after_hold_s)
+        self.operator_stop = None if operator is None else OperatorStop(operator, self._neutral_now, self._event)
         self.track = setup.track
         self.car = setup.car
         self.by_marker = {c.marker_id: c for c in cars}
@@ -511,6 +515,8 @@ class RaceLoop:
             if prev_start is not None:
                 self.period_ms.append(1e3 * (start - prev_start))
             prev_start = start
+            if self.operator_stop is not None and self.operator_stop.check(start - self.t_go):
+                return OPERATOR_STOP
             self.monitor.arm(self.k, t_k + T)
             end_reason = self._tick(start, t_k + T)
             if end_reason:
