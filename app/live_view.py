@@ -2,7 +2,7 @@
 
 Everything is checked before the race starts (exit code 2 naming the flag): the URL's form, that a
 viewer answers there (a local one on the default port is started when none does and a display
-exists), that the port to serve on is free. docs/race-stack.md, "Live view and operator stop".
+exists), that the port to serve on is free. docs/racing.md, "Live view and operator stop".
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 
 
 def add_live_arguments(p) -> None:
-    g = p.add_argument_group("live view (docs/race-stack.md, \"Live view and operator stop\")")
+    g = p.add_argument_group("live view (docs/racing.md, \"Live view and operator stop\")")
     g.add_argument("--viewer", nargs="?", const=DEFAULT_VIEWER_URL, default=None, metavar="URL",
                    help=f"stream the recording to a Rerun viewer while it is written (the .rrd file stays "
                         f"complete); URL of the viewer's gRPC server (default {DEFAULT_VIEWER_URL}: a local "

@@ -1,4 +1,4 @@
-"""The operator's stop key of a real-time race (docs/race-stack.md, "Live view and operator stop").
+"""The operator's stop key of a real-time race (docs/racing.md, "Live view and operator stop").
 
 The loop asks :class:`OperatorStop` once a tick whether the operator asked to stop. The first time
 the input says so, every car is sent neutral at once and ``stop: operator stop key - all cars
