@@ -408,7 +408,9 @@ def test_hil_race_served_live_and_stopped_by_the_operator_key(tmp_path):
         printed = _read_until(race.stdout, "press space or Enter", 120)
         assert f"serving on port {port}" in printed
         client = served_copy(f"rerun+http://127.0.0.1:{port}/proxy", got)
-        time.sleep(4.0)  # the race starts (acquire, cold plan) and runs a few seconds
+        # the viewer sees the race while it runs: 2 s of loop ticks arrive before the operator stops it
+        wait_until(lambda: rows_by_entity(got).get(("/loop/busy_ms", False), 0) >= 120, 90,
+                   "the served viewer to receive 2 s of the race")
         os.write(master, b" ")
         assert race.wait(timeout=60) == 1, race.stderr.read().decode()  # stopped by the operator: not finished
         assert client.wait(timeout=30) == 0
@@ -421,7 +423,7 @@ def test_hil_race_served_live_and_stopped_by_the_operator_key(tmp_path):
         os.close(slave)
     assert restored
     s = json.loads(js.read_text())
-    assert s["end_reason"] == "operator_stop" and s["events"]["stop"] == 1 and 0.5 < s["race_time_s"] < 40
+    assert s["end_reason"] == "operator_stop" and s["events"]["stop"] == 1 and 2.0 < s["race_time_s"] < 40
     review = summarize(load_recording(out))  # a finished recording
     (stop,) = [e for e in review["events"] if e["kind"] == "stop"]
     assert "operator stop key" in stop["text"]
