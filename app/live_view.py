@@ -78,7 +78,8 @@ def _check_port_free(port: int) -> None:
         try:
             s.bind(("0.0.0.0", port))
         except OSError as exc:
-            raise UserError(f"--serve: port {port} is not free ({exc.strerror}); choose another with --serve PORT") from None
+            raise UserError(f"--serve: port {port} is not free ({exc.strerror}); "
+                            f"choose another with --serve PORT") from None
 
 
 def viewer_executable(flag: str, hint: str) -> str:
@@ -118,6 +119,6 @@ def announce(view: LiveView | None) -> None:
     if view.viewer_url is not None:
         print(f"live view: streaming to the Rerun viewer at {view.viewer_url}")
     if view.serve_port is not None:
-        print(f"live view: serving on port {view.serve_port}; watch with `rerun {view.serve_url(socket.gethostname())}` "
-              f"(or {view.serve_url('127.0.0.1')} on this machine)")
+        print(f"live view: serving on port {view.serve_port}; watch with "
+              f"`rerun {view.serve_url(socket.gethostname())}` (or {view.serve_url('127.0.0.1')} on this machine)")
 

@@ -46,11 +46,11 @@ import numpy as np
 from race.commands import link_command
 from race.config import STAGES, FaultSpec, LoopConfig
 from race.faults import FailingPlanners, NanStateEstimator
+from race.operator import END_REASON as OPERATOR_STOP, OperatorInput, OperatorStop
 from race.perception import Perception
 from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between, planner_errors
 from race.recording import record_car, record_plan
 from race.referee import Referee, event_text
-from race.operator import END_REASON as OPERATOR_STOP, OperatorInput, OperatorStop
 from race.safety import SafetyHolds
 from race.summary import fleet_keys, percentile, race_summary
 from race.world import (CLOCK_ROUNDING_S, Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, SimulatedClock,

@@ -1,15 +1,17 @@
 """The operator's stop key in the terminal: space or Enter stops a real-time race (race.operator).
 
-:class:`TerminalStopKey` is armed (``arm``, or as a context manager). On a terminal that this process owns in the foreground,
-it switches stdin to cbreak mode (keys arrive one at a time, not echoed; Ctrl-C still interrupts) and
-``poll()`` reads whatever was typed without blocking (``select`` with a zero timeout). Otherwise
-(stdin a pipe or a file, or the race started in the background, where changing the terminal mode
-would stop the process with SIGTTOU) it is a no-op that never stops the race.
+:class:`TerminalStopKey` is armed with ``arm`` (or as a context manager). On a terminal that this
+process owns in the foreground, it switches stdin to cbreak mode (keys arrive one at a time, not
+echoed; Ctrl-C still interrupts) and ``poll()`` reads whatever was typed without blocking
+(``select`` with a zero timeout). Otherwise (stdin a pipe or a file, or the race started in the
+background, where changing the terminal mode would stop the process with SIGTTOU) it is a no-op
+that never stops the race.
 
-The terminal's mode is restored on every way out: ``close`` (or leaving the ``with`` block) in a
-``finally`` (return, exception, Ctrl-C), interpreter exit (atexit) and SIGTERM (the handler restores, then hands the signal on to the
-previous handler, so the serial link's neutral-on-SIGTERM and the default exit still happen). Input
-typed before the race (type-ahead) is discarded when the key is armed.
+The terminal's mode is restored on every way out: ``close`` (or the end of the ``with`` block) in a
+``finally`` (return, exception, Ctrl-C), interpreter exit (atexit) and SIGTERM (the handler
+restores, then hands the signal on to the previous handler, so the serial link's neutral-on-SIGTERM
+and the default exit still happen). Input typed before the race (type-ahead) is discarded when the
+key is armed.
 """
 from __future__ import annotations
 
