@@ -42,6 +42,7 @@ from recording.integrity import rerun_executable
 from recording.live import DEFAULT_VIEWER_PORT, LiveView, viewer_address
 from test_loop_safety import CARS, T0, Link, Planners, Tracker, World, driving
 from test_loop_support import neutral_within
+from test_recording_blueprint import SIMULATION_VIEWS, blueprint_views
 from tracking.estimator import MultiCarEstimator
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -111,14 +112,6 @@ def rows_by_entity(path: Path) -> dict[tuple[str, bool], int]:
     return rows
 
 
-def blueprint_stores(path: Path) -> list:
-    import rerun as rr
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return rr.chunk.RrdReader(path).blueprints()
-
-
 # --------------------------------------------------------------------------- URLs and flags
 def test_viewer_url_forms():
     assert viewer_address("rerun+http://127.0.0.1:9876/proxy") == ("127.0.0.1", 9876)
@@ -180,8 +173,11 @@ def test_simulated_race_streams_to_a_viewer_and_records_the_same_file(tmp_path, 
     a, w = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("alone", "watched"))
     for key in ("winner", "lap_times_s", "min_gap_m", "collisions", "race_time_s"):
         assert a[key] == w[key]
-    # the viewer opens on the race layout; the file is a finished recording the review reads
-    assert blueprint_stores(got) and blueprint_stores(watched)
+    # the viewer opens on the race layout (the views of the file's blueprint); the file is finished
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the viewer's copy has no footer
+        views = blueprint_views(got)
+    assert views == blueprint_views(watched) == blueprint_views(alone) and set(views) == SIMULATION_VIEWS
     assert load_recording(watched).has("world/cars/rd3g/position")
 
 
