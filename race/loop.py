@@ -51,6 +51,7 @@ from race.faults import FailingPlanners, NanStateEstimator
 from race.feed_world import FeedWorld
 from race.loop_recording import LoopRecording, NoRecording
 from race.loop_stats import FeedStats, PlannerErrorRecord, PlanStats, TickStats, TrackingStats
+from race.operator import END_REASON as OPERATOR_STOP, OperatorInput, OperatorStop
 from race.perception import Perception
 from race.planning import PlanJob, PlannerWorker, PlanResult, planner_errors
 from race.safety import SafetyHolds
@@ -159,7 +160,7 @@ class SimulatedDeadlineMonitor:
 
 @dataclass
 class LoopOutcome:
-    # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
+    # finished, time_limit, held_neutral, serial_fault, interrupted, operator_stop, world_error
     reason: str
     mode: str
     winner: str | None = None
@@ -251,13 +252,16 @@ class RaceLoop:
     own ``commands``, else a new one). ``faults`` are injected by wrapping the estimator and the planners (race.faults); ``clock``
     defaults to real time, ``worker_factory(planners, clock)`` to a PlannerWorker thread
     (race.planning.SyncPlanRunner plans in the loop's thread) and ``monitor_factory(on_miss, clock)`` to
-    the DeadlineMonitor thread. Statistics: race.loop_stats; recording: race.loop_recording."""
+    the DeadlineMonitor thread. ``operator`` (race.operator) is polled once a tick for the operator's
+    stop key (None: no stop key, the simulated race). Statistics: race.loop_stats; recording:
+    race.loop_recording."""
 
     def __init__(self, *, setup, config: LoopConfig, feed: Feed, link: Link, planners: Planners,
                  cars: list[CarBinding], tracker: Tracker | None = None, estimator=None,
                  perception: Perceiver | None = None, recorder=None, faults: tuple[FaultSpec, ...] = (),
                  world: World | None = None, mode: str = "hil", clock: Clock | None = None, worker_factory=None,
-                 monitor_factory=DeadlineMonitor, commands: CommandHistory | None = None) -> None:
+                 monitor_factory=DeadlineMonitor, commands: CommandHistory | None = None,
+                 operator: OperatorInput | None = None) -> None:
         self.setup, self.cfg, self.feed = setup, config, feed
         self.link, self.cars, self.mode = link, cars, mode
         self.clock = clock if clock is not None else MonotonicClock()
@@ -280,6 +284,7 @@ class RaceLoop:
         self.recording = (LoopRecording(recorder, setup.car.geometry, config.image_log_every, config.image_downscale)
                           if recorder is not None else NoRecording())
         self.safety = SafetyHolds(self._neutral_now, self._event, config.stop_after_hold_s)
+        self.operator_stop = None if operator is None else OperatorStop(operator, self._neutral_now, self._event)
         self.track = setup.track
         self.car = setup.car
         self.commanded = [c for c in cars if c.name in planners.commanded]
@@ -453,6 +458,8 @@ class RaceLoop:
                 self.k += skipped
                 t_k = self.t_go + self.k * T
             self.ticks.tick_started(start)
+            if self.operator_stop is not None and self.operator_stop.check(start - self.t_go):
+                return OPERATOR_STOP
             self.monitor.arm(self.k, t_k + T)
             end_reason = self._tick(start, t_k + T)
             if end_reason:

@@ -250,11 +250,13 @@ def simulation_config(setup: RaceSetup) -> LoopConfig:
                       hold_on_planner_error=False)
 
 
-def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator) -> RaceOutcome:
+def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator,
+             live=None) -> RaceOutcome:
     """Simulate one race until a car completes `laps` laps (or max_time_s, or Ctrl-C: ``interrupted``)
     through the race loop (module doc). ``simulator_cls``: a Simulator subclass that perturbs how
     commands reach the cars (bench/race_perturbations.py, `race --link-capture`); ``progress(step)`` is
-    called after every control step."""
+    called after every control step; ``live`` (recording.live.LiveView) also streams the recording
+    to Rerun viewers."""
     track, car = setup.track, setup.car
     cars = sim_cars(setup)
     sim = simulator_cls(track, [setup.sim_car_file(i) for i in range(len(setup.cars))], effects=setup.sim_effects,
@@ -265,7 +267,7 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
     rec = None
     if telemetry_path:
         rec = RaceRecorder(telemetry_path, recording_id=f"race-seed{setup.seed}", background=False,
-                           car_names=setup.names, realtime=False)
+                           car_names=setup.names, realtime=False, live=live)
         rec.static_track(track)
         rec.static_document(SETUP_ENTITY, str(dataclasses.asdict(dataclasses.replace(
             setup, track=track.name, car=car.name, sim_car=None if setup.sim_car is None else setup.sim_car.name,

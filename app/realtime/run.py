@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import UserError
+from app.live_view import announce, live_view
 from app.realtime.hardware import CameraFeed
+from app.realtime.operator_key import TerminalStopKey
 from race.hil import HilWorld, WorldSpec
 from fileio import OutputFileError, atomic_write_text, check_output_path
 from race.config import LoopConfig, LoopConfigError, check_fault_cars, parse_fault
@@ -187,6 +189,7 @@ def _run_realtime(args, mode: str) -> int:
         if path:
             check_output_path(path, stream=stream)  # before the HIL processes or the hardware open
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
+    live = live_view(args)  # before anything opens: a viewer that cannot be reached is a usage error
     roster = race_roster(args, setup)
     try:
         check_fault_cars(faults, setup.names)
@@ -203,15 +206,20 @@ def _run_realtime(args, mode: str) -> int:
         parts = _open_hil(args, setup, cars, config, faults, link_plan)
     world, feed, tracker, estimator, link_port, note = parts
     recorder = loop = capture = None
+    stop_key = TerminalStopKey()
     try:
         planners = RacePlanners(setup, roster)
-        recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars])
+        recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars],
+                                live=live)
+        announce(live)
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults,
                                                                   planners={c.name: c.planner for c in roster}))
         recorder.static_car_colors([c.name for c in cars])
+        stop_key.arm()  # the terminal's mode is restored in the finally below (and on SIGTERM, at exit)
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
-                        planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
+                        planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode,
+                        operator=stop_key)
         commanded = [c.radio_id for c in cars if c.name in planners.commanded]
         capture = open_capture(args)
         link = SerialCarLink(link_port, baudrate=args.baud, rate_hz=link_plan.rate_hz, car_ids=commanded,
@@ -226,11 +234,14 @@ def _run_realtime(args, mode: str) -> int:
                              + (f", capture {capture.path}" if capture else ""), t_race=0.0)
         if note:
             loop._event("setup", note, t_race=0.0)
+        if stop_key.active:
+            print("operator stop: press space or Enter to stop the race (every car neutral at once)", flush=True)
         try:
             outcome = loop.run()
         except LoopError as exc:
             raise UserError(str(exc)) from None
     finally:
+        stop_key.close()
         if loop is None or loop.t_go is None:  # failed before the race: release what was opened
             if world is not None:
                 world.close()
@@ -240,6 +251,9 @@ def _run_realtime(args, mode: str) -> int:
             recorder.close()
         if capture is not None:
             capture.close()
+    if recorder.live_error:
+        print(f"warning: live view: the viewers did not get the whole race ({recorder.live_error}); "
+              f"the recording {out} is complete", file=sys.stderr)
     _print(outcome, setup, args, mode, opponent)
     if args.json:
         atomic_write_text(args.json, json.dumps(outcome.summary(), indent=2) + "\n", stream=True)
