@@ -285,7 +285,9 @@ def test_loop_stops_on_the_operator_key(track, car):
     o = loop.run()
     period = 1 / LoopConfig().rate_hz
     t_stop = math.ceil(1.0 / period - 1e-9) * period  # the first tick at or after the key
-    assert o.reason == "operator_stop" and o.race_time_s == pytest.approx(t_stop, abs=1e-9)
+    # hardware race time is the last instant the referee judged: the states of the tick before, at its t_plan
+    t_judged = t_stop - period + LoopConfig().plan_latency_s
+    assert o.reason == "operator_stop" and o.race_time_s == pytest.approx(t_judged, abs=1e-9)
     (t_event, text), = [(t, text) for t, kind, text in o.events if kind == "stop"]
     assert t_event == pytest.approx(t_stop, abs=1e-9) and "operator stop key" in text
     # neutral at once at the stop tick (and again at shutdown); driving until the tick before, nothing after
