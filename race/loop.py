@@ -714,7 +714,7 @@ class RaceLoop:
                     # the measured heading too: model identification (docs/sysid.md) needs whole poses
                     rec.scalar(f"cars/{self.by_marker[m.marker_id].name}/detection_heading_rad", k,
                                self.race_time(frame.t_capture_s), m.heading)
-            if self.frames % self.cfg.image_log_every == 1:
+            if frame.image is not None and self.frames % self.cfg.image_log_every == 1:  # a pose sensor has no image
                 d = self.cfg.image_downscale
                 small = cv2.resize(frame.image, None, fx=1.0 / d, fy=1.0 / d, interpolation=cv2.INTER_AREA)
                 rec.image("camera/image", k, t_race, small)
