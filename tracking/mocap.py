@@ -14,6 +14,7 @@ car poses on the track (docs/tracking.md, "Motion capture").
 """
 from __future__ import annotations
 
+import csv
 import math
 import time
 from dataclasses import dataclass, field
@@ -155,6 +156,64 @@ def load_mocap_calibration(path) -> MocapTransform:
     d = fileio.validate(data, _SCHEMA, str(path), MocapCalibrationError)
     return MocapTransform(d["up_axis"], d["rotation_rad"], tuple(float(v) for v in d["translation_m"]),
                           d.get("scale", 1.0), d.get("residual_rms_m"), d.get("points"))
+
+
+SURVEY_COLUMNS = ("mocap_x", "mocap_y", "mocap_z", "track_x", "track_y")
+MAX_SURVEY_COORD_M = 100.0
+
+
+@dataclass(frozen=True)
+class SurveyPoints:
+    """Surveyed points: where Motive sees a marker (its 3-D position, metres) and the track point it sits on."""
+
+    names: list[str]
+    mocap_xyz: np.ndarray   # (n, 3)
+    track_xy: np.ndarray    # (n, 2)
+    rows: list[int]         # file line of each point
+
+
+def load_survey_points(path) -> SurveyPoints:
+    """The points CSV of ``mocap-calibrate``: a header with mocap_x, mocap_y, mocap_z, track_x, track_y and an
+    optional name column, one point per row (# comments and blank lines skipped). MocapCalibrationError
+    naming the file, row and column."""
+    source = str(path)
+    text = fileio.read_text(path, "survey points file", error=MocapCalibrationError)
+    numbered = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not numbered:
+        raise MocapCalibrationError(f"{source}: empty file (expected a header {','.join(SURVEY_COLUMNS)})")
+    try:
+        rows = list(csv.reader(ln for _, ln in numbered))
+    except csv.Error as exc:
+        raise MocapCalibrationError(f"{source}: not CSV: {exc}") from None
+    header = [h.strip() for h in rows[0]]
+    unknown = [h for h in header if h not in (*SURVEY_COLUMNS, "name")]
+    missing = [c for c in SURVEY_COLUMNS if c not in header]
+    if unknown or missing or len(set(header)) != len(header):
+        raise MocapCalibrationError(f"{source}: row {numbered[0][0]}: the header must have the columns "
+                                    f"{', '.join(SURVEY_COLUMNS)} (and optionally name), once each; got {header}")
+    names, values, lines = [], [], []
+    for (line, _), fields in zip(numbered[1:], rows[1:]):
+        if len(fields) != len(header):
+            raise MocapCalibrationError(f"{source}: row {line}: expected {len(header)} fields, got {len(fields)}")
+        row = dict(zip(header, (f.strip() for f in fields)))
+        point = []
+        for c in SURVEY_COLUMNS:
+            try:
+                v = float(row[c])
+            except ValueError:
+                raise MocapCalibrationError(f"{source}: row {line}, column {c}: not a number: {row[c]!r}") from None
+            if not (math.isfinite(v) and abs(v) <= MAX_SURVEY_COORD_M):
+                raise MocapCalibrationError(f"{source}: row {line}, column {c}: must be a finite number of metres "
+                                            f"within +-{MAX_SURVEY_COORD_M:g}, got {row[c]!r}")
+            point.append(v)
+        names.append(row.get("name") or f"row {line}")
+        values.append(point)
+        lines.append(line)
+    if len(values) < 3:
+        raise MocapCalibrationError(f"{source}: {len(values)} point(s); at least 3 surveyed points are needed "
+                                    f"(2 fix the transform, the third checks it)")
+    a = np.array(values)
+    return SurveyPoints(names, a[:, :3], a[:, 3:], lines)
 
 
 def mocap_calibration_json(t: MocapTransform) -> dict:
