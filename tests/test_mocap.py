@@ -281,3 +281,51 @@ def test_unreachable_server_is_an_error_at_start():
     with pytest.raises(MocapError, match=rf"natnet://127.0.0.1:{port}"):
         NatNetSource(parse_natnet_url(f"natnet://127.0.0.1:{port}"), MonotonicClock(), connect_timeout_s=0.5)
     assert time.monotonic() - t0 < 3.0
+
+
+def test_race_refuses_a_rigid_body_id_twice_and_a_bad_calibration(tmp_path, capsys):
+    """Exit 2 naming the file, car and field, before any world process or socket opens."""
+    from app.cli import main
+
+    roster = tmp_path / "roster.toml"
+    roster.write_text('[[car]]\nname = "a"\nplanner = "rd3g"\nrigid_body_id = 3\n'
+                      '[[car]]\nname = "b"\nplanner = "mpc"\nrigid_body_id = 3\n')
+    assert main(["race", "--hil", "--mocap", "natnet://127.0.0.1", "--roster", str(roster), "--rt-priority", "0",
+                 "--out", str(tmp_path / "r.rrd")]) == 2
+    assert f"{roster}: car b: rigid_body_id: 3 is also car a's" in capsys.readouterr().err
+    cal = tmp_path / "mocap.json"
+    cal.write_text(json.dumps({**mocap_calibration_json(MocapTransform()), "up_axis": "up"}))
+    assert main(["race", "--hil", "--mocap", "natnet://127.0.0.1", "--mocap-calibration", str(cal),
+                 "--rt-priority", "0", "--out", str(tmp_path / "r.rrd")]) == 2
+    assert f"--mocap-calibration: {cal}: up_axis: expected one of 'y', 'z'" in capsys.readouterr().err
+    assert not (tmp_path / "r.rrd").exists()
+    assert main(["race", "--mocap", "natnet://127.0.0.1", "--serial", "/dev/null", "--rt-priority", "0",
+                 "--out", str(tmp_path / "r.rrd")]) == 2
+    assert "--mocap on hardware needs --mocap-calibration" in capsys.readouterr().err
+
+
+def test_car_file_rigid_body_ids(tmp_path):
+    """The car file's [mocap] rigid_body_id when the roster gives none; the same id on two cars is refused."""
+    import dataclasses
+
+    from app.cli import UserError
+    from app.realtime.mocap import mocap_cars
+    from race.loop import CarBinding
+    from race.setup import RaceSpec
+    from vehicles.params import MocapParams, load_car_params, save_car_params
+
+    car = load_car_params("buzzracer")
+    path = tmp_path / "car.toml"
+    save_car_params(dataclasses.replace(car, mocap=MocapParams(rigid_body_id=12, offset_forward_m=0.02)), path)
+    setup = RaceSpec(car_params=str(path)).load()
+    bindings = [CarBinding(c.name, i, i) for i, c in enumerate(setup.cars)]
+    with pytest.raises(UserError, match="car opponent: car file mocap.rigid_body_id: 12 is also car rd3g's"):
+        mocap_cars(setup, bindings, hil=True)
+    roster = tmp_path / "roster.toml"
+    roster.write_text(f'[[car]]\nname = "a"\nplanner = "rd3g"\ncar_params = "{path}"\n'
+                      f'[[car]]\nname = "b"\nplanner = "mpc"\ncar_params = "{path}"\nrigid_body_id = 4\n')
+    from race.roster import load_roster
+
+    setup = RaceSpec(roster=load_roster(roster)).load()
+    got = mocap_cars(setup, [CarBinding(c.name, i, i) for i, c in enumerate(setup.cars)], hil=False)
+    assert [(m.rigid_body_id, m.offset_forward_m) for m in got] == [(12, 0.02), (4, 0.02)]
