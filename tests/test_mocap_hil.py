@@ -70,3 +70,13 @@ def test_stalled_stream_is_logged_and_held(fault_race):
     lost = _first(events, "fault", "lost", stalled["time_s"])
     assert neutral_at(events, lost["time_s"] + 0.1)
     _first(events, "mocap", "stream resumed", 3.1)
+
+
+def test_check_on_mocap(capsys):
+    """`check --hil --mocap`: the pre-race check passes on the mocap stream, naming each car's rigid body."""
+    from app.cli import main
+
+    code = main(["check", "--hil", "--mocap", "natnet://127.0.0.1"])
+    out = capsys.readouterr().out
+    assert "[PASS] mocap:" in out and "rigid body 1 at" in out and "rigid body 2 at" in out
+    assert code == 0, out
