@@ -16,8 +16,9 @@ from tracking.estimator import MultiCarEstimator
 from tracking.mocap import MocapCalibrationError, MocapCar, MocapTracker, MocapTransform, load_mocap_calibration
 from tracking.natnet import MocapError, NatNetAddress, NatNetSource, parse_natnet_url
 
-# HIL without --mocap-calibration: Motive's frame as a lab might have it, Y-up, its origin near the arena's
-# centre and turned against the track; the world streams through it and the loop maps back with it.
+# The HIL world's Motive frame, as a lab might have it: Y-up, its origin near the arena's centre, turned against
+# the track. The world always streams through it; the loop maps back with it, or with --mocap-calibration
+# (estimated, e.g. by mocap-calibrate from tracking/data/hil_mocap_survey.csv: its error then shows).
 HIL_TRANSFORM = MocapTransform(up_axis="y", rotation_rad=0.35, translation_m=(2.5, 1.5))
 
 
@@ -89,7 +90,7 @@ def open_mocap_hil(args, world_fields: dict, setup, cars):
     transform = _transform(args, required=False)
     mcars = mocap_cars(setup, cars, hil=True)
     port = urlsplit(args.mocap).port or 0
-    spec = WorldSpec(**world_fields, mocap=MocapSpec(tuple(c.rigid_body_id for c in mcars), transform, port=port))
+    spec = WorldSpec(**world_fields, mocap=MocapSpec(tuple(c.rigid_body_id for c in mcars), HIL_TRANSFORM, port=port))
     world = HilWorld(spec)
     try:
         source = _source(args, dataclasses.replace(address, command_port=world.info["mocap_port"]))
