@@ -10,7 +10,8 @@ Messages: a 4-byte header (uint16 message id, uint16 payload bytes), little-endi
   (uint64), the data port (uint16), multicast flag (uint8) and multicast group (4 bytes).
 * NAT_KEEPALIVE (10) and NAT_REQUEST_MODELDEF (4): the client stays registered; model definitions are
   answered with an empty NAT_MODELDEF (5) (0 data sets).
-* NAT_FRAMEOFDATA (7), unicast to every registered client's command address: frame number (int32); marker
+* NAT_FRAMEOFDATA (7), unicast to every registered client's command address (or, multicast, to the group on
+  the data port): frame number (int32); marker
   sets, legacy unlabeled markers, rigid bodies, skeletons (2.1+), assets (4.1+), labeled markers (2.3+),
   force plates (2.9+) and devices (2.11+), each an int32 count, from 4.1 followed by the data set's size
   in bytes; a rigid body is id (int32), position (3 float32), quaternion qx qy qz qw (4 float32), before
@@ -76,22 +77,30 @@ def frame_packet(version: tuple[int, int], frame_number: int, timestamp_s: float
     return struct.pack("<HH", NAT_FRAMEOFDATA, len(body)) + body
 
 
-def server_info_packet(version: tuple[int, int], data_port: int, app_name: str = "Motive") -> bytes:
+def server_info_packet(version: tuple[int, int], data_port: int, multicast_group: str | None = None,
+                       app_name: str = "Motive") -> bytes:
     body = app_name.encode()[:255].ljust(256, b"\0") + bytes((3, 1, 0, 0)) + bytes((*version, 0, 0))
     if _ge(version, 3):
-        body += struct.pack("<QHB4s", CLOCK_HZ, data_port, 0, bytes((239, 255, 42, 99)))
+        group = socket.inet_aton(multicast_group or "239.255.42.99")
+        body += struct.pack("<QHB4s", CLOCK_HZ, data_port, multicast_group is not None, group)
     return struct.pack("<HH", NAT_SERVERINFO, len(body)) + body
 
 
 class MotiveEmulator:
-    """NatNet server on ``host``:``port`` (command port; data goes to each client's command address,
-    unicast). ``port`` 0 picks a free one (``self.port``). ``send_frame`` streams one frame."""
+    """NatNet server on ``host``:``port`` (command port; ``port`` 0 picks a free one, ``self.port``).
+    ``send_frame`` streams one frame: unicast to each client's command address, or with ``multicast_group``
+    to that group on the data port (``port`` + 1) out of ``host``'s interface, as Motive's multicast does."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0, version: tuple[int, int] = (4, 1)) -> None:
+    def __init__(self, host: str = "127.0.0.1", port: int = 0, version: tuple[int, int] = (4, 1),
+                 multicast_group: str | None = None) -> None:
         self.version = tuple(version)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((host, port))
         self.host, self.port = self._sock.getsockname()
+        self.multicast_group = multicast_group
+        if multicast_group is not None:
+            self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(self.host))
+            self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
         self.clients: set = set()
         self.frames_sent = 0
         self._stalled = False
@@ -116,7 +125,7 @@ class MotiveEmulator:
             with self._lock:
                 if message == NAT_CONNECT:
                     self.clients.add(addr)
-                    self._sock.sendto(server_info_packet(self.version, self.port + 1), addr)
+                    self._sock.sendto(server_info_packet(self.version, self.port + 1, self.multicast_group), addr)
                 elif message in (NAT_KEEPALIVE, NAT_REQUEST_MODELDEF):
                     self.clients.add(addr)
                     if message == NAT_REQUEST_MODELDEF:
@@ -128,6 +137,10 @@ class MotiveEmulator:
         with self._lock:
             if self._stalled or self._closed:
                 return 0
+            if self.multicast_group is not None:
+                self._sock.sendto(packet, (self.multicast_group, self.port + 1))
+                self.frames_sent += 1
+                return len(self.clients)
             for addr in list(self.clients):
                 try:
                     self._sock.sendto(packet, addr)

@@ -167,8 +167,10 @@ def test_natnet_url():
     a = parse_natnet_url("natnet://192.168.1.20")
     assert (a.host, a.command_port) == ("192.168.1.20", 1510)
     assert parse_natnet_url("natnet://127.0.0.1:4000").command_port == 4000
-    for bad in ("udp://1.2.3.4", "natnet://", "natnet://h:70000", "natnet://h/x", "192.168.1.20"):
-        with pytest.raises(MocapError, match="natnet://"):
+    assert parse_natnet_url("natnet://10.0.0.2?multicast=239.255.42.99").multicast_group == "239.255.42.99"
+    for bad in ("udp://1.2.3.4", "natnet://", "natnet://h:70000", "natnet://h/x", "192.168.1.20", "natnet://h?x=1",
+                "natnet://h?multicast=10.0.0.1", "natnet://h?multicast="):
+        with pytest.raises(MocapError, match="natnet://|multicast"):
             parse_natnet_url(bad)
 
 
@@ -201,6 +203,45 @@ def test_emulator_frames_decode_in_the_client_library(version):
         for rid, (u, v, yaw) in poses.items():
             got = ground_pose(frame.bodies[rid].position, frame.bodies[rid].rotation)
             assert got[:2] == pytest.approx((u, v), abs=1e-6) and abs(wrap_angle(got[2] - yaw)) < 1e-6
+    finally:
+        source.close()
+        em.close()
+
+
+def _port_pair() -> int:
+    """A free UDP port whose successor is free too (Motive's command and data ports)."""
+    for _ in range(50):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as a, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b:
+            a.bind(("127.0.0.1", 0))
+            port = a.getsockname()[1]
+            try:
+                b.bind(("", port + 1))
+            except OSError:
+                continue
+            return port
+    pytest.skip("no free pair of UDP ports")
+
+
+def test_multicast_stream_decodes():
+    """Motive's default transmission: the frames go to the multicast group on the data port."""
+    group = "239.255.42.99"
+    em = MotiveEmulator(port=_port_pair(), multicast_group=group)
+    try:
+        source = NatNetSource(parse_natnet_url(f"natnet://127.0.0.1:{em.port}?multicast={group}"), MonotonicClock())
+    except MocapError as exc:
+        em.close()
+        pytest.skip(f"multicast on the loopback interface not available here: {exc}")
+    try:
+        frame = None
+        for i in range(100):
+            em.send_frame(i, i / 120, _bodies({4: (0.5, -0.25, 1.0)}))
+            time.sleep(0.005)
+            frame = source.read() or frame
+            if frame is not None:
+                break
+        assert frame is not None, "no multicast frame received"
+        got = ground_pose(frame.bodies[4].position, frame.bodies[4].rotation)
+        assert got[:2] == pytest.approx((0.5, -0.25), abs=1e-6) and abs(got[2] - 1.0) < 1e-6
     finally:
         source.close()
         em.close()

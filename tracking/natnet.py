@@ -2,8 +2,10 @@
 receive thread that keeps the newest frame, mapped onto the loop's clock (docs/tracking.md, "Motion
 capture").
 
-* ``natnet://SERVER[:PORT]``: Motive's command port (default 1510); the stream is unicast (Motive:
-  Streaming pane, Transmission Type Unicast), the client binds the local address that routes to SERVER.
+* ``natnet://SERVER[:PORT][?multicast=GROUP]``: Motive's command port (default 1510), its data port the next
+  one. Unicast by default (Motive: Streaming pane, Transmission Type Unicast); ``?multicast=239.255.42.99``
+  (Motive's default group) joins Motive's multicast stream on the data port instead. The client binds the
+  local address that routes to SERVER.
 * Clock: Motive stamps each frame with its own timestamp (seconds since it started). The frame's time on
   the loop's clock is that stamp plus the smallest (arrival - stamp) seen over the last ``offset_window``
   frames, less ``latency_s`` (Motive's exposure-to-send and the network's fixed delay, which arrival times
@@ -19,7 +21,8 @@ import collections
 import socket
 import threading
 from dataclasses import dataclass
-from urllib.parse import urlsplit
+import ipaddress
+from urllib.parse import parse_qs, urlsplit
 
 from tracking.mocap import MocapFrame, RigidBodySample
 
@@ -34,24 +37,37 @@ class MocapError(RuntimeError):
 class NatNetAddress:
     host: str
     command_port: int = DEFAULT_COMMAND_PORT
+    multicast_group: str | None = None  # None: unicast
 
     @property
     def url(self) -> str:
-        return f"natnet://{self.host}:{self.command_port}"
+        return f"natnet://{self.host}:{self.command_port}" + (
+            f"?multicast={self.multicast_group}" if self.multicast_group else "")
 
 
 def parse_natnet_url(text: str) -> NatNetAddress:
-    """``natnet://SERVER[:PORT]`` -> NatNetAddress; MocapError naming what is wrong."""
+    """``natnet://SERVER[:PORT][?multicast=GROUP]`` -> NatNetAddress; MocapError naming what is wrong."""
+    usage = "expected natnet://SERVER[:PORT][?multicast=GROUP], e.g. natnet://192.168.1.20 or natnet://127.0.0.1:1510"
     try:
         parts = urlsplit(str(text))
         port = parts.port
+        query = parse_qs(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
     except ValueError as exc:
-        raise MocapError(f"{text!r}: {exc}") from None
-    if parts.scheme != "natnet" or not parts.hostname or parts.path not in ("", "/") or parts.query:
-        raise MocapError(f"{text!r}: expected natnet://SERVER[:PORT], e.g. natnet://192.168.1.20 or natnet://127.0.0.1:1510")
+        raise MocapError(f"{text!r}: {exc}; {usage}") from None
+    if parts.scheme != "natnet" or not parts.hostname or parts.path not in ("", "/") or set(query) - {"multicast"}:
+        raise MocapError(f"{text!r}: {usage}")
     if port == 0 or (port is not None and port > 65534):
         raise MocapError(f"{text!r}: the command port must be in 1..65534 (the data port is the next one)")
-    return NatNetAddress(parts.hostname, port or DEFAULT_COMMAND_PORT)
+    group = None
+    if "multicast" in query:
+        group = query["multicast"][-1]
+        try:
+            if not ipaddress.IPv4Address(group).is_multicast:
+                raise ValueError
+        except ValueError:
+            raise MocapError(f"{text!r}: multicast={group!r} is not an IPv4 multicast group "
+                             f"(Motive's default: 239.255.42.99)") from None
+    return NatNetAddress(parts.hostname, port or DEFAULT_COMMAND_PORT, group)
 
 
 def local_address_for(host: str) -> str:
@@ -79,13 +95,15 @@ class NatNetSource:
         self.latency_s, self.stall_after_s, self.poll_s = float(latency_s), float(stall_after_s), float(poll_s)
         self._client = NatNetClient(server_ip_address=address.host, local_ip_address=local_address_for(address.host),
                                     command_port=address.command_port, data_port=address.command_port + 1,
-                                    use_multicast=False)
+                                    use_multicast=address.multicast_group is not None,
+                                    **({"multicast_address": address.multicast_group} if address.multicast_group else {}))
         self._client.on_data_frame_received_event.handlers.append(self._on_frame)
         try:
             self._client.connect(timeout=connect_timeout_s)
         except TimeoutError:
             raise MocapError(f"{address.url}: no answer from a NatNet server within {connect_timeout_s:g} s "
-                             f"(is Motive streaming, unicast, on that address and port?)") from None
+                             f"(is Motive streaming, {'multicast' if address.multicast_group else 'unicast'}, "
+                             f"on that address and port?)") from None
         except OSError as exc:
             self._client.shutdown()
             raise MocapError(f"{address.url}: {exc}") from None

@@ -23,10 +23,11 @@ HIL_TRANSFORM = MocapTransform(up_axis="y", rotation_rad=0.35, translation_m=(2.
 
 
 def add_mocap_arguments(g) -> None:
-    g.add_argument("--mocap", default=None, metavar="natnet://SERVER[:PORT]",
-                   help="car poses from OptiTrack Motive over NatNet (unicast; PORT = Motive's command port, default "
-                        "1510) instead of a camera; with --hil a loopback Motive server streams the simulator's "
-                        "poses (PORT 0 or none: a free port). Needs pip install .[mocap]")
+    g.add_argument("--mocap", default=None, metavar="natnet://SERVER[:PORT][?multicast=GROUP]",
+                   help="car poses from OptiTrack Motive over NatNet instead of a camera (PORT = Motive's command port, "
+                        "default 1510; unicast unless ?multicast=GROUP, e.g. 239.255.42.99); with --hil a loopback "
+                        "Motive server streams the simulator's poses, unicast (PORT 0 or none: a free port). "
+                        "Needs pip install .[mocap]")
     g.add_argument("--mocap-calibration", default=None, metavar="FILE",
                    help="mocap-to-track transform (python -m app mocap-calibrate); required on hardware")
     g.add_argument("--mocap-latency-ms", type=float, default=0.0, metavar="MS",
@@ -85,8 +86,9 @@ def _source(args, address: NatNetAddress) -> NatNetSource:
 def open_mocap_hil(args, world_fields: dict, setup, cars):
     """(world, feed, tracker, estimator, serial path, note) of a HIL race on mocap input."""
     address = _address(args)
-    if address.host not in ("127.0.0.1", "localhost"):
-        raise UserError(f"--mocap {args.mocap}: with --hil the Motive server is a loopback one: natnet://127.0.0.1[:PORT]")
+    if address.host not in ("127.0.0.1", "localhost") or address.multicast_group is not None:
+        raise UserError(f"--mocap {args.mocap}: with --hil the Motive server is a loopback unicast one: "
+                        f"natnet://127.0.0.1[:PORT]")
     transform = _transform(args, required=False)
     mcars = mocap_cars(setup, cars, hil=True)
     port = urlsplit(args.mocap).port or 0
