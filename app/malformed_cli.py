@@ -2,7 +2,8 @@
 
 bench/fuzz.py draws random structures for each loader in-process; this family takes the project's real
 files (the tracks, the car file and the fixed markers in the repository; a problem, intrinsics, a
-calibration, a drive log, a link capture and a race recording written by the project's own writers),
+calibration, a drive log, a link capture and a race recording written by the project's own writers; the HIL
+mocap survey points),
 mutates them by hand-written rules (truncation at many byte offsets, one field at a time swapped for a
 value of another type, a huge number, a NaN string, deleted, nested 40 deep; CSV cells and capture
 lines made non-numeric, short or odd; the whole file re-encoded as UTF-16, a Latin-1 byte or a NUL
@@ -127,6 +128,7 @@ FORMATS = {f.name: f for f in [
     Format("grid_flag", ".txt", "flag", lambda f, o, s: ["race", "--cars", "rd3g,mpc,mpc", "--grid", _flag_value(f),
                                                          "--max-time", "0.3", "--out", o / "race.rrd",
                                                          "--json", o / "race.json"], flag="--grid"),
+    Format("mocap_survey", ".csv", "csv", lambda f, o, s: ["mocap-calibrate", f, "--out", o / "mocap.json"]),
 ]}
 
 
@@ -146,6 +148,10 @@ def make_seeds(folder: Path) -> Seeds:
     s.files["problem"] = json.dumps(problem_to_dict(merging_problem(2, 0)), indent=1).encode()
     s.files["car"] = (ROOT / "vehicles" / "buzzracer.toml").read_bytes()
     s.files["track"] = (ROOT / "tracks" / "data" / "oval.json").read_bytes()
+    # Without its comments and its (free-text, optional) name column: the CSV mutations take row 1 for the
+    # header and every column for a required number.
+    survey = (ROOT / "tracking" / "data" / "hil_mocap_survey.csv").read_bytes().splitlines(keepends=True)
+    s.files["mocap_survey"] = b"".join(ln.split(b",", 1)[1] for ln in survey if not ln.startswith(b"#"))
     s.files["fixed_markers"] = s.fixed_markers.read_bytes()
     camera = overhead_camera()
     synth = SyntheticCamera(camera, fixed_markers=list(load_fixed_markers(s.fixed_markers).markers.values()))

@@ -131,7 +131,7 @@ def register(sub) -> None:
     g = kinds.add_parser("malformed", help="the project's real files, mutated by hand-written rules, through the "
                                            "command line (app/malformed_cli.py, docs/file-formats.md)")
     g.add_argument("--formats", default="all", help="comma-separated, or all: problem, car, track, fixed_markers, "
-                                                    "intrinsics, calibration, sysid_csv, link_capture, recording")
+                                                    "intrinsics, calibration, sysid_csv, link_capture, recording, mocap_survey")
     g.add_argument("--per-format", type=int, default=0, help="at most this many cases per format (0 = all)")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--offsets", type=int, default=40, help="truncation offsets per file")

@@ -17,6 +17,7 @@ from app.cli import UserError
 from app.live_view import announce, live_view
 from app.realtime.hardware import CameraFeed
 from app.realtime.operator_key import TerminalStopKey
+from app.realtime.mocap import add_mocap_arguments, open_mocap_hardware, open_mocap_hil
 from race.hil import HilWorld, WorldSpec
 from fileio import OutputFileError, atomic_write_text, check_output_path
 from race.config import LoopConfig, LoopConfigError, check_fault_cars, parse_fault
@@ -74,6 +75,7 @@ def add_realtime_arguments(p) -> None:
                         "(lost car, planner fault, ...) for S seconds without a break (default 3)")
     g.add_argument("--camera-latency-ms", type=float, default=0.0,
                    help="hardware: exposure-to-delivery delay of the camera, subtracted from frame times")
+    add_mocap_arguments(g)
 
 
 def add_link_arguments(g) -> None:
@@ -92,7 +94,8 @@ def add_link_arguments(g) -> None:
 
 def wants_realtime(args) -> bool:
     return bool(getattr(args, "hil", False) or getattr(args, "camera", None) is not None
-                or getattr(args, "serial", None) is not None or getattr(args, "calibration", None) is not None)
+                or getattr(args, "serial", None) is not None or getattr(args, "calibration", None) is not None
+                or getattr(args, "mocap", None) is not None)
 
 
 def _ids(text: str, flag: str) -> tuple[int, int]:
@@ -107,6 +110,13 @@ def _ids(text: str, flag: str) -> tuple[int, int]:
 
 def _check_mode(args) -> str:
     hw = {"--camera": args.camera, "--serial": args.serial, "--calibration": args.calibration}
+    mocap = getattr(args, "mocap", None)
+    if mocap is not None:  # the mocap system replaces the camera and its calibration
+        if args.camera is not None or args.calibration is not None:
+            raise UserError("--mocap replaces the camera: drop --camera and --calibration")
+        hw = {"--serial": args.serial}
+    elif getattr(args, "mocap_calibration", None) is not None:
+        raise UserError("--mocap-calibration needs --mocap natnet://SERVER")
     given = [k for k, v in hw.items() if v is not None]
     if args.hil:
         if given:
@@ -114,7 +124,8 @@ def _check_mode(args) -> str:
         return "hil"
     missing = [k for k, v in hw.items() if v is None]
     if missing:
-        raise UserError(f"hardware mode needs --camera, --serial and --calibration; missing {', '.join(missing)}")
+        needs = "--mocap and --serial" if mocap is not None else "--camera, --serial and --calibration"
+        raise UserError(f"hardware mode needs {needs}; missing {', '.join(missing)}")
     if args.fault:
         raise UserError("--fault is only available with --hil")
     return "hardware"
@@ -174,8 +185,9 @@ def _run_realtime(args, mode: str) -> int:
             raise UserError(f"--command-delay-ms must be in (0, 500] ms, got {args.command_delay_ms}")
         latency["command_delay_s"] = args.command_delay_ms / 1e3
     try:
+        # A mocap frame holds every body: no region-of-interest search to fall back from while a car is lost.
         config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz, stop_after_hold_s=args.stop_after_hold,
-                            **latency)
+                            **latency, **({"lost_search_every": 1} if getattr(args, "mocap", None) else {}))
         faults = tuple(parse_fault(f) for f in args.fault)
     except LoopConfigError as exc:
         raise UserError(str(exc)) from None
@@ -247,6 +259,8 @@ def _run_realtime(args, mode: str) -> int:
                 world.close()
             elif feed is not None:
                 feed.close()
+        if world is not None and feed is not world:  # HIL on mocap: the loop closed the world, not the NatNet client
+            feed.close()
         if recorder is not None:
             recorder.close()
         if capture is not None:
@@ -371,6 +385,8 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
                   receivers=link_plan.calibrations if link_plan.protocol == "buzzracer-fhss" else None,
                   camera_profile=camera_profile(getattr(args, "camera_profile", "ideal")))
     fields.update(world_options)  # `check --hil --hil-fault`: a world that differs from the host's set-up
+    if getattr(args, "mocap", None) is not None:
+        return open_mocap_hil(args, fields, setup, cars)
     spec = WorldSpec(**fields)
     world = HilWorld(spec)
     try:
@@ -404,6 +420,12 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
 
 
 def _open_hardware(args, setup, cars, config):
+    if getattr(args, "mocap", None) is not None:
+        feed, tracker, estimator, note = open_mocap_hardware(args, setup, cars)
+        if not Path(args.serial).exists() and "://" not in args.serial:
+            feed.close()
+            raise UserError(f"--serial: {args.serial}: no such device (is the transmitter box plugged in?)")
+        return None, feed, tracker, estimator, args.serial, note
 
     try:
         calibration = load_calibration(args.calibration)
