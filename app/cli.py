@@ -21,7 +21,7 @@ COMMAND_MODULES = [
     "app.commands.scenario",
     "app.commands.bench",
     "app.commands.calibrate",
-    "app.commands.calibrate_camera", "app.commands.make_board",
+    "app.commands.calibrate_camera", "app.commands.make_board", "app.commands.mocap_calibrate",
     "app.commands.review",
     "app.commands.link_decode",
     "app.commands.check",

@@ -2,7 +2,8 @@
 
 bench/fuzz.py draws random structures for each loader in-process; this family takes the project's real
 files (the tracks, the car file and the fixed markers in the repository; a problem, intrinsics, a
-calibration, a drive log, a link capture and a race recording written by the project's own writers),
+calibration, a drive log, a link capture and a race recording written by the project's own writers; the HIL
+mocap survey points),
 mutates them by hand-written rules (truncation at many byte offsets, one field at a time swapped for a
 value of another type, a huge number, a NaN string, deleted, nested 40 deep; CSV cells and capture
 lines made non-numeric, short or odd; the whole file re-encoded as UTF-16, a Latin-1 byte or a NUL
@@ -79,6 +80,7 @@ class Format:
     accepted_codes: tuple[int, ...] = (0,)
     timeout_s: float = 120.0
     nullable: tuple[str, ...] = ()                # fields where null is a documented value (no estimate)
+    flag: str | None = None                       # kind "flag": the input is this flag's value, which the message names
 
 
 @dataclass
@@ -118,7 +120,21 @@ FORMATS = {f.name: f for f in [
     Format("link_capture", ".txt", "capture", lambda f, o, s: ["link-decode", f, "--protocol", "buzzracer-fhss", "--quiet"],
            accepted_codes=(0, 1)),
     Format("recording", ".rrd", "binary", lambda f, o, s: ["review", f, "--no-plots", "--json", o / "review.json"]),
+    Format("roster", ".toml", "toml", lambda f, o, s: ["race", "--roster", f, "--max-time", "0.3", "--out", o / "race.rrd",
+                                                       "--json", o / "race.json"]),
+    # Roster flags: the case's "file" holds the flag's value.
+    Format("cars_flag", ".txt", "flag", lambda f, o, s: ["race", "--cars", _flag_value(f), "--max-time", "0.3",
+                                                         "--out", o / "race.rrd", "--json", o / "race.json"], flag="--cars"),
+    Format("grid_flag", ".txt", "flag", lambda f, o, s: ["race", "--cars", "rd3g,mpc,mpc", "--grid", _flag_value(f),
+                                                         "--max-time", "0.3", "--out", o / "race.rrd",
+                                                         "--json", o / "race.json"], flag="--grid"),
+    Format("mocap_survey", ".csv", "csv", lambda f, o, s: ["mocap-calibrate", f, "--out", o / "mocap.json"]),
 ]}
+
+
+def _flag_value(path: Path) -> str:
+    """The flag value a "flag" case wrote to its input file (the path itself where none was written)."""
+    return path.read_text() if path.is_file() else str(path)
 
 
 def make_seeds(folder: Path) -> Seeds:
@@ -132,6 +148,10 @@ def make_seeds(folder: Path) -> Seeds:
     s.files["problem"] = json.dumps(problem_to_dict(merging_problem(2, 0)), indent=1).encode()
     s.files["car"] = (ROOT / "vehicles" / "buzzracer.toml").read_bytes()
     s.files["track"] = (ROOT / "tracks" / "data" / "oval.json").read_bytes()
+    # Without its comments and its (free-text, optional) name column: the CSV mutations take row 1 for the
+    # header and every column for a required number.
+    survey = (ROOT / "tracking" / "data" / "hil_mocap_survey.csv").read_bytes().splitlines(keepends=True)
+    s.files["mocap_survey"] = b"".join(ln.split(b",", 1)[1] for ln in survey if not ln.startswith(b"#"))
     s.files["fixed_markers"] = s.fixed_markers.read_bytes()
     camera = overhead_camera()
     synth = SyntheticCamera(camera, fixed_markers=list(load_fixed_markers(s.fixed_markers).markers.values()))
@@ -175,7 +195,35 @@ def make_seeds(folder: Path) -> Seeds:
     if code != 0:
         raise RuntimeError(f"the seed race failed ({code}): {err}")
     s.files["recording"] = rec.read_bytes()
+    s.files["roster"] = ROSTER_SEED
+    s.files["cars_flag"] = b"rd3g,mpc,mpc,pursuit"
+    s.files["grid_flag"] = b"random"
     return s
+
+
+# A four-car roster file as docs/file-formats.md ("Roster file") documents it.
+ROSTER_SEED = b"""[[car]]
+name = "red"
+planner = "rd3g"
+marker_id = 7
+radio_id = 3
+start_slot = 1
+
+[[car]]
+name = "blue"
+planner = "mpc"
+top_speed_mps = 1.7
+
+[[car]]
+name = "green"
+planner = "rd3g"
+reference_speed_mps = 1.5
+
+[[car]]
+name = "grey"
+planner = "pursuit"
+start_speed_mps = 0.5
+"""
 
 
 # --------------------------------------------------------------------------- running one command
@@ -361,8 +409,57 @@ def _byte_cases(fmt: Format, data: bytes, offsets: int, rng: random.Random) -> l
     return cases
 
 
+def _roster_cases(fmt: Format, data: bytes) -> list[Case]:
+    """What a roster cannot hold: duplicates across cars, too few or too many cars, unknown planners,
+    keys or car files, a start slot beyond the grid."""
+    doc = tomllib.loads(data.decode())
+    cars = doc["car"]
+
+    def case(label: str, new_cars: list, names: tuple[str, ...]) -> Case:
+        return Case(fmt.name, label, toml_bytes({"car": new_cars}), True, names)
+
+    def edit(i: int, **fields) -> list:
+        return [dict(c, **fields) if k == i else dict(c) for k, c in enumerate(cars)]
+
+    seven = [dict(c) for c in cars] + [{"name": f"extra{k}", "planner": "mpc"} for k in range(3)]
+    return [
+        case("duplicate name", edit(1, name=cars[0]["name"]), ("name",)),
+        case("duplicate marker_id", edit(1, marker_id=cars[0]["marker_id"]), ("marker_id",)),
+        case("duplicate radio_id", edit(1, radio_id=cars[0]["radio_id"]), ("radio_id",)),
+        case("duplicate start_slot", edit(1, start_slot=cars[0]["start_slot"]), ("start_slot",)),
+        case("start_slot beyond the grid", edit(2, start_slot=len(cars)), ("start_slot",)),
+        case("unknown planner", edit(3, planner="truck"), ("planner",)),
+        case("unknown key", edit(2, colour="red"), ("colour",)),
+        case("car file that does not exist", edit(1, car_params="no_such_car"), ("car_params",)),
+        case("7 cars", seven, ("car", "cars")),
+        case("1 car", [dict(cars[0])], ("car", "cars")),
+    ]
+
+
+def _flag_cases(fmt: Format, data: bytes) -> list[Case]:
+    """Hand-written bad values of a roster flag (the empty --cars is no roster: the two-car race)."""
+    values = {"--cars": [("unknown planner", "rd3g,truck", True, ("planner",)),
+                         ("7 cars", "rd3g," + ",".join(["mpc"] * 6), True, ("cars",)),
+                         ("1 car", "rd3g", True, ("cars",)),
+                         ("empty entry", "rd3g,,mpc", True, ("planner",)),
+                         ("upper case", "RD3G,mpc", True, ("planner",)),
+                         ("semicolons", "rd3g;mpc", True, ("planner",)),
+                         ("non-ASCII", "rd3g,mp\u00e7", True, ("planner",)),
+                         ("1000 cars", ",".join(["mpc"] * 1000), True, ("cars",)),
+                         ("empty", "", False, ())],
+              "--grid": [("unknown grid", "zigzag", True, ("grid", "choice")),
+                         ("upper case", "RANDOM", True, ("grid", "choice")),
+                         ("empty", "", True, ("grid", "choice"))]}[fmt.flag]
+    return [Case(fmt.name, f"{fmt.flag} {label}: {value[:40]!r}", value.encode(), reject, names)
+            for label, value, reject, names in values]
+
+
 def cases_for(fmt: Format, data: bytes, offsets: int, rng: random.Random) -> list[Case]:
+    if fmt.kind == "flag":  # a value on the command line: no bytes to cut
+        return _flag_cases(fmt, data)
     cases = _byte_cases(fmt, data, offsets, rng)
+    if fmt.name == "roster":
+        cases += _roster_cases(fmt, data)
     if fmt.kind in ("json", "toml"):
         cases += _structured_cases(fmt, data)
     elif fmt.kind == "csv":
@@ -382,8 +479,8 @@ def judge(fmt: Format, case: Case, code, out: str, err: str, infile: Path, outdi
         message = err.strip()
         if not message:
             return "failure", "exit 2 with nothing on stderr"
-        if infile.name not in message:
-            return "failure", f"message does not name the file: {message[:300]}"
+        if (fmt.flag or infile.name) not in message:
+            return "failure", f"message does not name the {'flag' if fmt.flag else 'file'}: {message[:300]}"
         # A mutation that cannot be valid must be caught by the loader, at its place. Another one may load and
         # then fail on its values (a marker moved so that the camera fit fails): naming the file is enough.
         if case.must_reject and not (WORDS.search(message) or any(n.lower() in message.lower() for n in case.names)):

@@ -15,6 +15,8 @@ FAULT_KINDS = {
     "serial_vanish": ("serial", False),   # the serial device disappears (EIO on write), permanent
     "solver_fail": ("planner", True),     # every planning call raises
     "nan_state": ("estimator", False),    # the estimator's state of a car becomes NaN
+    "mocap_stall": ("mocap", True),       # HIL --mocap: the Motive emulator sends no frame
+    "mocap_down": ("mocap", False),       # HIL --mocap: the Motive emulator goes away, permanent
 }
 
 

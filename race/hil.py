@@ -39,18 +39,34 @@ from race.commands import physical_command
 from race.config import FaultSpec, lower_realtime_priority
 from race.referee import Referee
 from race.roster import two_car_roster
-from race.world import WorldPacket
+from race.world import WorldPacket, WorldSummary
 from sim import Simulator
 from sim.camera import CarAppearance, CarPose, SyntheticCamera, TrackDrawing, overhead_camera
 from sim.camera_profile import CameraProfile, DelayedDelivery
+from sim.natnet_emulator import MotiveEmulator
 from tracking.calibration import aruco_dictionary_id, load_fixed_markers
 from tracking.camera import Frame
+from tracking.mocap import MocapTransform, mocap_body
 from vehicles import fhss
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN, CarCommand
 from vehicles.virtual_box import CommandHistory, VirtualCarBox
 
 FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json",
                  "buzzracer:full": Path(__file__).resolve().parents[1] / "tracking" / "data" / "buzzracer_full_fixed_markers.json"}
+
+
+@dataclass(frozen=True)
+class MocapSpec:
+    """HIL on motion capture (``race --hil --mocap``): the world streams the simulator's poses through a
+    loopback Motive server (sim.natnet_emulator) instead of rendering camera frames."""
+
+    rigid_body_ids: tuple[int, ...]        # roster order
+    transform: MocapTransform               # mocap ground plane -> track (the emulator applies its inverse)
+    port: int = 0                           # command port on 127.0.0.1 (0: a free one, reported at start)
+    version: tuple[int, int] = (4, 1)       # NatNet version streamed (Motive 3.x)
+    position_noise_m: float = 0.0002        # per-axis Gaussian noise of a rigid body's position
+    yaw_noise_rad: float = 0.001
+    body_height_m: float = 0.05             # rigid-body pivot above the floor
 
 
 @dataclass(frozen=True)
@@ -83,6 +99,7 @@ class WorldSpec:
     hidden_markers: tuple[int, ...] = ()   # car markers not drawn (covered or missing)
     covered_fixed_markers: tuple[int, ...] = ()  # fixed track markers not drawn
     camera_profile: CameraProfile = CameraProfile()  # --camera-profile (sim.camera_profile), seeded by `seed`
+    mocap: MocapSpec | None = None    # stream poses over NatNet instead of camera frames
 
 
 class SerialRelay:
@@ -347,6 +364,10 @@ class _World:
                 raise RuntimeError("the virtual box process did not start")
             self.box.pump()
         self.synth, self.camera, self.fixed_path, self.appearance = make_camera(spec)
+        self.emulator = (MotiveEmulator("127.0.0.1", spec.mocap.port, spec.mocap.version)
+                         if spec.mocap is not None else None)
+        self._mocap_rng = np.random.default_rng(spec.seed + 7)
+        self._t_motive0 = time.monotonic()  # Motive's timestamps count from its start
         self.events: list[tuple] = []      # (race time, kind, text) not yet sent
         self.referee = Referee(spec.track, spec.car, spec.names)  # gap, collisions with fault, off-track
         self.neutral_at_box = True
@@ -440,12 +461,31 @@ class _World:
                 snap, self._pending = self._pending, None
                 self._render_cv.notify_all()
             t0 = time.perf_counter()
-            frame = self.synth.render(self._poses(snap["truth"], snap["t_race"]), snap["t_capture"])
-            self.frames[snap["slot"]] = frame.image
+            if self.emulator is not None:
+                self._stream_mocap(snap)
+            else:
+                frame = self.synth.render(self._poses(snap["truth"], snap["t_race"]), snap["t_capture"])
+                self.frames[snap["slot"]] = frame.image
             snap["render_ms"] = 1e3 * (time.perf_counter() - t0)
             self.render_ms.append(snap["render_ms"])
             self.rendered += 1
             self._delivery.submit(snap["t_capture"], snap)
+
+    def _stream_mocap(self, snap: dict) -> None:
+        """The snapshot's true poses as a NatNet frame (frame number = snapshot index, timestamp = its
+        capture time on Motive's clock); an occluded car's rigid body is sent untracked, as Motive does."""
+        m = self.spec.mocap
+        snap["slot"] = None  # no image
+        bodies = []
+        for i, state in enumerate(snap["truth"]):
+            hidden = snap["t_race"] is not None and any(
+                f.kind == "occlude" and f.active(snap["t_race"]) and f.applies_to(self.spec.names[i]) for f in self.spec.faults)
+            u, v, yaw = m.transform.to_mocap(float(state[0]), float(state[1]), float(state[2]))
+            du, dv = self._mocap_rng.normal(0.0, m.position_noise_m, 2)
+            body = mocap_body(u + du, v + dv, yaw + self._mocap_rng.normal(0.0, m.yaw_noise_rad), m.body_height_m,
+                              m.transform.up_axis)
+            bodies.append((m.rigid_body_ids[i], body.position, body.rotation, not hidden, m.position_noise_m))
+        self.emulator.send_frame(snap["index"], snap["t_capture"] - self._t_motive0, bodies)
 
     def _send_frame(self, t_stamp: float, snap: dict) -> None:
         """A frame as the loop receives it: stamped with its delivery time less the latency the loop knows
@@ -466,6 +506,17 @@ class _World:
             elif f.kind == "serial_vanish" and t_race >= f.start_s and not self._fault_state.get(n):
                 self._fault_state[n] = True
                 self.box.send("vanish")
+            elif f.kind == "mocap_stall" and self.emulator is not None:
+                on = f.active(t_race)
+                if on != self._fault_state.get(n, False):
+                    (self.emulator.stall if on else self.emulator.resume)()
+                    self.events.append((t_race, "fault_injected", f"mocap stream {'stalled' if on else 'resumed'}"))
+                self._fault_state[n] = on
+            elif f.kind == "mocap_down" and self.emulator is not None and t_race >= f.start_s \
+                    and not self._fault_state.get(n):
+                self._fault_state[n] = True
+                self.emulator.close()
+                self.events.append((t_race, "fault_injected", "mocap server gone"))
             elif f.kind == "occlude":
                 on = f.active(t_race)
                 if on != self._fault_state.get(n, False):
@@ -518,7 +569,8 @@ class _World:
         self.conn.send(("ready", {"serial_path": self.box.path, "camera": self.camera,
                                   "fixed_markers": str(self.fixed_path) if self.fixed_path else None,
                                   "marker_size_m": self.appearance.marker_size_m,
-                                  "marker_height_m": self.appearance.roof_height_m}))
+                                  "marker_height_m": self.appearance.roof_height_m,
+                                  "mocap_port": self.emulator.port if self.emulator is not None else None}))
         index = 0
         t_go = None
         k = 0
@@ -569,6 +621,8 @@ class _World:
             self._render_cv.notify()
         self._render_thread.join(timeout=2.0)
         self._delivery.close()
+        if self.emulator is not None:
+            self.emulator.close()
         status = self.sim.race_status()
         box_summary = self.box.stop()
         if self.t_go is not None:
@@ -576,18 +630,18 @@ class _World:
         names = self.spec.names
         order = [names[i] for i in status.finish_order]
         lap_times = {name: list(status.lap_times[i]) for i, name in enumerate(names)}
-        summary = {
-            "winner": None if status.winner is None else names[status.winner],
-            "lap_times_s": lap_times, "finish_order": order, "results": self.referee.results(order, lap_times, self.spec.laps),
-            "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
-            "race_time_s": self.sim.time,
-            "off_track": {name: int(status.off_track_count[i]) for i, name in enumerate(names)},
-            "frames_rendered": self.rendered, "frames_dropped": self.dropped,
-            "render_ms": np.array(self.render_ms, dtype=np.float32),
-            "applied_changes": self.applied_changes,
-            "box": box_summary,
-            "events": (self._pending["events"] if self._pending else []) + self.events,
-        }
+        summary = WorldSummary(
+            winner=None if status.winner is None else names[status.winner],
+            lap_times_s=lap_times, finish_order=order, results=self.referee.results(order, lap_times, self.spec.laps),
+            min_gap_m=float(self.referee.min_gap_m), collisions=list(self.referee.collisions),
+            race_time_s=self.sim.time,
+            off_track={name: int(status.off_track_count[i]) for i, name in enumerate(names)},
+            frames_rendered=self.rendered, frames_dropped=self.dropped,
+            render_ms=np.array(self.render_ms, dtype=np.float32),
+            applied_changes=self.applied_changes,
+            box=box_summary,
+            events=(self._pending["events"] if self._pending else []) + self.events,
+        )
         self.conn.send(("summary", summary))
         self.shm.close()
 
@@ -616,7 +670,7 @@ class HilWorld:
         self.process.start()
         for end in (child, box_world_end, box_end):
             end.close()
-        self.summary: dict | None = None
+        self.summary: WorldSummary | None = None
         self._closed = False
         try:
             if not self.conn.poll(start_timeout_s):
@@ -656,13 +710,19 @@ class HilWorld:
             packet.dropped = info["dropped"]
             newest = info
         if newest is not None:
-            image = self.frames[newest["slot"]].copy()  # the slot is rewritten 'slots' frames later
-            packet.frame = Frame(image, newest["t_capture"], newest["index"])
+            if newest["slot"] is not None:  # None: HIL on mocap, the poses went out over NatNet
+                image = self.frames[newest["slot"]].copy()  # the slot is rewritten 'slots' frames later
+                packet.frame = Frame(image, newest["t_capture"], newest["index"])
             packet.truth = newest["truth"]
             packet.t_race = newest["t_race"]
+            packet.t_truth = newest["t_capture"]
         return packet
 
-    def close(self) -> dict | None:
+    def observe(self, t_race: float, states: dict) -> WorldPacket:
+        """Nothing to add: the world process judges the race on its true states (race.world.World)."""
+        return WorldPacket()
+
+    def close(self) -> WorldSummary | None:
         """Stop the world; returns its race summary (None if it could not be collected)."""
         if self._closed:
             return self.summary

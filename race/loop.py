@@ -3,7 +3,9 @@
 One loop for every mode; only the world behind it differs: the pure simulation
 (``race.simulation.SimWorld`` on a ``SimulatedClock``, true states as the observation, lock-step
 timing: ``plan_ticks = 0``), the hardware-in-the-loop simulation (``--hil``, ``race.hil.HilWorld``) and
-real hardware (``--camera``, ``app.realtime.hardware.CameraFeed``), both in real time.
+real hardware (``--camera``, ``app.realtime.hardware.CameraFeed`` in ``race.feed_world.FeedWorld``),
+both in real time. The loop's parts are interfaces (race.world: world, link, perception, planners,
+clock); its statistics are race.loop_stats, its recording race.loop_recording.
 
 * Tick k starts at t_go + k T (T = 1 / rate_hz) and must issue its command by t_go + (k+1) T (its
   deadline). Every stage is timed. A tick that starts more than a period late skips the ticks it
@@ -21,7 +23,8 @@ real hardware (``--camera``, ``app.realtime.hardware.CameraFeed``), both in real
   ticks for the instant t_plan = its tick + ``plan_latency_s`` (plan_ticks periods + command_delay_s)
   when its command will act; the plan is applied at tick k + plan_ticks, not earlier, and its first
   control is held (zero-order hold) until the next plan is due. The commanded cars are predicted to
-  t_plan through the controls the loop has sent them (``PlanJob.in_flight``). With plan_ticks = 0
+  t_plan through the controls the loop has sent them (race.command_history: the loop writes, the
+  estimator and the planners read; ``PlanJob.in_flight``). With plan_ticks = 0
   the job is submitted before the tick's plan is chosen, so a synchronous runner
   (``race.planning.SyncPlanRunner``, the simulated race) applies the plan of a tick's observation at
   that tick.
@@ -33,27 +36,31 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import sys
 import threading
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
+from race.command_history import CommandHistory
 from race.commands import link_command
 from race.config import STAGES, FaultSpec, LoopConfig
 from race.faults import FailingPlanners, NanStateEstimator
+from race.feed_world import FeedWorld
+from race.loop_recording import LoopRecording, NoRecording
+from race.loop_stats import FeedStats, PlannerErrorRecord, PlanStats, TickStats, TrackingStats
+from race.operator import END_REASON as OPERATOR_STOP, OperatorInput, OperatorStop
 from race.perception import Perception
-from race.planning import PlanJob, PlannerWorker, PlanResult, controls_between, planner_errors
-from race.recording import record_car, record_plan
-from race.referee import Referee, event_text
+from race.planning import PlanJob, PlannerWorker, PlanResult, planner_errors
 from race.safety import SafetyHolds
 from race.summary import fleet_keys, percentile, race_summary
-from race.world import (CLOCK_ROUNDING_S, Clock, Feed, Link, MonotonicClock, Planners, PlanRunner, SimulatedClock,
-                        Tracker, World)
+from race.world import (CLOCK_ROUNDING_S, Clock, Feed, Link, MonotonicClock, Perceiver, Planners, PlanRunner, Tracker,
+                        World, WorldPacket, WorldSummary)
+
+__all__ = ["CarBinding", "DeadlineMonitor", "LoopError", "LoopOutcome", "PlannerErrorRecord", "RaceLoop",
+           "SimulatedDeadlineMonitor", "setup_document"]
 from tracking.estimator import EstimatorConfig
 from vehicles.protocol import CarCommand, ProtocolError
 
@@ -152,15 +159,9 @@ class SimulatedDeadlineMonitor:
 
 
 @dataclass
-class PlannerErrorRecord:
-    time_s: float   # race time of the plan (its t_plan)
-    car: str        # car name
-    message: str    # "ExceptionType: message"
-
-
-@dataclass
 class LoopOutcome:
-    reason: str                                  # finished, time_limit, held_neutral, serial_fault, interrupted, world_error
+    # finished, time_limit, held_neutral, serial_fault, interrupted, operator_stop, world_error
+    reason: str
     mode: str
     winner: str | None = None
     lap_times_s: dict = field(default_factory=dict)
@@ -242,25 +243,34 @@ class LoopOutcome:
         }
 
 
+
+
 class RaceLoop:
-    """One race on the clock. The world behind ``feed`` (``poll(timeout) -> WorldPacket``) and ``link``
-    is the simulated world, the HIL world or the hardware; ``world`` is the simulated or HIL world
-    (None on hardware: laps are then counted from the estimated states). ``perception`` defaults to
-    race.perception.Perception(tracker, estimator) (race.perception.TruthPerception: the simulated
-    world's true states, no tracker or estimator). ``faults`` are injected by wrapping the estimator
-    and the planners (race.faults); ``clock`` defaults to real time, ``worker_factory(planners, clock)``
-    to a PlannerWorker thread (race.planning.SyncPlanRunner plans in the loop's thread) and
-    ``monitor_factory(on_miss, clock)`` to the DeadlineMonitor thread."""
+    """One race on the clock. ``world`` (race.world.World: ``poll``, ``go``, ``observe``, ``close``) is the
+    simulated world or the HIL world; without one (hardware), ``feed`` (``poll(timeout) -> WorldPacket``)
+    is wrapped in race.feed_world.FeedWorld, which referees the perceived states. ``link`` drives the
+    cars. ``perception`` (race.world.Perceiver) defaults to race.perception.Perception(tracker,
+    estimator) on the loop's command history ``commands`` (race.command_history.CommandHistory: the loop
+    writes what it sends, the estimator and the planners read it; default: an injected perception's
+    own ``commands``, else a new one). ``faults`` are injected by wrapping the estimator and the planners (race.faults); ``clock``
+    defaults to real time, ``worker_factory(planners, clock)`` to a PlannerWorker thread
+    (race.planning.SyncPlanRunner plans in the loop's thread) and ``monitor_factory(on_miss, clock)`` to
+    the DeadlineMonitor thread. ``operator`` (race.operator) is polled once a tick for the operator's
+    stop key (None: no stop key, the simulated race). Statistics: race.loop_stats; recording:
+    race.loop_recording."""
 
     def __init__(self, *, setup, config: LoopConfig, feed: Feed, link: Link, planners: Planners,
-                 cars: list[CarBinding], tracker: Tracker | None = None, estimator=None, perception=None,
-                 recorder=None, faults: tuple[FaultSpec, ...] = (), world: World | None = None, mode: str = "hil",
-                 clock: Clock | None = None, worker_factory=None, monitor_factory=DeadlineMonitor) -> None:
+                 cars: list[CarBinding], tracker: Tracker | None = None, estimator=None,
+                 perception: Perceiver | None = None, recorder=None, faults: tuple[FaultSpec, ...] = (),
+                 world: World | None = None, mode: str = "hil", clock: Clock | None = None, worker_factory=None,
+                 monitor_factory=DeadlineMonitor, commands: CommandHistory | None = None,
+                 operator: OperatorInput | None = None) -> None:
         self.setup, self.cfg, self.feed = setup, config, feed
-        self.link, self.cars, self.rec, self.world, self.mode = link, cars, recorder, world, mode
+        self.link, self.cars, self.mode = link, cars, mode
         self.clock = clock if clock is not None else MonotonicClock()
-        # The loop's timing is recorded in real time only (on a simulated clock the period is the set one).
-        self.realtime = not isinstance(self.clock, SimulatedClock)
+        if commands is None:  # an injected Perception brings the history its estimator reads
+            commands = getattr(perception, "commands", None) or CommandHistory()
+        self.commands = commands
         self.faults = tuple(faults)
         if any(f.kind == "nan_state" for f in self.faults):
             estimator = NanStateEstimator(estimator, self.faults, {c.name: c.marker_id for c in cars}, self.race_time,
@@ -268,12 +278,18 @@ class RaceLoop:
         if any(f.kind == "solver_fail" for f in self.faults):
             planners = FailingPlanners(planners, self.faults, self.race_time)
         self.estimator, self.planners = estimator, planners
-        self.perception = perception if perception is not None else Perception(tracker, estimator, cars,
-                                                                                config.lost_search_every)
+        self.perception: Perceiver = perception if perception is not None else Perception(
+            tracker, estimator, cars, config.lost_search_every, commands=self.commands)
+        self.names = [c.name for c in cars]
+        self.world: World = world if world is not None else FeedWorld(feed, setup, self.names,
+                                                                      self.perception.states_at)
+        self.rec = recorder  # race.recording.RaceRecorder or None
+        self.recording = (LoopRecording(recorder, setup.car.geometry, config.image_log_every, config.image_downscale)
+                          if recorder is not None else NoRecording())
         self.safety = SafetyHolds(self._neutral_now, self._event, config.stop_after_hold_s)
+        self.operator_stop = None if operator is None else OperatorStop(operator, self._neutral_now, self._event)
         self.track = setup.track
         self.car = setup.car
-        self.by_marker = {c.marker_id: c for c in cars}
         self.commanded = [c for c in cars if c.name in planners.commanded]
         self.worker: PlanRunner = (worker_factory or PlannerWorker)(planners, self.clock)
         self._monitor_factory = monitor_factory
@@ -284,34 +300,16 @@ class RaceLoop:
         self._active: PlanResult | None = None
         self._last_seq = 0
         self._last_corrupt = 0
-        self._last_corrupt_t = -math.inf
+        self._last_corrupt_t = -float("inf")
         self._lock = threading.Lock()
         self._misses_by_monitor: set[int] = set()
         self.monitor: DeadlineMonitor | None = None
-        self.referee: Referee | None = None  # hardware: laps from the estimated states
-        # statistics
-        self.period_ms: list[float] = []
-        self.busy_ms: list[float] = []
-        self.stage_ms = {s: [] for s in STAGES}
-        self.overruns = {s: 0 for s in STAGES}
-        self.deadline_misses = 0
-        self.names = [c.name for c in cars]
         self.planner_kinds = {c.name: c.planner for c in getattr(planners, "cars", setup.cars)}
-        self.solve_ms = {name: [] for name in self.names}
-        self.prestart_ms = 0.0
-        self.fallbacks = 0
-        self.planner_errors: list[PlannerErrorRecord] = []
-        self.plan_lag_ms: list[float] = []
-        self._plan_commands: list[tuple[float, int, float, float]] = []  # (t_plan, car index, throttle, steering)
+        self.ticks = TickStats(config.budgets)
+        self.planning = PlanStats({name: self.planner_kinds.get(name) for name in self.names})
+        self.tracking = TrackingStats()
         self._last_sent: dict[str, tuple[float, float]] = {}
-        self._controls: dict[str, list[tuple[float, float, float]]] = {}  # car -> [(t_effect, a, delta)]
-        self.plans = 0
-        self.plan_failures = 0
-        self.render_ms: list[float] = []
-        self.tracking_error_mm: list[float] = []
-        self.tracking_heading_error_deg: list[float] = []
-        self.detection_error_mm: list[float] = []
-        self.dropped = 0
+        self.feed_stats = FeedStats()
         self.winner_seen: str | None = None
 
     # ------------------------------------------------------------------ helpers
@@ -323,8 +321,7 @@ class RaceLoop:
         t_race = self.race_time() if t_race is None else t_race
         with self._lock:
             self.events.append((t_race, kind, text))
-        if self.rec is not None:
-            self.rec.event(t_race, kind, text, step=self.k)
+        self.recording.event(t_race, kind, text, step=self.k)
 
     def _neutral_now(self) -> None:
         try:
@@ -349,6 +346,16 @@ class RaceLoop:
             self._misses_by_monitor.add(tick)
         self._event("deadline_miss", f"tick {tick}: no command by the deadline (stage {stage} running) - neutral sent")
 
+    def _world_report(self, packet: WorldPacket) -> str | None:
+        """The events a world reported (a poll, or its answer to the tick's states); "finished" once
+        its referee has decided the race."""
+        for t_ev, kind, text in packet.events:
+            self._event(kind, text, t_race=t_ev)
+        if packet.winner is not None and self.winner_seen is None:
+            self.winner_seen = packet.winner
+            return "finished"
+        return None
+
     # ------------------------------------------------------------------ phases
     def run(self) -> LoopOutcome:
         reason = "interrupted"
@@ -367,10 +374,10 @@ class RaceLoop:
         return self._outcome(reason, summary)
 
     def _acquire(self) -> None:
-        """Before the start: full-frame searches until every car has enough accepted measurements."""
+        """Before the start: full searches until every car has enough accepted measurements."""
         deadline = self.clock.now() + self.cfg.acquire_timeout_s
         while True:
-            packet = self.feed.poll(0.1)
+            packet = self.world.poll(0.1)
             self.perception.acquire(packet)
             missing = self.perception.acquired(self.cfg.acquire_measurements)
             if not missing:
@@ -392,64 +399,15 @@ class RaceLoop:
         result.job.t_plan = self.t_go  # the cold-start plan is the plan for the start
         self._take_plan(result, self.clock.now())
         for c in self.commanded:  # on the grid: at rest and neutral until tick 0's command acts
-            self._log_control(c.name, t - 1.0, self.planners.executed_control(c.name, None, 0.0))
-            self.perception.accel_inputs[c.name] = self._accel_input(c.name)
-        if self.world is not None:
-            self.world.go(self.t_go)
-        if self.mode == "hardware":
-            self.referee = Referee(self.track, self.setup.car, self.names, self.setup.laps)
-            at_go = self.perception.states_at(self.t_go)
-            self.referee.observe(0.0, np.array([at_go[name] for name in self.names]))
-        self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, planning {self.cfg.plan_hz:g} Hz)",
-                    t_race=0.0)
+            self.commands.record(c.name, t - 1.0, self.planners.executed_control(c.name, None, 0.0))
+        self.world.go(self.t_go)
+        self._event("start", f"race started ({self.mode}, loop {self.cfg.rate_hz:g} Hz, "
+                             f"planning {self.cfg.plan_hz:g} Hz)", t_race=0.0)
 
-    def _log_control(self, name: str, t_effect: float, control: tuple[float, float] | None) -> None:
-        """Record the planning-model control [a, delta] car `name` executes from t_effect on (one
-        second of history is kept)."""
-        log = self._controls.setdefault(name, [])
-        if control is None:
-            log.clear()  # not a model control (pure pursuit): nothing to predict with
-            return
-        if not log or log[-1][1:] != control:
-            log.append((t_effect, *control))
-        while len(log) > 1 and log[1][0] < t_effect - 1.0:
-            log.pop(0)
-
-    def _accel_input(self, name: str):
-        """CarEKF.accel_input of car `name`: its logged accelerations."""
-        log = self._controls[name]
-        return lambda t0, t1: [(d, a) for d, a, _ in controls_between(log, t0, t1)]
-
-    def _in_flight(self, t_plan: float) -> dict[str, tuple[np.ndarray, list]]:
-        """PlanJob.in_flight: for each commanded car with a control log covering its last measurement,
-        that measured state and the logged controls from then to t_plan."""
-        out = {}
-        for c in self.commanded:
-            log = self._controls.get(c.name)
-            last = self.perception.last_measurement(c.name)
-            if not log or last is None or not log[0][0] <= last[0] < t_plan:
-                continue
-            t_s, state = last
-            if np.all(np.isfinite(state)):
-                out[c.name] = (state, controls_between(log, t_s, t_plan))
-        return out
-
-    def _command_lags(self, applied) -> np.ndarray:
-        """For each plan's new command: the first time the simulated car got those values (HIL world's
-        applied_changes, same clock) minus the plan's t_plan, in ms. Values match within 2e-3 (rd3g's int16
-        steps are 3e-5 of full scale; buzzracer-fhss rounds to 1 us, half a step is 1.25e-3 of throttle and
-        5e-4 rad of steering); searched from the job's creation on."""
-        lags = []
-        by_car: dict[int, list] = {}
-        for t, i, throttle, steer in applied:
-            by_car.setdefault(i, []).append((t, throttle, steer))
-        for t_plan, i, throttle, steer in self._plan_commands:
-            t_job = t_plan - self.cfg.plan_latency_s
-            for t, th, st in by_car.get(i, []):
-                if t >= t_job and abs(th - throttle) < 2e-3 and abs(st - steer) < 2e-3:
-                    lags.append(1e3 * (t - t_plan))
-                    break
-        return np.array(lags)
+    def _job(self, k: int, t_plan: float, states: dict) -> PlanJob:
+        """A planning job with the commanded cars' last measured poses and the commands sent so far."""
+        measured = {c.name: m for c in self.commanded if (m := self.perception.last_measurement(c.name)) is not None}
+        return PlanJob(k, t_plan, states, measured=measured, commands=self.commands.snapshot())
 
     @staticmethod
     def _errors_text(result: PlanResult) -> str:
@@ -460,44 +418,34 @@ class RaceLoop:
         t_race = self.race_time(result.job.t_plan) if self.t_go is not None else 0.0
         errors = planner_errors(result)
         for name, text in errors.items():
-            self.planner_errors.append(PlannerErrorRecord(t_race, name, text))
+            self.planning.errors.append(PlannerErrorRecord(t_race, name, text))
         if result.error or (errors and self.cfg.hold_on_planner_error):
-            self.plan_failures += 1
+            self.planning.failures += 1
             self.safety.set("planner", True, f"planner failed: {result.error or self._errors_text(result)}")
             return
         for name, text in errors.items():  # the fallback plan is applied (LoopConfig.hold_on_planner_error)
             self._event("planner_error", f"{name}: {text}", t_race=t_race)
         self._active = result
-        self.plans += 1
+        self.planning.plans += 1
         self.safety.set("planner", False)
         cold = self.t_go is None or result.job.tick < 0
-        if self.t_go is not None and result.job.tick >= 0:  # not the cold plan for the start
+        step = max(self.k, 0)
+        if not cold:
             lag = 1e3 * (now - result.job.t_plan)
-            self.plan_lag_ms.append(lag)
-            if self.rec is not None:
-                self.rec.scalar("planner/plan_lag_ms", max(self.k, 0), t_race, lag)
+            self.planning.plan_lag_ms.append(lag)
+            self.recording.plan_lag(step, t_race, lag)
         for name, cp in result.cars.items():
-            rd3g = self.planner_kinds.get(name) == "rd3g"
-            if cold:  # the cold plan is made on the grid before the start, outside the real-time budget
-                if rd3g:
-                    self.prestart_ms = max(self.prestart_ms, cp.solve_ms)
-            elif cp.plan is not None:  # pure pursuit has no planning call to time
-                self.solve_ms[name].append(cp.solve_ms)
-                self.fallbacks += rd3g and cp.plan is not None and cp.plan.used == "fallback"
+            self.planning.car_plan(name, cp, cold)
             # The cold plan is recorded where the loop drives it (its first plan_ticks ticks); in
             # lock-step the tick-0 plan replaces it before any command.
-            if self.rec is None or cp.plan is None or (cold and self.cfg.plan_ticks == 0):
-                continue
-            step = max(self.k, 0)
-            record_plan(self.rec, step, t_race, self.track, name, cp.plan, cp.solve_ms)
-            self.rec.scalar(f"planner/{name}/fallback", step, t_race, float(cp.plan.used == "fallback"))
+            if cp.plan is not None and not (cold and self.cfg.plan_ticks == 0):
+                self.recording.plan(step, t_race, self.track, name, cp)
 
     # ------------------------------------------------------------------ the race
     def _race(self) -> str:
         cfg = self.cfg
         T = cfg.period_s
         self.monitor = self._monitor_factory(self._on_deadline_miss, self.clock)
-        prev_start = None
         self.k = 0
         while True:
             t_k = self.t_go + self.k * T
@@ -507,14 +455,14 @@ class RaceLoop:
             start = self.clock.now()
             if start > t_k + T:  # more than a period late: skip the ticks that are already past
                 skipped = int((start - t_k) / T)
-                self.deadline_misses += skipped
+                self.ticks.deadline_misses += skipped
                 self._event("deadline_miss", f"{skipped} tick(s) skipped: loop {1e3 * (start - t_k):.1f} ms late")
                 self._neutral_now()  # the last command is stale by now
                 self.k += skipped
                 t_k = self.t_go + self.k * T
-            if prev_start is not None:
-                self.period_ms.append(1e3 * (start - prev_start))
-            prev_start = start
+            self.ticks.tick_started(start)
+            if self.operator_stop is not None and self.operator_stop.check(start - self.t_go):
+                return OPERATOR_STOP
             self.monitor.arm(self.k, t_k + T)
             end_reason = self._tick(start, t_k + T)
             if end_reason:
@@ -522,12 +470,7 @@ class RaceLoop:
             self.k += 1
 
     def _stage(self, name: str, t0: float, times: dict) -> float:
-        t1 = time.perf_counter()
-        ms = 1e3 * (t1 - t0)
-        times[name] = ms
-        self.stage_ms[name].append(ms)
-        if ms > getattr(self.cfg.budgets, name):
-            self.overruns[name] += 1
+        t1 = self.ticks.stage(name, t0, times)
         if self.monitor is not None:
             self.monitor.stage = next((s for s in STAGES[STAGES.index(name) + 1:]), "-")
         return t1
@@ -545,16 +488,12 @@ class RaceLoop:
             return "serial_fault"
         t0 = time.perf_counter()
         try:
-            packet = self.feed.poll(0.0)
+            packet = self.world.poll(0.0)
         except RuntimeError as exc:
             self._event("world_error", str(exc).splitlines()[0])
             return "world_error"
-        for t_ev, kind, text in packet.events:
-            self._event(kind, text, t_race=t_ev)
-        self.render_ms.extend(packet.render_ms)
-        self.dropped = max(self.dropped, packet.dropped)
-        if packet.winner is not None and self.winner_seen is None:  # the world's referee ended the race
-            self.winner_seen = packet.winner
+        self.feed_stats.polled(packet)
+        if self._world_report(packet):  # the world's referee ended the race
             return "finished"
         if t_race >= self.setup.max_time_s - CLOCK_ROUNDING_S:  # nothing more is planned
             self._event("stop", f"time limit {self.setup.max_time_s:.0f} s reached")
@@ -568,7 +507,7 @@ class RaceLoop:
             marks[0] = self._stage("detect", marks[0], times)
 
         perceived = self.perception.perceive(packet, t_plan, self.clock.now(), after_detect=detected)
-        if packet.truth is not None and perceived.detections is not None:
+        if packet.truth is not None and perceived.observation is not None:
             self._tracking_errors(k, packet, perceived)
         now = self.clock.now()
         self._safety_checks(perceived, packet, now)
@@ -577,31 +516,30 @@ class RaceLoop:
         t0 = self._stage("plan", t0, times)
         sent = self._command_stage(k, start, deadline, commands, sent)
         t0 = self._stage("command", t0, times)
-        if self.rec is not None:
-            self._record(k, t_race, times, packet, perceived.detections, perceived.states, sent)
+        answer = self.world.observe(self.race_time(t_plan), perceived.states)  # the states are at t_plan
+        seen = packet if packet.truth is not None and packet.t_race is not None else answer
+        truth = None if seen.truth is None else {name: seen.truth[i] for i, name in enumerate(self.names)}
+        self.recording.tick(k, t_race, times=times, stats=self.ticks, perceived=perceived,
+                            estimated=self.perception.estimated, sent=sent, holds=len(self.holds),
+                            now=self.clock.now(), race_time=self.race_time, frames=self.frames,
+                            render_ms=packet.render_ms, truth=truth, t_truth=seen.t_race)
         self._stage("telemetry", t0, times)
-        if self.rec is not None and self.realtime:
-            self.rec.scalar("loop/stage/telemetry_ms", k, t_race, times["telemetry"])
-        return self._end_of_race(t_race, now, perceived.states, packet)
+        self.recording.telemetry_time(k, t_race, times["telemetry"])
+        return self._end_of_race(answer, now)
 
     def _tracking_errors(self, k: int, packet, perceived) -> None:
-        """HIL: raw detection and EKF posterior vs the simulator's truth at the frame's capture time."""
-        t_cap = self.race_time(packet.frame.t_capture_s)
-        for m in perceived.measurements:
-            name = self.by_marker[m.marker_id].name
+        """HIL: raw poses and the estimates at their times vs the simulator's truth at the frame's capture time."""
+        t_cap = self.race_time(perceived.observation.t_s)
+        for name, pose in perceived.observation.poses.items():
             truth = packet.truth[self.names.index(name)]
-            det_err = 1e3 * math.hypot(m.x - truth[0], m.y - truth[1])
-            self.detection_error_mm.append(det_err)
-            if self.rec is not None:
-                self.rec.scalar(f"tracking/{name}/detection_error_mm", k, t_cap, det_err)
-            f = self.perception.filter_of(name)
-            if f is not None and perceived.results[m.marker_id].accepted:
-                err = 1e3 * math.hypot(f.x[0] - truth[0], f.x[1] - truth[1])
-                self.tracking_error_mm.append(err)
-                self.tracking_heading_error_deg.append(
-                    abs(math.degrees(math.remainder(f.x[2] - truth[2], 2 * math.pi))))
-                if self.rec is not None:
-                    self.rec.scalar(f"tracking/{name}/error_mm", k, t_cap, err)
+            det_err = self.tracking.error_mm(pose.x, pose.y, truth)
+            self.tracking.detection_error_mm.append(det_err)
+            est = perceived.accepted.get(name)
+            err = None if est is None else self.tracking.error_mm(est[0], est[1], truth)
+            if err is not None:
+                self.tracking.tracking_error_mm.append(err)
+                self.tracking.tracking_heading_error_deg.append(self.tracking.heading_error_deg(est[2], truth))
+            self.recording.tracking_errors(k, t_cap, name, det_err, err)
 
     def _safety_checks(self, perceived, packet, now: float) -> None:
         """The tracking, state and serial-stream holds of this tick (race.safety)."""
@@ -621,12 +559,12 @@ class RaceLoop:
 
     def _plan_stage(self, k: int, now: float, t_tick: float, t_plan: float, states: dict):
         """Apply the plan due at this tick, check its age, decide this tick's commands (neutral while a
-        hold is active), log the controls the cars execute and submit the next planning job.
+        hold is active), write them to the command history and submit the next planning job.
         Returns ({radio id: CarCommand}, {car: (throttle, steering rad) sent})."""
         cfg = self.cfg
         submit = k % cfg.plan_every == 0 and len(states) == len(self.cars)
         if submit and cfg.plan_ticks == 0:  # lock-step: plan from this tick's observation, for this tick
-            self.worker.submit(PlanJob(k, t_plan, states, self._in_flight(t_plan)))
+            self.worker.submit(self._job(k, t_plan, states))
         result = self.worker.latest()
         # A plan is applied at its scheduled tick, not earlier: every plan then acts plan_latency_s after
         # its job, whatever its solve time (a failure is taken at once: it is a fault).
@@ -637,8 +575,8 @@ class RaceLoop:
             age = now - self._active.job.t_plan
             self.safety.set("planner_stale", age > cfg.max_plan_age_s,
                             f"no new plan for {1e3 * age:.0f} ms (limit {1e3 * cfg.max_plan_age_s:.0f} ms)")
-        # This tick's commands (sent in the command stage), logged as the controls the cars execute from
-        # t_tick + command_delay_s on: the next job predicts its own cars through them.
+        # This tick's commands (sent in the command stage), in the history as the controls the cars execute
+        # from t_tick + command_delay_s on: the next job predicts its own cars through them.
         commands: dict[int, CarCommand] = {}
         sent = {c.name: (0.0, 0.0) for c in self.commanded}
         driving = not self.safety and self._active is not None
@@ -648,15 +586,16 @@ class RaceLoop:
                 commands[c.radio_id] = link_command(self.car, cp.throttle, cp.steering_rad)
                 sent[c.name] = (cp.throttle, cp.steering_rad)
                 if self._last_sent.get(c.name) != sent[c.name] and self._active.job.tick >= 0:
-                    self._plan_commands.append((self._active.job.t_plan, self.names.index(c.name), *sent[c.name]))
+                    self.planning.new_command(self._active.job.t_plan, self.names.index(c.name), *sent[c.name])
             else:
                 commands[c.radio_id] = CarCommand(0.0, 0.0)
             speed = float(states[c.name][3]) if c.name in states else 0.0
-            self._log_control(c.name, t_tick + cfg.command_delay_s, self.planners.executed_control(c.name, cp, speed))
+            self.commands.record(c.name, t_tick + cfg.command_delay_s,
+                                 self.planners.executed_control(c.name, cp, speed))
         if driving:
             self._last_sent = dict(sent)
         if submit and cfg.plan_ticks > 0:
-            self.worker.submit(PlanJob(k, t_plan, states, self._in_flight(t_plan)))
+            self.worker.submit(self._job(k, t_plan, states))
         return commands, sent
 
     def _command_stage(self, k: int, start: float, deadline: float, commands: dict, sent: dict) -> dict:
@@ -672,75 +611,23 @@ class RaceLoop:
         with self._lock:
             missed = fired or k in self._misses_by_monitor
         if missed or t_cmd > deadline:
-            self.deadline_misses += 1
+            self.ticks.deadline_misses += 1
             if not missed:
                 self._event("deadline_miss", f"tick {k}: command {1e3 * (t_cmd - deadline):.1f} ms after the deadline")
-        self.busy_ms.append(1e3 * (t_cmd - start))
+        self.ticks.commanded(start, t_cmd)
         return sent
 
-    def _end_of_race(self, t_race: float, now: float, states: dict, packet) -> str | None:
-        if self.referee is not None and len(states) == len(self.cars):
-            for ev in self.referee.observe(t_race, np.array([states[name] for name in self.names])):
-                self._event(ev.kind, event_text(ev, self.names))
-            if self.referee.winner is not None and (self.setup.finish == "first" or self.referee.all_finished):
-                self.winner_seen = self.referee.winner
-                return "finished"
+    def _end_of_race(self, answer: WorldPacket, now: float) -> str | None:
+        if self._world_report(answer):
+            return "finished"
         stop = self.safety.stop_reason(now)
         if stop is not None:
             self._event("stop", stop)
             return "held_neutral"
         return None
 
-    def _record(self, k, t_race, times, packet, det, states, sent) -> None:
-        rec = self.rec
-        if self.realtime:
-            if len(self.period_ms):
-                rec.scalar("loop/period_ms", k, t_race, self.period_ms[-1])
-            for name, ms in times.items():
-                rec.scalar(f"loop/stage/{name}_ms", k, t_race, ms)
-            rec.scalar("loop/busy_ms", k, t_race, self.busy_ms[-1])
-        if self.perception.estimated:
-            for name, st in states.items():
-                rec.points(f"world/cars/{name}/estimate", k, t_race, st[:2])
-                rec.scalar(f"cars/{name}/estimated_speed_mps", k, t_race, st[3])
-        for name, (throttle, steer) in sent.items():
-            rec.scalar(f"cars/{name}/command/throttle", k, t_race, throttle)
-            rec.scalar(f"cars/{name}/command/steering_rad", k, t_race, steer)
-        rec.scalar("loop/holds", k, t_race, len(self.holds))
-        frame = packet.frame
-        if frame is not None and det is not None:
-            rec.scalar("camera/latency_ms", k, t_race, 1e3 * (self.clock.now() - frame.t_capture_s))
-            rec.scalar("camera/full_search", k, t_race, float(det.full_search))
-            for ms in packet.render_ms:
-                rec.scalar("camera/render_ms", k, t_race, ms)
-            for m in det.cars.values():
-                if m.marker_id in self.by_marker:
-                    rec.points(f"world/cars/{self.by_marker[m.marker_id].name}/detection", k,
-                               self.race_time(frame.t_capture_s), [m.x, m.y])
-                    # the measured heading too: model identification (docs/sysid.md) needs whole poses
-                    rec.scalar(f"cars/{self.by_marker[m.marker_id].name}/detection_heading_rad", k,
-                               self.race_time(frame.t_capture_s), m.heading)
-            if self.frames % self.cfg.image_log_every == 1:
-                d = self.cfg.image_downscale
-                small = cv2.resize(frame.image, None, fx=1.0 / d, fy=1.0 / d, interpolation=cv2.INTER_AREA)
-                rec.image("camera/image", k, t_race, small)
-                if det.markers:
-                    centres = np.array([c.reshape(-1, 2).mean(axis=0) for c in det.markers.values()]) / d
-                    rec.points("camera/detections", k, t_race, centres)
-        truth = packet.truth if packet.t_race is not None else None
-        if truth is None and self.world is None:
-            truth_states = {n: s for n, s in states.items()}  # hardware: the estimate is the best we have
-            t_truth = t_race
-        elif truth is not None:
-            truth_states = {name: truth[i] for i, name in enumerate(self.names)}
-            t_truth = packet.t_race
-        else:
-            return
-        for name, st in truth_states.items():
-            record_car(rec, k, t_truth, name, st, self.car.geometry)
-
     # ------------------------------------------------------------------ shutdown
-    def _shutdown(self) -> dict | None:
+    def _shutdown(self) -> WorldSummary | None:
         if self.monitor is not None:
             self.monitor.stop()
         self._neutral_now()
@@ -749,63 +636,55 @@ class RaceLoop:
         except Exception:
             pass
         self.worker.stop()
-        summary = None
-        if self.world is not None:
-            # Keep reading the world briefly: the box's failsafe (100 ms) and the cars' reaction to the
-            # final neutral happen after the loop has stopped and belong in the recording.
-            t_end = self.clock.now() + self.cfg.linger_s
-            while self.clock.now() < t_end:
-                try:
-                    packet = self.world.poll(0.02)
-                except RuntimeError:
-                    break
-                for t_ev, kind, text in packet.events:
-                    self._event(kind, text, t_race=t_ev)
-            summary = self.world.close()
-            if summary:
-                for t_ev, kind, text in summary.get("events", []):
-                    self._event(kind, text, t_race=t_ev)
-        elif hasattr(self.feed, "close"):
-            self.feed.close()
+        # Keep reading the world briefly: the box's failsafe (100 ms) and the cars' reaction to the
+        # final neutral happen after the loop has stopped and belong in the recording.
+        t_end = self.clock.now() + self.cfg.linger_s
+        while self.clock.now() < t_end:
+            try:
+                packet = self.world.poll(0.02)
+            except RuntimeError:
+                break
+            for t_ev, kind, text in packet.events:
+                self._event(kind, text, t_race=t_ev)
+        summary = self.world.close()
+        if summary is not None:
+            for t_ev, kind, text in summary.events:
+                self._event(kind, text, t_race=t_ev)
         return summary
 
-    def _outcome(self, reason: str, summary: dict | None) -> LoopOutcome:
+    def _outcome(self, reason: str, summary: WorldSummary | None) -> LoopOutcome:
+        ticks, plans, tracking = self.ticks, self.planning, self.tracking
         out = LoopOutcome(reason=reason, mode=self.mode, ticks=self.k + (1 if self.t_go else 0),
-                          deadline_misses=self.deadline_misses, period_ms=np.array(self.period_ms),
-                          stage_ms={s: np.array(v) for s, v in self.stage_ms.items()},
-                          busy_ms=np.array(self.busy_ms), stage_overruns=dict(self.overruns),
-                          solve_ms={n: np.array(v) for n, v in self.solve_ms.items()}, plans=self.plans,
-                          prestart_ms=self.prestart_ms, fallbacks=self.fallbacks,
-                          planner_errors=list(self.planner_errors),
-                          plan_lag_ms=np.array(self.plan_lag_ms),
-                          command_lag_ms=self._command_lags((summary or {}).get("applied_changes") or []),
-                          plan_failures=self.plan_failures, frames=self.frames,
-                          render_ms=np.array(self.render_ms), tracking_error_mm=np.array(self.tracking_error_mm),
-                          tracking_heading_error_deg=np.array(self.tracking_heading_error_deg),
-                          detection_error_mm=np.array(self.detection_error_mm), events=list(self.events),
-                          control_period_ms=1e3 * self.cfg.period_s, load_average=os.getloadavg())
-        if summary:
-            out.winner = summary["winner"]
-            out.lap_times_s = summary["lap_times_s"]
-            out.min_gap_m = summary["min_gap_m"]
-            out.collisions = summary["collisions"]
-            out.race_time_s = summary["race_time_s"]
-            out.frames_dropped = summary["frames_dropped"]
-            out.render_ms = np.asarray(summary["render_ms"], dtype=float)
-            out.box = summary.get("box")
-            out.finish_order = list(summary.get("finish_order", []))
-            out.results = list(summary.get("results", []))
-        else:
+                          deadline_misses=ticks.deadline_misses, period_ms=np.array(ticks.period_ms),
+                          stage_ms={s: np.array(v) for s, v in ticks.stage_ms.items()},
+                          busy_ms=np.array(ticks.busy_ms), stage_overruns=dict(ticks.overruns),
+                          solve_ms={n: np.array(v) for n, v in plans.solve_ms.items()}, plans=plans.plans,
+                          prestart_ms=plans.prestart_ms, fallbacks=plans.fallbacks,
+                          planner_errors=list(plans.errors), plan_lag_ms=np.array(plans.plan_lag_ms),
+                          command_lag_ms=plans.command_lags(summary.applied_changes if summary else [],
+                                                            self.cfg.plan_latency_s),
+                          plan_failures=plans.failures, frames=self.frames,
+                          render_ms=np.array(self.feed_stats.render_ms), frames_dropped=self.feed_stats.frames_dropped,
+                          tracking_error_mm=np.array(tracking.tracking_error_mm),
+                          tracking_heading_error_deg=np.array(tracking.tracking_heading_error_deg),
+                          detection_error_mm=np.array(tracking.detection_error_mm), events=list(self.events),
+                          control_period_ms=1e3 * self.cfg.period_s, load_average=os.getloadavg(),
+                          planners=dict(self.planner_kinds),
+                          recording=None if self.rec is None else str(self.rec.path))
+        if summary is not None:
+            out.winner = summary.winner
+            out.lap_times_s = summary.lap_times_s
+            out.min_gap_m = summary.min_gap_m
+            out.collisions = summary.collisions
+            out.race_time_s = summary.race_time_s
+            out.frames_dropped = summary.frames_dropped
+            out.render_ms = np.asarray(summary.render_ms, dtype=float)
+            out.box = summary.box
+            out.finish_order = list(summary.finish_order)
+            out.results = list(summary.results)
+        else:  # the world's summary was lost (a HIL world process that died)
             out.winner = self.winner_seen
             out.race_time_s = self.race_time() if self.t_go else 0.0
-            if self.referee is not None:
-                out.lap_times_s = self.referee.lap_times_s
-                out.min_gap_m = self.referee.min_gap_m if math.isfinite(self.referee.min_gap_m) else None
-                out.finish_order = self.referee.finish_order
-                out.results = self.referee.results(out.finish_order, out.lap_times_s, self.setup.laps)
-        out.planners = dict(self.planner_kinds)
-        if self.rec is not None:
-            out.recording = str(self.rec.path)
         return out
 
 

@@ -22,7 +22,6 @@ pursuit, or none for a human-driven car).
 """
 from __future__ import annotations
 
-import bisect
 import dataclasses
 import math
 import threading
@@ -33,6 +32,7 @@ import numpy as np
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
 from planning.commands import rollout_controls
 from planning.frenet import S, V
+from race.command_history import CommandHistory, controls_between  # noqa: F401 (controls_between: race.planning's name)
 from race.config import lower_realtime_priority
 from race.setup import RaceSetup
 
@@ -41,23 +41,6 @@ OPPONENT_MODES = ("mpc", "pursuit", "human")
 # process (5 below, the emulated camera and cars) so that on a small machine the emulation, not the
 # product, gives way (it drops camera frames, which the loop reports), and below the HIL box (3 below).
 PLANNER_PRIORITY_BELOW_LOOP = 4
-
-
-def controls_between(log, t0: float, t1: float) -> list[tuple[float, float, float]]:
-    """The piecewise-constant controls of ``log`` ([(t_on s, a, delta), ...], ascending t_on, each acting
-    until the next one's t_on, the last until t1) that act in [t0, t1), as [(duration s, a, delta), ...];
-    the part before the first entry is not covered."""
-    out = []
-    # The loop calls this several times a tick (EKF predictions): start at the entry acting at t0.
-    for j in range(max(bisect.bisect_right(log, t0, key=lambda e: e[0]) - 1, 0), len(log)):
-        t_on, a, delta = log[j]
-        if t_on >= t1:
-            break
-        t_off = log[j + 1][0] if j + 1 < len(log) else t1
-        lo, hi = max(t_on, t0), min(t_off, t1)
-        if hi > lo:
-            out.append((hi - lo, a, delta))
-    return out
 
 
 def make_planner(cls, setup: RaceSetup, top: float, car=None, reference: float | None = None, **kw):
@@ -95,11 +78,24 @@ class PlanJob:
     tick: int
     t_plan: float                     # absolute time (monotonic) the states are predicted to
     states: dict[str, np.ndarray]     # car name -> [x, y, heading, vx, vy, yaw_rate]
-    # Commanded cars: (state [x, y, heading, vx, vy, yaw_rate] at the car's last measurement, the
-    # controls it executes from then to t_plan as [(duration s, a m/s^2, delta rad), ...]). The planner
-    # then predicts its own car with the planning model and these controls rather than taking
-    # ``states`` (the estimator's constant-turn-rate prediction, which cannot know the commands).
-    in_flight: dict[str, tuple[np.ndarray, list]] = field(default_factory=dict)
+    # Commanded cars: (clock time, state) of the car's last measured pose (race.world.Perceiver.last_measurement)
+    measured: dict[str, tuple[float, np.ndarray]] = field(default_factory=dict)
+    # The commands sent until the job (race.command_history.CommandHistory.snapshot)
+    commands: CommandHistory | None = None
+
+    def in_flight(self, name: str) -> tuple[np.ndarray, list] | None:
+        """Car ``name``'s (finite) state at its last measured pose and the controls it executes from then
+        to t_plan ([(duration s, a m/s^2, delta rad), ...]) when the command history reaches back to that
+        pose, else None. The planner then predicts its own car with the planning model and these controls
+        rather than taking ``states`` (the estimator's constant-turn-rate prediction, which cannot know
+        the commands)."""
+        last = self.measured.get(name)
+        if last is None or self.commands is None or not (self.commands.covers(name, last[0]) and last[0] < self.t_plan):
+            return None
+        t_s, state = last
+        if not np.all(np.isfinite(state)):
+            return None
+        return state, self.commands.between(name, t_s, self.t_plan)
 
 
 @dataclass
@@ -236,9 +232,10 @@ class RacePlanners:
         """Frenet state of a commanded car at t_plan: from its last measured state through the controls
         it executes (job.in_flight), with the progress unwrapped like ``at_plan`` (the estimator's
         prediction to t_plan, used when the job has no in-flight record for the car)."""
-        if name not in job.in_flight:
+        flight = job.in_flight(name)
+        if flight is None:
             return at_plan
-        state, segments = job.in_flight[name]
+        state, segments = flight
         x = rollout_controls(self._planner_of(name).tm, frenet_state(self.track, state), segments)
         length = float(self.track.length)
         ds = math.remainder(float(x[S]) - float(at_plan[S]), length)  # same lap as the unwrapped progress

@@ -7,7 +7,8 @@ appends rows to a queue (about a microsecond per value) and a background thread 
 ``flush_every_s``; the simulated race (``background=False``) collects them in its own thread and
 sends them every ``flush_every_rows`` rows and at ``close``. Events and camera images are logged as
 they come (rare). Every row carries two timelines: ``sim_time`` (race time, s) and ``control_step``
-(loop tick or control step).
+(loop tick or control step). With a live view (``live``, recording.live) the same recording also goes
+to Rerun viewers as it is written, and the simulated race sends its rows every ``flush_every_s`` too.
 
 Reader (:func:`load_recording`): Rerun's own chunk reader (``rerun.chunk.RrdReader``, rerun 0.41)
 streams the chunks of the first recording in the file; each entity's rows are concatenated and
@@ -35,11 +36,13 @@ from race.config import lower_realtime_priority
 from race.roster import PLANNERS, two_car_roster
 from recording.blueprint import race_blueprint  # the top-level package recording/, not this module
 from recording.integrity import read_verified
+from recording.live import LiveView
 from sim.collision import footprint_corners
 
 APPLICATION_ID = "rd3g_race"
 EVENTS_ENTITY = "race/events"
 SETUP_ENTITY = "race/setup"
+LIVE_FLUSH_TIMEOUT_S = 10.0  # at close, how long the live viewers may take to receive the rest of a race
 # Each car's colour by its place in the roster (recordings and review plots): red, blue, green, orange,
 # purple, brown.
 CAR_PALETTE = ((230, 60, 40), (40, 110, 230), (40, 160, 70), (240, 150, 20), (150, 70, 190), (140, 90, 50))
@@ -61,14 +64,22 @@ class RaceRecorder:
     the real-time one (camera, estimates, loop timing) unless ``realtime=False`` (simulated race)."""
 
     def __init__(self, path, recording_id: str, flush_every_s: float = 0.5, background: bool = True,
-                 flush_every_rows: int = 20000, car_names: Sequence[str] = (), realtime: bool = True) -> None:
+                 flush_every_rows: int = 20000, car_names: Sequence[str] = (), realtime: bool = True,
+                 live: LiveView | None = None) -> None:
         import rerun as rr  # here, not at the top: the reader's users (sysid) need not load the SDK's writer
 
         self.rr = rr
         self.path = Path(path)
+        self.realtime = realtime  # loop timing is recorded (race.loop_recording)
         check_output_path(self.path)  # a regular file (a link to one) or new; Rerun writes it as the race goes
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-        self.rec.save(str(self.path), default_blueprint=race_blueprint(car_names, realtime=realtime))
+        blueprint = race_blueprint(car_names, realtime=realtime)
+        self.live = live
+        self.live_error: str | None = None  # why the live sinks could not be flushed at close (the file is whole)
+        if live is None:
+            self.rec.save(str(self.path), default_blueprint=blueprint)
+        else:  # one recording, the file and the viewers (recording.live)
+            self.rec.set_sinks(rr.FileSink(str(self.path)), *live.sinks(), default_blueprint=blueprint)
         self.flush_every_s = float(flush_every_s)
         self.flush_every_rows = int(flush_every_rows)
         self._rows: dict[tuple[str, str], list] = defaultdict(list)
@@ -76,13 +87,14 @@ class RaceRecorder:
         self._closed = False
         self.rows_written = 0
         self._thread = None
+        self._next_flush = time.monotonic() + self.flush_every_s
         if background:
             self._queue: queue.SimpleQueue = queue.SimpleQueue()
             self._put = self._queue.put
             self._thread = threading.Thread(target=self._run, name="RaceRecorder", daemon=True)
             self._thread.start()
-        else:
-            self._put = self._handle_now
+        else:  # a live view also gets the rows every flush_every_s, not only every flush_every_rows
+            self._put = self._handle_now if live is None else self._handle_now_live
 
     # ---- called from the loop (cheap: queue puts in the background mode)
     def scalar(self, entity: str, step: int, t: float, value: float) -> None:
@@ -149,7 +161,13 @@ class RaceRecorder:
             self._thread.join(timeout=30.0)
         else:
             self._flush()
-        self.rec.flush()
+        if self.live is None:
+            self.rec.flush()
+        else:
+            try:
+                self.rec.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
+            except RuntimeError as exc:  # a viewer gone or never reached: its copy is cut short, not the file
+                self.live_error = str(exc)
         self.rec.disconnect()  # finishes the file (footer/manifest)
 
     # ---- background thread
@@ -187,6 +205,13 @@ class RaceRecorder:
         self._handle(item)
         if self._pending_rows >= self.flush_every_rows:
             self._flush()
+
+    def _handle_now_live(self, item) -> None:
+        """Synchronous mode with a live view: also send every flush_every_s of wall time."""
+        self._handle(item)
+        if self._pending_rows >= self.flush_every_rows or time.monotonic() >= self._next_flush:
+            self._flush()
+            self._next_flush = time.monotonic() + self.flush_every_s
 
     def _log_now(self, entity, step, t, archetype) -> None:
         rec = self.rec

@@ -2,7 +2,8 @@
 docs/file-formats.md, "Roster file").
 
 A roster is a tuple of :class:`RosterCar` (2 to :data:`MAX_CARS`), each with its name, planner
-(:data:`PLANNERS`), car file, ArUco marker id, radio id (FHSS modem id), top speed and start slot. It
+(:data:`PLANNERS`), car file, ArUco marker id, radio id (FHSS modem id), top speed, start slot and, for
+motion capture, its rigid-body id. It
 comes from ``--cars rd3g,mpc,mpc`` (:func:`parse_cars`: names are the planner plus the car's 1-based
 index, ``rd3g1``, ``mpc2``), from ``--roster FILE.toml`` (:func:`load_roster`: one ``[[car]]`` table
 per car) or, without either flag, from the two-car race's options (:func:`two_car_roster`: ``rd3g``
@@ -22,6 +23,9 @@ PLANNERS = ("rd3g", "mpc", "pursuit", "human")
 MIN_CARS, MAX_CARS = 2, 6
 # Top speeds (m/s) by planner when the roster gives none: RaceSetup's defaults of the two-car race
 # (RD3G 2.0, the opponent 1.8).
+# Every speed of a car (top, reference, start): far above a 1/28 car's few m/s; a planner's grids grow
+# with it (--rd3g-speed 1e6 hung the race, a roster's 1e308 overflowed an array).
+MAX_SPEED_MPS = 20.0
 DEFAULT_TOP_SPEED_MPS = {"rd3g": 2.0, "mpc": 1.8, "pursuit": 1.8, "human": 1.8}
 
 
@@ -54,6 +58,8 @@ class RosterCar:
     # the authors' "preference" speed model (race.setup.SPEED_MODELS, docs/racing.md).
     reference_speed_mps: float | None = None
     start_speed_mps: float = 0.0
+    # Motive's streaming id of its rigid body (`race --mocap`; None: the car file's mocap.rigid_body_id)
+    rigid_body_id: int | None = None
 
     @property
     def solves(self) -> bool:
@@ -82,14 +88,16 @@ def make_roster(cars, max_cars: int = MAX_CARS) -> tuple[RosterCar, ...]:
         if c.car_params is not None and (not isinstance(c.car_params, str) or not c.car_params.strip()):
             raise RosterError(label, "car_params", f"must be a car file name or path, got {c.car_params!r}")
         speed = DEFAULT_TOP_SPEED_MPS[c.planner] if c.top_speed_mps is None else c.top_speed_mps
-        if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not (math.isfinite(speed) and speed > 0):
-            raise RosterError(label, "top_speed_mps", f"must be a positive number (m/s), got {speed!r}")
+        if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not 0 < speed <= MAX_SPEED_MPS:
+            raise RosterError(label, "top_speed_mps", f"must be a number in (0, {MAX_SPEED_MPS:g}] m/s, got {speed!r}")
         ref, v0 = c.reference_speed_mps, c.start_speed_mps
         if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float))
-                                or not (math.isfinite(ref) and ref > 0)):
-            raise RosterError(label, "reference_speed_mps", f"must be a positive number (m/s), got {ref!r}")
-        if isinstance(v0, bool) or not isinstance(v0, (int, float)) or not (math.isfinite(v0) and v0 >= 0):
-            raise RosterError(label, "start_speed_mps", f"must be a non-negative number (m/s), got {v0!r}")
+                                or not 0 < ref <= MAX_SPEED_MPS):
+            raise RosterError(label, "reference_speed_mps", f"must be a number in (0, {MAX_SPEED_MPS:g}] m/s, got {ref!r}")
+        if isinstance(v0, bool) or not isinstance(v0, (int, float)) or not 0 <= v0 <= MAX_SPEED_MPS:
+            raise RosterError(label, "start_speed_mps", f"must be a number in [0, {MAX_SPEED_MPS:g}] m/s, got {v0!r}")
+        if c.rigid_body_id is not None:
+            _integer(label, "rigid_body_id", c.rigid_body_id)
         out.append(dataclasses.replace(c, top_speed_mps=float(speed)))
     for f, hi in (("marker_id", 999), ("radio_id", 255), ("start_slot", len(cars) - 1)):
         taken = {getattr(c, f) for c in out}
@@ -97,10 +105,12 @@ def make_roster(cars, max_cars: int = MAX_CARS) -> tuple[RosterCar, ...]:
         out = [c if getattr(c, f) is not None else dataclasses.replace(c, **{f: next(free)}) for c in out]
         for c in out:
             _integer(c.name, f, getattr(c, f), 0, hi)
-    for f in ("name", "marker_id", "radio_id", "start_slot"):
+    for f in ("name", "marker_id", "radio_id", "start_slot", "rigid_body_id"):
         seen: dict = {}
         for c in out:
             v = getattr(c, f)
+            if v is None:  # a rigid-body id left to the car file
+                continue
             if v in seen:
                 raise RosterError(c.name, f, f"{v!r} is also car {seen[v]}'s; each car needs its own")
             seen[v] = c.name
@@ -133,9 +143,10 @@ def _schema() -> Table:
     car = table_from_dataclass(RosterCar, overrides={
         "name": String(nonempty=True, max_len=32), "planner": String(choices=PLANNERS),
         "car_params": String(nonempty=True), "marker_id": Number(integer=True, ge=0, le=999),
-        "radio_id": Number(integer=True, ge=0, le=255), "top_speed_mps": Number(gt=0),
-        "start_slot": Number(integer=True, ge=0, le=MAX_CARS - 1), "reference_speed_mps": Number(gt=0),
-        "start_speed_mps": Number(ge=0)})
+        "radio_id": Number(integer=True, ge=0, le=255), "top_speed_mps": Number(gt=0, le=MAX_SPEED_MPS),
+        "start_slot": Number(integer=True, ge=0, le=MAX_CARS - 1), "reference_speed_mps": Number(gt=0, le=MAX_SPEED_MPS),
+        "start_speed_mps": Number(ge=0, le=MAX_SPEED_MPS),
+        "rigid_body_id": Number(integer=True, ge=0, le=2**31 - 1)})
     return Table({"car": FieldSpec(ListOf(car, min_len=MIN_CARS, max_len=MAX_CARS))}, "roster")
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from planning import PlannerConfig
 from planning.config import PlannerConfigError
 from planning.frenet import lateral_half_extent
-from race.roster import RosterCar, RosterError, make_roster, two_car_roster
+from race.roster import MAX_SPEED_MPS, RosterCar, RosterError, make_roster, two_car_roster
 from sim.effects import SimEffects, SimEffectsError, parse_effects, sim_effects
 from tracks import TrackFormatError, load_track
 from tracks.io import UnknownTrackError
@@ -110,6 +110,8 @@ class RaceSetup:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise RaceSetupError(name, f"must be a positive number, got {v!r}")
+            if name.endswith("speed_mps") and v > MAX_SPEED_MPS:
+                raise RaceSetupError(name, f"must be at most {MAX_SPEED_MPS:g} m/s, got {v!r}")
         try:
             cars = self.cars
         except RosterError as exc:

@@ -39,7 +39,7 @@ from race.recording import SETUP_ENTITY, RaceRecorder
 from race.referee import CarResult, CollisionRecord, Referee
 from race.setup import RaceSetup, start_states
 from race.summary import fleet_keys, race_summary
-from race.world import CLOCK_ROUNDING_S, SimulatedClock, WorldPacket
+from race.world import CLOCK_ROUNDING_S, SimulatedClock, WorldPacket, WorldSummary
 from sim import Simulator
 from vehicles.protocol import check_command_value
 
@@ -198,16 +198,19 @@ class SimWorld:
                 self.progress(self.steps)
             self.steps += 1
 
-    def close(self) -> dict:
+    def observe(self, t_race: float, states: dict) -> WorldPacket:
+        """Nothing to add: the race is judged on the simulator's true states (race.world.World)."""
+        return WorldPacket()
+
+    def close(self) -> WorldSummary:
         """The race summary the loop takes (as from race.hil.HilWorld.close)."""
         status = self.sim.race_status()
         order, results = self.results()
-        return {"winner": None if status.winner is None else self.names[status.winner],
-                "finish_order": order, "results": results,
-                "lap_times_s": {name: list(status.lap_times[i]) for i, name in enumerate(self.names)},
-                "min_gap_m": float(self.referee.min_gap_m), "collisions": list(self.referee.collisions),
-                "race_time_s": self.sim.time,
-                "off_track": self.off_track(), "frames_dropped": 0, "render_ms": np.zeros(0), "events": []}
+        return WorldSummary(winner=None if status.winner is None else self.names[status.winner],
+                            finish_order=order, results=results,
+                            lap_times_s={name: list(status.lap_times[i]) for i, name in enumerate(self.names)},
+                            min_gap_m=float(self.referee.min_gap_m), collisions=list(self.referee.collisions),
+                            race_time_s=self.sim.time, off_track=self.off_track())
 
     def off_track(self) -> dict[str, int]:
         """Off-track excursions per car so far."""
@@ -247,11 +250,13 @@ def simulation_config(setup: RaceSetup) -> LoopConfig:
                       hold_on_planner_error=False)
 
 
-def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator) -> RaceOutcome:
+def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator,
+             live=None) -> RaceOutcome:
     """Simulate one race until a car completes `laps` laps (or max_time_s, or Ctrl-C: ``interrupted``)
     through the race loop (module doc). ``simulator_cls``: a Simulator subclass that perturbs how
     commands reach the cars (bench/race_perturbations.py, `race --link-capture`); ``progress(step)`` is
-    called after every control step."""
+    called after every control step; ``live`` (recording.live.LiveView) also streams the recording
+    to Rerun viewers."""
     track, car = setup.track, setup.car
     cars = sim_cars(setup)
     sim = simulator_cls(track, [setup.sim_car_file(i) for i in range(len(setup.cars))], effects=setup.sim_effects,
@@ -262,7 +267,7 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
     rec = None
     if telemetry_path:
         rec = RaceRecorder(telemetry_path, recording_id=f"race-seed{setup.seed}", background=False,
-                           car_names=setup.names, realtime=False)
+                           car_names=setup.names, realtime=False, live=live)
         rec.static_track(track)
         rec.static_document(SETUP_ENTITY, str(dataclasses.asdict(dataclasses.replace(
             setup, track=track.name, car=car.name, sim_car=None if setup.sim_car is None else setup.sim_car.name,

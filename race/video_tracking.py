@@ -108,12 +108,11 @@ def track_video(source: CameraSource, tracker, cars: list[TrackedCar], estimator
                     missed[m] += 1
         else:
             out = perception.perceive(WorldPacket(frame=frame), t, t)
-            detected = {d.marker_id for d in out.measurements}
+            detected = set(out.observation.poses) if out.observation is not None else set()
             for c in cars:
-                result = out.results.get(c.marker_id)
-                if c.marker_id not in detected:
+                if c.name not in detected:
                     missed[c.marker_id] += 1
-                elif result is None or not result.accepted or c.name not in out.states:
+                elif c.name not in out.accepted or c.name not in out.states:
                     gated[c.marker_id] += 1
                 else:
                     x, y, heading = out.states[c.name][:3]

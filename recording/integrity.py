@@ -58,7 +58,15 @@ class RecordingDamage(ValueError):
 
 
 def rerun_executable() -> str | None:
-    """The ``rerun`` command-line tool of the installed rerun-sdk (beside this Python, or on PATH)."""
+    """The ``rerun`` command-line tool of the installed rerun-sdk: its binary (package ``rerun_cli``;
+    the ``rerun`` script beside Python runs it as a child process, which a signal to the script would
+    leave running), else the script beside this Python or on PATH."""
+    try:
+        import rerun_cli
+    except ImportError:
+        rerun_cli = None
+    if rerun_cli is not None and Path(rerun_cli.__file__).with_name("rerun").exists():
+        return str(Path(rerun_cli.__file__).with_name("rerun"))
     beside = Path(sys.executable).with_name("rerun")
     if beside.exists():
         return str(beside)

@@ -52,8 +52,8 @@ class Detections:
 class World:
     """Cars on the centre line, 0.5 m apart, at SPEED_MPS; frames every 1/FPS on the fake clock."""
 
-    def __init__(self, clock: SimulatedClock, track) -> None:
-        self.clock, self.track = clock, track
+    def __init__(self, clock: SimulatedClock, track, n_cars: int = 2) -> None:
+        self.clock, self.track, self.n_cars = clock, track, n_cars
         self.t_go = None           # set by the test from the loop once it started
         self.box_corrupt_at = None  # race time the box starts reporting corrupt frames
         self._index = -1
@@ -94,7 +94,7 @@ class Tracker:
             self.world.clock.advance(self.stall[1])
             self.stall = None
         cars = {}
-        for marker in (0, 1):
+        for marker in range(self.world.n_cars):
             t0, t1 = self.hidden.get(marker, (math.inf, math.inf))
             if t0 <= self.world.race_time(frame.t_capture_s) < t1:
                 continue
@@ -126,7 +126,8 @@ class Link:
 
 
 class Planners:
-    commanded = tuple(c.name for c in CARS)
+    def __init__(self, cars=CARS) -> None:
+        self.commanded = tuple(c.name for c in cars)
 
     def plan(self, job):
         return PlanResult(job=job, cars={name: DRIVE for name in self.commanded})
@@ -152,13 +153,13 @@ def setup():
     return RaceSetup(track=load_track("oval"), car=load_car_params("buzzracer"), max_time_s=2.0)
 
 
-def make_loop(setup, faults=(), runner=None, config=LoopConfig()):
+def make_loop(setup, faults=(), runner=None, config=LoopConfig(), cars=CARS):
     clock = SimulatedClock(T0)
-    world = World(clock, setup.track)
+    world = World(clock, setup.track, len(cars))
     tracker, link = Tracker(world), Link(world)
-    planners = Planners()
+    planners = Planners(cars)
     loop = RaceLoop(setup=setup, config=config, feed=world, tracker=tracker, estimator=MultiCarEstimator(),
-                    link=link, planners=planners, cars=CARS, faults=faults, mode="hardware", clock=clock,
+                    link=link, planners=planners, cars=cars, faults=faults, mode="hardware", clock=clock,
                     worker_factory=(lambda p, c: runner(p, c, world)) if runner else SyncPlanRunner,
                     monitor_factory=SimulatedDeadlineMonitor)
     original_cold_start = loop._cold_start
@@ -174,28 +175,29 @@ def make_loop(setup, faults=(), runner=None, config=LoopConfig()):
 MAX_STEER_RAD = math.radians(27.0)  # buzzracer's [actuators] max_steering_rad
 
 
-def driving(commands: dict) -> bool:
-    """The planners' command, steering normalised by the car's steering range."""
+def driving(commands: dict, n_cars: int = 2) -> bool:
+    """The planners' command to every car, steering normalised by the car's steering range."""
     expected = CarCommand(steering=DRIVE.steering_rad / MAX_STEER_RAD, throttle=DRIVE.throttle)
-    return set(commands) == {0, 1} and all(c.throttle == expected.throttle and
+    return set(commands) == set(range(n_cars)) and all(c.throttle == expected.throttle and
                                            abs(c.steering - expected.steering) < 1e-12 for c in commands.values())
 
 
-def neutral(commands: dict) -> bool:
-    return all(c == CarCommand(0.0, 0.0) for c in commands.values()) and set(commands) == {0, 1}
+def neutral(commands: dict, n_cars: int = 2) -> bool:
+    return all(c == CarCommand(0.0, 0.0) for c in commands.values()) and set(commands) == set(range(n_cars))
 
 
 def events(outcome, kind: str) -> list[tuple[float, str]]:
     return [(t, text) for t, k, text in outcome.events if k == kind]
 
 
-def check_held(link: Link, t_fault: float, t_clear: float) -> None:
-    """Neutral sent at once when the hold began, every frame neutral while it lasted, driving before."""
+def check_held(link: Link, t_fault: float, t_clear: float, n_cars: int = 2) -> None:
+    """Neutral sent at once when the hold began, every frame neutral (every car) while it lasted,
+    driving before."""
     assert any(abs(t - t_fault) < 1e-9 for t in link.neutrals)
     before = [c for t, c in link.sent if 0.2 < t < t_fault - 1e-9]
     held = [c for t, c in link.sent if t_fault - 1e-9 <= t < t_clear - 1e-9]
-    assert before and all(driving(c) for c in before)
-    assert held and all(neutral(c) for c in held)
+    assert before and all(driving(c, n_cars) for c in before)
+    assert held and all(neutral(c, n_cars) for c in held)
 
 
 def test_max_steering_of_the_car_file_scales_the_link_command(setup):
@@ -368,3 +370,64 @@ def test_simulated_clock_advances_at_once_and_calls_watchers():
     clock.sleep(-1.0)             # a negative wait does not move time back
     assert clock.now() == 5.25
     assert seen == [5.25, 5.25]
+
+
+# ----------------------------------------------------------------------------- four cars
+CARS4 = [CarBinding(f"car{i}", i, i) for i in range(4)]
+
+
+def test_four_cars_fault_free_race_drives_every_car(setup):
+    loop, world, _, link = make_loop(setup, cars=CARS4)
+    o = loop.run()
+    assert o.reason == "time_limit" and o.deadline_misses == 0 and not events(o, "fault")
+    assert all(driving(c, 4) for t, c in link.sent if t > 0.1)
+    assert [r.name for r in o.results] == [c.name for c in CARS4]  # the referee judged every car
+
+
+def test_four_cars_one_lost_holds_every_car_neutral(setup):
+    loop, world, tracker, link = make_loop(setup, cars=CARS4)
+    tracker.hidden[2] = (1.0, 1.4)
+    o = loop.run()
+    (t_fault, text), *later = events(o, "fault")
+    assert "car car2 lost" in text and "marker 2" in text
+    assert 1.0 - 1 / FPS + LOST_AFTER_S < t_fault <= 1.0 + LOST_AFTER_S + 1 / FPS + 1e-9
+    (t_back, text), *_ = events(o, "recovered")
+    assert text.startswith("lost:car2 cleared") and 1.4 <= t_back < 1.4 + 2 / FPS + 1e-9
+    check_held(link, t_fault, t_back, n_cars=4)  # the three visible cars were held too
+
+
+def test_four_cars_nan_state_of_one_holds_every_car(setup):
+    loop, world, _, link = make_loop(setup, faults=(FaultSpec("nan_state", 1.0, car="car3"),), cars=CARS4)
+    o = loop.run()
+    faults = events(o, "fault")
+    assert "non-finite state of car car3" in faults[0][1]
+    t_back = max(t for t, _ in events(o, "recovered"))
+    check_held(link, faults[0][0], t_back, n_cars=4)
+
+
+def test_four_cars_deadline_miss_sends_neutral_at_the_deadline(setup):
+    cfg = LoopConfig()
+    loop, world, tracker, link = make_loop(setup, cars=CARS4)
+    tracker.stall = (1.0, 1.2 * cfg.period_s)
+    o = loop.run()
+    misses = events(o, "deadline_miss")
+    assert len(misses) == 1 and "stage detect running" in misses[0][1] and o.deadline_misses == 1
+    assert any(abs(t - misses[0][0]) < 1e-9 for t in link.neutrals)  # one neutral for every car at once
+    # the stalled tick's command frame (sent after the deadline) still names every car
+    assert all(set(c) == {0, 1, 2, 3} for t, c in link.sent)
+    assert not events(o, "fault") and o.reason == "time_limit"
+
+
+def test_hardware_race_is_refereed_from_the_estimates(setup):
+    """Without a simulated world the loop's FeedWorld judges the race on the perceived states: the
+    leading car (1.5 m ahead of the line at T0, SPEED_MPS) finishes its lap when its s reaches the
+    track's length, i.e. at clock time T0 + (L - 1.5) / SPEED_MPS."""
+    import dataclasses
+
+    long = dataclasses.replace(setup, max_time_s=12.0, laps=1)
+    loop, world, _, link = make_loop(long, cars=CARS4)
+    o = loop.run()
+    assert o.reason == "finished" and o.winner == "car0" and o.finish_order[0] == "car0"
+    t_line = T0 + (float(setup.track.length) - 1.5) / SPEED_MPS - loop.t_go
+    assert o.race_time_s == pytest.approx(t_line, abs=1 / FPS + 1 / 60 + 1e-9)
+    assert o.results[0].finish_position == 1 and all(r.finish_position is None for r in o.results[1:])

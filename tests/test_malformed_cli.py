@@ -73,3 +73,21 @@ def test_what_the_family_found(seeds, tmp_path):
     # format_version true was taken for 1 (True == 1 in Python).
     err = _rejected(seeds, tmp_path / "cal", "calibration", _edit(seeds.files["calibration"], ("format_version",), True))
     assert "in.json: format_version: expected 1, got True" in err
+
+
+@pytest.mark.parametrize("name", ["roster", "cars_flag", "grid_flag"])
+def test_every_hand_written_roster_case(name, seeds, tmp_path):
+    """Duplicates, 1 or 7 cars, unknown planners/keys/car files, bad --cars and --grid values: exit 2
+    naming the file or flag and the field (the roster's structural mutations are sampled above)."""
+    fmt = mc.FORMATS[name]
+    cases = mc._roster_cases(fmt, seeds.files[name]) if name == "roster" else mc.cases_for(fmt, seeds.files[name], 0, None)
+    for i, case in enumerate(cases):
+        outcome, why = mc.run_case(case, seeds, tmp_path / str(i))
+        assert outcome == ("rejected" if case.must_reject else "accepted"), f"{case.mutation}: {why}"
+
+
+def test_a_roster_car_file_that_does_not_exist_names_the_roster_file(seeds, tmp_path):
+    # It named the car and the field but not the roster file it came from.
+    roster = seeds.files["roster"].replace(b'planner = "mpc"', b'planner = "mpc"\ncar_params = "no_such_car"')
+    err = _rejected(seeds, tmp_path / "r", "roster", roster)
+    assert "--roster: " in err and "in.toml: car blue: car_params:" in err and "not found" in err

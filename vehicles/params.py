@@ -281,6 +281,17 @@ def _check_radio(radio: RadioParams, source: str) -> None:
 
 
 @dataclass(frozen=True)
+class MocapParams:
+    """The car's rigid body in a motion-capture system (OptiTrack Motive, `race --mocap`): its streaming id
+    and where its pivot sits on the car, which the mocap tracker subtracts (docs/tracking.md)."""
+
+    rigid_body_id: int | None = _optional(_between(0, 2**31 - 1), "Motive's streaming id of the car's rigid body", True)
+    offset_forward_m: float = _num(0.0, _between(-0.2, 0.2), doc="rigid-body pivot ahead of the reference point")
+    offset_left_m: float = _num(0.0, _between(-0.2, 0.2), doc="rigid-body pivot left of the reference point")
+    yaw_rad: float = _num(0.0, _between(-math.pi, math.pi), doc="rigid body's +x axis counter-clockwise against the car")
+
+
+@dataclass(frozen=True)
 class CarParams:
     name: str = "buzzracer"
     geometry: GeometryParams = field(default_factory=GeometryParams)
@@ -298,6 +309,7 @@ class CarParams:
     # (added after the first car files were written)
     radio: RadioParams = field(default_factory=RadioParams, metadata={"optional_in_file": True})
     other_terms: OtherTermsParams = field(default_factory=OtherTermsParams, metadata={"optional_in_file": True})
+    mocap: MocapParams = field(default_factory=MocapParams, metadata={"optional_in_file": True})
 
     def __post_init__(self) -> None:
         _check_cross_fields(self, source="CarParams")
@@ -316,6 +328,7 @@ _SECTION_TYPES = {
     "speed_control": SpeedControlParams,
     "radio": RadioParams,
     "other_terms": OtherTermsParams,  # model identification
+    "mocap": MocapParams,
 }
 
 

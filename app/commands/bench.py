@@ -9,6 +9,7 @@ import time
 
 from app.cli import UserError
 from app.realtime import bench as loop_bench
+from app.realtime import live_bench
 from fileio import atomic_write_text, check_output_dir, check_output_path
 from bench import (baselines, camera_profiles, charuco_coverage, merge_bench, problem_size, race_perturbations, saddles, solver_bench,
                    time_limit, track_video, tracking_bench)
@@ -38,6 +39,8 @@ def parse_range(text: str) -> list[int]:
 MODULE_BENCHES = [
     ("loop", loop_bench, "HIL loop: the same seeds as pure simulation and as --hil races (rate, deadline misses, "
                          "stage timings, tracking error, winners)"),
+    ("live-view", live_bench, "HIL races without and with --viewer (a local headless Rerun server): the viewer's "
+                              "cost on the loop's tick time"),
     ("race-perturbations", race_perturbations, "simulated races with the loop's control-path imperfections (late "
                                                "commands, neutral pulses, solver cap): which change the winners"),
     ("baselines", baselines, "RD3G, iLQGames and ALGames on merging seeds: convergence count and median time"),
@@ -128,7 +131,7 @@ def register(sub) -> None:
     g = kinds.add_parser("malformed", help="the project's real files, mutated by hand-written rules, through the "
                                            "command line (app/malformed_cli.py, docs/file-formats.md)")
     g.add_argument("--formats", default="all", help="comma-separated, or all: problem, car, track, fixed_markers, "
-                                                    "intrinsics, calibration, sysid_csv, link_capture, recording")
+                                                    "intrinsics, calibration, sysid_csv, link_capture, recording, mocap_survey")
     g.add_argument("--per-format", type=int, default=0, help="at most this many cases per format (0 = all)")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--offsets", type=int, default=40, help="truncation offsets per file")

@@ -14,6 +14,7 @@ from app.commands.race import add_fleet_arguments, add_race_arguments, make_setu
 from app.realtime.check import CheckTiming, PreRaceCheck
 from fileio import check_output_path
 from race.hil import FIXED_MARKERS
+from app.realtime.mocap import add_mocap_arguments
 from app.realtime.run import _check_mode, _open_hardware, _open_hil, add_link_arguments, open_capture, plan_link
 from race.config import LoopConfig
 from tracking.calibration import CalibrationError, load_fixed_markers
@@ -44,6 +45,7 @@ def register(sub) -> None:
     p.add_argument("--hil-fault", action="append", default=[], metavar="|".join(SETUP_FAULTS),
                    help="HIL: a faulty set-up for the check to catch (repeatable)")
     add_link_arguments(p)
+    add_mocap_arguments(p)
     add_race_arguments(p)
     add_fleet_arguments(p)
     p.set_defaults(func=run)
@@ -103,13 +105,15 @@ def run(args) -> int:
     config = LoopConfig()
     link_plan = plan_link(args, mode, setup, config.link_hz)
     cars = link_plan.cars
-    fixed_path = args.fixed_markers or FIXED_MARKERS.get(setup.track.name)
+    fixed_path = None if args.mocap else args.fixed_markers or FIXED_MARKERS.get(setup.track.name)
     try:
         marker_set = load_fixed_markers(fixed_path) if fixed_path else None
     except (CalibrationError, ValueError, OSError) as exc:
         raise UserError(f"--fixed-markers: {exc}") from None
     fixed_ids = set(marker_set.markers) if marker_set else set()
     world_options = _world_options(args, link_plan, cars, fixed_ids) if mode == "hil" else {}
+    if args.mocap and "hidden_markers" in world_options:
+        raise UserError("--hil-fault missing_marker: not with --mocap (a lost rigid body is the race's occlude fault)")
     if mode == "hil":
         parts = _open_hil(args, setup, cars, config, (), link_plan, **world_options)
     else:
@@ -122,14 +126,19 @@ def run(args) -> int:
     capture = open_capture(args)
     link = SerialCarLink(port, baudrate=args.baud, rate_hz=link_plan.rate_hz, car_ids=[c.radio_id for c in cars],
                          encoder=link_plan.encoder, capture=capture)
+    bodies = {m.key: m.rigid_body_id for m in tracker.cars} if args.mocap else None
     check = PreRaceCheck(feed=feed, tracker=tracker, track=setup.track, cars=cars, link=link, marker_set=marker_set,
                          expected_fps=args.fps, timing=CheckTiming(throttle=args.throttle),
-                         on_go=(lambda: world.go(time.monotonic())) if world is not None else None)
+                         on_go=(lambda: world.go(time.monotonic())) if world is not None else None,
+                         **({"sensor": "mocap", "car_target": lambda c: f"rigid body {bodies[c.marker_id]}"}
+                            if args.mocap else {}))
     try:
         items = check.run()
     finally:
         link.stop()
         (world or feed).close()
+        if world is not None and feed is not world:  # --mocap: the NatNet client beside the HIL world
+            feed.close()
         if capture is not None:
             capture.close()
     failed = [i for i in items if not i.ok]

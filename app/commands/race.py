@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from app.cli import UserError
+from app.live_view import add_live_arguments, announce, live_view
 from app.race_plots import plot_grid
 from app.realtime.run import add_realtime_arguments, open_capture, plan_link, run_realtime, wants_realtime
 from fileio import atomic_write_text, check_output_path
@@ -92,6 +93,7 @@ def register(sub) -> None:
     # --- real-time race stack (race/, app/realtime, docs/race-stack.md): --hil / --camera --serial --calibration
     add_realtime_arguments(p)
     # --- end real-time race stack
+    add_live_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -126,7 +128,10 @@ def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: f
     try:
         return race_spec(args, seed, start, rd3g_speed, opponent_speed, laps, max_time).load()
     except RaceSetupError as exc:
-        raise UserError(f"{FLAGS.get(exc.field, exc.field)}: {exc.message}") from None
+        flag = FLAGS.get(exc.field, exc.field)
+        if exc.field == "roster" and getattr(args, "roster", None):  # a car of the roster file: name the file
+            flag = f"--roster: {args.roster}"
+        raise UserError(f"{flag}: {exc.message}") from None
 
 
 def _simulated_link(args, setup):
@@ -173,9 +178,11 @@ def run(args) -> int:
     human = [c.name for c in setup.cars if c.planner == "human"]
     if human:
         raise UserError(f"--cars/--roster: car {human[0]}: planner: human drives real cars only (--hil or --camera)")
+    live = live_view(args)
     simulator_cls, link, capture = _simulated_link(args, setup)
+    announce(live)
     try:
-        o = run_race(setup, telemetry_path=out, **({"simulator_cls": simulator_cls} if link else {}))
+        o = run_race(setup, telemetry_path=out, live=live, **({"simulator_cls": simulator_cls} if link else {}))
         if link is not None:
             link.neutral(o.race_time_s)  # the race is over: what the link sends when it stops
     finally:

@@ -3,13 +3,11 @@ recording (simulated `race` or the real-time loop); docs/race-stack.md."""
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 from app.cli import UserError
+from app.live_view import display_problem, viewer_executable
 from fileio import atomic_write_text, check_output_path
 from race.recording import RecordingError, load_recording
 from race.review import format_summary, save_plots, summarize
@@ -27,13 +25,10 @@ def register(sub) -> None:
 
 def viewer_command(path: Path) -> list[str]:
     """The command that opens the recording in the Rerun viewer; UserError if none can be shown."""
-    exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
-    if not Path(exe).exists():
-        raise UserError("--viewer: no Rerun viewer found (the `rerun` executable of rerun-sdk); "
-                        f"install rerun-sdk and run `rerun {path}`")
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise UserError(f"--viewer: no display (DISPLAY/WAYLAND_DISPLAY not set); copy {path} to a machine "
-                        f"with a display and run `rerun {path}`")
+    exe = viewer_executable("--viewer", f"install rerun-sdk and run `rerun {path}`")
+    problem = display_problem()
+    if problem:
+        raise UserError(f"--viewer: {problem}; copy {path} to a machine with a display and run `rerun {path}`")
     return [exe, str(path)]
 
 

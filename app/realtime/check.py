@@ -46,12 +46,16 @@ class PreRaceCheck:
     CarBindings; ``link`` a SerialCarLink not yet started (``start()`` is the serial check)."""
 
     def __init__(self, *, feed, tracker, track, cars, link, marker_set=None, expected_fps: float,
-                 timing: CheckTiming | None = None, on_go=None, log=print) -> None:
+                 timing: CheckTiming | None = None, on_go=None, log=print, sensor: str = "camera",
+                 car_target=None) -> None:
         self.feed, self.tracker, self.track, self.cars, self.link = feed, tracker, track, cars, link
         self.marker_set, self.expected_fps = marker_set, expected_fps
         self.timing = timing or CheckTiming()
         self.on_go = on_go          # HIL: start the world's physics before anything moves
         self.log = log
+        # What finds the cars ("camera", or "mocap" for a motion-capture stream) and what it sees of each car.
+        self.sensor = sensor
+        self.car_target = car_target or (lambda c: f"marker {c.marker_id}")
         self.items: list[CheckItem] = []
         self._last_frame_index = -1
 
@@ -131,10 +135,10 @@ class PreRaceCheck:
                 passed = [c for c in movers if self._car_radio(c)]
                 for c in self.cars:
                     if c.name not in visible:
-                        self._add(f"radio {c.name}", False, f"not checked: its marker {c.marker_id} is not seen")
+                        self._add(f"radio {c.name}", False, f"not checked: its {self.car_target(c)} is not seen")
                 self._failsafe(passed[0] if passed else None)
         except RuntimeError as exc:  # the feed's "the world failed" (a camera that stopped, a file that ended)
-            self._add("camera", False, f"{exc}; the remaining checks were not run")
+            self._add(self.sensor, False, f"{exc}; the remaining checks were not run")
         finally:
             self._all_neutral()
         return self.items
@@ -142,7 +146,7 @@ class PreRaceCheck:
     def _camera(self) -> None:
         first = self._next_frame(5.0)
         if first is None:
-            self._add("camera", False, "no frame within 5 s")
+            self._add(self.sensor, False, "no frame within 5 s")
             return
         end = time.monotonic() + self.timing.camera_s
         last = first
@@ -152,11 +156,14 @@ class PreRaceCheck:
                 last = frame
         span = last.t_capture_s - first.t_capture_s
         rate = (last.index - first.index) / span if span > 0 else 0.0
-        self._add("camera", rate >= MIN_RATE_FRACTION * self.expected_fps,
+        self._add(self.sensor, rate >= MIN_RATE_FRACTION * self.expected_fps,
                   f"{rate:.1f} frames/s over {span:.2f} s (expected {self.expected_fps:g}, at least "
                   f"{MIN_RATE_FRACTION * self.expected_fps:.0f})")
 
     def _fixed_markers(self, frame) -> None:
+        if self.sensor != "camera":
+            self._add("fixed markers", True, f"not used by {self.sensor} (its transform is the mocap calibration file)")
+            return
         if self.marker_set is None:
             self._add("fixed markers", True, "none surveyed for this track (calibration not re-checked)")
             return
@@ -182,12 +189,12 @@ class PreRaceCheck:
         for c in self.cars:
             pose = poses.get(c.name)
             if pose is None:
-                self._add(f"marker {c.name}", False, f"car {c.name}: marker {c.marker_id} not seen in 10 frames "
-                                                           f"(covered, missing, or a wrong --marker-ids)")
+                self._add(f"marker {c.name}", False, f"car {c.name}: {self.car_target(c)} not seen in 10 frames "
+                                                     f"(covered, missing, or a wrong id)")
                 continue
             s, ey = (float(v) for v in self.track.to_frenet(pose[0], pose[1])[:2])
             on = bool(self.track.is_inside(pose[0], pose[1]))
-            self._add(f"marker {c.name}", on, f"car {c.name}: marker {c.marker_id} at ({pose[0]:.3f}, {pose[1]:.3f}) m, "
+            self._add(f"marker {c.name}", on, f"car {c.name}: {self.car_target(c)} at ({pose[0]:.3f}, {pose[1]:.3f}) m, "
                                               f"heading {math.degrees(pose[2]):.0f} deg, s {s:.2f} m, ey {ey:+.3f} m"
                                               + ("" if on else ": off the track"))
             visible.add(c.name)

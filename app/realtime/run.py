@@ -14,7 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import UserError
+from app.live_view import announce, live_view
 from app.realtime.hardware import CameraFeed
+from app.realtime.operator_key import TerminalStopKey
+from app.realtime.mocap import add_mocap_arguments, open_mocap_hardware, open_mocap_hil
 from race.hil import HilWorld, WorldSpec
 from fileio import OutputFileError, atomic_write_text, check_output_path
 from race.config import LoopConfig, LoopConfigError, check_fault_cars, parse_fault
@@ -72,6 +75,7 @@ def add_realtime_arguments(p) -> None:
                         "(lost car, planner fault, ...) for S seconds without a break (default 3)")
     g.add_argument("--camera-latency-ms", type=float, default=0.0,
                    help="hardware: exposure-to-delivery delay of the camera, subtracted from frame times")
+    add_mocap_arguments(g)
 
 
 def add_link_arguments(g) -> None:
@@ -90,7 +94,8 @@ def add_link_arguments(g) -> None:
 
 def wants_realtime(args) -> bool:
     return bool(getattr(args, "hil", False) or getattr(args, "camera", None) is not None
-                or getattr(args, "serial", None) is not None or getattr(args, "calibration", None) is not None)
+                or getattr(args, "serial", None) is not None or getattr(args, "calibration", None) is not None
+                or getattr(args, "mocap", None) is not None)
 
 
 def _ids(text: str, flag: str) -> tuple[int, int]:
@@ -105,6 +110,13 @@ def _ids(text: str, flag: str) -> tuple[int, int]:
 
 def _check_mode(args) -> str:
     hw = {"--camera": args.camera, "--serial": args.serial, "--calibration": args.calibration}
+    mocap = getattr(args, "mocap", None)
+    if mocap is not None:  # the mocap system replaces the camera and its calibration
+        if args.camera is not None or args.calibration is not None:
+            raise UserError("--mocap replaces the camera: drop --camera and --calibration")
+        hw = {"--serial": args.serial}
+    elif getattr(args, "mocap_calibration", None) is not None:
+        raise UserError("--mocap-calibration needs --mocap natnet://SERVER")
     given = [k for k, v in hw.items() if v is not None]
     if args.hil:
         if given:
@@ -112,7 +124,8 @@ def _check_mode(args) -> str:
         return "hil"
     missing = [k for k, v in hw.items() if v is None]
     if missing:
-        raise UserError(f"hardware mode needs --camera, --serial and --calibration; missing {', '.join(missing)}")
+        needs = "--mocap and --serial" if mocap is not None else "--camera, --serial and --calibration"
+        raise UserError(f"hardware mode needs {needs}; missing {', '.join(missing)}")
     if args.fault:
         raise UserError("--fault is only available with --hil")
     return "hardware"
@@ -172,8 +185,9 @@ def _run_realtime(args, mode: str) -> int:
             raise UserError(f"--command-delay-ms must be in (0, 500] ms, got {args.command_delay_ms}")
         latency["command_delay_s"] = args.command_delay_ms / 1e3
     try:
+        # A mocap frame holds every body: no region-of-interest search to fall back from while a car is lost.
         config = LoopConfig(rate_hz=args.loop_hz, plan_hz=args.control_hz, stop_after_hold_s=args.stop_after_hold,
-                            **latency)
+                            **latency, **({"lost_search_every": 1} if getattr(args, "mocap", None) else {}))
         faults = tuple(parse_fault(f) for f in args.fault)
     except LoopConfigError as exc:
         raise UserError(str(exc)) from None
@@ -187,6 +201,7 @@ def _run_realtime(args, mode: str) -> int:
         if path:
             check_output_path(path, stream=stream)  # before the HIL processes or the hardware open
     setup = make_setup(args, args.seed, args.start, args.rd3g_speed, args.opponent_speed, args.laps, args.max_time)
+    live = live_view(args)  # before anything opens: a viewer that cannot be reached is a usage error
     roster = race_roster(args, setup)
     try:
         check_fault_cars(faults, setup.names)
@@ -203,15 +218,20 @@ def _run_realtime(args, mode: str) -> int:
         parts = _open_hil(args, setup, cars, config, faults, link_plan)
     world, feed, tracker, estimator, link_port, note = parts
     recorder = loop = capture = None
+    stop_key = TerminalStopKey()
     try:
         planners = RacePlanners(setup, roster)
-        recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars])
+        recorder = RaceRecorder(out, recording_id=f"{mode}-seed{args.seed}-{stamp}", car_names=[c.name for c in cars],
+                                live=live)
+        announce(live)
         recorder.static_track(setup.track)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults,
                                                                   planners={c.name: c.planner for c in roster}))
         recorder.static_car_colors([c.name for c in cars])
+        stop_key.arm()  # the terminal's mode is restored in the finally below (and on SIGTERM, at exit)
         loop = RaceLoop(setup=setup, config=config, feed=feed, tracker=tracker, estimator=estimator, link=None,
-                        planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode)
+                        planners=planners, cars=cars, recorder=recorder, faults=faults, world=world, mode=mode,
+                        operator=stop_key)
         commanded = [c.radio_id for c in cars if c.name in planners.commanded]
         capture = open_capture(args)
         link = SerialCarLink(link_port, baudrate=args.baud, rate_hz=link_plan.rate_hz, car_ids=commanded,
@@ -226,20 +246,28 @@ def _run_realtime(args, mode: str) -> int:
                              + (f", capture {capture.path}" if capture else ""), t_race=0.0)
         if note:
             loop._event("setup", note, t_race=0.0)
+        if stop_key.active:
+            print("operator stop: press space or Enter to stop the race (every car neutral at once)", flush=True)
         try:
             outcome = loop.run()
         except LoopError as exc:
             raise UserError(str(exc)) from None
     finally:
+        stop_key.close()
         if loop is None or loop.t_go is None:  # failed before the race: release what was opened
             if world is not None:
                 world.close()
             elif feed is not None:
                 feed.close()
+        if world is not None and feed is not world:  # HIL on mocap: the loop closed the world, not the NatNet client
+            feed.close()
         if recorder is not None:
             recorder.close()
         if capture is not None:
             capture.close()
+    if recorder.live_error:
+        print(f"warning: live view: the viewers did not get the whole race ({recorder.live_error}); "
+              f"the recording {out} is complete", file=sys.stderr)
     _print(outcome, setup, args, mode, opponent)
     if args.json:
         atomic_write_text(args.json, json.dumps(outcome.summary(), indent=2) + "\n", stream=True)
@@ -357,6 +385,8 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
                   receivers=link_plan.calibrations if link_plan.protocol == "buzzracer-fhss" else None,
                   camera_profile=camera_profile(getattr(args, "camera_profile", "ideal")))
     fields.update(world_options)  # `check --hil --hil-fault`: a world that differs from the host's set-up
+    if getattr(args, "mocap", None) is not None:
+        return open_mocap_hil(args, fields, setup, cars)
     spec = WorldSpec(**fields)
     world = HilWorld(spec)
     try:
@@ -394,6 +424,12 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
 
 
 def _open_hardware(args, setup, cars, config):
+    if getattr(args, "mocap", None) is not None:
+        feed, tracker, estimator, note = open_mocap_hardware(args, setup, cars)
+        if not Path(args.serial).exists() and "://" not in args.serial:
+            feed.close()
+            raise UserError(f"--serial: {args.serial}: no such device (is the transmitter box plugged in?)")
+        return None, feed, tracker, estimator, args.serial, note
 
     try:
         calibration = load_calibration(args.calibration)

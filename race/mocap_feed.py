@@ -1,0 +1,55 @@
+"""The race loop's feed on motion capture (race.world.Feed): each poll's newest mocap frame
+(tracking.mocap.MocapFrame, where a camera frame would be) and the source's fault events (kind ``mocap``).
+
+On hardware the feed is the mocap source alone. In HIL (``race --hil --mocap``) it also passes on the
+simulated world's packets (events, winner, serial reports) and the simulator's truth at the mocap frame's
+time, matched by clock time (the world streams each snapshot over NatNet and sends its truth through its
+pipe): a frame whose truth has not arrived is passed on without one (no tracking-error sample).
+"""
+from __future__ import annotations
+
+import collections
+import time
+
+from race.world import WorldPacket
+
+# A frame's mapped time is its snapshot's time plus the smallest network delay seen (well under 1 ms on
+# one machine); snapshots are a mocap period (>= 4 ms) apart.
+TRUTH_MATCH_S = 0.002
+
+
+class MocapFeed:
+    """``source``: tracking.natnet.NatNetSource (``read()``, ``events()``, ``close()``); ``world``: the HIL
+    world (None on hardware)."""
+
+    def __init__(self, source, world=None, wait_step_s: float = 0.001) -> None:
+        self.source, self.world, self.wait_step_s = source, world, wait_step_s
+        self._truths: collections.deque = collections.deque(maxlen=64)  # (t_truth, truth, t_race)
+        self.truth_matched = 0
+        self.truth_missing = 0
+
+    def poll(self, timeout: float = 0.0) -> WorldPacket:
+        deadline = time.monotonic() + timeout
+        frame = self.source.read()
+        while frame is None and time.monotonic() < deadline:
+            time.sleep(self.wait_step_s)
+            frame = self.source.read()
+        packet = self.world.poll(0.0) if self.world is not None else WorldPacket()
+        packet.events.extend((None, "mocap", text) for _, text in self.source.events())
+        if self.world is None:
+            packet.frame = frame
+            return packet
+        if packet.truth is not None:
+            self._truths.append((packet.t_truth, packet.truth, packet.t_race))
+        packet.frame, packet.truth, packet.t_race = frame, None, None
+        if frame is not None:
+            match = min(self._truths, key=lambda e: abs(e[0] - frame.t_capture_s), default=None)
+            if match is not None and abs(match[0] - frame.t_capture_s) < TRUTH_MATCH_S:
+                _, packet.truth, packet.t_race = match
+                self.truth_matched += 1
+            else:
+                self.truth_missing += 1
+        return packet
+
+    def close(self) -> None:
+        self.source.close()
