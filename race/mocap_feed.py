@@ -20,7 +20,8 @@ TRUTH_MATCH_S = 0.002
 
 class MocapFeed:
     """``source``: tracking.natnet.NatNetSource (``read()``, ``events()``, ``close()``); ``world``: the HIL
-    world (None on hardware)."""
+    world (None on hardware). With a world the feed is that world to the loop (race.world.World: ``go``,
+    ``observe`` and ``close`` go to it), its frames replaced by the mocap source's."""
 
     def __init__(self, source, world=None, wait_step_s: float = 0.001) -> None:
         self.source, self.world, self.wait_step_s = source, world, wait_step_s
@@ -51,5 +52,13 @@ class MocapFeed:
                 self.truth_missing += 1
         return packet
 
-    def close(self) -> None:
+    def go(self, t_go: float) -> None:
+        self.world.go(t_go)
+
+    def observe(self, t_race: float, states: dict) -> WorldPacket:
+        return self.world.observe(t_race, states)
+
+    def close(self):
+        """Close the source, then the world; the world's summary (None on hardware)."""
         self.source.close()
+        return self.world.close() if self.world is not None else None

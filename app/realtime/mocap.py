@@ -101,7 +101,8 @@ def open_mocap_hil(args, world_fields: dict, setup, cars):
         raise
     note = (f"mocap: NatNet from {source.server} on port {world.info['mocap_port']}, rigid bodies "
             + ", ".join(f"{b.name} {m.rigid_body_id}" for b, m in zip(cars, mcars)))
-    return world, MocapFeed(source, world), MocapTracker(transform, mcars), MultiCarEstimator(), world.serial_path, note
+    feed = MocapFeed(source, world)  # the loop's world: the HIL world with the mocap source's frames
+    return feed, feed, MocapTracker(transform, mcars), MultiCarEstimator(), world.serial_path, note
 
 
 def open_mocap_hardware(args, setup, cars):

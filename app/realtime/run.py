@@ -259,8 +259,6 @@ def _run_realtime(args, mode: str) -> int:
                 world.close()
             elif feed is not None:
                 feed.close()
-        if world is not None and feed is not world:  # HIL on mocap: the loop closed the world, not the NatNet client
-            feed.close()
         if recorder is not None:
             recorder.close()
         if capture is not None:
