@@ -28,6 +28,7 @@ COMMAND_MODULES = [
     "app.commands.sysid",
     "app.commands.track",
     "app.commands.track_tools",
+    "app.commands.measure_marker",
 ]
 
 

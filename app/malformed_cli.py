@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from app.cli import build_parser, main as cli_main
-from bench.charuco_views import BoardRenderer
+from sim.charuco_views import BoardRenderer
 from bench.fuzz import toml_bytes  # the API fuzz's TOML renderer (hypothesis: installed with the test extra)
 from bench.merging import merging_problem
 from fileio import atomic_write_text

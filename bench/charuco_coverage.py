@@ -1,6 +1,6 @@
 """Does calibrate-camera's reported uncertainty cover the real error? ``python -m app bench charuco``
 
-Renders ``--trials`` sets of ``--views`` ChArUco views with known intrinsics (bench.charuco_views: OpenCV
+Renders ``--trials`` sets of ``--views`` ChArUco views with known intrinsics (sim.charuco_views: OpenCV
 alone, blur 0.6 px, noise 2 grey levels), calibrates each with tracking.charuco and prints, for fx, fy, cx,
 cy, the largest relative error and the fraction of trials whose error lies within 1, 2 and 3 reported
 standard deviations (a Gaussian gives 68, 95 and 99.7 %).
@@ -12,7 +12,7 @@ import argparse
 import numpy as np
 from tqdm import tqdm
 
-from bench.charuco_views import CAMERA_MATRIX, SIZE, BoardRenderer
+from sim.charuco_views import CAMERA_MATRIX, SIZE, BoardRenderer
 from tracking.charuco import BoardDetector, CharucoBoardSpec, calibrate_intrinsics
 
 SPEC = CharucoBoardSpec(7, 5, 0.03, 0.022, "DICT_4X4_50")

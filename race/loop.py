@@ -190,6 +190,7 @@ class LoopOutcome:
     frames_dropped: int = 0
     render_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tracking_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tracking_heading_error_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
     detection_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     events: list = field(default_factory=list)   # (race time s, kind, text)
     control_period_ms: float = 0.0
@@ -229,6 +230,8 @@ class LoopOutcome:
             "render_ms_p50": pct(self.render_ms, 50), "render_ms_p99": pct(self.render_ms, 99),
             "tracking_error_mm_median": pct(self.tracking_error_mm, 50),
             "tracking_error_mm_p95": pct(self.tracking_error_mm, 95),
+            "tracking_heading_error_deg_median": pct(self.tracking_heading_error_deg, 50),
+            "tracking_heading_error_deg_p95": pct(self.tracking_heading_error_deg, 95),
             "detection_error_mm_median": pct(self.detection_error_mm, 50),
             "events": kinds, "recording": self.recording,
             "load_average": list(self.load_average) if self.load_average else None,
@@ -535,6 +538,7 @@ class RaceLoop:
             err = None if est is None else self.tracking.error_mm(est[0], est[1], truth)
             if err is not None:
                 self.tracking.tracking_error_mm.append(err)
+                self.tracking.tracking_heading_error_deg.append(self.tracking.heading_error_deg(est[2], truth))
             self.recording.tracking_errors(k, t_cap, name, det_err, err)
 
     def _safety_checks(self, perceived, packet, now: float) -> None:
@@ -662,6 +666,7 @@ class RaceLoop:
                           plan_failures=plans.failures, frames=self.frames,
                           render_ms=np.array(self.feed_stats.render_ms), frames_dropped=self.feed_stats.frames_dropped,
                           tracking_error_mm=np.array(tracking.tracking_error_mm),
+                          tracking_heading_error_deg=np.array(tracking.tracking_heading_error_deg),
                           detection_error_mm=np.array(tracking.detection_error_mm), events=list(self.events),
                           control_period_ms=1e3 * self.cfg.period_s, load_average=os.getloadavg(),
                           planners=dict(self.planner_kinds),

@@ -121,7 +121,12 @@ class TrackingStats:
 
     detection_error_mm: list[float] = field(default_factory=list)
     tracking_error_mm: list[float] = field(default_factory=list)
+    tracking_heading_error_deg: list[float] = field(default_factory=list)  # the posterior's heading (deg)
 
     @staticmethod
     def error_mm(x: float, y: float, truth) -> float:
         return 1e3 * math.hypot(x - truth[0], y - truth[1])
+
+    @staticmethod
+    def heading_error_deg(heading: float, truth) -> float:
+        return abs(math.degrees(math.remainder(heading - truth[2], 2 * math.pi)))

@@ -148,7 +148,7 @@ class Perception:
     def _update(self, obs: Observation) -> dict[str, np.ndarray]:
         """Estimator updates with the observation's poses (one per distinct pose time, in time order;
         none: an update without measurements at the reading's time). Returns {car: estimate [x, y] at
-        its pose's time} of the accepted poses."""
+        its pose's time, [x, y, heading]} of the accepted poses."""
         times = sorted({p.t_s for p in obs.poses.values()}) or [obs.t_s]
         accepted = {}
         for t in times:
@@ -158,12 +158,13 @@ class Perception:
             for n in names:
                 f = self.estimator.filters.get(self.marker_of[n])
                 if results[self.marker_of[n]].accepted and f is not None:
-                    accepted[n] = np.array(f.x[:2], dtype=float)
+                    accepted[n] = np.array(f.x[:3], dtype=float)
         return accepted
 
     def _predictions(self, t_reading: float):
-        """ROI centres (car name -> (x, y)) of the tracked cars at the reading's time; None for a
-        full search (every ``lost_search_every`` readings while a car is not tracked)."""
+        """Predicted poses (car name -> (x, y, heading)) of the tracked cars at the reading's time: the camera
+        searches around them and aligns a marker it cannot decode from them; None for a full search (every
+        ``lost_search_every`` readings while a car is not tracked)."""
         filters = self.estimator.filters
         tracked = {c.name: filters[c.marker_id] for c in self.cars
                    if c.marker_id in filters and not filters[c.marker_id].is_lost(t_reading)
@@ -172,7 +173,7 @@ class Perception:
         if len(tracked) < len(self.cars) and self._frames_since_full >= self.lost_search_every:
             self._frames_since_full = 0
             return None
-        return {name: tuple(f.predict_to(t_reading).vector[:2]) for name, f in tracked.items()}
+        return {name: tuple(f.predict_to(t_reading).vector[:3]) for name, f in tracked.items()}
 
 
 class TruthPerception:

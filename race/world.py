@@ -151,7 +151,7 @@ class Perceived:
     lost: dict[str, bool] = field(default_factory=dict)
     nonfinite: list[str] = field(default_factory=list)           # cars whose estimate was dropped this tick
     observation: Observation | None = None                       # this tick's reading (None: nothing new)
-    # cars whose pose the estimator accepted this tick -> its estimate [x, y] at the pose's time
+    # cars whose pose the estimator accepted this tick -> its estimate [x, y, heading] at the pose's time
     accepted: dict[str, np.ndarray] = field(default_factory=dict)
 
 
@@ -166,8 +166,8 @@ class PoseSource(Protocol):
         """Clock time of a new reading (in ``packet`` or the source's own stream), None if there is none;
         the reading counts as taken (:meth:`read` returns its poses)."""
 
-    def read(self, packet: WorldPacket, predictions: dict[str, tuple[float, float]] | None) -> Observation:
-        """The poses of the reading :meth:`next_reading` announced. ``predictions``: car name -> (x, y)
+    def read(self, packet: WorldPacket, predictions: dict[str, tuple[float, ...]] | None) -> Observation:
+        """The poses of the reading :meth:`next_reading` announced. ``predictions``: car name -> (x, y, heading)
         expected at the reading's time (the tracked cars); None: search for every car."""
 
 
@@ -201,7 +201,7 @@ class Perceiver(Protocol):
 class Tracker(Protocol):
     def process(self, frame, predictions):
         """Marker detections of one frame (tracking.markers.FrameDetections); ``predictions`` {marker id:
-        (x, y)} restricts the search to regions of interest, None searches the whole frame."""
+        (x, y, heading)} restricts the search to regions of interest, None searches the whole frame."""
 
 
 class Estimator(Protocol):

@@ -13,11 +13,13 @@ dist_coeffs k1, k2, p1, p2  -0.12, 0.03,     moderate barrel distortion of a ~90
                             5e-4, -3e-4      published calibrations of wide USB cameras report k1 from
                                              -0.05 to -0.4, k2 of the opposite sign and a few tenths of it,
                                              tangential terms below 1e-3 (lens decentring)
-calibration_focal_error     +0.3 %           focal length of the calibration against the lens's: within the
-                                             0.5 % that calibrate-camera recovers on rendered boards
-                                             (docs/tracking.md), issue 33: +0.5 % costs 1.5 mm
-calibration_dist_error      +0.002 on k1,    what a good ChArUco calibration leaves (its k1 standard error
-                            -0.001 on k2     is of order 1e-3); issue 33: k1 off by 0.01 costs 12 mm
+calibration_views           20               the lens the tracker uses is estimated, not told: calibrate-camera
+                                             (tracking.charuco) on 20 rendered views of an A4 ChArUco board
+                                             (7 x 5 squares of 37 mm, 28 mm markers, as make-board's A4
+                                             page) held 0.45-0.7 m from the lens, tilted 15-40 degrees,
+                                             anywhere in the image, through the true lens with the
+                                             profile's defocus, noise and JPEG (sim.charuco_views); cached
+                                             per profile and seed in runs/cache/camera_calibration/
 effects.jpeg_quality        75               MJPEG quality of UVC cameras (libjpeg scale; webcams stream at
                                              about 70-85 to fit 1280x800 at 60 fps into USB 2.0)
 effects.readout_s           0.010 s          rolling-shutter readout of a 800-row sensor at 60 fps (rows
@@ -41,19 +43,24 @@ file's ``marker.offset_forward_m``, ``marker.offset_left_m`` and ``marker.yaw_ra
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from sim.camera import RenderEffects
-from tracking.calibration import FixedMarkerSet
+from sim.charuco_views import BoardRenderer
+from tracking.calibration import CalibrationError, FixedMarkerSet, Intrinsics, load_intrinsics, save_intrinsics
+from tracking.charuco import BoardDetector, CharucoBoardSpec, calibrate_intrinsics
 from tracking.geometry import PinholeCamera
 
 # One effect of the realistic profile alone on the ideal one ("ideal+jpeg"), to measure what each costs:
 # the profile fields (``effects.X``: a RenderEffects field) it takes from the realistic profile.
 SINGLE_EFFECTS = {
     "lens": ("dist_coeffs",),  # distortion rendered, and known exactly to the tracker
-    "calibration": ("dist_coeffs", "calibration_dist_error", "calibration_focal_error"),  # lens estimated with errors
+    "calibration": ("dist_coeffs", "calibration_views"),  # the lens estimated from rendered board views
     "jpeg": ("effects.jpeg_quality",),
     "rolling_shutter": ("effects.readout_s",),
     "latency": ("latency_s", "jitter_s", "latency_known_s"),
@@ -69,8 +76,8 @@ class CameraProfile:
     """What the synthetic camera does to its images and their timestamps, and what the tracker is told.
 
     ``dist_coeffs``: the lens's true OpenCV distortion (k1, k2, p1, p2, k3), rendered through.
-    ``calibration_dist_error``: added to it in the calibration the tracker uses (an estimated lens), whose
-    focal length is off by ``calibration_focal_error`` (relative).
+    ``calibration_views``: 0, the tracker is told the true intrinsics; N, it uses those calibrate-camera estimates
+    from N rendered ChArUco board views (:meth:`estimated`).
     ``latency_s``/``jitter_s``: a frame is delivered ``latency_s`` + N(0, ``jitter_s``) after its exposure
     (seeded, never before its exposure nor before the previous frame); ``latency_known_s`` is what the loop
     subtracts from the delivery time to stamp it (0: the loop knows only the delivery time).
@@ -81,8 +88,7 @@ class CameraProfile:
     name: str = "ideal"
     effects: RenderEffects = RenderEffects()
     dist_coeffs: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    calibration_dist_error: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    calibration_focal_error: float = 0.0  # relative: the calibration's fx, fy are (1 + this) times the lens's
+    calibration_views: int = 0
     latency_s: float = 0.0
     jitter_s: float = 0.0
     latency_known_s: float = 0.0
@@ -92,9 +98,11 @@ class CameraProfile:
         for key in ("latency_s", "jitter_s", "latency_known_s", "survey_sigma_m"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"camera profile {self.name}: {key}: must be >= 0 (seconds), got {getattr(self, key)}")
-        for key in ("dist_coeffs", "calibration_dist_error"):
-            if len(getattr(self, key)) != 5:
-                raise ValueError(f"camera profile {self.name}: {key}: 5 OpenCV coefficients (k1, k2, p1, p2, k3)")
+        if len(self.dist_coeffs) != 5:
+            raise ValueError(f"camera profile {self.name}: dist_coeffs: 5 OpenCV coefficients (k1, k2, p1, p2, k3)")
+        if self.calibration_views != 0 and not 3 <= self.calibration_views <= 100:
+            raise ValueError(f"camera profile {self.name}: calibration_views: 0 (true intrinsics) or 3..100 board "
+                             f"views, got {self.calibration_views}")
 
     @property
     def seed(self) -> int:
@@ -103,16 +111,29 @@ class CameraProfile:
     def with_seed(self, seed: int) -> "CameraProfile":
         return dataclasses.replace(self, effects=dataclasses.replace(self.effects, seed=int(seed)))
 
-    def estimated(self, camera: PinholeCamera) -> PinholeCamera:
-        """``camera`` (the renderer's true one) with the distortion a calibration would estimate."""
-        dist = np.asarray(camera.dist_coeffs, float).ravel()
-        dist = np.pad(dist, (0, max(0, 5 - len(dist))))[:5] + np.asarray(self.calibration_dist_error)
-        k = camera.camera_matrix.copy()
-        k[0, 0] *= 1.0 + self.calibration_focal_error
-        k[1, 1] *= 1.0 + self.calibration_focal_error
-        return PinholeCamera(k, dist, camera.rotation.copy(), camera.translation.copy(),
-                             camera.image_size)
-
+    def estimated(self, camera: PinholeCamera, cache_dir: str | os.PathLike | None = None) -> PinholeCamera:
+        """``camera`` (the renderer's true one, with this profile's lens) with the intrinsics a lab would use:
+        the true ones without ``calibration_views``, else :func:`board_calibration`'s estimate (computed once
+        per profile, seed and camera, and cached as an intrinsics file in ``cache_dir``, default
+        runs/cache/camera_calibration/ of this checkout)."""
+        if self.calibration_views == 0:
+            return PinholeCamera(camera.camera_matrix.copy(), np.asarray(camera.dist_coeffs, float).copy(),
+                                 camera.rotation.copy(), camera.translation.copy(), camera.image_size)
+        key = hashlib.sha256(repr((_BOARD_VERSION, camera.camera_matrix.round(9).tolist(), self.dist_coeffs,
+                                   camera.image_size, self.calibration_views, self.effects.defocus_sigma_px,
+                                   self.effects.noise_sigma, self.effects.jpeg_quality)).encode()).hexdigest()[:16]
+        path = Path(cache_dir or DEFAULT_CACHE_DIR) / f"{self.name}-seed{self.seed}-{key}.json"
+        intrinsics = None
+        if path.is_file():
+            try:
+                intrinsics = load_intrinsics(path)
+            except CalibrationError:
+                pass  # a damaged cache entry is recomputed
+        if intrinsics is None:
+            intrinsics = board_calibration(self, camera)
+            save_intrinsics(path, intrinsics)
+        return PinholeCamera(intrinsics.camera_matrix, intrinsics.dist_coeffs, camera.rotation.copy(),
+                             camera.translation.copy(), camera.image_size)
 
     def surveyed(self, marker_set: FixedMarkerSet) -> FixedMarkerSet:
         """The fixed markers as a lab surveyed them: x, y, z each off by N(0, survey_sigma_m), seeded."""
@@ -127,6 +148,29 @@ class CameraProfile:
         return dataclasses.replace(marker_set, markers=moved)
 
 
+DEFAULT_CACHE_DIR = Path(__file__).resolve().parents[1] / "runs" / "cache" / "camera_calibration"
+CALIBRATION_BOARD = CharucoBoardSpec(7, 5, 0.037, 0.028)  # make-board's A4 page (docstring)
+_BOARD_VERSION = 1  # of the views below: a change invalidates the cache
+
+
+def board_calibration(profile: CameraProfile, camera: PinholeCamera) -> Intrinsics:
+    """calibrate-camera's intrinsics from ``profile.calibration_views`` ChArUco views rendered through the true
+    lens (``camera``'s matrix, ``profile.dist_coeffs``) with the profile's defocus, noise and JPEG, seeded by
+    the profile's seed (CalibrationError if too few views are usable)."""
+    board = CALIBRATION_BOARD
+    render = BoardRenderer((board.squares_x, board.squares_y), board.square_length_m, board.marker_length_m,
+                           board.dictionary, camera.camera_matrix, np.asarray(profile.dist_coeffs, float),
+                           camera.image_size, supersample=1)
+    rng = np.random.default_rng(profile.seed + 6)
+    detector = BoardDetector(board)
+    fx = profile.effects
+    views = [detector.detect(render(rvec, tvec, blur=fx.defocus_sigma_px, noise=fx.noise_sigma, rng=rng,
+                                    jpeg_quality=fx.jpeg_quality), f"view {i}")
+             for i, (rvec, tvec) in enumerate(render.random_poses(profile.calibration_views, rng, depth_m=(0.45, 0.7),
+                                                                  centre_range=(0.15, 0.85)))]
+    return calibrate_intrinsics(views, camera.image_size).intrinsics
+
+
 def _realistic_effects(seed: int) -> RenderEffects:
     return RenderEffects(exposure_s=0.004, jpeg_quality=75, readout_s=0.010, flicker_amplitude=0.04,
                          flicker_hz=100.0, seed=seed)
@@ -138,7 +182,7 @@ def camera_profile(name: str, seed: int = 0) -> CameraProfile:
         return CameraProfile("ideal", RenderEffects(seed=seed))
     if name == "realistic":
         return CameraProfile("realistic", _realistic_effects(seed), dist_coeffs=(-0.12, 0.03, 5e-4, -3e-4, 0.0),
-                             calibration_dist_error=(0.002, -0.001, 0.0, 0.0, 0.0), calibration_focal_error=0.003,
+                             calibration_views=20,
                              latency_s=0.030, jitter_s=0.003,
                              latency_known_s=0.030, survey_sigma_m=0.003)
     if name.startswith("ideal+") and name[6:] in SINGLE_EFFECTS:

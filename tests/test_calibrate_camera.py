@@ -1,7 +1,7 @@
 """`calibrate-camera` and `make-board` against references that do not come from the code under test.
 
 * Rendered views: OpenCV's own ``CharucoBoard.generateImage`` picture of the board, warped into a camera
-  with known intrinsics and distortion by ``bench.charuco_views`` (OpenCV alone: the board plane's
+  with known intrinsics and distortion by ``sim.charuco_views`` (OpenCV alone: the board plane's
   homography ``K [r1 r2 t]`` and ``cv2.undistortPoints`` for the lens, 3x3 supersampling, Gaussian blur
   and noise), so the true fx, fy, cx, cy are known.
 * Real photographs: OpenCV's ChArUco tutorial photos in ``../shared/data/opencv-aruco-photos/`` and the
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from bench.charuco_views import CAMERA_MATRIX as K_TRUE, DIST_COEFFS as DIST_TRUE, SIZE, BoardRenderer
+from sim.charuco_views import CAMERA_MATRIX as K_TRUE, DIST_COEFFS as DIST_TRUE, SIZE, BoardRenderer
 from tracking.calibration import CalibrationError, load_intrinsics
 from tracking.camera import EndOfStream, Frame
 from tracking.charuco import (BoardDetector, CharucoBoardSpec, calibrate_intrinsics, capture_views, edge_blur_px,

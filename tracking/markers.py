@@ -55,6 +55,11 @@ _ECC_MARGIN_CELLS = 0.5  # white quiet zone included in the template (labels mus
 _ECC_MAX_SHIFT = 0.15  # a refinement moving a corner further than this (in marker sides, at least
 # 2 px) is treated as diverged
 MIN_PATTERN_CORRELATION = 0.87  # at the ECC alignment: rendered car markers >= 0.91, false ids in real photos <= 0.81
+# Pattern identification of undecoded squares (MarkerDetector.identify_by_pattern): a quad is ECC-refined
+# as an id only when its correlation at ArUco's corners reaches this (ECC then decides); squares smaller
+# than _MIN_IDENTIFY_SIDE_PX (6 bits of 1.3 px) are not tried.
+_PRESCREEN_CORRELATION = 0.5
+_MIN_IDENTIFY_SIDE_PX = 8.0
 
 
 class MarkerDetector:
@@ -97,6 +102,8 @@ class MarkerDetector:
         self.duplicates_dropped = 0
         self.refine_failures = 0
         self.pattern_mismatches = 0
+        self.identified_by_pattern = 0
+        self.found_from_prediction = 0
 
     def _template(self, marker_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Marker pattern with a white margin (float32) and its outer corners in template pixels."""
@@ -160,55 +167,131 @@ class MarkerDetector:
             return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         raise ValueError(f"image: expected HxW or HxWx3 uint8, got shape {image.shape}")
 
-    def _detect_raw(self, gray: np.ndarray, offset=(0, 0)) -> list[tuple[int, np.ndarray]]:
+    def _detect_raw(self, gray: np.ndarray, offset=(0, 0)) -> tuple[list[tuple[int, np.ndarray]], list[np.ndarray]]:
+        """ArUco's decoded markers [(id, corners)] and the quads it found but could not decode."""
         if self.downscale < 1.0:
             small = cv2.resize(gray, None, fx=self.downscale, fy=self.downscale, interpolation=cv2.INTER_AREA)
-            corners, ids, _ = self._detector.detectMarkers(small)
-            if ids is None:
-                return []
+            corners, ids, rejected = self._detector.detectMarkers(small)
             # small-image pixel centres -> full-image pixel centres; the ECC step (or, without
             # it, cornerSubPix) then refines at full resolution
-            pts = (np.vstack([c.reshape(4, 2) for c in corners]) + 0.5) / self.downscale - 0.5
-            if self.refine != "ecc":
-                pts = cv2.cornerSubPix(gray, pts.astype(np.float32).reshape(-1, 1, 2), (3, 3), (-1, -1),
-                                       (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-            corners = list(np.asarray(pts, float).reshape(-1, 4, 2))
-        else:
-            corners, ids, _ = self._detector.detectMarkers(gray)
+            rejected = [(np.asarray(q, float).reshape(4, 2) + 0.5) / self.downscale - 0.5 for q in rejected]
             if ids is None:
-                return []
+                corners = []
+            else:
+                pts = (np.vstack([c.reshape(4, 2) for c in corners]) + 0.5) / self.downscale - 0.5
+                if self.refine != "ecc":
+                    pts = cv2.cornerSubPix(gray, pts.astype(np.float32).reshape(-1, 1, 2), (3, 3), (-1, -1),
+                                           (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+                corners = list(np.asarray(pts, float).reshape(-1, 4, 2))
+        else:
+            corners, ids, rejected = self._detector.detectMarkers(gray)
         off = np.asarray(offset, float)
-        return [(int(i), np.asarray(c, float).reshape(4, 2) + off) for i, c in zip(ids.ravel(), corners)]
+        quads = [np.asarray(q, float).reshape(4, 2) + off for q in rejected]
+        if ids is None:
+            return [], quads
+        return [(int(i), np.asarray(c, float).reshape(4, 2) + off) for i, c in zip(ids.ravel(), corners)], quads
 
-    def _refine_and_verify(self, gray, found, refine_ids) -> list[tuple[int, np.ndarray]]:
+    def _refine_and_verify(self, gray, found, refine_ids, unverified=None) -> list[tuple[int, np.ndarray]]:
         """Refine (``refine="ecc"``, ids in ``refine_ids``) and keep the detections whose pattern
         correlation, measured at the ECC alignment (which removes the ~0.5 px corner error of small
-        markers that would otherwise lower it), reaches ``min_pattern_correlation``."""
+        markers that would otherwise lower it), reaches ``min_pattern_correlation``. The corners of those
+        that fail are appended to ``unverified`` (a list) when given."""
         kept = []
         for marker_id, corners in found:
             refined, rho = self._refine_ecc(gray, marker_id, corners)
             if rho < self.min_pattern_correlation:
                 self.pattern_mismatches += 1
+                if unverified is not None:
+                    unverified.append(corners)
                 continue
             use_refined = self.refine == "ecc" and (refine_ids is None or marker_id in refine_ids)
             kept.append((marker_id, refined if use_refined else corners))
         return kept
 
+    def identify_by_pattern(self, gray: np.ndarray, quads: list[np.ndarray], ids) -> list[tuple[int, np.ndarray]]:
+        """Markers among ``quads`` (image corners of squares ArUco found but did not decode, or decoded to an
+        id whose pattern did not match) identified by their pattern alone: each quad, in each of its four
+        corner orders, is compared with each id of ``ids``; the best match is ECC-refined and kept when its
+        pattern correlation reaches ``min_pattern_correlation`` (the same check every decoded marker
+        passes). Each id and each quad is used at most once, best matches first. Why: at 2 px per bit, the
+        lens, MJPEG or a narrow white label leave cells grey and ArUco's bit decoding fails or returns
+        another id, although the square is found and the whole pattern still matches (docs/tracking.md,
+        "Detection rate"). Counted in ``identified_by_pattern``."""
+        ids = sorted(set(int(i) for i in ids))
+        if not ids or not quads:
+            return []
+        scored = []
+        for q, quad in enumerate(quads):
+            for marker_id in ids:
+                rho, order = max((self.pattern_correlation(gray, marker_id, np.roll(quad, -k, axis=0)), k)
+                                 for k in range(4))
+                if rho >= _PRESCREEN_CORRELATION:
+                    scored.append((rho, q, marker_id, order))
+        kept, used_quads, used_ids = [], set(), set()
+        for _, q, marker_id, order in sorted(scored, reverse=True):
+            if q in used_quads or marker_id in used_ids:
+                continue
+            corners = np.roll(quads[q], -order, axis=0)
+            refined, rho = self._refine_ecc(gray, marker_id, corners)
+            if rho < self.min_pattern_correlation or refined is corners:  # not matched, or ECC failed
+                continue
+            used_quads.add(q)
+            used_ids.add(marker_id)
+            kept.append((marker_id, refined if self.refine == "ecc" else corners))
+        self.identified_by_pattern += len(kept)
+        return kept
+
+    def find_from_seed(self, gray: np.ndarray, marker_id: int, seed: np.ndarray, quads: list[np.ndarray]
+                       ) -> np.ndarray | None:
+        """``marker_id`` near ``seed`` (its predicted image corners, ArUco order): the seed, and the seed moved
+        onto the centre of each square ArUco found within half a side of it (the white label around a
+        marker whose own border was not found shares its centre), ECC-refined; the first alignment whose
+        pattern correlation reaches ``min_pattern_correlation`` (None if none). Counted in
+        ``found_from_prediction``."""
+        side = _mean_side(seed)
+        centre = seed.mean(axis=0)
+        starts = [seed] + [seed + (q.mean(axis=0) - centre) for q in quads
+                           if np.linalg.norm(q.mean(axis=0) - centre) < 0.5 * side]
+        for start in starts:
+            refined, rho = self._refine_ecc(gray, marker_id, start)
+            if refined is not start and rho >= self.min_pattern_correlation:
+                self.found_from_prediction += 1
+                return refined if self.refine == "ecc" else start
+        return None
+
     def detect(self, image: np.ndarray, rois: list[tuple[int, int, int, int]] | None = None,
-               refine_ids=None) -> dict[int, np.ndarray]:
+               refine_ids=None, identify_ids=(), seeds: dict[int, np.ndarray] | None = None) -> dict[int, np.ndarray]:
         """Markers in ``image``; with ``rois`` (x0, y0, x1, y1 pixel boxes) only inside those.
-        ``refine_ids``: ids to refine (None = all)."""
+        ``refine_ids``: ids to refine (None = all). ``identify_ids``: ids (the cars expected in the image)
+        that, when not decoded, are looked for among the squares ArUco could not decode
+        (:meth:`identify_by_pattern`); ``seeds`` ({id: predicted image corners}): ids still not found are
+        then aligned from their prediction (:meth:`find_from_seed`)."""
         gray = self._gray(image)
         found: list[tuple[int, np.ndarray]] = []
+        quads: list[np.ndarray] = []
         if rois is None:
-            found = self._detect_raw(gray)
+            found, quads = self._detect_raw(gray)
         else:
             h, w = gray.shape
             for x0, y0, x1, y1 in rois:
                 x0, y0, x1, y1 = max(int(x0), 0), max(int(y0), 0), min(int(x1), w), min(int(y1), h)
                 if x1 - x0 > 8 and y1 - y0 > 8:
-                    found += self._detect_raw(gray[y0:y1, x0:x1], (x0, y0))
-        found = self._refine_and_verify(gray, found, refine_ids)
+                    more, more_quads = self._detect_raw(gray[y0:y1, x0:x1], (x0, y0))
+                    found += more
+                    quads += more_quads
+        unverified: list[np.ndarray] = []
+        found = self._refine_and_verify(gray, found, refine_ids, unverified)
+        missing = set(int(i) for i in identify_ids) - {i for i, _ in found}
+        if missing:
+            taken = [c.mean(axis=0) for _, c in found]
+            quads = [q for q in unverified + quads if _MIN_IDENTIFY_SIDE_PX <= _mean_side(q)
+                     and all(np.linalg.norm(q.mean(axis=0) - t) > 2.0 for t in taken)]
+            found += self.identify_by_pattern(gray, _distinct(quads), missing)
+            for marker_id in sorted(missing - {i for i, _ in found}):
+                if seeds is not None and marker_id in seeds:
+                    corners = self.find_from_seed(gray, marker_id, np.asarray(seeds[marker_id], float), quads)
+                    if corners is not None:
+                        found.append((marker_id, corners))
         result: dict[int, np.ndarray] = {}
         seen_twice: set[int] = set()
         for marker_id, corners in found:
@@ -219,6 +302,20 @@ class MarkerDetector:
             del result[marker_id]
         self.duplicates_dropped += len(seen_twice)
         return result
+
+
+def _mean_side(quad: np.ndarray) -> float:
+    return float(np.mean(np.linalg.norm(np.diff(quad, axis=0, append=quad[:1]), axis=1)))
+
+
+def _distinct(quads: list[np.ndarray]) -> list[np.ndarray]:
+    """One of each group of quads whose centres lie within 2 px (overlapping ROIs, several threshold
+    windows: ArUco reports the same square more than once)."""
+    out: list[np.ndarray] = []
+    for q in quads:
+        if all(np.linalg.norm(q.mean(axis=0) - o.mean(axis=0)) > 2.0 for o in out):
+            out.append(q)
+    return out
 
 
 @dataclass
@@ -279,7 +376,7 @@ class ArucoTracker:
     car file's marker.offset_forward_m, offset_left_m, yaw_rad), subtracted to give the reference point.
     ``marker_height_m``: marker height above the track; ``correct_height=False`` maps the
     corners on the track plane instead (only for comparison, it is biased).
-    ROI mode: :meth:`process` with ``predictions`` ({id: (x, y)}) searches only squares of
+    ROI mode: :meth:`process` with ``predictions`` ({id: (x, y)} or {id: (x, y, heading)}) searches only squares of
     ``roi_radius_m`` around them, with a full-frame search every ``full_search_every`` frames
     to pick up new cars.
 
@@ -367,22 +464,39 @@ class ArucoTracker:
         fwd, left = self.marker_offset_m, self.marker_offset_left_m
         return x - fwd * c + left * s, y - fwd * s - left * c, heading, side - self.marker_size_m
 
+    def marker_image_corners(self, x: float, y: float, heading: float) -> np.ndarray:
+        """Image corners (4,2, ArUco order) of the marker of a car whose reference point is at (x, y, heading):
+        the inverse of :meth:`car_pose` (marker offset and yaw, marker height, lens)."""
+        c, s = math.cos(heading), math.sin(heading)
+        fwd, left = self.marker_offset_m, self.marker_offset_left_m
+        corners = marker_corners_track(x + fwd * c - left * s, y + fwd * s + left * c, heading + self.marker_yaw_rad,
+                                       self.marker_size_m, self.marker_height_m if self.correct_height else 0.0)
+        return self.calibration.camera.project(corners)
+
     def _rois(self, predictions: dict) -> list[tuple[int, int, int, int]]:
         cam = self.calibration.camera
         boxes = []
         r = self.roi_radius_m
-        for x, y in predictions.values():
+        for x, y, *_ in predictions.values():
             square = np.array([[x - r, y - r], [x + r, y - r], [x + r, y + r], [x - r, y + r]])
             px = cam.project(np.column_stack([square, np.full(4, self.marker_height_m)]))
             (x0, y0), (x1, y1) = np.floor(px.min(0)), np.ceil(px.max(0))
             boxes.append((int(x0), int(y0), int(x1) + 1, int(y1) + 1))
         return boxes
 
-    def process(self, frame: Frame, predictions: dict[int, tuple[float, float]] | None = None) -> FrameDetections:
+    def process(self, frame: Frame, predictions: dict[int, tuple[float, ...]] | None = None) -> FrameDetections:
+        """Car poses in ``frame``. ``predictions``: {id: (x, y)} or {id: (x, y, heading)} of the cars (the
+        estimator's, at the frame's time): the search is limited to squares around them, and a car whose
+        marker ArUco cannot decode is aligned from its predicted corners when the heading is given."""
         start = time.perf_counter()
         full = predictions is None or self._frames_since_full + 1 >= self.full_search_every
         car_ids = self.car_ids if self.car_ids is not None else _AllExcept(self.fixed_ids)
-        markers = self.detector.detect(frame.image, None if full else self._rois(predictions), car_ids)
+        # Cars expected in the frame: those predicted, or in a full search every car id we were given.
+        expected = [i for i in (predictions or ()) if self.is_car(i)] if predictions else sorted(self.car_ids or ())
+        seeds = {i: self.marker_image_corners(*predictions[i]) for i in expected
+                 if predictions and i in predictions and len(predictions[i]) >= 3}
+        markers = self.detector.detect(frame.image, None if full else self._rois(predictions), car_ids, expected,
+                                       seeds)
         self._frames_since_full = 0 if full else self._frames_since_full + 1
         cars, rejected = {}, {}
         for marker_id, corners in markers.items():

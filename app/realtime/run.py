@@ -389,7 +389,9 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
     world = HilWorld(spec)
     try:
         info = world.info
-        camera = spec.camera_profile.estimated(world.camera)  # the lens as calibrated, not the renderer's truth
+        # The lens as calibrate-camera estimates it from rendered board views (realistic profile; cached), not
+        # the renderer's truth.
+        camera = spec.camera_profile.with_seed(spec.seed).estimated(world.camera)
         fixed_ids = ()
         note = "calibration: true synthetic camera (no fixed markers for this track)"
         calibration = CameraCalibration(camera, dictionary=setup.car.marker.dictionary)
@@ -406,6 +408,8 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
             err = 1e3 * float(np.linalg.norm(calibration.camera.position - camera.position))
             note = (f"calibration from {len(calibration.markers_used)} fixed markers: reprojection rms "
                     f"{calibration.reprojection_rms_px:.3f} px, camera position error {err:.1f} mm")
+            if spec.camera_profile.calibration_views:
+                note += f"; intrinsics from {spec.camera_profile.calibration_views} rendered ChArUco views"
         mk = setup.car.marker
         tracker = ArucoTracker(calibration, info["marker_size_m"], info["marker_height_m"],
                                car_ids=[c.marker_id for c in cars], fixed_ids=fixed_ids, full_search_every=10 ** 9,
@@ -467,6 +471,7 @@ def _print(o, setup, args, mode, opponent) -> None:
           f"render p50 {f(s['render_ms_p50'])} ms (not in the loop budget)")
     if s["tracking_error_mm_median"] is not None:
         print(f"tracking error vs simulator truth: median {s['tracking_error_mm_median']:.2f} mm, "
-              f"p95 {s['tracking_error_mm_p95']:.2f} mm")
+              f"p95 {s['tracking_error_mm_p95']:.2f} mm; heading median {s['tracking_heading_error_deg_median']:.2f} "
+              f"deg, p95 {s['tracking_heading_error_deg_p95']:.2f} deg")
     print(f"events: {s['events']}; load average {', '.join(f'{v:.2f}' for v in s['load_average'] or [])}")
     print(f"telemetry: {o.recording}")

@@ -42,7 +42,8 @@ class BoardRenderer:
         self.k, self.size, self.supersample = k, (int(w), int(h)), supersample
         self.board_size_m = (squares[0] * square_m, squares[1] * square_m)
 
-    def __call__(self, rvec, tvec, blur: float = 0.6, noise: float = 2.0, rng=None) -> np.ndarray:
+    def __call__(self, rvec, tvec, blur: float = 0.6, noise: float = 2.0, rng=None,
+                 jpeg_quality: int | None = None) -> np.ndarray:
         w, h = self.size
         s = self.supersample
         rot = cv2.Rodrigues(np.asarray(rvec, float))[0]
@@ -57,17 +58,23 @@ class BoardRenderer:
         image = 30 + image * (200 / 255)  # paper and ink are not 0 and 255
         if noise > 0:
             image = image + (rng or np.random.default_rng(0)).normal(0, noise, image.shape)
-        return np.clip(np.round(image), 0, 255).astype(np.uint8)
+        image = np.clip(np.round(image), 0, 255).astype(np.uint8)
+        if jpeg_quality is not None:  # an MJPEG camera's compression
+            image = cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])[1],
+                                 cv2.IMREAD_GRAYSCALE)
+        return image
 
-    def random_poses(self, n: int, rng, tilt_deg=(15.0, 40.0), depth_m=(0.30, 0.42)) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Board poses tilted about random axes, the board's centre on random points of the image's middle."""
+    def random_poses(self, n: int, rng, tilt_deg=(15.0, 40.0), depth_m=(0.30, 0.42), centre_range=(0.3, 0.7)
+                     ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Board poses tilted about random axes, the board's centre on random points of the image between the
+        fractions ``centre`` of its width and height (default: its middle)."""
         centre_board = np.array([self.board_size_m[0] / 2, self.board_size_m[1] / 2, 0.0])
         out = []
         for _ in range(n):
             axis = rng.uniform(0, 2 * math.pi)
             tilt = math.radians(rng.uniform(*tilt_deg)) * np.array([math.cos(axis), math.sin(axis), 0.0])
             rot = cv2.Rodrigues(tilt)[0] @ cv2.Rodrigues(np.array([0.0, 0.0, rng.uniform(-0.3, 0.3)]))[0]
-            pixel = np.array([rng.uniform(0.3, 0.7) * self.size[0], rng.uniform(0.3, 0.7) * self.size[1], 1.0])
+            pixel = np.array([rng.uniform(*centre_range) * self.size[0], rng.uniform(*centre_range) * self.size[1], 1.0])
             ray = np.linalg.solve(self.k, pixel)
             centre = ray * rng.uniform(*depth_m) / ray[2]
             out.append((cv2.Rodrigues(rot)[0].ravel(), centre - rot @ centre_board))
