@@ -76,6 +76,9 @@ class _RecedingHorizon:
         self.config = config
         self.control_period_s = float(control_period_s)
         self._prev: GameResult | None = None
+        # The own car's states (T+1, 4) along the last plan it used, advanced one control period per
+        # fallback step since: what a fallback tracks (_track_previous).
+        self._reference: np.ndarray | None = None
         # Set up at the first plan, then updated every plan (same structure all race long).
         self._solver: Solver | None = None
         self._solvers: dict[int, Solver] = {}       # one per number of agents (the game's player set changes)
@@ -89,6 +92,7 @@ class _RecedingHorizon:
 
     def reset(self) -> None:
         self._prev = None
+        self._reference = None
         self.mapper.reset()
 
     @property
@@ -221,7 +225,8 @@ class _RecedingHorizon:
         controls already mapped to this plan's agents, _warm_start), the planning car's first control
         replaced by the closed-loop tracking control towards that plan."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
-        x_ref = self._shifted(self._prev.x)[0, 0]
+        self._reference = self._shifted((self._prev.x[0] if self._reference is None else self._reference)[None])[0]
+        x_ref = self._reference[0]
         u_all[0, 0] = self.tracking_control(x0, x_ref, float(u_all[0, 0, 0]), ey_bound, top_speed)
         return u_all
 
@@ -359,6 +364,8 @@ class _RecedingHorizon:
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
         self._prev, self._prev_ids = result, tuple(ids)
+        if used != "fallback" or warm is None:
+            self._reference = np.asarray(x[0])
         return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
                     solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
                     d_min=float(np.min(d_min)), ey_bound=ey_bound)
