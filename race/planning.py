@@ -19,14 +19,20 @@ pursuit, or none for a human-driven car).
   logs ``planner_error``. A non-finite command is always a planner fault (:class:`SolverFailure`).
 * :class:`PlannerWorker` runs the steps of the real-time loop asynchronously in a worker thread; the
   loop applies the latest plan. The C++ solver releases the GIL, so a solve does not stall the loop.
+* Several cars on several cores: :class:`RacePlanners` gives every car's plan of one step to a pool
+  of ``RaceSetup.planner_threads`` threads (1: in turn, in the calling thread). Each car's inputs are
+  fixed before the step's plans start and each planner (solver, warm start) belongs to one car, so a
+  car's plan does not depend on which thread ran it or when; the C++ solves run in parallel.
 """
 from __future__ import annotations
 
 import bisect
 import dataclasses
 import math
+import os
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 import numpy as np
 
@@ -157,6 +163,17 @@ class RacePlanners:
                 self.pursuit[c.name] = PurePursuitController(setup.track, car, target_speed_mps=c.top_speed_mps)
         self.unwrap: ProgressUnwrapper | None = None
         self.commanded = tuple(c.name for c in self.cars if c.planner != "human")
+        threads = min(setup.planner_threads, len(self.models))
+        # Pool threads run at the planner thread's priority whichever thread first submits (the cold
+        # start runs in the loop thread): the priority of this (the loop's) thread less PlannerWorker's.
+        self._pool = (ThreadPoolExecutor(threads, thread_name_prefix="planner", initializer=_planner_priority,
+                                         initargs=(_fifo_priority(),)) if threads > 1 else None)
+
+    def close(self) -> None:
+        """Stop the planning threads (idle between plans; a pool of one thread has none)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None  # later plans (if any) run in turn in the calling thread
 
     def plan(self, job: PlanJob) -> PlanResult:
         """One planning step for every commanded car; a car whose planner failed has its fallback plan
@@ -168,20 +185,12 @@ class RacePlanners:
         result = PlanResult(job=job, progress=fs[:, S].copy())
         # Every car at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
         at_plan = np.array([self._own_state(job, name, fs[i]) for i, name in enumerate(self.names)])
-        for i, c in enumerate(self.cars):
-            if c.name in self.models:
-                planner = self.models[c.name]
-                extra = {}
-                if c.planner == "rd3g":
-                    others, far = self._others(i, planner, at_plan)
-                    extra = {"obstacles": self._in_frame(at_plan, i, far)} if far else {}
-                else:
-                    others = [j for j in range(len(self.cars)) if j != i]
-                rows = self._in_frame(at_plan, i, others)
-                plan, (throttle, steer), ms = plan_step(planner, at_plan[i], rows,
-                                                        other_tops=[self.tops[j] for j in others],
-                                                        other_refs=[self.refs[j] for j in others],
-                                                        other_ids=tuple(self.names[j] for j in others), **extra)
+        steps = {c.name: self._step_inputs(i, at_plan) for i, c in enumerate(self.cars) if c.name in self.models}
+        run = lambda name: plan_step(self.models[name], *steps[name][:2], **steps[name][2])  # noqa: E731
+        planned = dict(zip(steps, self._pool.map(run, steps) if self._pool is not None else map(run, steps)))
+        for c in self.cars:
+            if c.name in planned:
+                plan, (throttle, steer), ms = planned[c.name]
                 result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms)
             elif c.name in self.pursuit:
                 throttle, steer = self.pursuit[c.name].command(job.states[c.name], self.setup.control_period_s)
@@ -191,6 +200,19 @@ class RacePlanners:
                 raise SolverFailure(f"{name}: planner produced a non-finite command "
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
         return result
+
+    def _step_inputs(self, i: int, at_plan: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Car i's plan_step arguments (own state, the other cars' rows in its frame, keywords): an RD3G
+        car's players and obstacles (_others), every other car for MPC."""
+        planner, extra = self.models[self.names[i]], {}
+        if self.cars[i].planner == "rd3g":
+            others, far = self._others(i, planner, at_plan)
+            extra = {"obstacles": self._in_frame(at_plan, i, far)} if far else {}
+        else:
+            others = [j for j in range(len(self.cars)) if j != i]
+        return at_plan[i], self._in_frame(at_plan, i, others), dict(
+            other_tops=[self.tops[j] for j in others], other_refs=[self.refs[j] for j in others],
+            other_ids=tuple(self.names[j] for j in others), **extra)
 
     def _others(self, i: int, planner, at_plan: np.ndarray) -> tuple[list[int], list[int]]:
         """(players, obstacles) of car i's game: interacting_cars at the plan's states (nominal collision
@@ -246,6 +268,34 @@ class RacePlanners:
         return x
 
 
+def close_planners(planners) -> None:
+    """Stop the planners' threads if they hold any (RacePlanners.close; other Planners have none)."""
+    close = getattr(planners, "close", None)
+    if close is not None:
+        close()
+
+
+def _fifo_priority() -> int | None:
+    """This thread's SCHED_FIFO priority (None under normal scheduling)."""
+    try:
+        return os.sched_getparam(0).sched_priority if os.sched_getscheduler(0) == os.SCHED_FIFO else None
+    except (AttributeError, OSError):
+        return None
+
+
+def _planner_priority(loop_priority: int | None) -> None:
+    """A planning pool thread: SCHED_FIFO PLANNER_PRIORITY_BELOW_LOOP below the loop (as PlannerWorker),
+    or normal scheduling when the loop has it."""
+    try:
+        if loop_priority is None:
+            if os.sched_getscheduler(0) == os.SCHED_FIFO:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        else:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, loop_priority - PLANNER_PRIORITY_BELOW_LOOP)))
+    except (AttributeError, OSError):
+        pass
+
+
 def planner_errors(result: PlanResult) -> dict[str, str]:
     """{car: "Type: message"} of the cars whose planning raised in this result (they got the fallback plan)."""
     return {name: cp.plan.error for name, cp in result.cars.items() if cp.plan is not None and cp.plan.error is not None}
@@ -287,7 +337,7 @@ class SyncPlanRunner:
         return self._latest
 
     def stop(self) -> None:
-        pass
+        close_planners(self.planners)
 
 
 class PlannerWorker:
@@ -327,6 +377,8 @@ class PlannerWorker:
             self._cv.notify()
         if self._thread.is_alive():
             self._thread.join(timeout=5.0)
+        if not self._thread.is_alive():  # a plan still running keeps its pool (daemon worker, process exit)
+            close_planners(self.planners)
 
     def _execute(self, job: PlanJob) -> PlanResult:
         self._seq += 1
