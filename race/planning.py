@@ -114,6 +114,7 @@ class CarPlan:
     steering_rad: float
     plan: object | None = None        # planning.Plan (None for pursuit)
     solve_ms: float = 0.0
+    cpu_ms: float = 0.0               # CPU time of the thread that planned it, during this plan
 
 
 @dataclass
@@ -124,6 +125,7 @@ class PlanResult:
     t_done: float = 0.0
     seq: int = 0
     progress: np.ndarray | None = None  # unwrapped s of every car (roster order)
+    wall_ms: float = 0.0                # wall time of the whole job (every car's plan)
 
 
 def interacting_cars(i: int, progress, tops, horizon_s: float, d_min: float, length: float) -> list[int]:
@@ -178,6 +180,7 @@ class RacePlanners:
     def plan(self, job: PlanJob) -> PlanResult:
         """One planning step for every commanded car; a car whose planner failed has its fallback plan
         (:func:`planner_errors`). Raises SolverFailure on a non-finite command."""
+        t0 = time.perf_counter()
         fs = np.array([frenet_state(self.track, job.states[name]) for name in self.names])
         if self.unwrap is None:
             self.unwrap = ProgressUnwrapper(self.track, fs[:, S])
@@ -186,12 +189,16 @@ class RacePlanners:
         # Every car at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
         at_plan = np.array([self._own_state(job, name, fs[i]) for i, name in enumerate(self.names)])
         steps = {c.name: self._step_inputs(i, at_plan) for i, c in enumerate(self.cars) if c.name in self.models}
-        run = lambda name: plan_step(self.models[name], *steps[name][:2], **steps[name][2])  # noqa: E731
+
+        def run(name):
+            cpu = time.thread_time()
+            return *plan_step(self.models[name], *steps[name][:2], **steps[name][2]), time.thread_time() - cpu
+
         planned = dict(zip(steps, self._pool.map(run, steps) if self._pool is not None else map(run, steps)))
         for c in self.cars:
             if c.name in planned:
-                plan, (throttle, steer), ms = planned[c.name]
-                result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms)
+                plan, (throttle, steer), ms, cpu = planned[c.name]
+                result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms, 1e3 * cpu)
             elif c.name in self.pursuit:
                 throttle, steer = self.pursuit[c.name].command(job.states[c.name], self.setup.control_period_s)
                 result.cars[c.name] = CarPlan(float(throttle), float(steer))
@@ -199,6 +206,7 @@ class RacePlanners:
             if not (math.isfinite(cp.throttle) and math.isfinite(cp.steering_rad)):
                 raise SolverFailure(f"{name}: planner produced a non-finite command "
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
+        result.wall_ms = 1e3 * (time.perf_counter() - t0)
         return result
 
     def _step_inputs(self, i: int, at_plan: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
