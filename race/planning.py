@@ -38,7 +38,7 @@ import numpy as np
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
 from planning.commands import rollout_controls
-from planning.frenet import S, V
+from planning.frenet import EY, S, V
 from race.config import lower_realtime_priority
 from race.setup import RaceSetup
 
@@ -234,7 +234,28 @@ class RacePlanners:
             near = interacting_cars(i, at_plan[:, S], self.tops, cfg.horizon * cfg.plan_dt_s, d_min,
                                     float(self.track.length))
         keep = len(near) if cfg.game_players == 0 else cfg.game_players - 1
-        return near[:keep], near[keep:]
+        return self._with_close_obstacles(i, planner, at_plan, near[:keep], near[keep:])
+
+    def _with_close_obstacles(self, i: int, planner, at_plan: np.ndarray, players: list[int],
+                              far: list[int]) -> tuple[list[int], list[int]]:
+        """(players, obstacles) with every obstacle that starts within the collision distance (+2 cm for
+        the first planning step) of a player made a player too, until none is. Why: an obstacle has one
+        distance for every agent of the game and only agent pairs are relaxed one by one
+        (_feasible_limits), so a player inside an obstacle's distance made the game infeasible from the
+        first step (1-vs-3 races: two MPC cars side by side 0.248 m apart, one the player, one an
+        obstacle, and RD3G's solves failing behind them)."""
+        if not far or not np.all(np.isfinite(at_plan[:, :2])):
+            return players, far
+        players, far = list(players), list(far)
+        rows = dict(zip(players + far, self._in_frame(at_plan, i, players + far)))
+        d = planner.tm.collision_distance([at_plan[i, S], *(r[S] for r in rows.values())],
+                                          [at_plan[i, EY], *(r[EY] for r in rows.values())])
+        close = [o for o in far if any(math.hypot(*(rows[o][:2] - rows[p][:2])) < d + 0.02 for p in players)]
+        while close:
+            players.append(close[0])
+            far.remove(close[0])
+            close = [o for o in far if any(math.hypot(*(rows[o][:2] - rows[p][:2])) < d + 0.02 for p in players)]
+        return players, far
 
     def _in_frame(self, at_plan: np.ndarray, i: int, others: list[int]) -> np.ndarray:
         """The states of cars ``others`` with s moved to their nearest image from car i's s (a car more

@@ -1,5 +1,6 @@
-"""Planning a fleet (issue 29): a run of fallback steps tracks the last plan the car used, the planners
-of one control step run concurrently with the same plans as in turn, and the fleet batch's default."""
+"""Planning a fleet (issue 29): a run of fallback steps tracks the last plan the car used, an obstacle
+too close to a player joins the game, the planners of one control step run concurrently with the same
+plans as in turn, and the fleet batch's default."""
 import dataclasses
 import threading
 
@@ -35,6 +36,22 @@ def test_a_run_of_fallbacks_steers_back_to_the_last_plan_used():
         ey.append(float(x[EY]))
     assert x[S] < 6.0                                   # still on the straight
     assert max(ey) < 0.06 and abs(ey[-1]) < 0.02 and abs(float(x[EPSI])) < 0.05
+
+
+# ---------------------------------------------------------------- who plays in an RD3G car's game
+@pytest.mark.parametrize("ey2, players, obstacles", [(0.18, [1, 2], [3]), (0.25, [1], [2, 3])])
+def test_an_obstacle_inside_a_players_collision_distance_becomes_a_player(ey2, players, obstacles):
+    """On the oval's straight: rd3g1 at s = 4.5 m; car 1 (nearest, its game's player) 0.3 m ahead at
+    ey = -0.06; car 2 0.36 m ahead beside car 1; car 3 1.4 m ahead (in reach: an obstacle). The
+    collision distance there is 0.251 m (the planner's, 2 cm more for the first step: 0.271 m). Car 2 at
+    ey 0.18 is hypot(0.06, 0.24) = 0.247 m from car 1: inside, so it plays; at ey 0.25 it is 0.316 m
+    away and stays an obstacle. Car 3 is 1 m or more from both."""
+    setup = RaceSpec(roster=parse_cars("rd3g,mpc,mpc,mpc"), seed=0).load()
+    planners = RacePlanners(dataclasses.replace(setup, planner_threads=1))
+    planner = planners.models["rd3g1"]
+    at_plan = np.array([[4.5, -0.1, 1.9, 0.0], [4.8, -0.06, 1.8, 0.0], [4.86, ey2, 1.8, 0.0], [5.9, 0.15, 1.8, 0.0]])
+    assert planner.tm.collision_distance(at_plan[:, S], at_plan[:, EY]) == pytest.approx(0.251, abs=1e-3)
+    assert planners._others(0, planner, at_plan) == (players, obstacles)
 
 
 # ---------------------------------------------------------------- planners on two cores
