@@ -7,7 +7,9 @@ pursuit, or none for a human-driven car).
 * Which cars an RD3G car plans with (:func:`interacting_cars`): its game has the cars that can come
   within the collision distance of it within its horizon, i.e. whose gap along the track is at most
   the faster car's top speed times the horizon plus the collision distance (at least the nearest car:
-  the lead term against it is the car's progress reward); an MPC car avoids every
+  the lead term against it is the car's progress reward), the nearest game_players - 1 of them
+  players, the others constant-speed obstacles unless inside a player's collision distance (then
+  players too: RacePlanners._with_close_obstacles); an MPC car avoids every
   other car (one moving obstacle each). Every car's s is taken in the planning car's frame (the
   other car's nearest image along the track), so a car a lap ahead is where it is on the track.
 * Planner failure, one policy: a planning call that raises (an invalid problem, a solver error) never

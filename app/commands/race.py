@@ -65,7 +65,8 @@ def add_fleet_arguments(p, roster_file: bool = True,
                    help=f"start grid of rows of two: slots in roster order or shuffled by the seed (default {grid_default})")
     p.add_argument("--game-players", type=int, default=RaceSpec.game_players, metavar="N",
                    help=f"players in each RD3G car's game: itself and its nearest cars within reach of the horizon; "
-                        f"further cars are constant-speed obstacles; 0: every car within reach "
+                        f"further cars are constant-speed obstacles (a car inside a player's collision distance plays too); "
+                        f"0: every car within reach "
                         f"(default {RaceSpec.game_players})")
     p.add_argument("--planner-threads", type=int, default=RaceSpec.planner_threads, metavar="N",
                    help=f"threads planning the cars of one control step; each car's plan is the same whatever the "
