@@ -47,7 +47,7 @@ class Plan:
     """One planning step. x: (N, T+1, 4) planned (or predicted) trajectories, agent 0 = the planning
     car; u: (T, 2) the planning car's controls; `used` says whether the solve was used ("converged",
     "accepted": not converged but feasible within accept_violation_m) or not ("fallback": the car
-    tracks the previous plan in closed loop for this step, see tracking_control). `error`: the
+    tracks the last plan it used in closed loop for this step, see tracking_control). `error`: the
     exception that stopped planning this step (see fallback_plan), else None."""
 
     x: np.ndarray
@@ -76,6 +76,9 @@ class _RecedingHorizon:
         self.config = config
         self.control_period_s = float(control_period_s)
         self._prev: GameResult | None = None
+        # The own car's states (T+1, 4) along the last plan it used, advanced one control period per
+        # fallback step since: what a fallback tracks (_track_previous).
+        self._reference: np.ndarray | None = None
         # Set up at the first plan, then updated every plan (same structure all race long).
         self._solver: Solver | None = None
         self._solvers: dict[int, Solver] = {}       # one per number of agents (the game's player set changes)
@@ -89,6 +92,7 @@ class _RecedingHorizon:
 
     def reset(self) -> None:
         self._prev = None
+        self._reference = None
         self.mapper.reset()
 
     @property
@@ -143,7 +147,7 @@ class _RecedingHorizon:
 
     def tracking_control(self, x0, x_ref, a_ref: float, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
         """Closed-loop fallback control [a, delta] when no usable plan exists: the Stanley lateral
-        law on the Frenet errors to the reference state x_ref (the previous plan's state for now,
+        law on the Frenet errors to the reference state x_ref (the last used plan's state for now,
         its ey clipped to the track-limit bound) plus curvature feed-forward, and a proportional
         speed loop around the reference acceleration, never past top_speed (default: the car's top
         speed); clipped to the control bounds. Replaying the previous plan open loop instead let
@@ -219,9 +223,12 @@ class _RecedingHorizon:
     def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None, u_all=None) -> np.ndarray:
         """Controls (N, T, 2) of the previous plan shifted by one control period (``u_all``: those
         controls already mapped to this plan's agents, _warm_start), the planning car's first control
-        replaced by the closed-loop tracking control towards that plan."""
+        replaced by the closed-loop tracking control towards the last plan it used (_reference, advanced
+        one control period). Not towards the previous plan: after a fallback that is the car's own
+        rollout, so a run of fallbacks saw no error and held the car's heading, off the track."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
-        x_ref = self._shifted(self._prev.x)[0, 0]
+        self._reference = self._shifted((self._prev.x[0] if self._reference is None else self._reference)[None])[0]
+        x_ref = self._reference[0]
         u_all[0, 0] = self.tracking_control(x0, x_ref, float(u_all[0, 0, 0]), ey_bound, top_speed)
         return u_all
 
@@ -240,7 +247,7 @@ class _RecedingHorizon:
 
     def fallback_plan(self, x_self, x_others, error: str) -> Plan:
         """The plan for a step whose planning raised (an invalid problem, a solver error): as for a
-        failed solve, the car tracks the previous plan in closed loop (tracking_control); before the
+        failed solve, the car tracks the last plan it used in closed loop (tracking_control); before the
         first plan, or from a non-finite state, it coasts straight (neutral: zero throttle and zero
         steering command). The other cars are shown at constant speed. Never raises for finite input;
         the next step plans again, warm-started from this step's controls."""
@@ -326,7 +333,7 @@ class _RecedingHorizon:
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = ()) -> Plan:
         """Solve; a converged solve is used as is. A non-converged one is used only if its controls,
         re-simulated with the planning model (removing any dynamics defect), keep every constraint
-        within accept_violation_m; otherwise ("fallback") the car tracks the previous plan in closed
+        within accept_violation_m; otherwise ("fallback") the car tracks the last plan it used in closed
         loop (tracking_control) for this step."""
         warm = self._warm_start(ids)
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
@@ -359,6 +366,8 @@ class _RecedingHorizon:
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
         self._prev, self._prev_ids = result, tuple(ids)
+        if used != "fallback" or warm is None:
+            self._reference = np.asarray(x[0])
         return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
                     solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
                     d_min=float(np.min(d_min)), ey_bound=ey_bound)

@@ -7,7 +7,9 @@ pursuit, or none for a human-driven car).
 * Which cars an RD3G car plans with (:func:`interacting_cars`): its game has the cars that can come
   within the collision distance of it within its horizon, i.e. whose gap along the track is at most
   the faster car's top speed times the horizon plus the collision distance (at least the nearest car:
-  the lead term against it is the car's progress reward); an MPC car avoids every
+  the lead term against it is the car's progress reward), the nearest game_players - 1 of them
+  players, the others constant-speed obstacles unless inside a player's collision distance (then
+  players too: RacePlanners._with_close_obstacles); an MPC car avoids every
   other car (one moving obstacle each). Every car's s is taken in the planning car's frame (the
   other car's nearest image along the track), so a car a lap ahead is where it is on the track.
 * Planner failure, one policy: a planning call that raises (an invalid problem, a solver error) never
@@ -19,19 +21,25 @@ pursuit, or none for a human-driven car).
   logs ``planner_error``. A non-finite command is always a planner fault (:class:`SolverFailure`).
 * :class:`PlannerWorker` runs the steps of the real-time loop asynchronously in a worker thread; the
   loop applies the latest plan. The C++ solver releases the GIL, so a solve does not stall the loop.
+* Several cars on several cores: :class:`RacePlanners` gives every car's plan of one step to a pool
+  of ``RaceSetup.planner_threads`` threads (1: in turn, in the calling thread). Each car's inputs are
+  fixed before the step's plans start and each planner (solver, warm start) belongs to one car, so a
+  car's plan does not depend on which thread ran it or when; the C++ solves run in parallel.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 import numpy as np
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
 from planning.commands import rollout_controls
-from planning.frenet import S, V
+from planning.frenet import EY, S, V
 from race.command_history import CommandHistory, controls_between  # noqa: F401 (controls_between: race.planning's name)
 from race.config import lower_realtime_priority
 from race.setup import RaceSetup
@@ -104,6 +112,7 @@ class CarPlan:
     steering_rad: float
     plan: object | None = None        # planning.Plan (None for pursuit)
     solve_ms: float = 0.0
+    cpu_ms: float = 0.0               # CPU time of the thread that planned it, during this plan
 
 
 @dataclass
@@ -114,6 +123,7 @@ class PlanResult:
     t_done: float = 0.0
     seq: int = 0
     progress: np.ndarray | None = None  # unwrapped s of every car (roster order)
+    wall_ms: float = 0.0                # wall time of the whole job (every car's plan)
 
 
 def interacting_cars(i: int, progress, tops, horizon_s: float, d_min: float, length: float) -> list[int]:
@@ -153,10 +163,22 @@ class RacePlanners:
                 self.pursuit[c.name] = PurePursuitController(setup.track, car, target_speed_mps=c.top_speed_mps)
         self.unwrap: ProgressUnwrapper | None = None
         self.commanded = tuple(c.name for c in self.cars if c.planner != "human")
+        threads = min(setup.planner_threads, len(self.models))
+        # Pool threads run at the planner thread's priority whichever thread first submits (the cold
+        # start runs in the loop thread): the priority of this (the loop's) thread less PlannerWorker's.
+        self._pool = (ThreadPoolExecutor(threads, thread_name_prefix="planner", initializer=_planner_priority,
+                                         initargs=(_fifo_priority(),)) if threads > 1 else None)
+
+    def close(self) -> None:
+        """Stop the planning threads (idle between plans; a pool of one thread has none)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None  # later plans (if any) run in turn in the calling thread
 
     def plan(self, job: PlanJob) -> PlanResult:
         """One planning step for every commanded car; a car whose planner failed has its fallback plan
         (:func:`planner_errors`). Raises SolverFailure on a non-finite command."""
+        t0 = time.perf_counter()
         fs = np.array([frenet_state(self.track, job.states[name]) for name in self.names])
         if self.unwrap is None:
             self.unwrap = ProgressUnwrapper(self.track, fs[:, S])
@@ -164,21 +186,17 @@ class RacePlanners:
         result = PlanResult(job=job, progress=fs[:, S].copy())
         # Every car at t_plan; a commanded car through the controls it executes (PlanJob.in_flight).
         at_plan = np.array([self._own_state(job, name, fs[i]) for i, name in enumerate(self.names)])
-        for i, c in enumerate(self.cars):
-            if c.name in self.models:
-                planner = self.models[c.name]
-                extra = {}
-                if c.planner == "rd3g":
-                    others, far = self._others(i, planner, at_plan)
-                    extra = {"obstacles": self._in_frame(at_plan, i, far)} if far else {}
-                else:
-                    others = [j for j in range(len(self.cars)) if j != i]
-                rows = self._in_frame(at_plan, i, others)
-                plan, (throttle, steer), ms = plan_step(planner, at_plan[i], rows,
-                                                        other_tops=[self.tops[j] for j in others],
-                                                        other_refs=[self.refs[j] for j in others],
-                                                        other_ids=tuple(self.names[j] for j in others), **extra)
-                result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms)
+        steps = {c.name: self._step_inputs(i, at_plan) for i, c in enumerate(self.cars) if c.name in self.models}
+
+        def run(name):
+            cpu = time.thread_time()
+            return *plan_step(self.models[name], *steps[name][:2], **steps[name][2]), time.thread_time() - cpu
+
+        planned = dict(zip(steps, self._pool.map(run, steps) if self._pool is not None else map(run, steps)))
+        for c in self.cars:
+            if c.name in planned:
+                plan, (throttle, steer), ms, cpu = planned[c.name]
+                result.cars[c.name] = CarPlan(float(throttle), float(steer), plan, ms, 1e3 * cpu)
             elif c.name in self.pursuit:
                 throttle, steer = self.pursuit[c.name].command(job.states[c.name], self.setup.control_period_s)
                 result.cars[c.name] = CarPlan(float(throttle), float(steer))
@@ -186,7 +204,21 @@ class RacePlanners:
             if not (math.isfinite(cp.throttle) and math.isfinite(cp.steering_rad)):
                 raise SolverFailure(f"{name}: planner produced a non-finite command "
                                     f"(throttle {cp.throttle}, steering {cp.steering_rad})")
+        result.wall_ms = 1e3 * (time.perf_counter() - t0)
         return result
+
+    def _step_inputs(self, i: int, at_plan: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Car i's plan_step arguments (own state, the other cars' rows in its frame, keywords): an RD3G
+        car's players and obstacles (_others), every other car for MPC."""
+        planner, extra = self.models[self.names[i]], {}
+        if self.cars[i].planner == "rd3g":
+            others, far = self._others(i, planner, at_plan)
+            extra = {"obstacles": self._in_frame(at_plan, i, far)} if far else {}
+        else:
+            others = [j for j in range(len(self.cars)) if j != i]
+        return at_plan[i], self._in_frame(at_plan, i, others), dict(
+            other_tops=[self.tops[j] for j in others], other_refs=[self.refs[j] for j in others],
+            other_ids=tuple(self.names[j] for j in others), **extra)
 
     def _others(self, i: int, planner, at_plan: np.ndarray) -> tuple[list[int], list[int]]:
         """(players, obstacles) of car i's game: interacting_cars at the plan's states (nominal collision
@@ -200,7 +232,28 @@ class RacePlanners:
             near = interacting_cars(i, at_plan[:, S], self.tops, cfg.horizon * cfg.plan_dt_s, d_min,
                                     float(self.track.length))
         keep = len(near) if cfg.game_players == 0 else cfg.game_players - 1
-        return near[:keep], near[keep:]
+        return self._with_close_obstacles(i, planner, at_plan, near[:keep], near[keep:])
+
+    def _with_close_obstacles(self, i: int, planner, at_plan: np.ndarray, players: list[int],
+                              far: list[int]) -> tuple[list[int], list[int]]:
+        """(players, obstacles) with every obstacle that starts within the collision distance (+2 cm for
+        the first planning step) of a player made a player too, until none is. Why: an obstacle has one
+        distance for every agent of the game and only agent pairs are relaxed one by one
+        (_feasible_limits), so a player inside an obstacle's distance made the game infeasible from the
+        first step (1-vs-3 races: two MPC cars side by side 0.248 m apart, one the player, one an
+        obstacle, and RD3G's solves failing behind them)."""
+        if not far or not np.all(np.isfinite(at_plan[:, :2])):
+            return players, far
+        players, far = list(players), list(far)
+        rows = dict(zip(players + far, self._in_frame(at_plan, i, players + far)))
+        d = planner.tm.collision_distance([at_plan[i, S], *(r[S] for r in rows.values())],
+                                          [at_plan[i, EY], *(r[EY] for r in rows.values())])
+        close = [o for o in far if any(math.hypot(*(rows[o][:2] - rows[p][:2])) < d + 0.02 for p in players)]
+        while close:
+            players.append(close[0])
+            far.remove(close[0])
+            close = [o for o in far if any(math.hypot(*(rows[o][:2] - rows[p][:2])) < d + 0.02 for p in players)]
+        return players, far
 
     def _in_frame(self, at_plan: np.ndarray, i: int, others: list[int]) -> np.ndarray:
         """The states of cars ``others`` with s moved to their nearest image from car i's s (a car more
@@ -241,6 +294,34 @@ class RacePlanners:
         ds = math.remainder(float(x[S]) - float(at_plan[S]), length)  # same lap as the unwrapped progress
         x[S] = at_plan[S] + ds
         return x
+
+
+def close_planners(planners) -> None:
+    """Stop the planners' threads if they hold any (RacePlanners.close; other Planners have none)."""
+    close = getattr(planners, "close", None)
+    if close is not None:
+        close()
+
+
+def _fifo_priority() -> int | None:
+    """This thread's SCHED_FIFO priority (None under normal scheduling)."""
+    try:
+        return os.sched_getparam(0).sched_priority if os.sched_getscheduler(0) == os.SCHED_FIFO else None
+    except (AttributeError, OSError):
+        return None
+
+
+def _planner_priority(loop_priority: int | None) -> None:
+    """A planning pool thread: SCHED_FIFO PLANNER_PRIORITY_BELOW_LOOP below the loop (as PlannerWorker),
+    or normal scheduling when the loop has it."""
+    try:
+        if loop_priority is None:
+            if os.sched_getscheduler(0) == os.SCHED_FIFO:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        else:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, loop_priority - PLANNER_PRIORITY_BELOW_LOOP)))
+    except (AttributeError, OSError):
+        pass
 
 
 def planner_errors(result: PlanResult) -> dict[str, str]:
@@ -284,7 +365,7 @@ class SyncPlanRunner:
         return self._latest
 
     def stop(self) -> None:
-        pass
+        close_planners(self.planners)
 
 
 class PlannerWorker:
@@ -324,6 +405,8 @@ class PlannerWorker:
             self._cv.notify()
         if self._thread.is_alive():
             self._thread.join(timeout=5.0)
+        if not self._thread.is_alive():  # a plan still running keeps its pool (daemon worker, process exit)
+            close_planners(self.planners)
 
     def _execute(self, job: PlanJob) -> PlanResult:
         self._seq += 1

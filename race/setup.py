@@ -90,6 +90,7 @@ class RaceSetup:
     grid_row_gap_car_lengths: tuple[float, float] = (1.9, 2.1)  # grid rows centre to centre: about one car length free
     grid_lane_ey_m: float = 0.15        # a row's two cars at ey = +-grid_lane_ey_m ...
     grid_jitter_m: float = 0.01         # ... each jittered uniformly by up to this along and across the track
+    planner_threads: int = 2            # threads planning the cars of one step (race.planning.RacePlanners)
 
     def __post_init__(self) -> None:
         if self.grid not in GRIDS:
@@ -104,6 +105,8 @@ class RaceSetup:
             raise RaceSetupError("sim_effects", f"must be a SimEffects, got {type(self.sim_effects).__name__}")
         if isinstance(self.laps, bool) or not isinstance(self.laps, int) or self.laps < 1:
             raise RaceSetupError("laps", f"must be an integer >= 1, got {self.laps!r}")
+        if isinstance(self.planner_threads, bool) or not isinstance(self.planner_threads, int) or self.planner_threads < 1:
+            raise RaceSetupError("planner_threads", f"must be an integer >= 1, got {self.planner_threads!r}")
         if self.max_time_s is None:
             object.__setattr__(self, "max_time_s", default_max_time_s(self.laps))
         for name in ("rd3g_top_speed_mps", "opponent_top_speed_mps", "control_period_s", "max_time_s"):
@@ -164,6 +167,7 @@ class RaceSpec:
     grid: str | None = None
     game_players: int = PlannerConfig.game_players  # players of an RD3G car's game (0: every car in reach)
     speed_model: str = "limits"         # SPEED_MODELS; the faster car is the one with the higher top speed given
+    planner_threads: int = RaceSetup.planner_threads
 
     def load(self) -> RaceSetup:
         """Read the files and build the RaceSetup; RaceSetupError names the field at fault."""
@@ -212,7 +216,7 @@ class RaceSpec:
         return RaceSetup(track=track, car=car, seed=self.seed, laps=self.laps, opponent=self.opponent,
                          start=self.start, control_period_s=1.0 / self.control_hz,
                          max_time_s=self.max_time_s, sim_car=sim_car, sim_effects=effects,
-                         planner=planner, **speeds, **fleet)
+                         planner=planner, planner_threads=self.planner_threads, **speeds, **fleet)
 
     def _speeds(self) -> dict:
         """The two cars' RaceSetup speed fields under ``speed_model``. preference: both cars get the

@@ -251,10 +251,11 @@ def simulation_config(setup: RaceSetup) -> LoopConfig:
 
 
 def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls=Simulator,
-             live=None) -> RaceOutcome:
+             live=None, planners_cls=RacePlanners) -> RaceOutcome:
     """Simulate one race until a car completes `laps` laps (or max_time_s, or Ctrl-C: ``interrupted``)
     through the race loop (module doc). ``simulator_cls``: a Simulator subclass that perturbs how
-    commands reach the cars (bench/race_perturbations.py, `race --link-capture`); ``progress(step)`` is
+    commands reach the cars (bench/race_perturbations.py, `race --link-capture`); ``planners_cls``: a
+    RacePlanners subclass (bench/planner_threads.py records each job's times); ``progress(step)`` is
     called after every control step; ``live`` (recording.live.LiveView) also streams the recording
     to Rerun viewers."""
     track, car = setup.track, setup.car
@@ -278,7 +279,7 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
         with _InterruptRequest() as stop:
             world = SimWorld(sim, clock, setup, progress=progress, interrupt=stop)
             loop = RaceLoop(setup=setup, config=simulation_config(setup), feed=world, link=world, world=world,
-                            planners=RacePlanners(setup), cars=cars,
+                            planners=planners_cls(setup), cars=cars,
                             perception=TruthPerception(cars), recorder=rec, mode="simulation", clock=clock,
                             worker_factory=SyncPlanRunner, monitor_factory=SimulatedDeadlineMonitor)
             out = loop.run()

@@ -26,7 +26,7 @@ FLAGS = {"track": "--track", "car_params": "--car-params", "seed": "--seed", "la
          "control_hz": "--control-hz", "control_period_s": "--control-hz", "raceline_ey_m": "--raceline-ey",
          "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects",
          "roster": "--cars/--roster", "grid": "--grid", "game_players": "--game-players",
-         "speed_model": "--speed-model"}
+         "speed_model": "--speed-model", "planner_threads": "--planner-threads"}
 
 
 def add_race_arguments(p) -> None:
@@ -66,8 +66,12 @@ def add_fleet_arguments(p, roster_file: bool = True,
                    help=f"start grid of rows of two: slots in roster order or shuffled by the seed (default {grid_default})")
     p.add_argument("--game-players", type=int, default=RaceSpec.game_players, metavar="N",
                    help=f"players in each RD3G car's game: itself and its nearest cars within reach of the horizon; "
-                        f"further cars are constant-speed obstacles; 0: every car within reach "
+                        f"further cars are constant-speed obstacles (a car inside a player's collision distance plays too); "
+                        f"0: every car within reach "
                         f"(default {RaceSpec.game_players})")
+    p.add_argument("--planner-threads", type=int, default=RaceSpec.planner_threads, metavar="N",
+                   help=f"threads planning the cars of one control step; each car's plan is the same whatever the "
+                        f"count (default {RaceSpec.planner_threads}; 1: in turn; docs/racing.md, Fleet races)")
 
 
 def register(sub) -> None:
@@ -120,7 +124,8 @@ def race_spec(args, seed: int, start: str, rd3g_speed: float, opponent_speed: fl
                     control_hz=args.control_hz, raceline_ey_m=getattr(args, "raceline_ey", RaceSpec.raceline_ey_m),
                     max_time_s=max_time or None, sim_car_params=getattr(args, "sim_car_params", None),
                     sim_effects=getattr(args, "sim_effects", "") or "",
-                    speed_model=getattr(args, "speed_model", RaceSpec.speed_model))
+                    speed_model=getattr(args, "speed_model", RaceSpec.speed_model),
+                    planner_threads=getattr(args, "planner_threads", RaceSpec.planner_threads))
 
 
 def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1, max_time=None):

@@ -1,0 +1,136 @@
+"""Planning a fleet (issue 29): a run of fallback steps tracks the last plan the car used, an obstacle
+too close to a player joins the game, the planners of one control step run concurrently with the same
+plans as in turn, and the fleet batch's default."""
+import dataclasses
+import threading
+
+import numpy as np
+import pytest
+
+from planning import MPCOpponent
+from planning.frenet import EPSI, EY, S
+from race import planning as race_planning
+from race.planning import PlanJob, RacePlanners, make_planner
+from race.roster import parse_cars
+from race.setup import RaceSetupError, RaceSpec, start_states
+
+
+# ---------------------------------------------------------------- fallback runs
+def test_a_run_of_fallbacks_steers_back_to_the_last_plan_used():
+    """On the oval's straight (s 4.2-6 m, curvature 0) the car plans once along the centre line, then
+    every step falls back for 1 s from a state 3 cm left of it heading 0.15 rad further left. Tracking
+    that plan brings the car back to the centre line. Re-anchoring the reference at the car each step
+    (the earlier fallback) left the car heading off the line: it drifted on to 0.13 m in that second."""
+    setup = RaceSpec().load()
+    planner = make_planner(MPCOpponent, setup, 1.8)
+    assert np.all(setup.track.curvature(np.linspace(4.2, 6.0, 50)) == 0)
+    nobody = np.zeros((0, 4))
+    first = planner.plan(np.array([4.2, 0.0, 1.2, 0.0]), nobody)
+    assert first.used != "fallback" and np.max(np.abs(first.x[0, :, EY])) < 0.01  # the plan: along the centre
+    step = planner.tm.rollout_model(setup.control_period_s)
+    x = np.array([4.2 + 1.2 * setup.control_period_s, 0.03, 1.2, 0.15])
+    ey = []
+    for _ in range(30):  # 1 s of fallback steps in closed loop (planning model, one control period each)
+        plan = planner.fallback_plan(x, nobody, "test: no plan this step")
+        x = np.asarray(step.rollout(x, plan.u[:1]))[1]
+        ey.append(float(x[EY]))
+    assert x[S] < 6.0                                   # still on the straight
+    assert max(ey) < 0.06 and abs(ey[-1]) < 0.02 and abs(float(x[EPSI])) < 0.05
+
+
+# ---------------------------------------------------------------- who plays in an RD3G car's game
+@pytest.mark.parametrize("ey2, players, obstacles", [(0.18, [1, 2], [3]), (0.25, [1], [2, 3])])
+def test_an_obstacle_inside_a_players_collision_distance_becomes_a_player(ey2, players, obstacles):
+    """On the oval's straight: rd3g1 at s = 4.5 m; car 1 (nearest, its game's player) 0.3 m ahead at
+    ey = -0.06; car 2 0.36 m ahead beside car 1; car 3 1.4 m ahead (in reach: an obstacle). The
+    collision distance there is 0.251 m (the planner's, 2 cm more for the first step: 0.271 m). Car 2 at
+    ey 0.18 is hypot(0.06, 0.24) = 0.247 m from car 1: inside, so it plays; at ey 0.25 it is 0.316 m
+    away and stays an obstacle. Car 3 is 1 m or more from both."""
+    setup = RaceSpec(roster=parse_cars("rd3g,mpc,mpc,mpc"), seed=0).load()
+    planners = RacePlanners(dataclasses.replace(setup, planner_threads=1))
+    planner = planners.models["rd3g1"]
+    at_plan = np.array([[4.5, -0.1, 1.9, 0.0], [4.8, -0.06, 1.8, 0.0], [4.86, ey2, 1.8, 0.0], [5.9, 0.15, 1.8, 0.0]])
+    assert planner.tm.collision_distance(at_plan[:, S], at_plan[:, EY]) == pytest.approx(0.251, abs=1e-3)
+    assert planners._others(0, planner, at_plan) == (players, obstacles)
+
+
+# ---------------------------------------------------------------- planners on two cores
+def _jobs(setup, steps: int):
+    """Planning jobs of the grid's cars moving on at 1 m/s along their headings (no planner involved)."""
+    x0 = start_states(setup)
+    jobs = []
+    for k in range(steps):
+        states = {}
+        for name, x in zip(setup.names, x0):
+            moved = np.array(x, dtype=float)
+            moved[0] += k * setup.control_period_s * np.cos(moved[2])
+            moved[1] += k * setup.control_period_s * np.sin(moved[2])
+            moved[3] = 1.0
+            states[name] = moved
+        jobs.append(PlanJob(k, k * setup.control_period_s, states))
+    return jobs
+
+
+def test_planners_in_two_threads_give_the_plans_made_in_turn():
+    setup = RaceSpec(roster=parse_cars("rd3g,rd3g,mpc,mpc"), seed=3).load()
+    results = {}
+    for threads in (1, 2):
+        planners = RacePlanners(dataclasses.replace(setup, planner_threads=threads))
+        assert (planners._pool is None) == (threads == 1)
+        try:
+            results[threads] = [planners.plan(job) for job in _jobs(setup, 6)]
+        finally:
+            planners.close()
+    for one, two in zip(results[1], results[2]):
+        assert list(one.cars) == list(two.cars) == list(setup.names)
+        for name in setup.names:
+            a, b = one.cars[name], two.cars[name]
+            assert (a.throttle, a.steering_rad, a.plan.used) == (b.throttle, b.steering_rad, b.plan.used)
+            np.testing.assert_array_equal(a.plan.x, b.plan.x)
+
+
+def test_the_plans_of_one_step_run_at_the_same_time(monkeypatch):
+    """Two cars' plans meet at a two-party barrier: with the pool both wait there together; in turn the
+    first would wait alone (BrokenBarrierError after the timeout)."""
+    setup = dataclasses.replace(RaceSpec(roster=parse_cars("mpc,mpc"), seed=0).load(), planner_threads=2)
+    planners = RacePlanners(setup)
+    barrier, threads = threading.Barrier(2, timeout=20.0), set()
+    original = race_planning.plan_step
+
+    def meet_then_plan(planner, *args, **kw):
+        threads.add(threading.current_thread().name)
+        barrier.wait()
+        return original(planner, *args, **kw)
+
+    monkeypatch.setattr(race_planning, "plan_step", meet_then_plan)
+    try:
+        result = planners.plan(_jobs(setup, 1)[0])
+    finally:
+        planners.close()
+    assert set(result.cars) == {"mpc1", "mpc2"} and len(threads) == 2
+    assert planners._pool is None  # closed: a later plan runs in turn
+
+
+def test_planner_threads_must_be_a_positive_integer():
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(RaceSetupError) as exc:
+            RaceSpec(planner_threads=bad).load()
+        assert exc.value.field == "planner_threads"
+
+
+# ---------------------------------------------------------------- fleet batch default
+def test_fleet_batch_defaults_to_100_seeds(monkeypatch, capsys):
+    from app.cli import main
+    from app.commands import batch
+
+    seen = {}
+
+    def fake_run_races(jobs, workers=1, cluster=None, timeout=None):
+        seen["jobs"] = jobs
+        return [{"cell": cell, "seed": r, "cars": 4, "position": 1 if cell[1] == "rd3g" else 2,
+                 "unfinished": False, "at_fault": 0, "collisions": 0} for _, cell, r, *_ in jobs]
+
+    monkeypatch.setattr(batch, "run_races", fake_run_races)
+    assert main(["batch", "--cars", "rd3g,mpc,mpc,mpc"]) == 0
+    seeds = sorted({r for _, _, r, *_ in seen["jobs"]})
+    assert seeds == list(range(100)) and len(seen["jobs"]) == 200  # each seed as given and as counterfactual
