@@ -4,7 +4,7 @@ the same conditions. Per race and thread count: each planner's wall time per pla
 summed CPU time of the cars' plans per control period, the wall time of the whole planning job per
 control period, the periods over the control period, and whether the two races were identical.
 
-    python -m bench.planner_threads --cars rd3g,rd3g,rd3g,mpc,mpc,mpc --seeds 0,1,2
+    python -m app bench planner-threads --cars rd3g,rd3g,rd3g,mpc,mpc,mpc --seeds 0,1,2
 
 Quote the load average it prints with any time."""
 from __future__ import annotations
@@ -15,6 +15,8 @@ import json
 import os
 
 import numpy as np
+
+from fileio import atomic_write_text, check_output_path
 
 from race.planning import RacePlanners
 from race.roster import parse_cars
@@ -58,13 +60,16 @@ def measure(setup) -> dict:
             "over_period": int(np.sum(wall > period)), "periods": len(wall)}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.planner_threads", description=__doc__.split("\n\n")[0])
+def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--cars", default="rd3g,rd3g,rd3g,mpc,mpc,mpc")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds")
     ap.add_argument("--threads", type=int, default=2, help="the pool's threads (compared with 1)")
     ap.add_argument("--json", help="write the measurements here")
-    args = ap.parse_args(argv)
+
+
+def run(args) -> int:
+    if args.json:
+        check_output_path(args.json, stream=True)
     rows = []
     for seed in (int(v) for v in args.seeds.split(",")):
         base = RaceSpec(roster=parse_cars(args.cars), seed=seed).load()
@@ -79,10 +84,5 @@ def main(argv=None) -> int:
         print(f"seed {seed}: races identical: {same}", flush=True)
         rows.append({"seed": seed, "identical": same, "runs": {str(n): r for n, r in runs.items()}})
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=2)
+        atomic_write_text(args.json, json.dumps(rows, indent=2), stream=True)
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -13,7 +13,7 @@ from app.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 BENCHES = ["solver", "merge", "saddles", "size", "fuzz", "loop", "race-perturbations", "baselines", "time-limit",
-           "tracking", "malformed", "charuco", "track-video", "camera-profiles", "live-view"]
+           "tracking", "malformed", "charuco", "track-video", "camera-profiles", "live-view", "planner-threads"]
 
 
 def test_the_bench_command_lists_every_benchmark(capsys):

@@ -11,8 +11,8 @@ from app.cli import UserError
 from app.realtime import bench as loop_bench
 from app.realtime import live_bench
 from fileio import atomic_write_text, check_output_dir, check_output_path
-from bench import (baselines, camera_profiles, charuco_coverage, merge_bench, problem_size, race_perturbations, saddles, solver_bench,
-                   time_limit, track_video, tracking_bench)
+from bench import (baselines, camera_profiles, charuco_coverage, merge_bench, planner_threads, problem_size,
+                   race_perturbations, saddles, solver_bench, time_limit, track_video, tracking_bench)
 from bench.families import FAMILIES
 from bench.report import machine_description, write_section
 from solver_cpp import make_settings, merge_settings
@@ -43,6 +43,8 @@ MODULE_BENCHES = [
                               "cost on the loop's tick time"),
     ("race-perturbations", race_perturbations, "simulated races with the loop's control-path imperfections (late "
                                                "commands, neutral pulses, solver cap): which change the winners"),
+    ("planner-threads", planner_threads, "simulated fleet races planned in turn and in a thread pool: per-planner "
+                                         "and per-control-period times, identical races"),
     ("baselines", baselines, "RD3G, iLQGames and ALGames on merging seeds: convergence count and median time"),
     ("time-limit", time_limit, "how well the solver's time_limit holds, per linear-solver path"),
     ("tracking", tracking_bench, "rendering, marker detection and EKF update times on synthetic frames"),
