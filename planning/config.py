@@ -56,6 +56,10 @@ class PlannerConfig:
     # cap on the speed bound; "racing" = the track's racing line (tracks.racing_line) as a stage-varying
     # reference, its offset and speed profile at each horizon stage (planning.reference).
     line: str = "centre"
+    # The racing line keeps this much more room to the track-limit bound than the planner's (m): a line
+    # on the bound (the minimum-time lines touch it in every turn) left no room for tracking error,
+    # and the cars following it left the track (docs/racing.md).
+    line_margin_m: float = 0.03
     track_margin_m: float = 0.03      # extra clearance to the track edge beyond the car's half-extent
     heading_allowance_rad: float = 0.15  # yaw assumed when computing the lateral half-extent of the footprint
     collision_margin_m: float = 0.02  # added to the footprints' circumscribed-circle distance

@@ -21,11 +21,11 @@ from .frenet import lateral_half_extent
 
 def planner_racing_line(track, car, top_speed_mps: float, config: PlannerConfig | None = None) -> RacingLine:
     """The racing line the planners follow: the car's limits (vehicles.params.CarParams) with the
-    planner's lateral half-extent, track margin and braking bound (PlannerConfig); cached."""
+    planner's lateral half-extent, track margin plus line margin and braking bound (PlannerConfig); cached."""
     config = config or PlannerConfig()
     limits = limits_for_car(car, top_speed_mps=top_speed_mps,
                             half_width_m=lateral_half_extent(car.geometry, config.heading_allowance_rad),
-                            margin_m=config.track_margin_m, brake_mps2=config.max_brake_mps2)
+                            margin_m=config.track_margin_m + config.line_margin_m, brake_mps2=config.max_brake_mps2)
     return racing_line(track, limits)
 
 

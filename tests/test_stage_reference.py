@@ -114,3 +114,13 @@ def test_mpc_cost_follows_the_line_at_the_horizon_stages():
     assert planner.speed_cap(x0, 2.0) == pytest.approx(1.2)
     plan = planner.plan(x0, np.array([[4.0, 0.0, 0.5, 0.0]]))   # another car half a lap ahead
     assert plan.used in ("converged", "accepted")
+
+
+def test_unknown_line_is_named():
+    from planning.config import PlannerConfigError
+    from race.setup import RaceSetupError, RaceSpec
+
+    with pytest.raises(PlannerConfigError, match=r"planner\.line: must be one of centre, racing, got 'fast'"):
+        PlannerConfig(line="fast")
+    with pytest.raises(RaceSetupError, match=r"^line: must be one of centre, racing"):
+        RaceSpec(line="fast").load()
