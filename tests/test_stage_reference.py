@@ -51,6 +51,18 @@ def test_per_step_reference_of_the_wrong_shape_is_named():
         Solver(_lq_problem(np.zeros((T - 1, 1))), make_settings())
 
 
+def test_per_step_reference_survives_the_problem_file():
+    from solver_cpp.problem_file import problem_from_dict, problem_to_dict
+
+    ref = np.array([[0.5], [1.0], [-0.2], [0.7], [0.7], [0.1]])
+    problem, _, _ = problem_from_dict(problem_to_dict(_lq_problem(ref)))
+    assert np.asarray(problem.agents[0].cost.x_ref_steps) == pytest.approx(ref)
+    with pytest.raises(ValueError, match=r"x_ref_steps"):
+        problem_from_dict({**problem_to_dict(_lq_problem(ref)), "agents": [
+            {**problem_to_dict(_lq_problem(ref))["agents"][0], "cost": {"x_ref": [0], "Q_ref": [1], "R": [1],
+                                                                       "x_ref_steps": [[0.1], ["a"]]}}]})
+
+
 # ----------------------------------------------------------------------------------------------- the racing line
 R, WIDTH = 1.0, 0.6
 
