@@ -11,6 +11,10 @@ MPCOpponent: one agent with the same cost; every other car is predicted at const
 track at its current lateral offset and avoided as a moving obstacle. It does not model that the
 other cars react to it.
 
+Both race the centre line (PlannerConfig.line "centre": the constant lateral reference raceline_ey_m,
+the cornering cap on the speed bound) or the track's racing line ("racing": its offset and speed at
+each horizon stage as the cost's stage-varying reference, planning.reference).
+
 Both take the other cars as rows of an (M, 4) array (one (4,) state is one car); their s must be in
 the planning car's frame (the race layer unwraps laps: race.planning.RacePlanners). With a single agent the solver's lead term has no opponent, so the progress reward
 -lead_weight * s is written as the quadratic lead_weight/(2D) (s - (s0 + D))^2 with D far ahead
