@@ -49,25 +49,24 @@ def test_annulus_min_curvature_is_the_outer_limit_and_the_fastest_line_the_inner
     assert np.all(np.abs(line.ey) <= WIDTH / 2 - 0.1 + 1e-3)
 
 
-def test_squared_length_gradient_matches_finite_differences():
+def ring_samples(seed: int, n: int = 30):
+    """(points, normals, random offsets) at n samples of the ring."""
     track = ring()
-    n = 30
     s = np.arange(n) * track.length / n
     h = track.heading(s)
-    points, normals = track.position(s), np.stack([-np.sin(h), np.cos(h)], axis=1)
-    offsets = np.random.default_rng(4).uniform(-0.2, 0.2, n)
+    return track.position(s), np.stack([-np.sin(h), np.cos(h)], axis=1), np.random.default_rng(seed).uniform(-0.2, 0.2, n)
+
+
+def test_squared_length_gradient_matches_finite_differences():
+    points, normals, offsets = ring_samples(4)
     _, grad = rl.squared_length(offsets, points, normals)
     numeric = approx_fprime(offsets, lambda a: rl.squared_length(a, points, normals)[0], 1e-7)
     assert grad == pytest.approx(numeric, abs=1e-5 * np.abs(grad).max())
 
 
 def test_bending_jacobian_matches_finite_differences():
-    track = ring()
-    n = 30
-    s = np.arange(n) * track.length / n
-    h = track.heading(s)
-    points, normals = track.position(s), np.stack([-np.sin(h), np.cos(h)], axis=1)
-    offsets = np.random.default_rng(3).uniform(-0.2, 0.2, n)
+    points, normals, offsets = ring_samples(3)
+    n = len(offsets)
     _, jac = bending_residuals(offsets, points, normals, jacobian=True)
     numeric = np.array([approx_fprime(offsets, lambda a, i=i: bending_residuals(a, points, normals)[i], 1e-7)
                         for i in range(n)])
