@@ -8,6 +8,9 @@ from dataclasses import dataclass, field, fields
 from solver_cpp import make_settings, merge_settings
 
 
+LINES = ("centre", "racing")  # PlannerConfig.line
+
+
 class PlannerConfigError(ValueError):
     """A planner parameter is invalid; the message names the field."""
 
@@ -29,7 +32,8 @@ class PlannerConfig:
     Costs per planning step (k = 1..T), in the solver's QuadraticCost form:
     q_speed (v - v_ref)^2 + q_lateral (ey - raceline_ey)^2 + q_heading epsi^2
     + r_accel a^2 + r_steer delta^2, minus lead_weight * (own progress - opponent progress);
-    v_ref = reference_speed_mps (default top_speed_mps), at most the plan's speed bound.
+    v_ref = reference_speed_mps (default top_speed_mps), at most the plan's speed bound. With
+    line "racing", raceline_ey and v_ref are the racing line's offset and speed at each stage.
     """
 
     horizon: int = 10                 # planning steps T
@@ -47,7 +51,15 @@ class PlannerConfig:
     max_lateral_accel_mps2: float = 4.2  # on the centre line; see _RecedingHorizon.corner_speed_cap
     r_accel: float = 0.05             # 1/(m/s^2)^2
     r_steer: float = 1.0              # 1/rad^2
-    raceline_ey_m: float = 0.0        # lateral reference (m, left positive); 0 = centre line
+    raceline_ey_m: float = 0.0        # lateral reference (m, left positive) with line "centre"; 0 = centre line
+    # The reference the cars race: "centre" = the constant raceline_ey_m and top speed, with the cornering
+    # cap on the speed bound; "racing" = the track's racing line (tracks.racing_line) as a stage-varying
+    # reference, its offset and speed profile at each horizon stage (planning.reference).
+    line: str = "centre"
+    # The racing line keeps this much more room to the track-limit bound than the planner's (m): a line
+    # on the bound (the minimum-time lines touch it in every turn) left no room for tracking error,
+    # and the cars following it left the track (docs/racing.md).
+    line_margin_m: float = 0.03
     track_margin_m: float = 0.03      # extra clearance to the track edge beyond the car's half-extent
     heading_allowance_rad: float = 0.15  # yaw assumed when computing the lateral half-extent of the footprint
     collision_margin_m: float = 0.02  # added to the footprints' circumscribed-circle distance
@@ -120,6 +132,10 @@ class PlannerConfig:
             raise PlannerConfigError(f"planner.cold_start_solver: {exc}") from None
         for f in fields(self):
             if f.name in ("solver", "cold_start_solver"):
+                continue
+            if f.name == "line":
+                if self.line not in LINES:
+                    raise PlannerConfigError(f"planner.line: must be one of {', '.join(LINES)}, got {self.line!r}")
                 continue
             v = getattr(self, f.name)
             if f.name == "reference_speed_mps" and v is None:

@@ -11,6 +11,10 @@ MPCOpponent: one agent with the same cost; every other car is predicted at const
 track at its current lateral offset and avoided as a moving obstacle. It does not model that the
 other cars react to it.
 
+Both race the centre line (PlannerConfig.line "centre": the constant lateral reference raceline_ey_m,
+the cornering cap on the speed bound) or the track's racing line ("racing": its offset and speed at
+each horizon stage as the cost's stage-varying reference, planning.reference).
+
 Both take the other cars as rows of an (M, 4) array (one (4,) state is one car); their s must be in
 the planning car's frame (the race layer unwraps laps: race.planning.RacePlanners). With a single agent the solver's lead term has no opponent, so the progress reward
 -lead_weight * s is written as the quadratic lead_weight/(2D) (s - (s0 + D))^2 with D far ahead
@@ -30,6 +34,7 @@ from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, Pair
 from .commands import CommandMapper
 from .config import PlannerConfig, solver_settings
 from .frenet import EPSI, EY, S, V, FrenetTrackModel
+from .reference import planner_racing_line, stage_reference
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
 # Smallest collision distance a relaxed problem gets (m). The solver rejects d_min <= 0, which the
@@ -89,6 +94,9 @@ class _RecedingHorizon:
         # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
         self._retry_settings = solver_settings(config.solver, {"barrier": {"rho_init": None}})
         self._shift_weights: dict[int, tuple] = {}  # _shifted's interpolation per series length
+        # config.line "racing": the line this car follows (its own limits and top speed; cached per track).
+        self.line = (planner_racing_line(track_model.track, track_model.car, config.top_speed_mps, config)
+                     if config.line == "racing" else None)
 
     def reset(self) -> None:
         self._prev = None
@@ -101,12 +109,45 @@ class _RecedingHorizon:
         c = self.config
         return c.top_speed_mps if c.reference_speed_mps is None else c.reference_speed_mps
 
-    def _cost(self, top_speed: float, reference: float | None = None) -> QuadraticCost:
-        """The racing cost at speed reference min(reference, top_speed) (reference None: top_speed)."""
+    def _cost(self, top_speed: float, reference: float | None = None, x0=None) -> QuadraticCost:
+        """The racing cost at speed reference min(reference, top_speed) (reference None: top_speed).
+        Following the racing line (self.line) from state x0: the stage-varying reference (x_ref_steps)
+        of the line's offset and speed at each stage (planning.reference), the speed at most that
+        constant reference."""
         c = self.config
         v_ref = top_speed if reference is None else min(float(reference), top_speed)
-        return QuadraticCost(x_ref=[0.0, c.raceline_ey_m, v_ref, 0.0], Q_ref=[0.0, c.q_lateral, c.q_speed, c.q_heading],
+        cost = QuadraticCost(x_ref=[0.0, c.raceline_ey_m, v_ref, 0.0], Q_ref=[0.0, c.q_lateral, c.q_speed, c.q_heading],
                              R=[c.r_accel, c.r_steer])
+        if self.line is not None and x0 is not None:
+            stages = self._stages(x0)
+            steps = np.tile(np.asarray(cost.x_ref, dtype=float), (c.horizon, 1))
+            steps[:, EY], steps[:, V] = stages.ey, np.minimum(stages.v, v_ref)
+            cost.x_ref, cost.x_ref_steps = list(steps[-1]), steps
+        return cost
+
+    def _stages(self, x0):
+        """The racing line's references at this plan's stages from state x0 (planning.reference)."""
+        c, limits = self.config, self.line.limits
+        return stage_reference(self.line, self.tm.track.curvature, float(x0[S]), float(x0[V]), c.horizon,
+                               c.plan_dt_s, limits.accel_mps2, limits.brake_mps2)
+
+    def speed_cap(self, x, top_speed: float) -> float:
+        """Speed bound (m/s) of a plan from state x: corner_speed_cap on the centre line; following
+        the racing line, the line's speed at the first stage (its profile already brakes for the turns
+        ahead), asking for at most 0.2 m/s below the current speed per plan."""
+        if self.line is None:
+            return self.corner_speed_cap(x, top_speed)
+        v_line = float(self._stages(x).v[0])
+        return float(min(top_speed, max(v_line, float(x[V]) - _BOUND_DROP_MPS)))
+
+    @staticmethod
+    def _set_reference(cost: QuadraticCost, index: int, value: float, weight: float | None = None) -> None:
+        """Sets component ``index`` of the cost's reference (every stage's) to ``value``, its weight to ``weight``."""
+        cost.x_ref = [*cost.x_ref[:index], float(value), *cost.x_ref[index + 1:]]
+        if cost.x_ref_steps is not None:
+            cost.x_ref_steps[:, index] = value
+        if weight is not None:
+            cost.Q_ref = [*cost.Q_ref[:index], float(weight), *cost.Q_ref[index + 1:]]
 
     def _agent(self, x0, top_speed: float, ey_bound: float, cost: QuadraticCost, lead: float) -> Agent:
         a_min, a_max = self.mapper.acceleration_bounds(float(x0[V]))
@@ -476,19 +517,18 @@ class RacingPlanner(_RecedingHorizon):
         s_now = [x_self[S], *(x[S] for x in rows), *(x[S] for x in far)]
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
-        own_top = self.corner_speed_cap(x_self, c.top_speed_mps)
-        other_top = [self.corner_speed_cap(x, top) for x, top in zip(rows, tops)]
-        own_cost = self._cost(own_top, c.reference_speed_mps)
+        own_top = self.speed_cap(x_self, c.top_speed_mps)
+        other_top = [self.speed_cap(x, top) for x, top in zip(rows, tops)]
+        own_cost = self._cost(own_top, c.reference_speed_mps, x_self)
         defend_ey = self.defend_reference(x_self, rows, ey_bound, refs)
         if defend_ey is not None:
-            own_cost.x_ref = [own_cost.x_ref[0], defend_ey, *own_cost.x_ref[2:]]
-            own_cost.Q_ref = [own_cost.Q_ref[0], c.q_defend, *own_cost.Q_ref[2:]]
+            self._set_reference(own_cost, EY, defend_ey, c.q_defend)
         nominal_d_min = d_min
         predicted = [self.predict_other(x) for x in far]
         ey_bound, d_min, pair = self._feasible_limits([x_self, *rows], ey_bound, d_min, predicted)
         top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
         agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
-                  *(self._agent(x, t, ey_bound, self._cost(t, r), c.lead_weight)
+                  *(self._agent(x, t, ey_bound, self._cost(t, r, x), c.lead_weight)
                     for x, t, r in zip(rows, other_top, refs))]
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
@@ -519,11 +559,10 @@ class MPCOpponent(_RecedingHorizon):
         s_now = [x_self[S], *(x[S] for x in rows)]
         ey_bound = self.tm.ey_bound(s_now)
         d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows)])
-        top = self.corner_speed_cap(x_self, c.top_speed_mps)
-        cost = self._cost(top, c.reference_speed_mps)
+        top = self.speed_cap(x_self, c.top_speed_mps)
+        cost = self._cost(top, c.reference_speed_mps, x_self)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
-            cost.x_ref = [float(x_self[S]) + _PROGRESS_ANCHOR_M, *cost.x_ref[1:]]
-            cost.Q_ref = [c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M), *cost.Q_ref[1:]]
+            self._set_reference(cost, S, float(x_self[S]) + _PROGRESS_ANCHOR_M, c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M))
         others = [self.predict_other(x) for x in rows]
         nominal_d_min = d_min
         # Each obstacle has its own distance: relaxing one car that is too close leaves the others at

@@ -51,8 +51,11 @@ from vehicles import fhss
 from vehicles.protocol import CAR_RECORD_LEN, CRC_LEN, HEADER_LEN, CarCommand
 from vehicles.virtual_box import CommandHistory, VirtualCarBox
 
-FIXED_MARKERS = {"oval": Path(__file__).resolve().parents[1] / "tracking" / "data" / "oval_fixed_markers.json",
-                 "buzzracer:full": Path(__file__).resolve().parents[1] / "tracking" / "data" / "buzzracer_full_fixed_markers.json"}
+_MARKER_DATA = Path(__file__).resolve().parents[1] / "tracking" / "data"
+# Surveyed fixed markers per track (the BuzzRacer layouts: on the 0.2 m floor border round their tiles).
+FIXED_MARKERS = {"oval": _MARKER_DATA / "oval_fixed_markers.json",
+                 **{f"buzzracer:{name}": _MARKER_DATA / f"buzzracer_{name}_fixed_markers.json"
+                    for name in ("full", "small", "big", "easy")}}
 
 
 @dataclass(frozen=True)

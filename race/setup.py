@@ -16,6 +16,7 @@ import numpy as np
 
 from planning import PlannerConfig
 from planning.config import PlannerConfigError
+from planning.reference import planner_racing_line
 from planning.frenet import lateral_half_extent
 from race.roster import MAX_SPEED_MPS, RosterCar, RosterError, make_roster, two_car_roster
 from sim.effects import SimEffects, SimEffectsError, parse_effects, sim_effects
@@ -136,6 +137,14 @@ class RaceSetup:
     def names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.cars)
 
+    def racing_line(self):
+        """The racing line the planners follow (planner.line "racing"; that of the fastest car's top
+        speed and car file, for the recording), else None."""
+        if self.planner.line != "racing":
+            return None
+        i = max(range(len(self.cars)), key=lambda k: self.cars[k].top_speed_mps)
+        return planner_racing_line(self.track, self.car_file(i), self.cars[i].top_speed_mps, self.planner)
+
     def car_file(self, i: int) -> CarParams:
         """The car file of roster car i (its planner's model; the simulated car unless sim_car is set)."""
         return self.car if self.car_files is None else self.car_files[i]
@@ -168,6 +177,7 @@ class RaceSpec:
     game_players: int = PlannerConfig.game_players  # players of an RD3G car's game (0: every car in reach)
     speed_model: str = "limits"         # SPEED_MODELS; the faster car is the one with the higher top speed given
     planner_threads: int = RaceSetup.planner_threads
+    line: str = PlannerConfig.line      # the planners' reference: planning.config.LINES
 
     def load(self) -> RaceSetup:
         """Read the files and build the RaceSetup; RaceSetupError names the field at fault."""
@@ -186,9 +196,10 @@ class RaceSpec:
             raise RaceSetupError("raceline_ey_m", f"must be a finite offset inside the track "
                                                   f"(|M| < {track.min_width / 2:g} m), got {raceline}")
         try:
-            planner = PlannerConfig(raceline_ey_m=raceline, game_players=self.game_players)
+            planner = PlannerConfig(raceline_ey_m=raceline, game_players=self.game_players, line=self.line)
         except PlannerConfigError as exc:
-            raise RaceSetupError("game_players", str(exc).removeprefix("planner.game_players: ")) from None
+            name = str(exc).split(":")[0].removeprefix("planner.")
+            raise RaceSetupError(name, str(exc).removeprefix(f"planner.{name}: ")) from None
         # Before any output is opened: the planner refuses a car wider than the track in its first plan.
         need = lateral_half_extent(car.geometry, planner.heading_allowance_rad) + planner.track_margin_m
         if need >= track.min_width / 2:

@@ -270,6 +270,8 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
         rec = RaceRecorder(telemetry_path, recording_id=f"race-seed{setup.seed}", background=False,
                            car_names=setup.names, realtime=False, live=live)
         rec.static_track(track)
+        if (line := setup.racing_line()) is not None:
+            rec.static_racing_line(track, line)
         rec.static_document(SETUP_ENTITY, str(dataclasses.asdict(dataclasses.replace(
             setup, track=track.name, car=car.name, sim_car=None if setup.sim_car is None else setup.sim_car.name,
             roster=setup.cars,  # resolved: the review and sysid read each car's planner and ids

@@ -48,8 +48,9 @@ def _optional_floats(where: str, value) -> np.ndarray:
 
 @dataclass
 class QuadraticCost:
-    """J = sum_k u'Ru + sum_{k>=1} (x-x_ref)'Q_ref(x-x_ref) + x'Qx (diagonal weights); terminal
-    weights Qf_ref/Qf default to Q_ref/Q."""
+    """J = sum_k u'Ru + sum_{k>=1} (x_k-r_k)'Q_ref(x_k-r_k) + x_k'Qx_k (diagonal weights); terminal
+    weights Qf_ref/Qf default to Q_ref/Q. The reference r_k is x_ref at every step, or row k-1 of
+    x_ref_steps (T rows of nx, steps k = 1..T) when given: a stage-varying reference."""
 
     x_ref: Sequence[float]
     Q_ref: Sequence[float]
@@ -57,6 +58,7 @@ class QuadraticCost:
     Q: Sequence[float] | None = None
     Qf_ref: Sequence[float] | None = None
     Qf: Sequence[float] | None = None
+    x_ref_steps: Sequence[Sequence[float]] | None = None
 
     def to_core(self, where: str) -> _core.QuadraticCost:
         c = _core.QuadraticCost()
@@ -66,6 +68,8 @@ class QuadraticCost:
         c.R = _floats(f"{where}.R", self.R)
         c.Qf_ref = _floats(f"{where}.Qf_ref", self.Qf_ref) if self.Qf_ref is not None else c.Q_ref
         c.Qf = _floats(f"{where}.Qf", self.Qf) if self.Qf is not None else c.Q
+        if self.x_ref_steps is not None:  # C++ holds one column per step
+            c.x_ref_steps = np.asfortranarray(_floats(f"{where}.x_ref_steps", self.x_ref_steps, ndim=2).T)
         return c
 
 

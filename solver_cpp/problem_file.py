@@ -70,7 +70,8 @@ def _schema() -> Table:
         "kinematic_bicycle": table(KinematicBicycle, overrides={"lf": Number(gt=0), "lr": Number(gt=0)}),
         "linear": table(LinearModel, overrides={"A": Array(2, min_len=1), "B": Array(2, min_len=1)}),
     })
-    cost = table(QuadraticCost, overrides={k: Array(1, Number(ge=0)) for k in ("Q_ref", "R", "Q", "Qf_ref", "Qf")})
+    cost = table(QuadraticCost, overrides={**{k: Array(1, Number(ge=0)) for k in ("Q_ref", "R", "Q", "Qf_ref", "Qf")},
+                                           "x_ref_steps": Array(2, min_len=1)})
     agent = table(Agent, overrides={
         "dynamics": dynamics, "cost": cost, "lead_index": _INDEX,
         **{k: _BOUND for k in ("u_min", "u_max", "x_min", "x_max")}},
@@ -148,6 +149,8 @@ def problem_to_dict(problem: GameProblem, solver: dict | None = None) -> dict:
         c = a.cost
         cost = {k: list(map(float, v)) for k, v in
                 dict(x_ref=c.x_ref, Q_ref=c.Q_ref, Q=c.Q, R=c.R, Qf_ref=c.Qf_ref, Qf=c.Qf).items() if v is not None}
+        if c.x_ref_steps is not None:
+            cost["x_ref_steps"] = np.asarray(c.x_ref_steps, dtype=float).tolist()
         entry = {"dynamics": dyn, "x0": list(map(float, a.x0)), "cost": cost}
         for name in ("u_min", "u_max", "x_min", "x_max"):
             if getattr(a, name) is not None:

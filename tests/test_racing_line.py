@@ -1,6 +1,6 @@
 """The racing line (tracks/racing_line.py) against analytic references: the minimum-curvature line
-of an annulus, the speed profile of a straight-and-turn path, the lap time of a circle; the
-bending-energy Jacobian against finite differences; the cache."""
+of an annulus and its fastest line, the speed profile of a straight-and-turn path, the lap time of a
+circle; the bending-energy Jacobian and the squared-length gradient against finite differences; the cache."""
 from __future__ import annotations
 
 import math
@@ -28,28 +28,45 @@ def limits(**kw):
     return RacingLineLimits(**{**base, **kw})
 
 
-def test_annulus_line_is_the_outer_limit_and_lap_time_is_analytic(tmp_path):
+def test_annulus_min_curvature_is_the_outer_limit_and_the_fastest_line_the_inner(tmp_path):
     # Every closed line in the annulus turns 2 pi, so its integral of curvature^2 is at least
     # (2 pi)^2 / length, reached by the longest circle: the outer limit, radius R + w/2 - 0.1.
     # (Not the centre, and not the inside: curvature 1/r falls with r.)
-    line = racing_line(ring(), limits(), cache_dir=tmp_path)
+    track = ring()
+    n = 100
+    s, ey = rl.min_curvature_offsets(track, WIDTH / 2 - 0.1, n)
     outer = R + WIDTH / 2 - 0.1
-    assert line.ey == pytest.approx(np.full(len(line.ey), -(outer - R)), abs=2e-3)
-    assert line.length_m == pytest.approx(2 * math.pi * outer, rel=1e-3)
-    assert line.curvature == pytest.approx(np.full(len(line.ey), 1 / outer), rel=1e-2)
-    # At the cornering limit all the way round: v = sqrt(a r), lap 2 pi r / v.
-    assert line.speed_mps == pytest.approx(np.full(len(line.ey), math.sqrt(4.0 * outer)), rel=1e-2)
-    assert line.lap_time_s == pytest.approx(2 * math.pi * outer / math.sqrt(4.0 * outer), rel=1e-2)
+    assert ey == pytest.approx(np.full(n, -(outer - R)), abs=2e-3)
+    # At the cornering limit all the way round (v = sqrt(a r)) a circle's lap takes 2 pi r / v = 2 pi sqrt(r / a):
+    # the smaller circle is faster, so the racing line (the fastest candidate) is the inner limit.
+    line = racing_line(track, limits(), cache_dir=tmp_path)
+    inner = R - (WIDTH / 2 - 0.1)
+    assert line.ey == pytest.approx(np.full(len(line.ey), R - inner), abs=2e-3)
+    assert line.length_m == pytest.approx(2 * math.pi * inner, rel=1e-3)
+    assert line.curvature == pytest.approx(np.full(len(line.ey), 1 / inner), rel=1e-2)
+    assert line.speed_mps == pytest.approx(np.full(len(line.ey), math.sqrt(4.0 * inner)), rel=1e-2)
+    assert line.lap_time_s == pytest.approx(2 * math.pi * inner / math.sqrt(4.0 * inner), rel=1e-2)
     assert np.all(np.abs(line.ey) <= WIDTH / 2 - 0.1 + 1e-3)
 
 
-def test_bending_jacobian_matches_finite_differences():
+def ring_samples(seed: int, n: int = 30):
+    """(points, normals, random offsets) at n samples of the ring."""
     track = ring()
-    n = 30
     s = np.arange(n) * track.length / n
     h = track.heading(s)
-    points, normals = track.position(s), np.stack([-np.sin(h), np.cos(h)], axis=1)
-    offsets = np.random.default_rng(3).uniform(-0.2, 0.2, n)
+    return track.position(s), np.stack([-np.sin(h), np.cos(h)], axis=1), np.random.default_rng(seed).uniform(-0.2, 0.2, n)
+
+
+def test_squared_length_gradient_matches_finite_differences():
+    points, normals, offsets = ring_samples(4)
+    _, grad = rl.squared_length(offsets, points, normals)
+    numeric = approx_fprime(offsets, lambda a: rl.squared_length(a, points, normals)[0], 1e-7)
+    assert grad == pytest.approx(numeric, abs=1e-5 * np.abs(grad).max())
+
+
+def test_bending_jacobian_matches_finite_differences():
+    points, normals, offsets = ring_samples(3)
+    n = len(offsets)
     _, jac = bending_residuals(offsets, points, normals, jacobian=True)
     numeric = np.array([approx_fprime(offsets, lambda a, i=i: bending_residuals(a, points, normals)[i], 1e-7)
                         for i in range(n)])
@@ -133,5 +150,5 @@ def test_racing_line_is_recorded_as_a_static_strip(tmp_path):
     strips = data.static["world/track/racing_line"]["LineStrips2D:strips"][-1]
     starts = np.array([np.asarray(s, dtype=float).reshape(-1, 2)[0] for s in strips])
     assert len(strips) == len(line.s)
-    # On the annulus the line is the circle of radius R + w/2 - 0.1 about the origin.
-    assert np.hypot(starts[:, 0], starts[:, 1]) == pytest.approx(np.full(len(starts), R + WIDTH / 2 - 0.1), abs=3e-3)
+    # On the annulus the line is the circle of radius R - (w/2 - 0.1) about the origin.
+    assert np.hypot(starts[:, 0], starts[:, 1]) == pytest.approx(np.full(len(starts), R - (WIDTH / 2 - 0.1)), abs=3e-3)

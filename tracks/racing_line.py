@@ -47,11 +47,15 @@ from .track import Track
 
 GRAVITY_MPS2 = 9.81
 # Bumped whenever the line or profile computed for the same inputs changes, so old cache files are not reused.
-ALGORITHM_VERSION = 3
+ALGORITHM_VERSION = 4
 DEFAULT_CACHE_DIR = Path(__file__).resolve().parents[1] / "runs" / "cache" / "racing_lines"
 CACHE_ENV = "RD3G_RACING_LINE_CACHE"   # overrides DEFAULT_CACHE_DIR
 _OPTIMISATION_STEP_M = 0.1    # centre-line spacing of the optimised offsets
 _PROFILE_STEP_M = 0.01        # centre-line spacing of the stored line and speed profile
+# Weights w of the squared length in the blended line objective (compute_racing_line): 0 is the
+# minimum-curvature line, 1 the shortest line. Both terms are scaled by their centre-line values; the
+# length varies far less with the offsets than the bending energy, hence the weights near 1.
+LENGTH_WEIGHTS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 1.0)
 
 
 class RacingLineError(ValueError):
@@ -145,6 +149,23 @@ def _bending_energy(offsets: np.ndarray, points: np.ndarray, normals: np.ndarray
     return float(r @ r), 2.0 * (jac.T @ r)
 
 
+def squared_length(offsets: np.ndarray, points: np.ndarray, normals: np.ndarray):
+    """Sum of the squared edges of the closed polygon ``points + offsets * normals`` (m^2; smallest
+    for the shortest line at evenly spread vertices) and its gradient in the offsets."""
+    p = points + offsets[:, None] * normals
+    e = np.roll(p, -1, axis=0) - p          # edge out of vertex i
+    grad = 2.0 * np.sum((np.roll(e, 1, axis=0) - e) * normals, axis=1)
+    return float(np.sum(e * e)), grad
+
+
+def _blended_objective(offsets, points, normals, weight: float, scale_energy: float, scale_length: float):
+    """(1 - weight) bending energy / scale_energy + weight squared length / scale_length, and its gradient."""
+    energy, g_energy = _bending_energy(offsets, points, normals)
+    length, g_length = squared_length(offsets, points, normals)
+    return ((1.0 - weight) * energy / scale_energy + weight * length / scale_length,
+            (1.0 - weight) * g_energy / scale_energy + weight * g_length / scale_length)
+
+
 def min_curvature_offsets(track: Track, bound_m: np.ndarray | float, n: int):
     """``(s, ey)``: the lateral offsets at ``n`` equally spaced centre-line arc lengths ``s`` of the
     closed line of least bending energy with ``|ey| <= bound_m`` (m; one value or one per sample).
@@ -164,12 +185,19 @@ def min_curvature_offsets(track: Track, bound_m: np.ndarray | float, n: int):
     return s, best[0]
 
 
-def _minimise_bending(track: Track, s: np.ndarray, bound: np.ndarray, start: np.ndarray):
-    """(offsets, energy) of L-BFGS-B on the bending energy from ``start``."""
+def _minimise_bending(track: Track, s: np.ndarray, bound: np.ndarray, start: np.ndarray, length_weight: float = 0.0):
+    """(offsets, objective) of L-BFGS-B on the bending energy from ``start``; with ``length_weight``
+    w > 0, on the blend (1 - w) energy + w squared length, each scaled by its centre-line value."""
     heading = track.heading(s)
     points = track.position(s)
     normals = np.stack([-np.sin(heading), np.cos(heading)], axis=1)
-    result = minimize(_bending_energy, start, args=(points, normals), jac=True, method="L-BFGS-B",
+    if length_weight > 0.0:
+        zero = np.zeros(len(s))
+        scales = (max(_bending_energy(zero, points, normals)[0], 1e-9), squared_length(zero, points, normals)[0])
+        objective, args = _blended_objective, (points, normals, length_weight, *scales)
+    else:
+        objective, args = _bending_energy, (points, normals)
+    result = minimize(objective, start, args=args, jac=True, method="L-BFGS-B",
                       bounds=np.column_stack([-bound, bound]),
                       options={"maxiter": 50_000, "maxfun": 100_000, "ftol": 1e-13, "gtol": 1e-9, "maxcor": 30})
     return result.x, float(result.fun)
@@ -287,7 +315,9 @@ class RacingLine:
 
 
 def compute_racing_line(track: Track, limits: RacingLineLimits) -> RacingLine:
-    """The minimum-curvature line of a closed track and its speed profile (no cache; see racing_line)."""
+    """The racing line of a closed track and its speed profile (no cache; see racing_line): of the
+    minimum-curvature line and the blends of bending energy and length (LENGTH_WEIGHTS, each solved
+    from the previous one's offsets), the one of the shortest lap time at ``limits``."""
     if not track.closed:
         raise RacingLineError(f"{track.name}: a racing line needs a closed track")
     n = max(32, int(math.ceil(track.length / _OPTIMISATION_STEP_M)))
@@ -299,6 +329,21 @@ def compute_racing_line(track: Track, limits: RacingLineLimits) -> RacingLine:
                               f"wide, the car needs {2 * (limits.half_width_m + limits.margin_m):.3f} m "
                               "(half-width and margin either side)")
     s_opt, ey_opt = min_curvature_offsets(track, bound, n)
+    best = _line_through(track, limits, s_opt, ey_opt)
+    for weight in LENGTH_WEIGHTS[1:]:
+        ey_opt, _ = _minimise_bending(track, s_opt, bound, ey_opt, length_weight=weight)
+        try:
+            candidate = _line_through(track, limits, s_opt, ey_opt)
+        except RacingLineError:
+            continue  # this blend doubles back; the others stand
+        if candidate.lap_time_s < best.lap_time_s:
+            best = candidate
+    return best
+
+
+def _line_through(track: Track, limits: RacingLineLimits, s_opt: np.ndarray, ey_opt: np.ndarray) -> RacingLine:
+    """The RacingLine through the offsets ``ey_opt`` at centre-line arc lengths ``s_opt``, with its speed profile."""
+    n = len(s_opt)
     # The line itself: a periodic quintic spline through the optimised points in the world frame
     # (smooth where the line is, also across the curvature jumps of straight/arc centre lines).
     x, y = track.to_cartesian(s_opt, ey_opt)

@@ -11,6 +11,7 @@ from app.live_view import add_live_arguments, announce, live_view
 from app.race_plots import plot_grid
 from app.realtime.run import add_realtime_arguments, open_capture, plan_link, run_realtime, wants_realtime
 from fileio import atomic_write_text, check_output_path
+from planning.config import LINES
 from race.roster import RosterError, RosterFileError, load_roster, parse_cars
 from race.setup import GRIDS, OPPONENTS, SPEED_MODELS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
@@ -26,7 +27,7 @@ FLAGS = {"track": "--track", "car_params": "--car-params", "seed": "--seed", "la
          "control_hz": "--control-hz", "control_period_s": "--control-hz", "raceline_ey_m": "--raceline-ey",
          "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects",
          "roster": "--cars/--roster", "grid": "--grid", "game_players": "--game-players",
-         "speed_model": "--speed-model", "planner_threads": "--planner-threads"}
+         "speed_model": "--speed-model", "planner_threads": "--planner-threads", "line": "--line"}
 
 
 def add_race_arguments(p) -> None:
@@ -48,6 +49,10 @@ def add_race_arguments(p) -> None:
                    help="lateral reference of both cars' racing cost (m, left positive; default 0, the centre line); "
                         "on the oval 0.05 (inside) won more slow-car races but had one RD3G-at-fault contact in "
                         "400 batch races (docs/racing.md)")
+    p.add_argument("--line", choices=LINES, default=RaceSpec.line,
+                   help="the reference both model planners race (default: centre): centre = the constant "
+                        "--raceline-ey and top speed with a cornering cap; racing = the track's racing line, its "
+                        "offset and speed profile at every horizon stage (docs/racing.md)")
 
 
 def add_fleet_arguments(p, roster_file: bool = True,
@@ -125,7 +130,8 @@ def race_spec(args, seed: int, start: str, rd3g_speed: float, opponent_speed: fl
                     max_time_s=max_time or None, sim_car_params=getattr(args, "sim_car_params", None),
                     sim_effects=getattr(args, "sim_effects", "") or "",
                     speed_model=getattr(args, "speed_model", RaceSpec.speed_model),
-                    planner_threads=getattr(args, "planner_threads", RaceSpec.planner_threads))
+                    planner_threads=getattr(args, "planner_threads", RaceSpec.planner_threads),
+                    line=getattr(args, "line", RaceSpec.line))
 
 
 def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1, max_time=None):

@@ -11,14 +11,13 @@ import numpy as np
 
 from app.cli import UserError
 from fileio import atomic_write_text, check_output_path
-from planning import PlannerConfig
-from planning.frenet import lateral_half_extent
+from planning.reference import planner_racing_line
 from race.hil import FIXED_MARKERS
 from race.setup import RaceSetup
 from tracking.calibration import load_fixed_markers
 from tracks import Arena, TrackFormatError, UnknownTrackError, load_track, track_from_dict
 from tracks.importers import FORMATS, CarEnvelope, TrackImportError, import_track
-from tracks.racing_line import RacingLineError, lap_time_s, limits_for_car, racing_line, speed_profile
+from tracks.racing_line import RacingLineError, lap_time_s, speed_profile
 from vehicles.params import CarParamsError, load_car_params
 
 
@@ -57,16 +56,6 @@ def _car(args):
         return load_car_params(args.car_params)
     except CarParamsError as exc:
         raise UserError(str(exc)) from None
-
-
-def planner_racing_line(track, car, top_speed_mps: float, config: PlannerConfig | None = None):
-    """The racing line the planners would get: the car's limits with the planner's half-extent,
-    track margin and braking bound (PlannerConfig)."""
-    config = config or PlannerConfig()
-    limits = limits_for_car(car, top_speed_mps=top_speed_mps,
-                            half_width_m=lateral_half_extent(car.geometry, config.heading_allowance_rad),
-                            margin_m=config.track_margin_m, brake_mps2=config.max_brake_mps2)
-    return racing_line(track, limits)
 
 
 def summary_lines(track, line) -> list[str]:

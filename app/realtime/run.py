@@ -225,6 +225,8 @@ def _run_realtime(args, mode: str) -> int:
                                 live=live)
         announce(live)
         recorder.static_track(setup.track)
+        if (line := setup.racing_line()) is not None:
+            recorder.static_racing_line(setup.track, line)
         recorder.static_document("race/setup", setup_document(setup, config, mode, cars, opponent, faults,
                                                                   planners={c.name: c.planner for c in roster}))
         recorder.static_car_colors([c.name for c in cars])

@@ -10,6 +10,7 @@ void bind_problem(py::module_& m) {
   py::class_<QuadraticCost>(m, "QuadraticCost")
       .def(py::init<>())
       .def_readwrite("x_ref", &QuadraticCost::x_ref)
+      .def_readwrite("x_ref_steps", &QuadraticCost::x_ref_steps)
       .def_readwrite("Q_ref", &QuadraticCost::Q_ref)
       .def_readwrite("Q", &QuadraticCost::Q)
       .def_readwrite("R", &QuadraticCost::R)

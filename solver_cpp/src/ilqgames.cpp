@@ -182,7 +182,7 @@ void ILQGamesSolver::linearize_and_quadratize() {
         const auto xi = x_[i].col(k);
         const int o = i * nx_;
         Q[i].block(o, o, nx_, nx_).diagonal() = 2.0 * (qr + q);
-        l[i].segment(o, nx_) = 2.0 * (qr.cwiseProduct(xi - cost.x_ref) + q.cwiseProduct(xi));
+        l[i].segment(o, nx_) = 2.0 * (qr.cwiseProduct(xi - cost.reference(k)) + q.cwiseProduct(xi));
         const LeadCost& lead = prob_.lead[i];
         if (lead.weight != 0.0)  // w * sum_{j != i} (x^j[idx] - x^i[idx]): couples the players through the gradient
           for (int j = 0; j < N_; ++j) l[i][j * nx_ + lead.index] += j == i ? -lead.weight * (N_ - 1) : lead.weight;

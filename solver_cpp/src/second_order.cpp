@@ -215,8 +215,8 @@ double Solver::agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const V
   double J = 0;
   for (int k = 0; k < T_; ++k) J += c.R.dot(y.u[a].col(k).cwiseAbs2());
   for (int k = 1; k < T_; ++k)
-    J += c.Q_ref.dot((x.col(k) - c.x_ref).cwiseAbs2()) + c.Q.dot(x.col(k).cwiseAbs2());
-  J += c.Qf_ref.dot((x.col(T_) - c.x_ref).cwiseAbs2()) + c.Qf.dot(x.col(T_).cwiseAbs2());
+    J += c.Q_ref.dot((x.col(k) - c.reference(k)).cwiseAbs2()) + c.Q.dot(x.col(k).cwiseAbs2());
+  J += c.Qf_ref.dot((x.col(T_) - c.reference(T_)).cwiseAbs2()) + c.Qf.dot(x.col(T_).cwiseAbs2());
   const LeadCost& lead = prob_.lead[a];
   if (lead.weight != 0.0)
     for (int j = 0; j < N_; ++j)

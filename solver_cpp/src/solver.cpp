@@ -138,7 +138,7 @@ void Solver::update_cost(int agent, const QuadraticCost& cost) {
   if (N_ == 0) throw std::logic_error("setup() must be called before update_cost()");
   const auto t0 = Clock::now();
   require(agent >= 0 && agent < N_, "agent index " + std::to_string(agent) + " is not in [0, " + std::to_string(N_) + ")");
-  validate_cost(cost, nx_, nu_, agent_path(agent) + ".cost");
+  validate_cost(cost, nx_, nu_, T_, agent_path(agent) + ".cost");
   prob_.costs[agent] = cost;
   finish_update(t0);
 }

@@ -30,7 +30,7 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
   const Vec& q = terminal ? cost.Qf : cost.Q;
   const auto x1 = x.col(k + 1);
-  r.segment(rx1, nx) += 2.0 * (qr.cwiseProduct(x1 - cost.x_ref) + q.cwiseProduct(x1)) - lk;
+  r.segment(rx1, nx) += 2.0 * (qr.cwiseProduct(x1 - cost.reference(k + 1)) + q.cwiseProduct(x1)) - lk;
   if (lead.weight != 0.0 && L.N > 1) r[rx1 + lead.index] += -lead.weight * (L.N - 1);
   if (k >= 1) {
     w.Atl.noalias() = w.A.transpose() * lk;

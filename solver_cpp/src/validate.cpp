@@ -37,8 +37,15 @@ void require(bool ok, const std::string& what) {
 
 void validate_initial_state(const Vec& x0, int nx, const std::string& where) { check_values(x0, nx, where); }
 
-void validate_cost(const QuadraticCost& c, int nx, int nu, const std::string& where) {
+void validate_cost(const QuadraticCost& c, int nx, int nu, int horizon, const std::string& where) {
   check_values(c.x_ref, nx, where + ".x_ref");
+  if (c.x_ref_steps.size()) {
+    require(c.x_ref_steps.rows() == nx && c.x_ref_steps.cols() == horizon,
+            where + ".x_ref_steps must have shape (" + std::to_string(nx) + ", " + std::to_string(horizon) +
+                ") (one reference per step k = 1..T), got (" + std::to_string(c.x_ref_steps.rows()) + ", " +
+                std::to_string(c.x_ref_steps.cols()) + ")");
+    require(c.x_ref_steps.allFinite(), where + ".x_ref_steps must be finite");
+  }
   const std::pair<const Vec*, const char*> weights[] = {{&c.Q_ref, "Q_ref"}, {&c.Q, "Q"}, {&c.Qf_ref, "Qf_ref"}, {&c.Qf, "Qf"}};
   for (const auto& [v, name] : weights) {
     check_values(*v, nx, where + "." + name);
@@ -155,7 +162,7 @@ void validate_problem(const Problem& p) {
             a + ".dynamics: every agent must have nx=" + std::to_string(nx) + ", nu=" + std::to_string(nu) + " (got " +
                 std::to_string(p.dynamics[i]->nx()) + ", " + std::to_string(p.dynamics[i]->nu()) + ")");
     validate_initial_state(p.x0[i], nx, a + ".x0");
-    validate_cost(p.costs[i], nx, nu, a + ".cost");
+    validate_cost(p.costs[i], nx, nu, p.horizon, a + ".cost");
     if (!p.lead.empty()) validate_lead(p.lead[i], nx, a);
     validate_bounds(p.u_min.empty() ? Vec() : p.u_min[i], p.u_max.empty() ? Vec() : p.u_max[i], nu, a, "u");
     validate_bounds(p.x_min.empty() ? Vec() : p.x_min[i], p.x_max.empty() ? Vec() : p.x_max[i], nx, a, "x");

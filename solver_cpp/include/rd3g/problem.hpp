@@ -12,15 +12,22 @@ namespace rd3g {
 constexpr double kInf = std::numeric_limits<double>::infinity();
 
 /// Quadratic tracking cost of one agent, all weights diagonal (stored as vectors):
-///   J = sum_{k=0}^{T-1} u_k' R u_k + sum_{k=1}^{T-1} [(x_k-x_ref)' Q_ref (x_k-x_ref) + x_k' Q x_k]
-///       + (x_T-x_ref)' Qf_ref (x_T-x_ref) + x_T' Qf x_T.
+///   J = sum_{k=0}^{T-1} u_k' R u_k + sum_{k=1}^{T-1} [(x_k-r_k)' Q_ref (x_k-r_k) + x_k' Q x_k]
+///       + (x_T-r_T)' Qf_ref (x_T-r_T) + x_T' Qf x_T,
+/// with r_k = x_ref, or column k-1 of x_ref_steps when given (a stage-varying reference, e.g. a racing line).
 struct QuadraticCost {
   Vec x_ref;   ///< reference state (state units)
+  Mat x_ref_steps;  ///< optional reference per step k = 1..T, nx x T (column k-1); empty = x_ref at every step
   Vec Q_ref;   ///< weights on x - x_ref (1/state unit^2)
   Vec Q;       ///< weights on x itself
   Vec R;       ///< weights on u (1/control unit^2)
   Vec Qf_ref;  ///< terminal weights on x_T - x_ref
   Vec Qf;      ///< terminal weights on x_T
+  /// Reference r_k of x_k (k = 1..T).
+  Eigen::Ref<const Vec> reference(int k) const {
+    if (x_ref_steps.cols()) return x_ref_steps.col(k - 1);
+    return x_ref;
+  }
 };
 
 /// Cost coupling agents: agent i pays weight * (x^j[index] - x^i[index]) summed over k = 1..T for every

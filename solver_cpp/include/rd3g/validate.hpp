@@ -22,7 +22,7 @@ void validate_settings(const Settings& s);
 
 // The pieces validate_problem is made of (also used by the Solver's update calls). `where` is the field's path.
 void validate_initial_state(const Vec& x0, int nx, const std::string& where);
-void validate_cost(const QuadraticCost& c, int nx, int nu, const std::string& where);
+void validate_cost(const QuadraticCost& c, int nx, int nu, int horizon, const std::string& where);
 void validate_lead(const LeadCost& lead, int nx, const std::string& where);
 /// Box bounds of one agent (`name` "u" or "x"): each empty (= unbounded) or n values, no NaN, lower < upper.
 void validate_bounds(const Vec& lower, const Vec& upper, int n, const std::string& where, const char* name);
