@@ -12,7 +12,7 @@ from app.realtime import bench as loop_bench
 from fileio import atomic_write_text, check_output_dir, check_output_path
 from bench import (baselines, camera_profiles, charuco_coverage, merge_bench, problem_size, race_perturbations, saddles, solver_bench,
                    time_limit, track_video, tracking_bench)
-from bench.families import FAMILIES
+from bench.families import FAMILIES, family_names
 from bench.report import machine_description, write_section
 from solver_cpp import make_settings, merge_settings
 
@@ -76,7 +76,8 @@ def register(sub) -> None:
                         "repeatable")
     m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
     m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "
-                                    "from bench/families.py (docs/merging.md) or 'all'; reports success, second-order "
+                                    "from bench/families.py (docs/merging.md) or the groups 'tuned' (the six the "
+                                    "defaults were tuned on), 'held-out' or 'all'; reports success, second-order "
                                     "confirmation, time and iteration tails per family and size")
     m.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
     m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver); 0 = "
@@ -95,7 +96,8 @@ def register(sub) -> None:
 
     d = kinds.add_parser("saddles", help="steering away from saddles: the methods compared on the family instances "
                                          "that converge to a saddle")
-    d.add_argument("--family", default="all", help="comma-separated names from bench/families.py, or 'all'")
+    d.add_argument("--family", default="tuned", help="comma-separated names from bench/families.py, or the groups "
+                                                     "'tuned', 'held-out', 'all'")
     d.add_argument("--cars", default="2-8")
     d.add_argument("--seeds", type=int, default=16, help="seeds 0..N-1 per family and size")
     d.add_argument("--cases", help="skip the scan: FAMILY:CARS:SEED,... (e.g. head-on:2:2)")
@@ -321,13 +323,17 @@ def run_size(args) -> int:
     return 0
 
 
+def _family_names(text: str) -> list[str]:
+    try:
+        return family_names(text)
+    except ValueError as exc:
+        raise UserError(f"--family: {exc}") from None
+
+
 def _run_families(args, cars: list[int]) -> int:
     from pathlib import Path
 
-    names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
-    for n in names:
-        if n not in FAMILIES:
-            raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
+    names = _family_names(args.family)
     solvers, seeds = _merge_options(args, default_solvers="rd3g")
     import os
 
@@ -398,10 +404,7 @@ def run_saddles(args) -> int:
         cases = _parse_cases(args.cases)
         scanned = None
     else:
-        names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
-        for n in names:
-            if n not in FAMILIES:
-                raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
+        names = _family_names(args.family)
         grid = [(f, n, s) for f in names for n in parse_range(args.cars) for s in range(args.seeds)]
         scanned = len(grid)
         cases = saddles.scan(grid, args.workers)
