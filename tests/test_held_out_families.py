@@ -124,3 +124,36 @@ def test_ring_track_coordinates_are_the_stated_circle():
         worst[sub] = np.hypot(px - xc[:, 0], py - xc[:, 1]).max()
         assert np.sum(np.hypot(np.diff(xc[:, 0]), np.diff(xc[:, 1]))) > 3.0  # the car moved 3 m or more
     assert worst[1] < 0.1 and worst[10] < 0.1 * worst[1] + 1e-3, worst
+
+
+def _slide_points(p1):
+    """States and controls of the one-step slide game (tests/test_second_order.py) with player 0 at p1 and player 1
+    at the same point shifted 100 m in y (u = p1 - p0)."""
+    from types import SimpleNamespace
+
+    x0 = np.array([[-3.0, 0.0], [-3.0, 100.0]])
+    x1 = np.array([p1, np.add(p1, (0.0, 100.0))])
+    return SimpleNamespace(x=np.stack([x0, x1], axis=1), u=(x1 - x0)[:, None, :])
+
+
+def test_best_response_check_refutes_the_analytic_saddle_and_confirms_the_minimum():
+    """bench merge's --best-response-check on the slide game's analytic points, no solver involved: at the saddle
+    p = (-1, 0) a player lowers its cost by ~3.6 % sliding round its disc (found from perturbed starts, not from the
+    stationary point itself); at the minimum (-2/3, sqrt(5)/3) no player gains. The family summary counts a success
+    as confirmed only when its gap is within verify.BEST_RESPONSE_TOL."""
+    from bench import merge_bench
+    from test_second_order import _slide_game
+
+    problem = _slide_game()
+    saddle = merge_bench.best_response_gap(problem, _slide_points((-1.0, 0.0)), starts=2, seed=0)
+    minimum = merge_bench.best_response_gap(problem, _slide_points((-2 / 3, np.sqrt(5) / 3)), starts=2, seed=0)
+    assert saddle > 1e-2 and minimum <= 1e-6
+
+    def rec(seed, gap):
+        return merge_bench.RunRecord("rd3g", 2, seed, "converged", 1.0, 5, True, "", True, 0.0, "slide",
+                                     True, 1.0, best_response_gap=gap)
+
+    row, = merge_bench.summarize_families([rec(0, saddle), rec(1, minimum)])
+    assert row["best_response_confirmed"] == 1 and row["best_response_worst_gap"] == pytest.approx(saddle)
+    row, = merge_bench.summarize_families([rec(0, None)])
+    assert row["best_response_confirmed"] is None

@@ -86,6 +86,10 @@ def register(sub) -> None:
                    help="with --family: start RD3G from this many rounds of iterated best response "
                         "(solver_cpp/best_response.py, the C++ sweeps of the solver's best_response_rounds restart; its time "
                         "counts; the restarts start from it too)")
+    m.add_argument("--best-response-check", type=int, default=-1, metavar="STARTS",
+                   help="with --family: check every solved RD3G result by each player's SLSQP best response "
+                        "(bench/verify.py) from the result and STARTS seeded perturbations of it (0: from the result "
+                        "only); a player lowering its cost by more than 1e-3 of it refutes the equilibrium; not timed")
     m.add_argument("--repeat", type=int, default=3,
                    help="with --time-limit 0: run each solve faster than 200 ms CPU up to this many times and report "
                         "its fastest run's times (the results are identical; the noise of a shared machine is not)")
@@ -339,12 +343,14 @@ def _run_families(args, cars: list[int]) -> int:
 
     if args.best_response_rounds < 0:
         raise UserError("--best-response-rounds must be >= 0")
+    if args.best_response_check < -1:
+        raise UserError("--best-response-check must be >= 0 (or -1: off)")
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     repeats = _repeats(args)
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, tuple(names),
                               args.best_response_rounds, max_iter=args.max_iter, settings=args.rd3g_settings,
-                              repeats=repeats)
+                              repeats=repeats, best_response_check=args.best_response_check)
     summary = merge_bench.summarize_families(records)
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
