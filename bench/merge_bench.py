@@ -357,6 +357,50 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
     return "\n".join(lines)
 
 
+P90_OVER_MEDIAN_GOAL = 10.0  # issue #31's speed goal: RD3G's p90 CPU time at most this many times its median
+
+
+def speed_goal(records: list[RunRecord], limit_s: float) -> list[dict]:
+    """Issue #31's speed goal per family and size: RD3G's median CPU time at most the faster baseline's (the lower
+    median of iLQGames and ALGames), every failure counted as the time limit (limit_s) whatever it cost, and RD3G's
+    p90 at most P90_OVER_MEDIAN_GOAL times its median (the same counting)."""
+    limit_ms = 1e3 * limit_s
+
+    def counted(rs):
+        return np.array([r.cpu_ms if r.success else limit_ms for r in rs])
+
+    rows = []
+    for f, n in sorted({(r.family, r.cars) for r in records if r.solver == "rd3g"}):
+        cell = {s: counted([r for r in records if (r.family, r.cars, r.solver) == (f, n, s)]) for s in SOLVERS}
+        ours = cell["rd3g"]
+        baselines = {s: float(np.median(c)) for s, c in cell.items() if s != "rd3g" and c.size}
+        faster = min(baselines, key=baselines.get) if baselines else None
+        median, p90 = float(np.median(ours)), float(np.percentile(ours, 90))
+        rows.append({"family": f, "cars": n, "instances": int(ours.size), "median_cpu_ms": median,
+                     "p90_cpu_ms": p90, "baseline_median_cpu_ms": baselines, "faster_baseline": faster,
+                     "median_goal_met": None if faster is None else median <= baselines[faster],
+                     "p90_goal_met": p90 <= P90_OVER_MEDIAN_GOAL * median})
+    return rows
+
+
+def speed_goal_markdown(rows: list[dict], limit_s: float) -> list[str]:
+    def verdict(ok):
+        return "—" if ok is None else "yes" if ok else "**no**"
+
+    lines = ["", f"Speed goal (issue #31): CPU ms per solve, every failure counted as the time limit ({limit_s:g} s); "
+                 f"RD3G's median at most the faster baseline's, its p90 at most {P90_OVER_MEDIAN_GOAL:g}x its median.",
+             "", "| family | cars | rd3g median / p90 | ilqgames median | algames median | median <= faster baseline "
+                 f"| p90 <= {P90_OVER_MEDIAN_GOAL:g}x median |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        base = [f"{r['baseline_median_cpu_ms'][s]:.1f}" if s in r["baseline_median_cpu_ms"] else "—"
+                for s in ("ilqgames", "algames")]
+        lines.append(f"| {r['family']} | {r['cars']} | {r['median_cpu_ms']:.1f} / {r['p90_cpu_ms']:.1f} | "
+                     f"{base[0]} | {base[1]} | {verdict(r['median_goal_met'])} | {verdict(r['p90_goal_met'])} |")
+    met = sum(bool(r["median_goal_met"]) and r["p90_goal_met"] for r in rows)
+    lines += ["", f"Both goals met in {met} of {len(rows)} cells."]
+    return lines
+
+
 def solvers_in(summary: list[dict]) -> list[str]:
     """The solvers a summary has rows for, in SOLVERS order."""
     return [s for s in SOLVERS if any(r["solver"] == s for r in summary)]
@@ -491,4 +535,4 @@ def records_json(summary: list[dict]) -> dict:
     return {"results": summary}
 
 
-__all__ = ["run", "summarize", "summarize_families", "family_markdown", "failure_feasibility", "Job", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]
+__all__ = ["run", "summarize", "summarize_families", "family_markdown", "speed_goal", "speed_goal_markdown", "failure_feasibility", "Job", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]

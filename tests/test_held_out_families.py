@@ -157,3 +157,24 @@ def test_best_response_check_refutes_the_analytic_saddle_and_confirms_the_minimu
     assert row["best_response_confirmed"] == 1 and row["best_response_worst_gap"] == pytest.approx(saddle)
     row, = merge_bench.summarize_families([rec(0, None)])
     assert row["best_response_confirmed"] is None
+
+
+def test_speed_goal_counts_failures_as_the_time_limit():
+    """Hand-worked cell (limit 2 s): RD3G CPU 10, 20, 30 ms and one failure after 5 ms -> counted 10, 20, 30, 2000:
+    median 25, p90 2000 - 0.3 * 1970 = 1409 (numpy's linear percentile), above 10x the median. iLQGames fails all
+    four in 1 ms each -> median 2000; ALGames 40, 50, 60, 70 -> median 55, the faster baseline; 25 <= 55."""
+    from bench import merge_bench
+
+    def rec(solver, seed, cpu, ok):
+        return merge_bench.RunRecord(solver, 3, seed, "converged" if ok else "stalled", cpu, 5, ok, "" if ok else "x",
+                                     True, 0.0, "ring", None, cpu)
+
+    records = ([rec("rd3g", s, c, ok) for s, (c, ok) in enumerate([(10, True), (20, True), (30, True), (5, False)])]
+               + [rec("ilqgames", s, 1.0, False) for s in range(4)]
+               + [rec("algames", s, c, True) for s, c in enumerate([40, 50, 60, 70])])
+    row, = merge_bench.speed_goal(records, 2.0)
+    assert row["median_cpu_ms"] == pytest.approx(25) and row["p90_cpu_ms"] == pytest.approx(1409)
+    assert row["baseline_median_cpu_ms"] == pytest.approx({"ilqgames": 2000, "algames": 55})
+    assert row["faster_baseline"] == "algames" and row["median_goal_met"] and not row["p90_goal_met"]
+    text = "\n".join(merge_bench.speed_goal_markdown([row], 2.0))
+    assert "| ring | 3 | 25.0 / 1409.0 | 2000.0 | 55.0 | yes | **no** |" in text and "met in 0 of 1" in text
