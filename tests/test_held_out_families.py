@@ -178,3 +178,15 @@ def test_speed_goal_counts_failures_as_the_time_limit():
     assert row["faster_baseline"] == "algames" and row["median_goal_met"] and not row["p90_goal_met"]
     text = "\n".join(merge_bench.speed_goal_markdown([row], 2.0))
     assert "| ring | 3 | 25.0 / 1409.0 | 2000.0 | 55.0 | yes | **no** |" in text and "met in 0 of 1" in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--family", "held-out,nope"], "unknown family 'nope'"),
+    (["--family", "ring", "--best-response-check", "-2"], "--best-response-check must be >= 0"),
+])
+def test_bench_family_options_are_checked(argv, message):
+    from app.cli import UserError, build_parser
+
+    args = build_parser().parse_args(["bench", "merge", *argv, "--no-docs"])
+    with pytest.raises(UserError, match=message):
+        args.func(args)
