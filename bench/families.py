@@ -2,16 +2,19 @@
 
 A family is a small frozen spec plus a generator `problem(num_cars, seed)`; instances are drawn with numpy's legacy
 `RandomState(seed)` in the order the generator's docstring gives, so an instance is reproducible from (family,
-cars, seed) alone. `FAMILIES` maps the names `python -m app bench merge --family NAME` accepts to the specs."""
+cars, seed) alone. `FAMILIES` maps the names `python -m app bench merge --family NAME` accepts to the specs:
+`TUNED_FAMILIES`, the six the solver's defaults were tuned on, and `HELD_OUT_FAMILIES`, fixed before any solve of
+them and measured only on seeds 50-99."""
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from bench import merging
-from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, QuadraticCost
+from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, KinematicBicycleFrenet, QuadraticCost
 
 
 @dataclass(frozen=True)
@@ -53,7 +56,10 @@ class MergeFamily:
 class StreamFamily:
     """Base of the two-stream games (crossing, head-on): cars 0, 2, 4, ... form one stream and 1, 3, ... the other,
     each stream queued at `spacing`; every car tracks its lane (lane_weight), heading (heading_weight) and v_ref
-    (speed_weight). A subclass places car i in `_car`, which makes that car's random draws in its documented order."""
+    (speed_weight). A subclass places car i in `_car`, which makes that car's random draws in its documented order;
+    car i is the (i // streams)-th of its stream."""
+
+    streams: ClassVar[int] = 2
 
     description: str
     dt: float = 0.2
@@ -73,15 +79,18 @@ class StreamFamily:
         """Initial state, x_ref and Q_ref of car i (the queue-th car of its stream)."""
         raise NotImplementedError
 
+    def _model(self):
+        return KinematicBicycle(lf=self.lf, lr=self.lr)
+
     def problem(self, num_cars: int, seed: int) -> GameProblem:
         if num_cars < 2:
             raise ValueError(f"cars must be at least 2, got {num_cars}")
         rng = np.random.RandomState(seed)
         agents = []
+        model = self._model()
         for i in range(num_cars):
-            x0, x_ref, Q_ref = self._car(i, i // 2, rng)
-            agents.append(Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x0,
-                                QuadraticCost(x_ref=x_ref, R=self.R, Q_ref=Q_ref)))
+            x0, x_ref, Q_ref = self._car(i, i // self.streams, rng)
+            agents.append(Agent(model, x0, QuadraticCost(x_ref=x_ref, R=self.R, Q_ref=Q_ref)))
         return GameProblem(dt=self.dt, horizon=self.horizon, agents=agents,
                            collision=Collision(min_distance=self.min_distance, form=self.form))
 
@@ -129,7 +138,67 @@ class HeadOnFamily(StreamFamily):
                 (0.0, self.lane_weight, self.speed_weight, self.heading_weight))
 
 
-FAMILIES = {
+@dataclass(frozen=True)
+class FourWayFamily(StreamFamily):
+    """A four-way intersection of two two-lane roads (along the x and y axes) crossing at the origin, right-hand
+    traffic, every car going straight: car i drives east (i % 4 = 0) along y = -lane, north (1) along x = +lane, west
+    (2) along y = +lane or south (3) along x = -lane, as the (i // 4)-th car of its queue. The first car of a queue
+    starts `approach` (m, along its lane) before the crossing road's axis, the others `spacing` apart behind it. The
+    lanes cross at (+-lane, +-lane): east-bound and north-bound at (lane, -lane), east and south at (-lane, -lane),
+    west and north at (lane, lane), west and south at (-lane, lane); opposite lanes pass 2 lane apart. Each car tracks
+    its lane (lane_weight), heading (heading_weight) and v_ref (speed_weight). Draws: per car, in agent order, a
+    position jitter U[0,1) (m, away from the intersection) and a speed v_ref - 0.5 + U[0,1)."""
+
+    streams: ClassVar[int] = 4
+    lane: float = 1.1
+    approach: float = 7.0
+
+    def _car(self, i, queue, rng):
+        d = self.approach + self.spacing * queue + rng.rand()
+        v = self.v_ref - 0.5 + rng.rand()
+        w, along, across = self.lane, (0.0, 0.0, self.speed_weight, self.heading_weight), self.lane_weight
+        direction = i % 4
+        if direction == 0:  # east-bound
+            return (-d, -w, v, 0.0), (0.0, -w, self.v_ref, 0.0), (0.0, across, *along[2:])
+        if direction == 1:  # north-bound
+            return (w, -d, v, np.pi / 2), (w, 0.0, self.v_ref, np.pi / 2), (across, 0.0, *along[2:])
+        if direction == 2:  # west-bound
+            return (d, w, v, np.pi), (0.0, w, self.v_ref, np.pi), (0.0, across, *along[2:])
+        return (-w, d, v, -np.pi / 2), (-w, 0.0, self.v_ref, -np.pi / 2), (across, 0.0, *along[2:])  # south-bound
+
+
+@dataclass(frozen=True)
+class RingFamily(StreamFamily):
+    """The circulating lanes of a two-lane roundabout: a ring road whose centre line is a circle of `radius` about
+    the origin, driven counter-clockwise, in the track coordinates of KinematicBicycleFrenet (state [s, ey, v, epsi]:
+    s along the centre line from the point (radius, 0), ey to the left, i.e. towards the centre; the curvature table
+    holds 1/radius at `samples` points around the closed ring). Inner lane at ey = +lane, outer lane at ey = -lane.
+    Cars 0, 2, 4, ... start in the inner lane and take the outer one (towards the exits), cars 1, 3, ... start in the
+    outer lane (just entered) and take the inner one: the two streams weave. Car i is the (i // 2)-th of its lane,
+    `spacing` apart along s, the outer lane's queue starting spacing / 2 ahead of the inner one's. In the plane car i
+    is at (radius - ey) (cos(s / radius), sin(s / radius)). Collision distances are measured in track coordinates
+    (s, ey). Draws: per car, in agent order, a jitter U[0,1) (m, along s) and a speed v_ref - 0.4 + 0.8 U[0,1)."""
+
+    radius: float = 9.0
+    lane: float = 1.05
+    samples: int = 90
+
+    def _car(self, i, queue, rng):
+        inner = i % 2 == 0
+        s = self.spacing * queue + (0.0 if inner else self.spacing / 2) + rng.rand()
+        v = self.v_ref - 0.4 + 0.8 * rng.rand()
+        start, target = (self.lane, -self.lane) if inner else (-self.lane, self.lane)
+        return ((s, start, v, 0.0), (0.0, target, self.v_ref, 0.0),
+                (0.0, self.lane_weight, self.speed_weight, self.heading_weight))
+
+    def _model(self):
+        return KinematicBicycleFrenet(lf=self.lf, lr=self.lr, kappa=np.full(self.samples, 1.0 / self.radius),
+                                      ds=2 * np.pi * self.radius / self.samples, closed=True)
+
+
+# The six families the solver's defaults were measured and tuned on (seeds 0-7; docs/benchmarks.md, "Tuned and held
+# out").
+TUNED_FAMILIES = {
     "authors": MergeFamily("the authors' merging benchmark (bench/merging.py, docs/merging.md)"),
     "merge-dense": MergeFamily("cars packed closer (spacing 4.0 m), distance form, horizon 25, heading weight 2",
                                spacing=4.0, form="distance", horizon=25, Q_ref=(0.0, 0.1, 0.01, 2.0)),
@@ -145,6 +214,54 @@ FAMILIES = {
     "crossing": CrossingFamily("two perpendicular streams through an intersection, d_min 1.6 m distance form"),
     "head-on": HeadOnFamily("opposite streams on one road, swerving to pass, d_min 1.6 m distance form"),
 }
+
+# Families added after the tuning, their constants fixed before any solve of them (issue #31): measured on seeds
+# 50-99 only, and never used to choose a setting.
+HELD_OUT_FAMILIES = {
+    "merge-close": MergeFamily("cars 4.2 m apart against d_min 2.2 m distance form, lanes at +-1.2 m (y_ref 1.1), "
+                               "lf 1.1 / lr 0.9, dt 0.15 s, horizon 24, v_ref 2.2, Q_ref (0, 0.15, 0.02, 1.5), "
+                               "R (0.2, 0.4)",
+                               spacing=4.2, min_distance=2.2, form="distance", lf=1.1, lr=0.9, dt=0.15, horizon=24,
+                               main_lane_y=1.2, merge_lane_y=-1.2, y_ref=1.1, v_ref=2.2, Q_ref=(0.0, 0.15, 0.02, 1.5),
+                               R=(0.2, 0.4)),
+    "merge-quick": MergeFamily("coarse steps: dt 0.25 s, horizon 20, lanes at +-1.15 m (y_ref 1.05), d_min 2.1 m "
+                               "squared form, lf 0.95 / lr 1.05, spacing 5.0, v_ref 1.8, Q_ref (0, 0.05, 0.02, 0.6), "
+                               "R (0.4, 0.2), steering bounded at +-0.7 rad",
+                               dt=0.25, horizon=20, main_lane_y=1.15, merge_lane_y=-1.15, y_ref=1.05, min_distance=2.1,
+                               form="squared", lf=0.95, lr=1.05, spacing=5.0, v_ref=1.8, Q_ref=(0.0, 0.05, 0.02, 0.6),
+                               R=(0.4, 0.2), steering_bound=0.7),
+    "four-way": FourWayFamily("a four-way intersection, right-hand traffic, four straight-through queues on lanes "
+                              "1.1 m off the road axes, first cars 7 m before the crossing road, queues 5.2 m; d_min "
+                              "1.8 m squared form; lf 0.9 / lr 1.2, dt 0.2 s, horizon 32; lane weight 0.8, heading "
+                              "1.5, speed 0.08, R (0.25, 0.6)",
+                              dt=0.2, horizon=32, lf=0.9, lr=1.2, v_ref=2.0, spacing=5.2, lane_weight=0.8,
+                              heading_weight=1.5, speed_weight=0.08, R=(0.25, 0.6), min_distance=1.8, form="squared",
+                              lane=1.1, approach=7.0),
+    "ring": RingFamily("the circulating lanes of a roundabout: a ring of radius 9 m, lanes at ey +-1.05 m, inner and "
+                       "outer streams swapping lanes (track coordinates); queues 4.4 m; d_min 1.8 m distance form; "
+                       "lf 1.2 / lr 0.8, dt 0.12 s, horizon 36, v_ref 2.4; lane weight 0.6, heading 0.8, speed 0.04, "
+                       "R (0.15, 0.8)",
+                       dt=0.12, horizon=36, lf=1.2, lr=0.8, v_ref=2.4, spacing=4.4, lane_weight=0.6,
+                       heading_weight=0.8, speed_weight=0.04, R=(0.15, 0.8), min_distance=1.8, form="distance",
+                       radius=9.0, lane=1.05, samples=90),
+}
+
+FAMILIES = {**TUNED_FAMILIES, **HELD_OUT_FAMILIES}
+# Names `--family` accepts besides the families' own.
+FAMILY_GROUPS = {"all": tuple(FAMILIES), "tuned": tuple(TUNED_FAMILIES), "held-out": tuple(HELD_OUT_FAMILIES)}
+
+
+def family_names(text: str) -> list[str]:
+    """The families a comma-separated list of family and group names selects, in order, each once."""
+    names: list[str] = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        if part not in FAMILIES and part not in FAMILY_GROUPS:
+            raise ValueError(f"unknown family {part!r}; choose from {', '.join(FAMILIES)} or a group "
+                             f"({', '.join(FAMILY_GROUPS)})")
+        names += [n for n in FAMILY_GROUPS.get(part, (part,)) if n not in names]
+    if not names:
+        raise ValueError("no family named")
+    return names
 
 
 def family_problem(name: str, num_cars: int, seed: int) -> GameProblem:

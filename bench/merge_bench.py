@@ -84,6 +84,9 @@ class RunRecord:
     # 'feasible' (a verified point exists) or 'unknown', with its reason; "" for a success.
     feasibility: str = ""
     feasibility_detail: str = ""
+    # With Job.best_response_check >= 0, successes only: the largest relative cost decrease any one player finds by
+    # deviating alone (bench/verify.best_response_gap, SLSQP); NaN if no feasible point was found; None if not run.
+    best_response_gap: float | None = None
 
 
 @dataclass(frozen=True)
@@ -97,6 +100,7 @@ class Job:
     max_iter: int | None = None  # RD3G's iteration budget; None: its default
     settings: tuple = ()  # RD3G's setting overrides, (name, value) pairs
     repeats: int = 1  # runs of a short solve without a time limit; the fastest one's times are kept (REPEAT_BELOW_MS)
+    best_response_check: int = -1  # >= 0: check each success by SLSQP best responses from it and this many perturbations
 
 
 # Without a time limit a solve is deterministic, so running it again changes only its timing. On the shared machine
@@ -136,7 +140,19 @@ def one_run(job: Job) -> RunRecord:
         if cpu_ms >= REPEAT_BELOW_MS:
             break
     r, setup_s, cpu_ms = best
-    return record(job.solver, problem, r, setup_s, job.cars, job.seed, job.family, cpu_ms)
+    rec = record(job.solver, problem, r, setup_s, job.cars, job.seed, job.family, cpu_ms)
+    if rec.success and job.best_response_check >= 0:
+        rec.best_response_gap = best_response_gap(problem, r, job.best_response_check, job.seed)
+    return rec
+
+
+def best_response_gap(problem, r, starts: int, seed: int) -> float:
+    """The largest relative cost decrease any player finds by deviating alone from result r (SLSQP over its own
+    controls, the others fixed, from r and `starts` seeded perturbations of it; bench/verify.py): an equilibrium
+    check independent of the solver's own tests. NaN if some player's search found no feasible point."""
+    gaps = [verify.best_response_gap(problem, np.asarray(r.x), np.asarray(r.u), i, starts=starts, seed=seed)
+            for i in range(problem.num_agents)]
+    return float("nan") if np.any(np.isnan(gaps)) else float(np.max(gaps))
 
 
 def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: str,
@@ -173,13 +189,17 @@ def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: 
 
 def run(solvers: list[str], cars: list[int], instances, workers: int, time_limit_s: float,
         families: tuple[str, ...] = ("authors",), best_response_rounds: int = 0,
-        max_iter: int | None = None, settings: tuple = (), repeats: int = 1) -> list[RunRecord]:
+        max_iter: int | None = None, settings: tuple = (), repeats: int = 1,
+        best_response_check: int = -1) -> list[RunRecord]:
     """instances: a count (seeds 0..instances-1) or the seeds themselves. best_response_rounds > 0: RD3G starts
     from solver_cpp.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none.
     settings: RD3G setting overrides, (name, value) pairs. repeats: with no time limit, a solve faster than
-    REPEAT_BELOW_MS runs up to this many times and the fastest run's times are reported."""
+    REPEAT_BELOW_MS runs up to this many times and the fastest run's times are reported. best_response_check >= 0:
+    every success is also checked by SLSQP best responses (best_response_gap) from it and that many perturbations;
+    its time is not counted."""
     seeds = list(range(instances)) if isinstance(instances, int) else [int(s) for s in instances]
-    jobs = [Job(s, n, seed, time_limit_s, f, best_response_rounds, max_iter, tuple(settings), repeats)
+    jobs = [Job(s, n, seed, time_limit_s, f, best_response_rounds, max_iter, tuple(settings), repeats,
+                best_response_check)
             for f in families for n in cars for s in solvers for seed in seeds]
     records: list[RunRecord] = []
     with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:
@@ -229,6 +249,7 @@ def summarize_families(records: list[RunRecord]) -> list[dict]:
         cpu = np.array([r.cpu_ms for r in rs])
         it = np.array([r.iterations for r in rs])
         so = [r.second_order_ok for r in ok if r.second_order_ok is not None]
+        br = [r.best_response_gap for r in ok if r.best_response_gap is not None]
         statuses: dict[str, int] = {}
         for r in rs:
             statuses[r.status] = statuses.get(r.status, 0) + 1
@@ -238,6 +259,10 @@ def summarize_families(records: list[RunRecord]) -> list[dict]:
         out.append({
             "family": f, "solver": s, "cars": n, "instances": len(rs), "solved": len(ok),
             "second_order_confirmed": int(sum(so)) if so else None,
+            # successes no player improves on alone by more than verify.BEST_RESPONSE_TOL (None: check not run)
+            "best_response_confirmed": (sum(bool(g <= verify.BEST_RESPONSE_TOL) for g in br)
+                                        if br and len(br) == len(ok) else None),
+            "best_response_worst_gap": float(np.nanmax(br)) if br and not np.all(np.isnan(br)) else None,
             "converged_but_rejected": sum(r.status == "converged" and r.second_order_ok is False for r in rs),
             "statuses": statuses,
             "median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "max_ms": float(t.max()),
@@ -284,7 +309,11 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
         "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "
         f"controls inside their models' domains, collision violation <= {COLLISION_TOL_M:g} m, per-player stationarity <= {STATIONARITY_REL_TOL:g}), as a share "
         "of all instances and of the solvable ones (all but the proven infeasible); "
-        "2nd order = share of the solved results whose every player passes the solver's second-order test; "
+        "2nd order = share of the solved results whose every player passes the solver's second-order test"
+        + ("" if not any(r.get("best_response_confirmed") is not None for r in summary) else
+           f" (best response: solved results on which no player lowers its cost by more than "
+           f"{verify.BEST_RESPONSE_TOL:g} of it by deviating alone, SLSQP from the result and seeded perturbations, "
+           "bench/verify.py)") + "; "
         "'conv. rejected' = results reported converged at a point the test rejects (must be 0); "
         "failures: infeasible = proven infeasible, unknown = neither proven infeasible nor shown feasible "
         "(docs/benchmarks.md, 'Budgets, CPU time and infeasible instances'). Wall and CPU times and iterations over "
@@ -312,6 +341,8 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
     for r in summary:
         so = "—" if r["second_order_confirmed"] is None or not r["solved"] else \
             f"{100 * r['second_order_confirmed'] / r['solved']:.0f}%"
+        if r.get("best_response_confirmed") is not None:
+            so += f"; best response {r['best_response_confirmed']}/{r['solved']}"
         st = ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items()))
         solvable = "—" if r["success_rate_solvable"] is None else f"{100 * r['success_rate_solvable']:.0f}%"
         lines.append(f"| {r['family']} ({r['solver']}) | {r['cars']} | {r['solved']}/{r['instances']} "
@@ -324,6 +355,50 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
     lines += [f"- {f['family']} {f['cars']} cars seed {f['seed']} ({f['solver']}): {f['status']}, {f['failure']}; "
               f"{f['feasibility']} ({f['feasibility_detail']})" for f in failed]
     return "\n".join(lines)
+
+
+P90_OVER_MEDIAN_GOAL = 10.0  # issue #31's speed goal: RD3G's p90 CPU time at most this many times its median
+
+
+def speed_goal(records: list[RunRecord], limit_s: float) -> list[dict]:
+    """Issue #31's speed goal per family and size: RD3G's median CPU time at most the faster baseline's (the lower
+    median of iLQGames and ALGames), every failure counted as the time limit (limit_s) whatever it cost, and RD3G's
+    p90 at most P90_OVER_MEDIAN_GOAL times its median (the same counting)."""
+    limit_ms = 1e3 * limit_s
+
+    def counted(rs):
+        return np.array([r.cpu_ms if r.success else limit_ms for r in rs])
+
+    rows = []
+    for f, n in sorted({(r.family, r.cars) for r in records if r.solver == "rd3g"}):
+        cell = {s: counted([r for r in records if (r.family, r.cars, r.solver) == (f, n, s)]) for s in SOLVERS}
+        ours = cell["rd3g"]
+        baselines = {s: float(np.median(c)) for s, c in cell.items() if s != "rd3g" and c.size}
+        faster = min(baselines, key=baselines.get) if baselines else None
+        median, p90 = float(np.median(ours)), float(np.percentile(ours, 90))
+        rows.append({"family": f, "cars": n, "instances": int(ours.size), "median_cpu_ms": median,
+                     "p90_cpu_ms": p90, "baseline_median_cpu_ms": baselines, "faster_baseline": faster,
+                     "median_goal_met": None if faster is None else median <= baselines[faster],
+                     "p90_goal_met": p90 <= P90_OVER_MEDIAN_GOAL * median})
+    return rows
+
+
+def speed_goal_markdown(rows: list[dict], limit_s: float) -> list[str]:
+    def verdict(ok):
+        return "—" if ok is None else "yes" if ok else "**no**"
+
+    lines = ["", f"Speed goal (issue #31): CPU ms per solve, every failure counted as the time limit ({limit_s:g} s); "
+                 f"RD3G's median at most the faster baseline's, its p90 at most {P90_OVER_MEDIAN_GOAL:g}x its median.",
+             "", "| family | cars | rd3g median / p90 | ilqgames median | algames median | median <= faster baseline "
+                 f"| p90 <= {P90_OVER_MEDIAN_GOAL:g}x median |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        base = [f"{r['baseline_median_cpu_ms'][s]:.1f}" if s in r["baseline_median_cpu_ms"] else "—"
+                for s in ("ilqgames", "algames")]
+        lines.append(f"| {r['family']} | {r['cars']} | {r['median_cpu_ms']:.1f} / {r['p90_cpu_ms']:.1f} | "
+                     f"{base[0]} | {base[1]} | {verdict(r['median_goal_met'])} | {verdict(r['p90_goal_met'])} |")
+    met = sum(bool(r["median_goal_met"]) and r["p90_goal_met"] for r in rows)
+    lines += ["", f"Both goals met in {met} of {len(rows)} cells."]
+    return lines
 
 
 def solvers_in(summary: list[dict]) -> list[str]:
@@ -460,4 +535,4 @@ def records_json(summary: list[dict]) -> dict:
     return {"results": summary}
 
 
-__all__ = ["run", "summarize", "summarize_families", "family_markdown", "failure_feasibility", "Job", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]
+__all__ = ["run", "summarize", "summarize_families", "family_markdown", "speed_goal", "speed_goal_markdown", "failure_feasibility", "Job", "markdown", "plot_times", "plot_merge", "RunRecord", "asdict"]

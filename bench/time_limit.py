@@ -2,7 +2,7 @@
 
     python -m app bench time-limit [--cars 6] [--seeds 3] [--limits 0.05,0.2]
         merging games with SparseQR and with LSCG at a tolerance it cannot reach: status and wall time per solve
-    python -m app bench time-limit --families all --cars 2,4,8 --seeds 2 --fuzz 200 [--json out.json]
+    python -m app bench time-limit --families tuned --cars 2,4,8 --seeds 2 --fuzz 200 [--json out.json]
         every merge family and solver path, and fuzzed problems (bench/fuzz.py's generator), summarised
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ import shlex
 import sys
 import time
 
-from bench.families import FAMILIES, family_problem
+from bench.families import family_names, family_problem
 from bench.merging import merging_problem
 from fileio import atomic_write_text, check_output_path
 from solver_cpp import solve
@@ -106,7 +106,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cars", default="6", help="car counts, comma-separated")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--limits", default="0.05,0.2", help="time limits (s), comma-separated")
-    p.add_argument("--families", help="merge families (comma-separated or all): summary mode")
+    p.add_argument("--families", help="merge families, comma-separated names or groups (tuned, held-out, all): "
+                                      "summary mode")
     p.add_argument("--fuzz", type=int, default=0, help="also this many fuzz-generated problems (summary mode)")
     p.add_argument("--paths", default=",".join(PATHS), help="linear-solver paths, comma-separated")
     p.add_argument("--json", help="write the summary here")
@@ -126,7 +127,7 @@ def run(args) -> int:
         return 0
     if args.json:
         check_output_path(args.json, stream=True)
-    names = [] if args.families is None else list(FAMILIES) if args.families == "all" else args.families.split(",")
+    names = [] if args.families is None else family_names(args.families)
     load0 = os.getloadavg()[0]
     fuzzed = fuzz_cases(args.fuzz, 0) if args.fuzz else []
     result = summary([*family_cases(names, cars, args.seeds), *fuzzed], limits, paths)

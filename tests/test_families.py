@@ -205,17 +205,24 @@ def test_best_response_margin_rescues_an_attempt_stuck_at_a_contact():
     assert record.success and record.second_order_ok, record.failure
 
 
+# Closest start pair minus d_min (m) of the stream families, worked by hand from their docstrings: crossing and
+# head-on as docs/merging.md gives; four-way: two cars of one queue, 5.2 m apart less the 1 m jitter, against 1.8;
+# ring: neighbours in the two lanes, 2.2 - 1 m apart along s and 2.1 m across, against 1.8 (track coordinates).
+STREAM_START_FLOOR = {"crossing": 1.9, "head-on": 1.9, "four-way": 5.2 - 1.0 - 1.8,
+                      "ring": float(np.hypot(2.2 - 1.0, 2.1)) - 1.8}
+
+
 @pytest.mark.parametrize("name", list(FAMILIES))
 def test_no_instance_is_degenerate_by_construction(name):
     """The closest start pair is no closer than the family's geometry allows (the merges: two cars side by side in
-    the two lanes, at the lane spacing; crossing and head-on: docs/merging.md's 1.9 m), and no state at k >= 1 is out
+    the two lanes, at the lane spacing; the stream families: STREAM_START_FLOOR), and no state at k >= 1 is out
     of every control's reach (every car starts moving, so its steering moves its position at k = 1): the
     benchmark's exact infeasibility check has nothing to prove here."""
     from bench.verify import control_independent_states
 
     spec = FAMILIES[name]
     lane = getattr(spec, "main_lane_y", None)
-    floor = (lane - spec.merge_lane_y - spec.min_distance) if lane is not None else 1.9
+    floor = (lane - spec.merge_lane_y - spec.min_distance) if lane is not None else STREAM_START_FLOOR[name]
     for cars in range(2, 9):
         for seed in range(200):
             xy = _x0(family_problem(name, cars, seed))[:, :2]

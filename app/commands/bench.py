@@ -13,7 +13,7 @@ from app.realtime import live_bench
 from fileio import atomic_write_text, check_output_dir, check_output_path
 from bench import (baselines, camera_profiles, charuco_coverage, merge_bench, planner_threads, problem_size,
                    race_perturbations, saddles, solver_bench, time_limit, track_video, tracking_bench)
-from bench.families import FAMILIES
+from bench.families import FAMILIES, family_names
 from bench.report import machine_description, write_section
 from solver_cpp import make_settings, merge_settings
 
@@ -81,7 +81,8 @@ def register(sub) -> None:
                         "repeatable")
     m.add_argument("--solvers", help="comma-separated (default: rd3g,ilqgames,algames; rd3g with --family)")
     m.add_argument("--family", help="run seeded game families instead of the Table I comparison: comma-separated names "
-                                    "from bench/families.py (docs/merging.md) or 'all'; reports success, second-order "
+                                    "from bench/families.py (docs/merging.md) or the groups 'tuned' (the six the "
+                                    "defaults were tuned on), 'held-out' or 'all'; reports success, second-order "
                                     "confirmation, time and iteration tails per family and size")
     m.add_argument("--workers", type=int, default=2, help="processes (each solve runs on one core)")
     m.add_argument("--time-limit", type=float, default=5.0, help="per solve, seconds (same for every solver); 0 = "
@@ -90,6 +91,10 @@ def register(sub) -> None:
                    help="with --family: start RD3G from this many rounds of iterated best response "
                         "(solver_cpp/best_response.py, the C++ sweeps of the solver's best_response_rounds restart; its time "
                         "counts; the restarts start from it too)")
+    m.add_argument("--best-response-check", type=int, default=-1, metavar="STARTS",
+                   help="with --family: check every solved RD3G result by each player's SLSQP best response "
+                        "(bench/verify.py) from the result and STARTS seeded perturbations of it (0: from the result "
+                        "only); a player lowering its cost by more than 1e-3 of it refutes the equilibrium; not timed")
     m.add_argument("--repeat", type=int, default=3,
                    help="with --time-limit 0: run each solve faster than 200 ms CPU up to this many times and report "
                         "its fastest run's times (the results are identical; the noise of a shared machine is not)")
@@ -100,7 +105,8 @@ def register(sub) -> None:
 
     d = kinds.add_parser("saddles", help="steering away from saddles: the methods compared on the family instances "
                                          "that converge to a saddle")
-    d.add_argument("--family", default="all", help="comma-separated names from bench/families.py, or 'all'")
+    d.add_argument("--family", default="tuned", help="comma-separated names from bench/families.py, or the groups "
+                                                     "'tuned', 'held-out', 'all'")
     d.add_argument("--cars", default="2-8")
     d.add_argument("--seeds", type=int, default=16, help="seeds 0..N-1 per family and size")
     d.add_argument("--cases", help="skip the scan: FAMILY:CARS:SEED,... (e.g. head-on:2:2)")
@@ -326,38 +332,52 @@ def run_size(args) -> int:
     return 0
 
 
+def _family_names(text: str) -> list[str]:
+    try:
+        return family_names(text)
+    except ValueError as exc:
+        raise UserError(f"--family: {exc}") from None
+
+
 def _run_families(args, cars: list[int]) -> int:
     from pathlib import Path
 
-    names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
-    for n in names:
-        if n not in FAMILIES:
-            raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
+    names = _family_names(args.family)
     solvers, seeds = _merge_options(args, default_solvers="rd3g")
     import os
 
     if args.best_response_rounds < 0:
         raise UserError("--best-response-rounds must be >= 0")
+    if args.best_response_check < -1:
+        raise UserError("--best-response-check must be >= 0 (or -1: off)")
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     repeats = _repeats(args)
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, tuple(names),
                               args.best_response_rounds, max_iter=args.max_iter, settings=args.rd3g_settings,
-                              repeats=repeats)
+                              repeats=repeats, best_response_check=args.best_response_check)
     summary = merge_bench.summarize_families(records)
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
     budget = merge_bench.budget_text(args.max_iter, args.time_limit)
     md = merge_bench.family_markdown(summary, command, machine, time.perf_counter() - t0, args.best_response_rounds,
                                      budget, repeats)
+    goal = None
+    if len(solvers) > 1 and "rd3g" in solvers:  # the speed goal compares RD3G with the baselines
+        if args.time_limit > 0:
+            goal = merge_bench.speed_goal(records, args.time_limit)
+            md += "\n" + "\n".join(merge_bench.speed_goal_markdown(goal, args.time_limit))
+        else:
+            md += ("\n\nSpeed goal: not evaluated (it counts every failure as the time limit; give --time-limit "
+                   "above 0).")
     print(md)
     if args.json:
         failed = [f for r in summary for f in r["failed_instances"]]
         meta = {"max_iter": args.max_iter, "time_limit_s": args.time_limit, "seeds": [seeds[0], seeds[-1] + 1],
                 "load_average_start": load0, "load_average_end": os.getloadavg()[0],
                 "rd3g_settings": dict(args.rd3g_settings), "repeats": repeats}
-        atomic_write_text(args.json, json.dumps({"results": summary, "budget": meta, "failed_instances": failed},
-                                                indent=1))
+        atomic_write_text(args.json, json.dumps({"results": summary, "budget": meta, "failed_instances": failed,
+                                                 "speed_goal": goal}, indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
         # The RD3G-only table and a comparison with the baselines are kept as separate sections.
@@ -403,10 +423,7 @@ def run_saddles(args) -> int:
         cases = _parse_cases(args.cases)
         scanned = None
     else:
-        names = list(FAMILIES) if args.family == "all" else [x.strip() for x in args.family.split(",") if x.strip()]
-        for n in names:
-            if n not in FAMILIES:
-                raise UserError(f"--family: unknown family {n!r} (choose from {', '.join(FAMILIES)} or all)")
+        names = _family_names(args.family)
         grid = [(f, n, s) for f in names for n in parse_range(args.cars) for s in range(args.seeds)]
         scanned = len(grid)
         cases = saddles.scan(grid, args.workers)
