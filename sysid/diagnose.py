@@ -598,25 +598,29 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
                                         {n: c for n, c in zip(names, y) if c != 0.0})
         return dataclasses.replace(plain, car=dataclasses.replace(car, other_terms=terms))
 
-    def training_cost(setup: ModelSetup) -> float:
-        r = _residual(traj, split.fit, predict(traj, split.fit, horizon, setup), steps)
-        return float(r @ r)
+    def training_costs(setups: list[ModelSetup]) -> list[float]:
+        """Multi-step costs on the training windows, all setups predicted in one batch."""
+        preds = predict(traj, split.fit, horizon, setups)
+        return [float(r @ r) for r in (_residual(traj, split.fit, p, steps) for p in preds)]
 
     # The 0.1 s regression can pick up terms that do not help over the whole horizon (e.g. where the
     # smoothed speed misses fast throttle changes): drop, one at a time, any term whose removal lowers
-    # the multi-step cost on the training windows.
-    cost = training_cost(with_terms(ca, cy))
+    # the multi-step cost on the training windows (each round's removals predicted in one batch).
+    cost = training_costs([with_terms(ca, cy)])[0]
     while np.count_nonzero(ca) + np.count_nonzero(cy) > 0:
-        trials = []
+        trials, setups = [], []
         for coef in (ca, cy):
             for i in np.flatnonzero(coef):
                 saved, coef[i] = coef[i], 0.0
-                trials.append((training_cost(with_terms(ca, cy)), coef, i, saved))
+                setups.append(with_terms(ca, cy))
+                trials.append((coef, i))
                 coef[i] = saved
-        best_cost, coef, i, _ = min(trials, key=lambda t: t[0])
-        if best_cost >= cost:
+        costs = training_costs(setups)
+        best = int(np.argmin(costs))
+        if costs[best] >= cost:
             break
-        coef[i], cost = 0.0, best_cost
+        coef, i = trials[best]
+        coef[i], cost = 0.0, costs[best]
     setup = with_terms(ca, cy)
     fit = evaluate(traj, split, horizon, setup, base.effects + ("other",), base.values, base.std)
     params = {f"accel[{n}]": float(c) for n, c in zip(names, ca) if c != 0.0}

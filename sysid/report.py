@@ -162,14 +162,15 @@ def disagreement_notes(result: SysidResult) -> list[str]:
     """One sentence per parameter on which runs disagree: which runs, their estimates and the others'."""
     notes = []
     for a in result.run_agreement:
-        odd = a.excluded_runs if a.excluded_runs else (a.runs if a.agreement.disagree else ())
+        odd = a.runs if a.agreement.disagree else a.excluded_runs
         if not odd:
             continue
         name = lambda r: Path(result.traj.runs[r].source).name  # noqa: E731
         est = dict(zip(a.runs, zip(a.values, a.stds)))
         odd_text = ", ".join(f"{name(r)} {est[r][0]:.3g} ± {est[r][1]:.2g}" for r in odd)
         if a.agreement.disagree:
-            notes.append(f"Runs disagree on {a.effect} (`{a.param}`): {odd_text}; no majority agrees, not claimed.")
+            notes.append(f"Runs disagree on {a.effect} (`{a.param}`): {odd_text}; no majority agrees, not fitted or "
+                         "claimed.")
         else:
             rest = ", ".join(name(r) for r in a.agreeing_runs)
             notes.append(f"Runs disagree on {a.effect} (`{a.param}`): {odd_text} vs {rest} "
