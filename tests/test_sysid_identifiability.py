@@ -122,18 +122,22 @@ def test_wrong_geometry_or_steering_scale_is_diagnosed_as_such(clean_log, what, 
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
 
-def test_a_wrong_throttle_map_is_named_as_such_not_as_drag_or_drift():
-    """The simulated car's motor sees 0.75 x (|u| - 0.05): the throttle map is named and measured, drag and battery
-    drift (which also change the speed) are not claimed."""
+def _identify_a_car_with(**corrections):
+    """A 36 s log of the BuzzRacer whose true corrections are ``corrections``, identified with the nominal file."""
     import dataclasses
 
     from sysid.generate import generate_log
 
-    sim_car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, throttle_gain=0.75,
-                                                                       throttle_dead_band=0.05))
+    sim_car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, **corrections))
     log = generate_log(sim_car, {}, 0.6, seed=41, physics_dt=0.002)
-    result = identify(build_trajectory(log), CAR, SysidSettings(fit_max_starts=120, heldout_max_starts=500,
-                                                                n_bootstrap=300))
+    return identify(build_trajectory(log), CAR, SysidSettings(fit_max_starts=120, heldout_max_starts=500,
+                                                              n_bootstrap=300))
+
+
+def test_a_wrong_throttle_map_is_named_as_such_not_as_drag_or_drift():
+    """The simulated car's motor sees 0.75 x (|u| - 0.05): the throttle map is named and measured, drag and battery
+    drift (which also change the speed) are not claimed."""
+    result = _identify_a_car_with(throttle_gain=0.75, throttle_dead_band=0.05)
     assert [e.effect for e in result.selected] == ["throttle_map"]
     fitted = result.car_out.corrections
     assert fitted.throttle_gain == pytest.approx(0.75, rel=0.1)
@@ -163,7 +167,6 @@ def test_a_curved_throttle_map_is_named_as_its_curvature_not_as_drag():
     the curvature is named and measured; drag, drift and the gain are not claimed."""
     import dataclasses
 
-    from sysid.generate import generate_log
     from vehicles.dynamic_bicycle import ModelCoefficients, throttle_map
 
     # The map itself against a hand-worked value: u = 0.5, dead band 0.1, gain 2, c = 0.5: x = 0.4,
@@ -172,10 +175,7 @@ def test_a_curved_throttle_map_is_named_as_its_curvature_not_as_drag():
         CAR.corrections, throttle_gain=2.0, throttle_dead_band=0.1, throttle_curvature=0.5)))
     mapped, slope = throttle_map(np.array([0.5, -0.5, 0.05]), k)
     assert mapped == pytest.approx([0.56, -0.56, 0.0]) and slope == pytest.approx([1.8, 1.8, 0.0])
-    sim_car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, throttle_curvature=0.5))
-    log = generate_log(sim_car, {}, 0.6, seed=41, physics_dt=0.002)
-    result = identify(build_trajectory(log), CAR, SysidSettings(fit_max_starts=120, heldout_max_starts=500,
-                                                                n_bootstrap=300))
+    result = _identify_a_car_with(throttle_curvature=0.5)
     assert [e.effect for e in result.selected] == ["throttle_curvature"]
     fitted = result.car_out.corrections
     assert fitted.throttle_curvature == pytest.approx(0.5, abs=0.1)
