@@ -393,7 +393,6 @@ def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup
 
 
 def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setups: list[ModelSetup]) -> np.ndarray:
-    car = setups[0].car
     n_sub = substeps(setups[0], traj.dt)
     h = traj.dt / n_sub
     # Lateral velocity and yaw rate are not measured and their derivative estimates are poor under
