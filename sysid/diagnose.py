@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from sysid.agreement import Agreement, agreement
 from sysid.data import Trajectory
 from sysid.excitation import Excitation, excitation
 from sysid.lockstep import predict, side_by_side
@@ -32,7 +33,7 @@ from vehicles.params import CarParams, OtherTermsParams
 
 EFFECT_NAMES = ("actuation_delay", "steering_offset", "steering_gain", "tire_slip", "longitudinal_drag",
                 "steering_backlash", "steering_asymmetry", "motor_drift", "throttle_map", "speed_map", "speed_response",
-                "other")
+                "throttle_curvature", "other")
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,7 @@ class Candidate:
     scale: tuple[float, ...]  # typical size, for the optimiser's scaling
     dynamic: bool = False  # needs the dynamic model
     drive: str = "any"  # "throttle": only for throttle cars (the motor law); "speed": only for speed set-point cars
+    excluded_runs: tuple[int, ...] = ()  # runs that disagree with the others on it (sysid.agreement): not fitted on
 
 
 CANDIDATES: tuple[Candidate, ...] = (
@@ -58,6 +60,8 @@ CANDIDATES: tuple[Candidate, ...] = (
     # The throttle-to-force map of a throttle car, apart from drag: gain and dead band.
     Candidate("throttle_map", ("throttle_gain", "throttle_dead_band"), (0.2, 0.0), (5.0, 0.5), (0.05, 0.02),
               drive="throttle"),
+    # Its shape: progressive or degressive between no throttle and full throttle (the full-scale force stays).
+    Candidate("throttle_curvature", ("throttle_curvature",), (-1.0,), (1.0,), (0.05,), drive="throttle"),
     # Speed set-point cars: the speed reached per commanded m/s, and the speed loop's response rate.
     Candidate("speed_map", ("speed_setpoint_gain",), (0.2,), (5.0,), (0.05,), drive="speed"),
     Candidate("speed_response", ("speed_response_scale",), (0.05,), (20.0,), (0.1,), drive="speed"),
@@ -79,6 +83,11 @@ class NotIdentifiable:
     reasons: tuple[str, ...]
 
 
+def _with_params(c: Candidate, ok: list[int]) -> Candidate:
+    pick = lambda v: tuple(v[i] for i in ok)  # noqa: E731
+    return dataclasses.replace(c, params=pick(c.params), lower=pick(c.lower), upper=pick(c.upper), scale=pick(c.scale))
+
+
 def restrict(cands: tuple[Candidate, ...], exc: dict[str, Excitation]
              ) -> tuple[tuple[Candidate, ...], list[NotIdentifiable]]:
     """The candidates with only their excited parameters, and what was left out and why."""
@@ -90,9 +99,7 @@ def restrict(cands: tuple[Candidate, ...], exc: dict[str, Excitation]
             left_out.append(NotIdentifiable(c.effect, tuple(c.params[i] for i in bad),
                                             tuple(exc[c.params[i]].reason for i in bad)))
         if ok:
-            pick = lambda v: tuple(v[i] for i in ok)  # noqa: E731
-            kept.append(dataclasses.replace(c, params=pick(c.params), lower=pick(c.lower), upper=pick(c.upper),
-                                            scale=pick(c.scale)))
+            kept.append(_with_params(c, ok))
     return tuple(kept), left_out
 # Parameters whose cost is not convex from the neutral value: the fit starts from the best of these.
 _START_GRID = {"steering_backlash_rad": (0.01, 0.02, 0.04, 0.08)}
@@ -280,6 +287,7 @@ class SysidResult:
     unnamed_effect_remains: bool = False  # `other` is significant: an effect the library cannot name
     dropped_after_other: list[str] = field(default_factory=list)  # named effects dropped once `other` was in
     not_identifiable: list[NotIdentifiable] = field(default_factory=list)  # not excited by the logs: not fitted
+    run_agreement: list[RunAgreement] = field(default_factory=list)  # per parameter: do the training runs agree
     numeric_warnings: int = 0  # numpy RuntimeWarnings of trial predictions, counted instead of printed
 
     @property
@@ -379,6 +387,9 @@ def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetu
     x0 = np.clip(np.array([getattr(corr, n) for n in names], dtype=float), lower, upper)
     steps = _fit_steps(horizon, s.fit_steps)
     starts = split.fit
+    excluded = [r for c in cands for r in c.excluded_runs]
+    if excluded:  # runs that disagree with the others on an effect of the fit do not enter it
+        starts = starts[~np.isin(traj.run[starts], excluded)]
 
     def setup_for(theta: np.ndarray) -> ModelSetup:
         return ModelSetup(with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic)
@@ -473,6 +484,68 @@ def _judge(traj, split, before: Fit, after: Fit, effect: str, s: SysidSettings, 
     )
 
 
+# ----------------------------------------------------------------------------- agreement between runs
+MIN_RUN_WINDOWS = 20  # fit windows a training run needs for an estimate of its own
+
+
+@dataclass(frozen=True)
+class RunAgreement:
+    """One parameter fitted alone on each training run, and whether the runs agree on it (sysid.agreement)."""
+
+    effect: str
+    param: str
+    runs: tuple[int, ...]  # run indices (Trajectory.runs) with an estimate
+    values: tuple[float, ...]
+    stds: tuple[float, ...]
+    agreement: Agreement
+
+    @property
+    def excluded_runs(self) -> tuple[int, ...]:
+        return tuple(self.runs[i] for i in self.agreement.excluded)
+
+    @property
+    def agreeing_runs(self) -> tuple[int, ...]:
+        return tuple(self.runs[i] for i in self.agreement.agreeing)
+
+
+def run_agreement(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, cands: tuple[Candidate, ...],
+                  car: CarParams, s: SysidSettings) -> tuple[tuple[Candidate, ...], list[RunAgreement]]:
+    """Each candidate fitted alone on top of ``base`` on each training run that excites it; per parameter the
+    runs' estimates are tested for agreement. Returns the candidates without the parameters the runs disagree
+    on and with the runs that disagree excluded from their fits, and the per-parameter verdicts."""
+    runs = [r for r in np.unique(traj.run[split.train]).tolist()
+            if np.count_nonzero(traj.run[split.fit] == r) >= MIN_RUN_WINDOWS]
+    if len(runs) < 2:
+        return cands, []
+    jobs = []
+    for r in runs:
+        fit_r = split.fit[traj.run[split.fit] == r]
+        exc_r = excitation(traj, split.train[traj.run[split.train] == r], horizon, car)
+        for c in restrict(cands, exc_r)[0]:
+            jobs.append((r, c, Split(train=fit_r, heldout=fit_r, fit=fit_r)))
+    fits = side_by_side([lambda r=r, c=c, sp=sp: fit_candidates(traj, sp, horizon, base, [c], s) for r, c, sp in jobs])
+    verdicts: list[RunAgreement] = []
+    out = []
+    for c in cands:
+        ok, excluded = [], []
+        for i, p in enumerate(c.params):
+            est = [(r, f.values[p], f.std[p]) for (r, cj, _), f in zip(jobs, fits) if cj.effect == c.effect
+                   and p in f.values]
+            if len(est) < 2:
+                ok.append(i)
+                continue
+            a = agreement([v for _, v, _ in est], [e for _, _, e in est])
+            v = RunAgreement(c.effect, p, tuple(r for r, _, _ in est), tuple(v for _, v, _ in est),
+                             tuple(e for _, _, e in est), a)
+            verdicts.append(v)
+            if not a.disagree:
+                ok.append(i)
+                excluded += [r for r in v.excluded_runs if r not in excluded]
+        if ok:
+            out.append(dataclasses.replace(_with_params(c, ok), excluded_runs=tuple(sorted(excluded))))
+    return tuple(out), verdicts
+
+
 # ----------------------------------------------------------------------------- sparse fallback
 def without_other_terms(setup: ModelSetup) -> ModelSetup:
     return dataclasses.replace(setup, car=dataclasses.replace(setup.car, other_terms=OtherTermsParams()))
@@ -525,25 +598,29 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
                                         {n: c for n, c in zip(names, y) if c != 0.0})
         return dataclasses.replace(plain, car=dataclasses.replace(car, other_terms=terms))
 
-    def training_cost(setup: ModelSetup) -> float:
-        r = _residual(traj, split.fit, predict(traj, split.fit, horizon, setup), steps)
-        return float(r @ r)
+    def training_costs(setups: list[ModelSetup]) -> list[float]:
+        """Multi-step costs on the training windows, all setups predicted in one batch."""
+        preds = predict(traj, split.fit, horizon, setups)
+        return [float(r @ r) for r in (_residual(traj, split.fit, p, steps) for p in preds)]
 
     # The 0.1 s regression can pick up terms that do not help over the whole horizon (e.g. where the
     # smoothed speed misses fast throttle changes): drop, one at a time, any term whose removal lowers
-    # the multi-step cost on the training windows.
-    cost = training_cost(with_terms(ca, cy))
+    # the multi-step cost on the training windows (each round's removals predicted in one batch).
+    cost = training_costs([with_terms(ca, cy)])[0]
     while np.count_nonzero(ca) + np.count_nonzero(cy) > 0:
-        trials = []
+        trials, setups = [], []
         for coef in (ca, cy):
             for i in np.flatnonzero(coef):
                 saved, coef[i] = coef[i], 0.0
-                trials.append((training_cost(with_terms(ca, cy)), coef, i, saved))
+                setups.append(with_terms(ca, cy))
+                trials.append((coef, i))
                 coef[i] = saved
-        best_cost, coef, i, _ = min(trials, key=lambda t: t[0])
-        if best_cost >= cost:
+        costs = training_costs(setups)
+        best = int(np.argmin(costs))
+        if costs[best] >= cost:
             break
-        coef[i], cost = 0.0, best_cost
+        coef, i = trials[best]
+        coef[i], cost = 0.0, costs[best]
     setup = with_terms(ca, cy)
     fit = evaluate(traj, split, horizon, setup, base.effects + ("other",), base.values, base.std)
     params = {f"accel[{n}]": float(c) for n, c in zip(names, ca) if c != 0.0}
@@ -755,6 +832,8 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     # Identifiability before a claim: only parameters the training windows excite are fitted.
     exc = excitation(traj, split.train, horizon, car)
     cands, not_identifiable = restrict(candidates_for(car), exc)
+    # Several training runs: they must agree on an effect before it is fitted on them jointly.
+    cands, agreements = run_agreement(traj, split, horizon, dynamic_nominal.setup, cands, car, s)
     families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s, cands)
                              for ref in references])
     sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
@@ -828,9 +907,13 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         current = other_fit
     unnamed_remains = any(e.effect == "other" for e in selected)
 
-    # Reported parameters of each claimed physical effect come from the final joint fit.
+    # Reported parameters of each claimed physical effect come from the final joint fit; with several runs their
+    # standard deviation is at least that of the agreeing runs' random-effects pool (spread between runs included).
     final_values = dict(current.values)
     final_std = dict(current.std)
+    for a in agreements:
+        if a.param in final_std:
+            final_std[a.param] = max(final_std[a.param], a.agreement.pooled.std)
     for i, sel_i in enumerate(selected):
         if sel_i.effect != "other":
             keys = by_name[sel_i.effect].params
@@ -860,5 +943,5 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         selected=selected, final=current, planner_after=planner_after, effect_steps=effect_steps,
         switched_after=switched_after, families_compared=len(references) == 2,
         unnamed_effect_remains=unnamed_remains, dropped_after_other=dropped_after_other,
-        not_identifiable=not_identifiable,
+        not_identifiable=not_identifiable, run_agreement=agreements,
     )

@@ -27,6 +27,7 @@ PILE_UP = 0.02  # this share of moving samples at +- the largest logged steering
 LATERAL_ACCEL_MPS2 = 1.0  # tyres load up enough for grip to show
 DRIFT_SPAN_S = 20.0  # a battery drift needs this much run time
 DEAD_BAND_PROBE = 0.2  # throttles below this probe a dead band
+CURVE_SPREAD = 0.15  # the map's shape shows when moving |throttle| spreads this much (p90 - p10)
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,10 @@ def excitation(traj: Trajectory, starts: np.ndarray, horizon: int, car: CarParam
     large = seconds(moving & (thr >= DEAD_BAND_PROBE))
     put("throttle_dead_band", min(small, large), MIN_SECONDS,
         f"s moving with 0 < |throttle| < {DEAD_BAND_PROBE} and with |throttle| >= {DEAD_BAND_PROBE} (the fewer)", " s")
+    driving = moving & (thr > 0)
+    spread = float(np.ptp(np.percentile(thr[driving], [10, 90]))) if seconds(driving) >= MIN_SECONDS else 0.0
+    put("throttle_curvature", spread, CURVE_SPREAD,
+        f"spread of |throttle| while moving, p90 - p10 (needs >= {MIN_SECONDS:g} s moving with throttle)")
     span = float(np.ptp(traj.elapsed[starts])) if starts.size else 0.0
     put("motor_force_drift_per_s", span, DRIFT_SPAN_S, "s of run time spanned by the training windows", " s")
     steady = moving_w & (np.ptp(thr_w, axis=1) < 0.1) & (np.abs(thr_w[:, 0]) > 0.5)

@@ -273,12 +273,18 @@ def substeps(setup: ModelSetup, dt: float) -> int:
 
 def _stack(setups: Sequence[ModelSetup], traj: Trajectory, first: np.ndarray, steps: int, n_sub: int):
     """Coefficients and actuation of several setups, windows of setup 0 first: coefficients that differ
-    between setups are arrays (one per window), the others floats; inputs (steps, n_sub, S * N) and the
-    motor scale (steps, S * N) or None, laid out so each sub-step's inputs are contiguous."""
+    between setups are arrays (one per window), the others floats; inputs (steps, n_sub, S * N), the
+    motor scale (steps, S * N) or None, laid out so each sub-step's inputs are contiguous; and the
+    [other_terms] (``vehicles.extra_terms.coefficients``, coefficients that differ as arrays per window)."""
     n = first.size
     cars = [s.car for s in setups]
-    if any(c.other_terms != cars[0].other_terms or c.geometry != cars[0].geometry for c in cars[1:]):
-        raise ValueError("predict: stacked setups may differ in [corrections] only")
+    if any(c.geometry != cars[0].geometry for c in cars[1:]):
+        raise ValueError("predict: stacked setups may differ in [corrections] and [other_terms] only")
+    per_car = [dict((fn, (ca, cy)) for fn, ca, cy in car_extra_terms(c)) for c in cars]
+    extra = []
+    for fn in dict.fromkeys(fn for terms in per_car for fn in terms):
+        coef = np.array([terms.get(fn, (0.0, 0.0)) for terms in per_car])
+        extra.append((fn, *(float(c[0]) if np.all(c == c[0]) else np.repeat(c, n) for c in coef.T)))
     acts = actuations(traj, first, steps, cars, n_sub)
     k = ModelCoefficients.from_params(cars)
     k = ModelCoefficients(**{f.name: float(v[0]) if np.all(v == v[0]) else np.repeat(v, n)
@@ -291,7 +297,7 @@ def _stack(setups: Sequence[ModelSetup], traj: Trajectory, first: np.ndarray, st
     if any(a.motor_scale is not None for a in acts):
         scale = np.concatenate([np.ones((n, steps)) if a.motor_scale is None else a.motor_scale for a in acts]).T
         scale = np.ascontiguousarray(scale)
-    return k, inputs([a.throttle for a in acts]), inputs([a.steering for a in acts]), scale
+    return k, inputs([a.throttle for a in acts]), inputs([a.steering for a in acts]), scale, tuple(extra)
 
 
 def _with_motor_scale(k: ModelCoefficients, scale: np.ndarray | None) -> ModelCoefficients:
@@ -345,8 +351,7 @@ def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup
     lr, wheelbase, mass = car.geometry.lr_m, car.geometry.wheelbase_m, car.inertia.mass_kg
     n_sub = substeps(setups[0], traj.dt)
     h = traj.dt / n_sub
-    k_all, thr, steer, motor_scale = _stack(setups, traj, starts, horizon, n_sub)
-    extra = car_extra_terms(car)
+    k_all, thr, steer, motor_scale, extra = _stack(setups, traj, starts, horizon, n_sub)
     idx = np.tile(starts, len(setups))
     out = np.empty((idx.size, horizon + 1, 4))
     x, y, th, v = traj.xs[idx], traj.ys[idx], traj.headings[idx], traj.speed[idx]
@@ -388,15 +393,13 @@ def _predict_kinematic(traj: Trajectory, starts: np.ndarray, horizon: int, setup
 
 
 def _predict_dynamic(traj: Trajectory, starts: np.ndarray, horizon: int, setups: list[ModelSetup]) -> np.ndarray:
-    car = setups[0].car
     n_sub = substeps(setups[0], traj.dt)
     h = traj.dt / n_sub
-    extra = car_extra_terms(car)
     # Lateral velocity and yaw rate are not measured and their derivative estimates are poor under
     # fast steering, so they come from running the model over the preceding WARMUP_S from the
     # (smoothed) measured state; pose and forward speed are then reset to the measurements.
     warm = min(int(round(WARMUP_S / traj.dt)), int(np.min(starts - traj.seg_start[starts])))
-    k_all, thr, steer, motor_scale = _stack(setups, traj, starts - warm, warm + horizon, n_sub)
+    k_all, thr, steer, motor_scale, extra = _stack(setups, traj, starts - warm, warm + horizon, n_sub)
     idx = np.tile(starts, len(setups))
     # The state as separate contiguous arrays [x, y, heading, vx, vy, yaw rate]; the inputs' terms are
     # computed once per sub-step (they are held over it), the state's for each RK4 stage.

@@ -141,12 +141,41 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
         "geometry_diagnosis": result.geometry_diagnosis,
         "not_identifiable": [{"effect": n.effect, "params": list(n.params), "reasons": list(n.reasons)}
                              for n in result.not_identifiable],
+        "run_agreement": [
+            {"effect": a.effect, "param": a.param, "verdict": a.agreement.verdict,
+             "runs": [{"run": r + 1, "source": result.traj.runs[r].source, "value": v, "std": e}
+                      for r, v, e in zip(a.runs, a.values, a.stds)],
+             "excluded_runs": [result.traj.runs[r].source for r in a.excluded_runs],
+             "pooled": a.agreement.pooled.mean, "pooled_std": a.agreement.pooled.std, "tau": a.agreement.pooled.tau,
+             "q": a.agreement.pooled.q, "p_value": a.agreement.pooled.p_value}
+            for a in result.run_agreement
+        ],
         "heldout_runs": [
             {"run": i + 1, "source": result.traj.runs[i].source, "windows": n,
              "dynamic_nominal": nominal.json_dict(), "planner": planner.json_dict(), "after": after.json_dict()}
             for i, n, nominal, planner, after in per_run_summaries(result)
         ],
     }
+
+
+def disagreement_notes(result: SysidResult) -> list[str]:
+    """One sentence per parameter on which runs disagree: which runs, their estimates and the others'."""
+    notes = []
+    for a in result.run_agreement:
+        odd = a.runs if a.agreement.disagree else a.excluded_runs
+        if not odd:
+            continue
+        name = lambda r: Path(result.traj.runs[r].source).name  # noqa: E731
+        est = dict(zip(a.runs, zip(a.values, a.stds)))
+        odd_text = ", ".join(f"{name(r)} {est[r][0]:.3g} ± {est[r][1]:.2g}" for r in odd)
+        if a.agreement.disagree:
+            notes.append(f"Runs disagree on {a.effect} (`{a.param}`): {odd_text}; no majority agrees, not fitted or "
+                         "claimed.")
+        else:
+            rest = ", ".join(name(r) for r in a.agreeing_runs)
+            notes.append(f"Runs disagree on {a.effect} (`{a.param}`): {odd_text} vs {rest} "
+                         f"{a.agreement.pooled.mean:.3g} ± {a.agreement.pooled.std:.2g}; fitted on {rest} only.")
+    return notes
 
 
 def write_json(result: SysidResult, path: Path, car_params_out: str) -> Path:
@@ -293,6 +322,24 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
         for n in result.not_identifiable:
             for p, why in zip(n.params, n.reasons):
                 lines.append(f"| {n.effect} | `{p}` | {why} |")
+    if result.run_agreement:
+        lines += ["", "## Agreement between runs", "",
+                  "Each candidate fitted alone on each training run; per parameter the runs' estimates are pooled "
+                  "(random effects) and tested for agreement (docs/sysid.md, \"Agreement between runs\"). Runs that "
+                  "disagree are left out of that effect's fits; where no majority agrees, the parameter is not "
+                  "fitted or claimed.", "",
+                  "| effect | parameter | per run (value ± std) | pooled ± std (spread tau) | Q p-value | verdict |",
+                  "|---|---|---|---|---|---|"]
+        for a in result.run_agreement:
+            per = ", ".join(f"{r + 1}: {v:.4g} ± {e:.2g}" for r, v, e in zip(a.runs, a.values, a.stds))
+            verdict = a.agreement.verdict
+            if a.excluded_runs:
+                verdict += ": " + ", ".join(f"run {r + 1}" for r in a.excluded_runs) + " excluded"
+            lines.append(f"| {a.effect} | `{a.param}` | {per} | {a.agreement.pooled.mean:.4g} ± "
+                         f"{a.agreement.pooled.std:.2g} ({a.agreement.pooled.tau:.2g}) | {a.agreement.pooled.p_value:.2g} "
+                         f"| {verdict} |")
+        for note in disagreement_notes(result):
+            lines += ["", note]
     lines += ["", "## Identified effects", ""]
     if result.selected:
         lines += ["Best first. Held-out reduction against the nominal dynamic model: (RMSE of the final model "

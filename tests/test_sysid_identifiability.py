@@ -122,18 +122,22 @@ def test_wrong_geometry_or_steering_scale_is_diagnosed_as_such(clean_log, what, 
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
 
-def test_a_wrong_throttle_map_is_named_as_such_not_as_drag_or_drift():
-    """The simulated car's motor sees 0.75 x (|u| - 0.05): the throttle map is named and measured, drag and battery
-    drift (which also change the speed) are not claimed."""
+def _identify_a_car_with(**corrections):
+    """A 36 s log of the BuzzRacer whose true corrections are ``corrections``, identified with the nominal file."""
     import dataclasses
 
     from sysid.generate import generate_log
 
-    sim_car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, throttle_gain=0.75,
-                                                                       throttle_dead_band=0.05))
+    sim_car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, **corrections))
     log = generate_log(sim_car, {}, 0.6, seed=41, physics_dt=0.002)
-    result = identify(build_trajectory(log), CAR, SysidSettings(fit_max_starts=120, heldout_max_starts=500,
-                                                                n_bootstrap=300))
+    return identify(build_trajectory(log), CAR, SysidSettings(fit_max_starts=120, heldout_max_starts=500,
+                                                              n_bootstrap=300))
+
+
+def test_a_wrong_throttle_map_is_named_as_such_not_as_drag_or_drift():
+    """The simulated car's motor sees 0.75 x (|u| - 0.05): the throttle map is named and measured, drag and battery
+    drift (which also change the speed) are not claimed."""
+    result = _identify_a_car_with(throttle_gain=0.75, throttle_dead_band=0.05)
     assert [e.effect for e in result.selected] == ["throttle_map"]
     fitted = result.car_out.corrections
     assert fitted.throttle_gain == pytest.approx(0.75, rel=0.1)
@@ -148,10 +152,32 @@ def test_the_planners_command_mapping_inverts_the_throttle_map():
     from planning.commands import CommandMapper
 
     car = dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, throttle_gain=0.75,
-                                                                   throttle_dead_band=0.05))
+                                                                   throttle_dead_band=0.05, throttle_curvature=0.3))
     mapper = CommandMapper(car, 1 / 30)
     accel, speed = np.array([-2.0, -0.5, 0.0, 0.3, 1.0, 2.5]), np.full(6, 1.0)
     u = mapper.throttle_for_acceleration(accel, speed)
     # Independent check: the nominal car's acceleration at the throttle the motor really sees.
-    seen = 0.75 * np.sign(u) * np.maximum(np.abs(u) - 0.05, 0.0)
+    x = np.maximum(np.abs(u) - 0.05, 0.0)
+    seen = 0.75 * np.sign(u) * x * (1.0 + 0.3 * (x - 1.0))
     np.testing.assert_allclose(CommandMapper(CAR, 1 / 30).acceleration(seen, speed), accel, atol=1e-9)
+
+
+def test_a_curved_throttle_map_is_named_as_its_curvature_not_as_drag():
+    """The simulated car's motor sees x (1 + 0.5 (x - 1)) of the throttle x (a progressive map, full scale kept):
+    the curvature is named and measured; drag, drift and the gain are not claimed."""
+    import dataclasses
+
+    from vehicles.dynamic_bicycle import ModelCoefficients, throttle_map
+
+    # The map itself against a hand-worked value: u = 0.5, dead band 0.1, gain 2, c = 0.5: x = 0.4,
+    # 2 * 0.4 * (1 + 0.5 * (0.4 - 1)) = 0.56; slope 2 * (1 - 0.5 + 2 * 0.5 * 0.4) = 1.8.
+    k = ModelCoefficients.from_params(dataclasses.replace(CAR, corrections=dataclasses.replace(
+        CAR.corrections, throttle_gain=2.0, throttle_dead_band=0.1, throttle_curvature=0.5)))
+    mapped, slope = throttle_map(np.array([0.5, -0.5, 0.05]), k)
+    assert mapped == pytest.approx([0.56, -0.56, 0.0]) and slope == pytest.approx([1.8, 1.8, 0.0])
+    result = _identify_a_car_with(throttle_curvature=0.5)
+    assert [e.effect for e in result.selected] == ["throttle_curvature"]
+    fitted = result.car_out.corrections
+    assert fitted.throttle_curvature == pytest.approx(0.5, abs=0.1)
+    assert fitted.extra_drag_n_per_mps2 == 0.0 and fitted.motor_force_drift_per_s == 0.0
+    assert fitted.throttle_gain == 1.0

@@ -209,8 +209,11 @@ def test_dynamic_prediction_reproduces_a_noise_free_simulation(noise_free_traj):
 def test_hot_path_rates_and_batched_setups_equal_the_model_one_at_a_time(noise_free_traj):
     """The predictor's rates (input terms once per sub-step, vx/vy/yaw-rate rates without the pose) equal
     vehicles.dynamic_bicycle.derivative in all three speed regimes, and stacked setups (different delays,
-    play, asymmetry, drift, gain) predict what each predicts alone."""
+    play, asymmetry, drift, gain, throttle curvature, [other_terms]) predict what each predicts alone."""
     from vehicles.dynamic_bicycle import body_rates, derivative, input_terms
+    from vehicles.extra_terms import LIBRARY, terms_from_coefficients
+
+    assert {"u*v", "d*v"} <= set(LIBRARY)
 
     rng = np.random.default_rng(6)
     for lo, hi in ((-0.5, 0.14), (0.16, 0.34), (0.4, 3.5), (-0.5, 3.5)):  # kinematic, blend, dynamic, mixed
@@ -228,10 +231,19 @@ def test_hot_path_rates_and_batched_setups_equal_the_model_one_at_a_time(noise_f
     cars = [dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, **c)) for c in (
         {}, {"steering_delay_s": 0.03, "throttle_delay_s": 0.011}, {"steering_backlash_rad": 0.05},
         {"steering_gain_asymmetry": 0.1, "steering_gain": 0.9}, {"motor_force_drift_per_s": 0.002})]
+    cars.append(dataclasses.replace(CAR, corrections=dataclasses.replace(CAR.corrections, throttle_curvature=0.4)))
+    # [other_terms] may differ between stacked setups too (one term shared with another value, one not).
+    cars += [dataclasses.replace(CAR, other_terms=terms_from_coefficients(a, y)) for a, y in (
+        ({"u*v": 0.3}, {}), ({"u*v": -0.2}, {"d*v": 0.5}))]
+    import sysid.model
+
     for dynamic in (True, False):
+        sysid.model._PREDICTION_CACHE.clear()
+        alone = [predict(traj, starts, 30, ModelSetup(c, dynamic)) for c in cars]
+        sysid.model._PREDICTION_CACHE.clear()
         together = predict(traj, starts, 30, [ModelSetup(c, dynamic) for c in cars])
-        for c, pred in zip(cars, together):
-            np.testing.assert_allclose(pred, predict(traj, starts, 30, ModelSetup(c, dynamic)), rtol=0, atol=1e-12)
+        for want, pred in zip(alone, together):
+            np.testing.assert_allclose(pred, want, rtol=0, atol=1e-12)
 
 
 def test_fits_side_by_side_equal_the_fits_alone(monkeypatch):

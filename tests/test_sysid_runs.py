@@ -3,6 +3,7 @@ given in), whole runs held out, short runs in a set, the block length; time stam
 
 import json
 import math
+from dataclasses import replace as dataclasses_replace
 
 import numpy as np
 import pytest
@@ -148,3 +149,66 @@ def test_bad_runs_in_a_set_name_their_file_and_row(runs, tmp_path, capsys):
     assert main(["sysid", runs[0], str(short), "--report", str(tmp_path / "x.md")]) == 2
     err = capsys.readouterr().err
     assert f"{short}: no stretch of the log is long enough" in err
+
+
+def test_random_effects_pool_and_outlier_rule_by_hand():
+    from sysid.agreement import agreement, pool
+
+    # Worked by hand: w = 100 each, fixed mean 1.0333, Q = 4.667, tau^2 = (Q - 2) / (300 - 100) = 0.01333,
+    # chi-square with 2 degrees of freedom: p = exp(-Q / 2).
+    p = pool([1.0, 1.2, 0.9], [0.1, 0.1, 0.1])
+    assert p.q == pytest.approx(14 / 3)
+    assert p.p_value == pytest.approx(math.exp(-7 / 3))
+    assert p.tau == pytest.approx(math.sqrt(0.04 / 3))
+    assert p.mean == pytest.approx(31 / 30)
+    assert p.std == pytest.approx(math.sqrt((0.01 + 0.04 / 3) / 3))
+    # Four runs agree, the fifth is far off: it is excluded and the four are pooled.
+    a = agreement([0.95, 0.97, 0.31, 0.96, 0.94], [0.02] * 5)
+    assert a.excluded == (2,) and not a.disagree and a.pooled.mean == pytest.approx(0.955)
+    # A spread with no odd run is kept (in tau); two runs that disagree leave no majority.
+    spread = agreement([0.90, 0.95, 1.00, 1.05, 1.10], [0.01] * 5)
+    assert spread.excluded == () and not spread.disagree and spread.pooled.tau > 0.05
+    assert agreement([0.3, 1.0], [0.02, 0.02]).disagree
+
+
+@pytest.fixture(scope="module")
+def five_runs(tmp_path_factory):
+    """Four runs of the nominal car and one whose motor has 0.6 x the throttle gain (20 s each)."""
+    import dataclasses
+
+    odd = dataclasses.replace(NOMINAL, corrections=dataclasses.replace(NOMINAL.corrections, throttle_gain=0.6))
+    from sysid.data import common_grid_step
+
+    logs = [generate_log(car, {}, 1 / 3, seed=seed, physics_dt=0.002)
+            for car, seed in ((NOMINAL, 31), (NOMINAL, 32), (NOMINAL, 33), (NOMINAL, 34), (odd, 40))]
+    dt = common_grid_step(logs)
+    return [build_trajectory(log, dt) for log in logs]
+
+
+@pytest.mark.parametrize("odd_in_fit", [True, False])
+def test_runs_that_disagree_are_named_and_consistent_runs_are_not(five_runs, odd_in_fit):
+    from sysid.data import concatenate
+    from sysid.diagnose import candidates_for, restrict, run_agreement
+    from sysid.excitation import excitation
+    from sysid.model import ModelSetup
+
+    traj = concatenate(five_runs)
+    odd = 4
+    settings = dataclasses_replace(SETTINGS, heldout_runs=(3,) if odd_in_fit else (odd,))
+    horizon = int(round(settings.horizon_s / traj.dt))
+    split = split_starts(traj, horizon, settings)
+    cands, _ = restrict(candidates_for(NOMINAL), excitation(traj, split.train, horizon, NOMINAL))
+    kept, verdicts = run_agreement(traj, split, horizon, ModelSetup(NOMINAL, dynamic=True), cands, NOMINAL, settings)
+    assert {v.param for v in verdicts} >= {"throttle_gain", "steering_offset_rad", "steering_gain"}
+    assert not any(v.agreement.disagree for v in verdicts)
+    excluded = {v.param: v.excluded_runs for v in verdicts if v.excluded_runs}
+    if odd_in_fit:
+        gain = next(v for v in verdicts if v.param == "throttle_gain")
+        assert gain.excluded_runs == (odd,)
+        assert gain.values[gain.runs.index(odd)] == pytest.approx(0.6, abs=0.1)
+        assert gain.agreement.pooled.mean == pytest.approx(1.0, abs=0.05)
+        assert all(runs == (odd,) for runs in excluded.values())  # only the odd run is ever named
+        assert next(c for c in kept if c.effect == "throttle_map").excluded_runs == (odd,)
+    else:
+        assert excluded == {}
+        assert all(c.excluded_runs == () for c in kept)

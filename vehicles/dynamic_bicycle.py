@@ -68,9 +68,10 @@ class ModelCoefficients:
     speed_setpoint_gain: np.ndarray = 1.0
     speed_max_accel: np.ndarray = 1.0
     speed_max_decel: np.ndarray = 1.0
-    # Throttle map of a throttle car (corrections): gain and dead band.
+    # Throttle map of a throttle car (corrections): gain, dead band and curvature.
     throttle_gain: np.ndarray = 1.0
     throttle_dead_band: np.ndarray = 0.0
+    throttle_curvature: np.ndarray = 0.0
 
     @classmethod
     def from_params(
@@ -142,6 +143,7 @@ class ModelCoefficients:
             speed_max_decel=arr([p.speed_control.max_decel_mps2 for p in plist]),
             throttle_gain=arr([p.corrections.throttle_gain for p in plist]),
             throttle_dead_band=arr([p.corrections.throttle_dead_band for p in plist]),
+            throttle_curvature=arr([p.corrections.throttle_curvature for p in plist]),
         )
         if np.any(values["drag"] < 0):
             raise ValueError("drag: total drag coefficient (nominal + corrections + extra) must be >= 0")
@@ -219,7 +221,7 @@ def _throttle_terms(i: _Inputs, throttle, k: ModelCoefficients, xp) -> _Inputs:
     """Fill the throttle part of ``i``: the throttle, smoothed |throttle| (root, abs_u) and the motor force."""
     eps = k.throttle_smoothing
     i.map_slope = 1.0
-    if not (_is_one(k.throttle_gain) and _is_zero(k.throttle_dead_band)):
+    if not (_is_one(k.throttle_gain) and _is_zero(k.throttle_dead_band) and _is_zero(k.throttle_curvature)):
         throttle, i.map_slope = throttle_map(throttle, k, xp)
     i.throttle = throttle
     i.root = xp.sqrt(throttle * throttle + eps * eps)
@@ -233,11 +235,14 @@ def _is_one(value) -> bool:
 
 
 def throttle_map(throttle, k: ModelCoefficients, xp=np):
-    """The throttle the motor sees for a commanded throttle u (corrections.throttle_gain g, throttle_dead_band b):
-    g * sign(u) * max(|u| - b, 0), and its slope d/du."""
+    """The throttle the motor sees for a commanded throttle u (corrections.throttle_gain g, throttle_dead_band b,
+    throttle_curvature c): g * sign(u) * x (1 + c (x - 1)) with x = max(|u| - b, 0), and its slope d/du. The shape
+    keeps x = 0 and x = 1 in place and is monotonic for |c| <= 1: c > 0 a progressive map, c < 0 a degressive one."""
     over = xp.maximum(xp.abs(throttle) - k.throttle_dead_band, 0.0)
     sign = (throttle > 0) * 1.0 - (throttle < 0) * 1.0
-    return k.throttle_gain * sign * over, k.throttle_gain * (over > 0) * 1.0
+    c = k.throttle_curvature
+    shape = over * (1.0 + c * (over - 1.0))
+    return k.throttle_gain * sign * shape, k.throttle_gain * (1.0 - c + 2.0 * c * over) * (over > 0)
 
 
 def drive_force(vx, throttle, k: ModelCoefficients, xp=np, partials: bool = True):

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+import numpy as np
+
 from vehicles.params import CarParams, OtherTermsParams
 
 # Term label (as reported) -> (field suffix in [other_terms], function of v, u, d).
@@ -46,14 +48,15 @@ def terms_from_coefficients(accel: dict[str, float], yaw_rate: dict[str, float])
 
 
 def extra_rates(v, u, d, terms: tuple[tuple[Callable, float, float], ...]):
-    """(added d(speed)/dt, added d(heading)/dt) for ``coefficients(...)``."""
+    """(added d(speed)/dt, added d(heading)/dt) for ``coefficients(...)``; a coefficient may be an array
+    broadcasting against ``v`` (several cars' terms in one batch)."""
     dv = 0.0 * v
     dth = 0.0 * v
     for fn, ca, cy in terms:
         t = fn(v, u, d)
-        if ca != 0.0:
+        if np.any(ca != 0.0):
             dv = dv + ca * t
-        if cy != 0.0:
+        if np.any(cy != 0.0):
             dth = dth + cy * t
     return dv, dth
 

@@ -190,6 +190,9 @@ class Corrections:
     throttle_gain: float = _num(
         1.0, _between(0.2, 5.0), doc="throttle cars: the motor sees gain * sign(u) * max(|u| - dead band, 0)")
     throttle_dead_band: float = _num(0.0, _between(0.0, 0.5), doc="throttle cars: |throttle| below this does nothing")
+    throttle_curvature: float = _num(
+        0.0, _between(-1.0, 1.0),
+        doc="throttle cars: c in the map's shape x (1 + c (x - 1)), x = max(|u| - dead band, 0); full scale unchanged")
     speed_setpoint_gain: float = _num(
         1.0, _between(0.2, 5.0), doc="speed set-point cars: speed reached per commanded m/s")
     speed_response_scale: float = _num(
