@@ -88,18 +88,23 @@ int Solver::best_response_sweeps(int rounds, int budget) {
           const auto [d, steps] = sub_solve_distance(i, j);
           s.update_obstacle(o++, br_positions_, d, steps);
         }
-      s.settings_.max_iter = std::min(settings_.best_response.max_iter, left);
-      s.settings_.time_limit = time;
-      br_warm_.u[0] = y_.u[i].transpose();
-      const Result r = s.solve(&br_warm_);
-      used += r.info.iterations;
-      // A failed sub-solve still returns controls (its last attempt's): keep them if finite, as a guess.
-      if (r.u[0].allFinite()) {
-        y_.u[i] = r.u[0].transpose();
-        roll_out(y_, i);
-      }
+      used += sub_solve(i, std::min(settings_.best_response.max_iter, left), time);
     }
   return used;
+}
+
+int Solver::sub_solve(int i, int max_iter, double time_limit) {
+  Solver& s = *br_[i];
+  s.settings_.max_iter = max_iter;
+  s.settings_.time_limit = time_limit;
+  br_warm_.u[0] = y_.u[i].transpose();
+  const Result r = s.solve(&br_warm_);
+  // A failed sub-solve still returns controls (its last attempt's): keep them if finite, as a guess.
+  if (r.u[0].allFinite()) {
+    y_.u[i] = r.u[0].transpose();
+    roll_out(y_, i);
+  }
+  return r.info.iterations;
 }
 
 int Solver::start_best_response_attempt(int budget) {

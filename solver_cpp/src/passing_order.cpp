@@ -138,15 +138,7 @@ int Solver::ordered_guess(const std::vector<int>& winding, int budget) {
       }
       s.update_obstacle(o++, br_positions_, d, steps);
     }
-    s.settings_.max_iter = std::min(settings_.order.max_iter, left);
-    s.settings_.time_limit = time;
-    br_warm_.u[0] = y_.u[i].transpose();
-    const Result r = s.solve(&br_warm_);
-    used += r.info.iterations;
-    if (r.u[0].allFinite()) {
-      y_.u[i] = r.u[0].transpose();
-      roll_out(y_, i);
-    }
+    used += sub_solve(i, std::min(settings_.order.max_iter, left), time);
   }
   return used;
 }
