@@ -6,12 +6,15 @@ checks: bench/verify.py's per-player stationarity and SLSQP best responses, and 
 reported is checked against the geometry: the car that crosses the other's lane first."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
+from app.cli import main
 from bench.verify import verify_equilibrium
 from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, QuadraticCost, solve
-from solver_cpp.problem_file import result_to_dict
+from solver_cpp.problem_file import problem_to_dict, result_to_dict
 
 TOL = 1e-5  # best-response checks need an accurate solve (bench/verify.py)
 
@@ -91,3 +94,16 @@ def test_off_by_default_and_the_order_still_reported():
 def test_settings_validation_names_the_field(group, message):
     with pytest.raises(ValueError, match=message.replace(".", r"\.")):
         solve(crossing(), order=group)
+
+
+def test_solve_command_writes_the_orders_and_rejects_a_bad_setting(tmp_path, capsys):
+    good, out = tmp_path / "p.json", tmp_path / "r.json"
+    good.write_text(json.dumps(problem_to_dict(crossing(), solver={"tol": TOL, "order": {"candidates": 2}})))
+    assert main(["solve", str(good), "--out", str(out), "--time-limit", "0"]) == 0
+    doc = json.loads(out.read_text())
+    assert len(doc["passing_order"]) == 1 and doc["passing_order"][0]["first"] == first_across(np.asarray(doc["x"]))
+    assert sum(c["equilibrium"] for c in doc["orders"]) == 2 and len(doc["other_orders"]) == 1
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(problem_to_dict(crossing(), solver={"order": {"polish_iter": 0}})))
+    assert main(["solve", str(bad)]) == 2
+    assert f"{bad}: solver.order.polish_iter must be >= 1" in capsys.readouterr().err
