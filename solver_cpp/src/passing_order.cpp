@@ -184,9 +184,7 @@ void Solver::passing_of(std::vector<PassingPair>& out) const {
   }
 }
 
-bool Solver::search_orders(Result& found, Info& info, int& total_iter) {
-  if (settings_.order.candidates <= 0 || conflicts_.empty()) return false;
-  candidate_orders();
+int Solver::build_ordered_guesses(Info& info, int& total_iter) {
   const int K = static_cast<int>(order_signs_.size());
   order_u_.resize(K);
   info.orders.assign(K, OrderCandidate{});
@@ -207,49 +205,58 @@ bool Solver::search_orders(Result& found, Info& info, int& total_iter) {
     oc.guess_residual = assemble(true, info) ? merit(r_, rc_) : kInf;
   }
   info.orders.resize(built);
+  return built;
+}
+
+bool Solver::polish_candidate(int c, Result& found, Info& info, int& total_iter) {
+  for (int i = 0; i < N_; ++i) {
+    y_.u[i] = order_u_[c][i];
+    y_.lam[i].setZero();
+    roll_out(y_, i);
+  }
+  y_.mu.setZero();
+  y_.mu2.setZero();
+  y_.z.setZero();
+  use_rules(deep_overlap());
+  rho_ = settings_.barrier.rho_init;
+  barrier_ = settings_.barrier.mode;
+  inertia_on_ = false;
+  info.attempts = ++info.order_attempts;
+  const int start = total_iter;
+  attempt_cap_ = std::min(settings_.max_iter, total_iter + settings_.order.polish_iter);
+  run_attempt(info, total_iter);
+  attempt_cap_ = 0;
+  OrderCandidate& oc = info.orders[c];
+  oc.polished = true;
+  oc.status = info.status;
+  oc.iterations = total_iter - start;
+  if (info.status != Status::Converged) return false;
+  Result cand;
+  cand.info = info;
+  write_result(cand, cand.info);  // the second-order test decides converged or saddle
+  oc.status = cand.info.status;
+  oc.equilibrium = cand.info.status == Status::Converged;
+  if (!oc.equilibrium) return false;
+  oc.u = cand.u;
+  oc.found.resize(conflicts_.size());
+  for (size_t q = 0; q < conflicts_.size(); ++q) oc.found[q] = winding_of(y_, conflicts_[q].i, conflicts_[q].j);
+  found = std::move(cand);
+  return true;
+}
+
+bool Solver::search_orders(Result& found, Info& info, int& total_iter) {
+  if (settings_.order.candidates <= 0 || conflicts_.empty()) return false;
+  candidate_orders();
+  const int built = build_ordered_guesses(info, total_iter);
   std::vector<int> rank(built);
   std::iota(rank.begin(), rank.end(), 0);
   std::stable_sort(rank.begin(), rank.end(),
                    [&](int a, int b) { return info.orders[a].guess_residual < info.orders[b].guess_residual; });
   int best = -1;
+  Result cand;
   for (int p = 0; p < std::min(settings_.order.polish, built); ++p) {
     if (total_iter >= settings_.max_iter || past_deadline()) break;
-    const int c = rank[p];
-    for (int i = 0; i < N_; ++i) {
-      y_.u[i] = order_u_[c][i];
-      y_.lam[i].setZero();
-      roll_out(y_, i);
-    }
-    y_.mu.setZero();
-    y_.mu2.setZero();
-    y_.z.setZero();
-    use_rules(deep_overlap());
-    rho_ = settings_.barrier.rho_init;
-    barrier_ = settings_.barrier.mode;
-    inertia_on_ = false;
-    info.attempts = ++info.order_attempts;
-    const int start = total_iter;
-    attempt_cap_ = std::min(settings_.max_iter, total_iter + settings_.order.polish_iter);
-    run_attempt(info, total_iter);
-    attempt_cap_ = 0;
-    OrderCandidate& oc = info.orders[c];
-    oc.polished = true;
-    oc.status = info.status;
-    oc.iterations = total_iter - start;
-    if (info.status == Status::Converged) {
-      Result cand;
-      cand.info = info;
-      write_result(cand, cand.info);
-      oc.status = cand.info.status;
-      oc.equilibrium = cand.info.status == Status::Converged;
-      oc.u = cand.u;
-      oc.found.resize(conflicts_.size());
-      for (size_t q = 0; q < conflicts_.size(); ++q) oc.found[q] = winding_of(y_, conflicts_[q].i, conflicts_[q].j);
-      if (oc.equilibrium && best < 0) {
-        best = c;
-        found = std::move(cand);
-      }
-    }
+    if (polish_candidate(rank[p], best < 0 ? found : cand, info, total_iter) && best < 0) best = rank[p];
     if (info.status == Status::TimeLimit) break;
     ++total_iter;
   }

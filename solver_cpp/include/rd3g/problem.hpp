@@ -300,7 +300,7 @@ struct PassingPair {
 /// One candidate order of the passing-order search (Settings::order).
 struct OrderCandidate {
   std::vector<int> requested;  ///< winding per conflicting pair (Info::passing_order's pairs) asked of its guess
-  std::vector<int> found;      ///< winding per pair at the polished point (empty if not polished)
+  std::vector<int> found;      ///< winding per pair at the polished point (empty unless it is an equilibrium)
   double guess_residual = 0;   ///< ||r|| at the ordered guess (rho_init, no multipliers): the ranking
   bool polished = false;
   Status status = Status::MaxIterations;  ///< of the polish (converged, saddle, stalled, ...), if polished

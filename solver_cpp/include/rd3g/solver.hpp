@@ -128,8 +128,12 @@ class Solver {
   /// The order of every conflicting pair at y_.
   void passing_of(std::vector<PassingPair>& out) const;
   int winding_of(const Iterate& y, int i, int j) const;
-  /// Builds, ranks and polishes the candidates; true if `res` holds an equilibrium to return.
-  bool search_orders(Result& res, Info& info, int& total_iter);
+  /// Builds, ranks and polishes the candidates; true if `found` holds an equilibrium to return.
+  bool search_orders(Result& found, Info& info, int& total_iter);
+  /// The ordered guess of every candidate (order_u_) and its residual (info.orders); returns how many were built.
+  int build_ordered_guesses(Info& info, int& total_iter);
+  /// Newton from candidate c's guess (one attempt, order.polish_iter); true if it reached an equilibrium, then in out.
+  bool polish_candidate(int c, Result& out, Info& info, int& total_iter);
   std::vector<ConflictPair> conflicts_;
   std::vector<std::vector<int>> order_signs_;
   std::vector<std::vector<Mat>> order_u_;  // per candidate: the ordered guess's controls (nu x T per agent)
