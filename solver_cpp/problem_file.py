@@ -186,6 +186,11 @@ def result_to_dict(result: GameResult) -> dict:
         "solve_time_s": float(result.solve_time_s),
         # per agent, smallest reduced-Hessian eigenvalue; null = no free direction (inf)
         "second_order": [float(v) if np.isfinite(v) else None for v in result.second_order],
+        # conflicting pairs of the initial guess and their order at the result; the passing-order search's candidates
+        "passing_order": result.passing_order,
+        "orders": [{**c, "guess_residual": c["guess_residual"] if np.isfinite(c["guess_residual"]) else None,
+                    "u": None if c["u"] is None else c["u"].tolist()} for c in result.orders],
+        "other_orders": result.other_orders,
         "x": result.x.tolist(),
         "u": result.u.tolist(),
         "residual_history": result.residual_history.tolist(),

@@ -17,7 +17,7 @@ from .problem import GameProblem
 # Settings are grouped by concern as in the C++ struct (solver_cpp/include/rd3g/problem.hpp): top-level
 # tol, max_iter, time_limit, ... and one group per concern, given as a mapping, e.g.
 # make_settings(tol=1e-4, stall=dict(window=8), restart=dict(count=3)); problem files use the same nesting.
-SETTING_GROUPS = ("barrier", "line_search", "linear", "stall", "restart", "best_response", "second_order")
+SETTING_GROUPS = ("barrier", "line_search", "linear", "stall", "restart", "best_response", "second_order", "order")
 
 # The flat names of the previous release, accepted with a DeprecationWarning until the next one.
 FLAT_SETTING_NAMES = {
@@ -174,6 +174,16 @@ class GameResult:
     # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
     # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
     second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # The pairs whose rolled-out initial guess comes closer than d_min, with the order the returned point gives them:
+    # dicts i, j, winding (+1: p_j - p_i turns counterclockwise over the horizon), first (the agent ahead at their
+    # closest approach), side ("left"/"right": where the other passes first), gap (m).
+    passing_order: list = field(default_factory=list)
+    # The passing-order search's candidates (setting order.candidates; empty if it did not run): dicts requested and
+    # found (winding per pair of passing_order), guess_residual, polished, status, iterations, equilibrium, returned,
+    # u (N, T, nu): the polished point's controls if it converged, else None (warm-start a solve from them).
+    orders: list = field(default_factory=list)
+    order_attempts: int = 0     # polish attempts of the passing-order search
+    order_iterations: int = 0   # Newton iterations of its ordered guesses' single-agent sub-solves (1/N each)
     constraints: list = field(repr=False, default_factory=list)
     setup_time_s: float = 0.0   # the solver's last set-up (validation, constraint list, allocation), maybe older
     update_time_s: float = 0.0  # update calls since the previous solve
@@ -182,6 +192,17 @@ class GameResult:
     @property
     def converged(self) -> bool:
         return self.status == "converged"
+
+    @property
+    def other_orders(self) -> list:
+        """Windings (one per pair of passing_order) of the other local equilibria the passing-order search found:
+        equilibria whose order differs from the returned point's."""
+        mine = [p["winding"] for p in self.passing_order]
+        out: list = []
+        for c in self.orders:
+            if c["equilibrium"] and c["found"] != mine and c["found"] not in out:
+                out.append(c["found"])
+        return out
 
     def pair_multipliers(self) -> np.ndarray:
         """mu for the pairwise collision constraints as an array (T, N, N) for k = 1..T (symmetric)."""
@@ -273,13 +294,27 @@ class Solver:
             best_response_attempts=i.best_response_attempts, best_response_iterations=i.best_response_iterations,
             constraints=self.constraints,
             setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups,
-            second_order=np.asarray(i.second_order, dtype=float))
+            second_order=np.asarray(i.second_order, dtype=float),
+            passing_order=[_passing_pair(p) for p in i.passing_order], orders=[_order_candidate(c) for c in i.orders],
+            order_attempts=i.order_attempts, order_iterations=i.order_iterations)
 
     def best_response(self, rounds: int, warm_start: WarmStart | None = None) -> WarmStart:
         """Controls (N, T, nu) after `rounds` (>= 1) Gauss-Seidel sweeps of iterated best response from the warm
         start's controls (zero without), with the C++ sweeps of the best-response restart (best_response.rounds)."""
         ws = None if warm_start is None else _to_core_warm(warm_start, self._sizes, len(self.constraints))
         return WarmStart(u=np.stack(self._solver.best_response(int(rounds), ws).u))
+
+
+def _passing_pair(p) -> dict:
+    return {"i": p.i, "j": p.j, "winding": p.winding, "first": p.first, "side": "left" if p.side > 0 else "right",
+            "gap": p.gap}
+
+
+def _order_candidate(c) -> dict:
+    return {"requested": list(c.requested), "found": list(c.found), "guess_residual": c.guess_residual,
+            "polished": c.polished, "status": _core.status_name(c.status) if c.polished else None,
+            "iterations": c.iterations, "equilibrium": c.equilibrium, "returned": c.returned,
+            "u": np.stack(c.u) if len(c.u) else None}
 
 
 def _same_model(a, b) -> bool:

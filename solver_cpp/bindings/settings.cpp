@@ -37,11 +37,14 @@ void bind_settings(py::module_& m) {
       RW(SecondOrderSettings, gap) RW(SecondOrderSettings, tol) RW(SecondOrderSettings, restart_on_saddle)
       RW(SecondOrderSettings, escapes) RW(SecondOrderSettings, escape_step) RW(SecondOrderSettings, escape_rho)
       RW(SecondOrderSettings, inertia);
+  py::class_<PassingOrderSettings>(m, "PassingOrderSettings").def(py::init<>())
+      RW(PassingOrderSettings, candidates) RW(PassingOrderSettings, polish) RW(PassingOrderSettings, polish_iter)
+      RW(PassingOrderSettings, max_iter) RW(PassingOrderSettings, offset);
   // Groups are returned by reference (settings.stall.window = 8 changes the settings).
   py::class_<Settings>(m, "Settings").def(py::init<>())
       RW(Settings, tol) RW(Settings, max_iter) RW(Settings, time_limit) RW(Settings, violation_tol)
       RW(Settings, dynamics_tol) RW(Settings, multiplier_tol) RW(Settings, domain_fraction) RW(Settings, verbose)
       RW(Settings, barrier) RW(Settings, line_search) RW(Settings, linear) RW(Settings, stall) RW(Settings, restart)
-      RW(Settings, best_response) RW(Settings, second_order);
+      RW(Settings, best_response) RW(Settings, second_order) RW(Settings, order);
 #undef RW
 }

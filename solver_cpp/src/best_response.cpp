@@ -14,16 +14,16 @@
 
 namespace rd3g {
 
-int Solver::best_response_sweeps(int rounds, int budget) {
-  const bool others = prob_.collision.enabled && N_ > 1;  // the others are obstacles only if collisions count
-  const int n_obs = static_cast<int>(prob_.obstacles.size());
+std::pair<double, Vec> Solver::sub_solve_distance(int i, int j) const {
   // The others are kept at their pair's collision distance plus the margin: the guess then starts strictly inside.
   const double inflate = 1.0 + settings_.best_response.margin;
-  auto keep_distance = [&](int i, int j) {  // (d_min, per-step d_min) at which agent i keeps agent j
-    const PairDistance* q = prob_.collision.pair_distance(i, j);
-    const Vec& steps = q ? q->min_distance_steps : prob_.collision.min_distance_steps;
-    return std::make_pair(inflate * (q ? q->min_distance : prob_.collision.min_distance), Vec(inflate * steps));
-  };
+  const PairDistance* q = prob_.collision.pair_distance(i, j);
+  const Vec& steps = q ? q->min_distance_steps : prob_.collision.min_distance_steps;
+  return std::make_pair(inflate * (q ? q->min_distance : prob_.collision.min_distance), Vec(inflate * steps));
+}
+
+void Solver::prepare_sub_solvers() {
+  const bool others = prob_.collision.enabled && N_ > 1;  // the others are obstacles only if collisions count
   if (br_stale_ || static_cast<int>(br_.size()) != N_) {
     // One single-agent problem per agent: its model, cost, bounds and the problem's obstacles, then one moving
     // obstacle per other agent at the inflated distance (positions filled before each sub-solve). The lead term
@@ -31,6 +31,7 @@ int Solver::best_response_sweeps(int rounds, int budget) {
     // change agent i's best response except through its own -(N-1) weight x_i[index] term, which the guess omits.
     Settings sub = settings_;
     sub.best_response.rounds = 0;
+    sub.order.candidates = 0;
     sub.restart.count = std::min(settings_.restart.count, 1);  // a guess, not an answer: one restart
     sub.max_iter = settings_.best_response.max_iter;
     sub.time_limit = 0;
@@ -56,7 +57,7 @@ int Solver::best_response_sweeps(int rounds, int budget) {
           if (j == i) continue;
           Obstacle o;
           o.positions = br_positions_;
-          std::tie(o.min_distance, o.min_distance_steps) = keep_distance(i, j);
+          std::tie(o.min_distance, o.min_distance_steps) = sub_solve_distance(i, j);
           p.obstacles.push_back(std::move(o));
         }
       if (!br_[i]) br_[i] = std::make_unique<Solver>();
@@ -65,6 +66,12 @@ int Solver::best_response_sweeps(int rounds, int budget) {
     br_warm_.u.assign(1, Mat::Zero(T_, nu_));
     br_stale_ = false;
   }
+}
+
+int Solver::best_response_sweeps(int rounds, int budget) {
+  const bool others = prob_.collision.enabled && N_ > 1;
+  const int n_obs = static_cast<int>(prob_.obstacles.size());
+  prepare_sub_solvers();
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   int used = 0;
   for (int round = 0; round < rounds; ++round)
@@ -78,21 +85,26 @@ int Solver::best_response_sweeps(int rounds, int budget) {
           if (j == i) continue;
           br_positions_.col(0) = y_.x[j].row(px).transpose();
           br_positions_.col(1) = y_.x[j].row(py).transpose();
-          const auto [d, steps] = keep_distance(i, j);
+          const auto [d, steps] = sub_solve_distance(i, j);
           s.update_obstacle(o++, br_positions_, d, steps);
         }
-      s.settings_.max_iter = std::min(settings_.best_response.max_iter, left);
-      s.settings_.time_limit = time;
-      br_warm_.u[0] = y_.u[i].transpose();
-      const Result r = s.solve(&br_warm_);
-      used += r.info.iterations;
-      // A failed sub-solve still returns controls (its last attempt's): keep them if finite, as a guess.
-      if (r.u[0].allFinite()) {
-        y_.u[i] = r.u[0].transpose();
-        roll_out(y_, i);
-      }
+      used += sub_solve(i, std::min(settings_.best_response.max_iter, left), time);
     }
   return used;
+}
+
+int Solver::sub_solve(int i, int max_iter, double time_limit) {
+  Solver& s = *br_[i];
+  s.settings_.max_iter = max_iter;
+  s.settings_.time_limit = time_limit;
+  br_warm_.u[0] = y_.u[i].transpose();
+  const Result r = s.solve(&br_warm_);
+  // A failed sub-solve still returns controls (its last attempt's): keep them if finite, as a guess.
+  if (r.u[0].allFinite()) {
+    y_.u[i] = r.u[0].transpose();
+    roll_out(y_, i);
+  }
+  return r.info.iterations;
 }
 
 int Solver::start_best_response_attempt(int budget) {

@@ -28,11 +28,13 @@ Result Solver::solve(const WarmStart* warm) {
   Info& info = res.info;
   begin_solve(info, warm);
   Schedule sc;
+  Result ordered;
+  if (search_orders(ordered, info, sc.total_iter)) return ordered;
   for (int attempt = 0; attempt <= settings_.restart.count; ++attempt) {
     const bool br_now = !sc.from_saddle && sc.br_attempts == 0 && settings_.best_response.rounds > 0 &&
                         attempt == kBestResponseAttempt;
     bool repeat = br_now;  // an inserted attempt: the schedule resumes at this attempt afterwards
-    info.attempts = attempt + 1 + sc.escapes + sc.br_attempts;
+    info.attempts = attempt + 1 + sc.escapes + sc.br_attempts + info.order_attempts;
     info.saddle_escapes = sc.escapes;
     start_scheduled_attempt(attempt, br_now, warm, sc, info);
     if (run_attempt(info, sc.total_iter) == AttemptEnd::Finished) {
@@ -72,6 +74,8 @@ void Solver::begin_solve(Info& info, const WarmStart* warm) {
   last_iteration_seconds_ = 0;
   best_merit_ = kInf;
   inertia_delta_.assign(N_, 0.0);
+  attempt_cap_ = 0;
+  find_conflicts();
 }
 
 void Solver::start_scheduled_attempt(int attempt, bool best_response, const WarmStart* warm, Schedule& sc,
@@ -105,6 +109,9 @@ Result Solver::saddle_result(Schedule& sc, const Info& info) const {
   saddle.info.saddle_escapes = info.saddle_escapes;
   saddle.info.best_response_attempts = info.best_response_attempts;
   saddle.info.best_response_iterations = info.best_response_iterations;
+  saddle.info.orders = info.orders;
+  saddle.info.order_attempts = info.order_attempts;
+  saddle.info.order_iterations = info.order_iterations;
   saddle.info.timings.total = seconds_since(t_start_);
   return saddle;
 }
@@ -241,7 +248,10 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     const double rnorm = merit(r_, rc_);
     record_iterate(rnorm, total_iter, info);
     if (converged(rnorm)) { info.status = Status::Converged; break; }
-    if (total_iter >= settings_.max_iter) { info.status = Status::MaxIterations; break; }
+    if (total_iter >= settings_.max_iter || (attempt_cap_ > 0 && total_iter >= attempt_cap_)) {
+      info.status = Status::MaxIterations;
+      break;
+    }
     if (next_iteration_overruns()) { info.status = Status::TimeLimit; break; }
     double merit_now = rnorm;
     if (stalling(rnorm) && !handle_stall(polished, merit_now, stalled, info)) break;
@@ -365,6 +375,7 @@ void Solver::write_result(Result& res, Info& info) {
     }
   }
   res.h = h_;
+  passing_of(info.passing_order);
   info.active_constraints = nact;
   info.max_violation = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
   info.rho = rho_;

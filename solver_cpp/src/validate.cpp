@@ -223,6 +223,12 @@ void validate_settings(const Settings& s) {
   require(s.best_response.max_iter >= 1, "solver.best_response.max_iter must be >= 1");
   require(std::isfinite(s.best_response.margin) && s.best_response.margin >= 0,
           "solver.best_response.margin must be finite and >= 0 (a fraction of the collision distance)");
+  require(s.order.candidates >= 0, "solver.order.candidates must be >= 0 (0 = off)");
+  require(s.order.polish >= 1, "solver.order.polish must be >= 1");
+  require(s.order.polish_iter >= 1, "solver.order.polish_iter must be >= 1");
+  require(s.order.max_iter >= 1, "solver.order.max_iter must be >= 1");
+  require(std::isfinite(s.order.offset) && s.order.offset >= 0,
+          "solver.order.offset must be finite and >= 0 (a fraction of the collision distance)");
   require(s.second_order.escapes >= 0, "solver.second_order.escapes must be >= 0 (0 = off)");
   require(std::isfinite(s.second_order.escape_step) && s.second_order.escape_step > 0, "solver.second_order.escape_step must be positive and finite (control units)");
   require(std::isfinite(s.second_order.escape_rho) && s.second_order.escape_rho > 0, "solver.second_order.escape_rho must be positive and finite");

@@ -231,6 +231,26 @@ struct SecondOrderSettings {
   double inertia = 1.5;
 };
 
+/// Passing-order search before Newton (Settings::order; docs/solver.md, "Passing order"). The conflicting pairs are
+/// those whose rolled-out initial guess comes closer than their collision distance; an order gives each the sign of
+/// its winding (+1: p_j - p_i turns counterclockwise over the horizon, i < j), which says who passes first and on
+/// which side. Per candidate order an ordered guess is built by one Gauss-Seidel sweep of single-agent sub-solves
+/// (the best-response sub-solvers) in agent order, in which the lower agent of a conflicting pair ignores the higher,
+/// and the higher sees the lower's disc moved by `offset` d_min towards the side it must not take (radius grown by
+/// as much). The `polish` candidates with the lowest residual ||r|| at their guess are polished by Newton, each an
+/// attempt of at most `polish_iter` iterations; the first (by guess residual) that converges and passes the
+/// second-order test is returned, the others are reported in Info::orders. If none does, the restart schedule runs
+/// as without the search. Sub-solve iterations count 1/N of a game iteration, as in the best-response restart.
+struct PassingOrderSettings {
+  /// Candidate orders built (0 = off): every one of the 2^P orders of P conflicting pairs if 2^P <= candidates,
+  /// else the rolled-out guess's own order, its single flips, then seeded random orders, up to `candidates`.
+  int candidates = 0;
+  int polish = 2;          ///< candidates polished by Newton (best guess residual first), >= 1 (at most candidates)
+  int polish_iter = 150;   ///< Newton iterations per polished candidate (game iterations), >= 1
+  int max_iter = 50;       ///< Newton iterations per single-agent sub-solve of an ordered guess, >= 1
+  double offset = 1.0;     ///< displacement of a leader's disc, fraction of the collision distance, finite, >= 0
+};
+
 /// Every setting of RD3G, grouped by concern (OSQP/proxsuite style); one documented default per field.
 struct Settings {
   double tol = 5e-4;   ///< stop when ||r||_2 < tol (and the other conditions hold)
@@ -257,6 +277,7 @@ struct Settings {
   RestartSettings restart;
   BestResponseSettings best_response;
   SecondOrderSettings second_order;
+  PassingOrderSettings order;
 };
 
 /// stalled: every attempt (see restarts) stopped making progress before max_iter.
@@ -272,6 +293,28 @@ std::string status_name(Status s);
 struct Timings {
   double total = 0, assembly = 0, linear_solve = 0, line_search = 0;
   double setup = 0, update = 0;
+};
+
+/// The order of one conflicting pair (its rolled-out initial guess comes closer than d_min) at a returned point.
+struct PassingPair {
+  int i = 0, j = 0;  ///< the agents, i < j
+  int winding = 0;   ///< +1: p_j - p_i turns counterclockwise over k = 0..T, -1: clockwise (identifies the order)
+  int first = 0;     ///< the agent ahead of the other along its own heading at their closest approach
+  int side = 0;      ///< +1: the other agent passes on first's left, -1: on its right
+  double gap = 0;    ///< (m) their smallest distance over k = 1..T
+};
+
+/// One candidate order of the passing-order search (Settings::order).
+struct OrderCandidate {
+  std::vector<int> requested;  ///< winding per conflicting pair (Info::passing_order's pairs) asked of its guess
+  std::vector<int> found;      ///< winding per pair at the polished point (empty unless it is an equilibrium)
+  double guess_residual = 0;   ///< ||r|| at the ordered guess (rho_init, no multipliers): the ranking
+  bool polished = false;
+  Status status = Status::MaxIterations;  ///< of the polish (converged, saddle, stalled, ...), if polished
+  int iterations = 0;          ///< Newton iterations of the polish
+  bool equilibrium = false;    ///< converged and passed the second-order test
+  bool returned = false;       ///< the solve returned this candidate's point
+  std::vector<Mat> u;          ///< per agent T x nu: the polished point's controls if it converged (else empty)
 };
 
 struct Info {
@@ -294,6 +337,11 @@ struct Info {
   /// Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
   /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.
   std::vector<double> second_order;
+  /// The conflicting pairs of the initial guess and the order the returned point gives them (always filled).
+  std::vector<PassingPair> passing_order;
+  std::vector<OrderCandidate> orders;  ///< the passing-order search's candidates (empty if it did not run)
+  int order_attempts = 0;              ///< polish attempts of the passing-order search
+  int order_iterations = 0;            ///< Newton iterations of its ordered guesses' sub-solves, unscaled
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
   std::vector<double> step_history;      ///< accepted line-search step t per iteration
   Timings timings;

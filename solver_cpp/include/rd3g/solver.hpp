@@ -9,6 +9,7 @@
 #include <chrono>
 #include <memory>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "rd3g/clock.hpp"
@@ -102,6 +103,41 @@ class Solver {
   int start_best_response_attempt(int budget);
   /// Gauss-Seidel sweeps on y_'s controls (best_response.cpp); returns the sub-solves' iterations (<= budget).
   int best_response_sweeps(int rounds, int budget);
+  /// The single-agent sub-solvers of the best response (br_), built if stale.
+  void prepare_sub_solvers();
+  /// Agent i's sub-solve (obstacles already set) from its controls in y_, which take its result if finite;
+  /// returns its iterations.
+  int sub_solve(int i, int max_iter, double time_limit);
+  /// (d_min, per-step d_min) at which a sub-solve keeps agent j away from agent i (best_response.margin beyond).
+  std::pair<double, Vec> sub_solve_distance(int i, int j) const;
+
+  // Passing-order search (passing_order.cpp; Settings::order).
+  /// A pair whose rolled-out initial guess comes closer than d_min: its deepest step k, the unit normal n of the
+  /// relative motion there (winding +1 puts p_j - p_i on n's side) and the guess's own winding.
+  struct ConflictPair {
+    int i = 0, j = 0, k = 0;
+    Eigen::Vector2d n = Eigen::Vector2d::Zero();
+    int natural = 1;
+  };
+  /// The conflicting pairs of y_ (the rolled-out initial guess) into conflicts_.
+  void find_conflicts();
+  /// The candidate orders (winding per conflicting pair) into order_signs_.
+  void candidate_orders();
+  /// y_ from the initial controls and one ordered sweep for the given windings; returns sub-solve iterations.
+  int ordered_guess(const std::vector<int>& winding, int budget);
+  /// The order of every conflicting pair at y_.
+  void passing_of(std::vector<PassingPair>& out) const;
+  int winding_of(const Iterate& y, int i, int j) const;
+  /// Builds, ranks and polishes the candidates; true if `found` holds an equilibrium to return.
+  bool search_orders(Result& found, Info& info, int& total_iter);
+  /// The ordered guess of every candidate (order_u_) and its residual (info.orders); returns how many were built.
+  int build_ordered_guesses(Info& info, int& total_iter);
+  /// Newton from candidate c's guess (one attempt, order.polish_iter); true if it reached an equilibrium, then in out.
+  bool polish_candidate(int c, Result& out, Info& info, int& total_iter);
+  std::vector<ConflictPair> conflicts_;
+  std::vector<std::vector<int>> order_signs_;
+  std::vector<std::vector<Mat>> order_u_;  // per candidate: the ordered guess's controls (nu x T per agent)
+  int attempt_cap_ = 0;                    // > 0: the current attempt ends at this total iteration count
   // Set-up steps.
   void list_and_allocate();  // constraint list of prob_ and every buffer sized by it
   void finish_update(Clock::time_point t0);

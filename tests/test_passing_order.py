@@ -1,0 +1,109 @@
+"""Passing-order search before Newton (setting group `order`, solver_cpp/src/passing_order.cpp).
+
+A symmetric two-car crossing has two local equilibria, one per passing order (east-bound first or north-bound
+first). The search must find both, report the order of the one it returns, and each must pass the independent
+checks: bench/verify.py's per-player stationarity and SLSQP best responses, and the second-order test. The order
+reported is checked against the geometry: the car that crosses the other's lane first."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from bench.verify import verify_equilibrium
+from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, QuadraticCost, solve
+from solver_cpp.problem_file import problem_to_dict, result_to_dict
+
+TOL = 1e-5  # best-response checks need an accurate solve (bench/verify.py)
+
+
+def crossing(offset: float = 0.2) -> GameProblem:
+    """Car 0 east along y = 0 from x = -5, car 1 north along x = 0 from y = -5 - offset, both at 2 m/s: without
+    avoidance they meet at the origin, and either may go first."""
+    bike = KinematicBicycle(lf=1.0, lr=1.0)
+    east = Agent(bike, (-5.0, 0.0, 2.0, 0.0),
+                 QuadraticCost(x_ref=(0.0, 0.0, 2.0, 0.0), Q_ref=(0.0, 0.5, 0.05, 1.0), R=(0.3, 0.3)))
+    north = Agent(bike, (0.0, -5.0 - offset, 2.0, np.pi / 2),
+                  QuadraticCost(x_ref=(0.0, 0.0, 2.0, np.pi / 2), Q_ref=(0.5, 0.0, 0.05, 1.0), R=(0.3, 0.3)))
+    return GameProblem(dt=0.2, horizon=25, agents=[east, north],
+                       collision=Collision(min_distance=1.6, form="distance"))
+
+
+def first_across(x: np.ndarray) -> int:
+    """The car that crosses the other's lane first: car 0 crosses x = 0, car 1 crosses y = 0 (first step past)."""
+    step0 = int(np.argmax(x[0, :, 0] > 0.0))
+    step1 = int(np.argmax(x[1, :, 1] > 0.0))
+    return 0 if step0 < step1 else 1
+
+
+@pytest.fixture(scope="module")
+def searched():
+    return solve(crossing(), tol=TOL, time_limit=0, order=dict(candidates=2, polish=2))
+
+
+def test_the_search_finds_both_orders_and_reports_the_returned_one(searched):
+    r = searched
+    assert r.status == "converged"
+    assert [(p["i"], p["j"]) for p in r.passing_order] == [(0, 1)]  # the rolled-out guess collides
+    assert len(r.orders) == 2 and sorted(c["requested"] for c in r.orders) == [[-1], [1]]
+    solved = [c for c in r.orders if c["equilibrium"]]
+    assert len(solved) == 2 and {tuple(c["found"]) for c in solved} == {(-1,), (1,)}
+    returned = [c for c in r.orders if c["returned"]]
+    assert len(returned) == 1 and returned[0]["found"] == [r.passing_order[0]["winding"]]
+    assert r.other_orders == [[-r.passing_order[0]["winding"]]]
+    assert r.order_attempts == 2 and r.attempts == 2
+    # The order named in the result is the geometry's: the car that crosses the other's lane first.
+    assert r.passing_order[0]["first"] == first_across(r.x)
+    assert 1.6 - 1e-6 <= r.passing_order[0]["gap"] < 1.7  # the pair touches the collision distance
+    doc = result_to_dict(r)
+    assert doc["passing_order"][0]["first"] == r.passing_order[0]["first"]
+    assert len(doc["orders"]) == 2 and doc["other_orders"] == r.other_orders
+
+
+def test_each_order_is_a_local_equilibrium_by_the_independent_checks(searched):
+    problem = crossing()
+    firsts = set()
+    for c in searched.orders:
+        assert c["equilibrium"] and c["status"] == "converged"  # the solver's second-order test passed
+        x = problem.rollout(c["u"])
+        report = verify_equilibrium(problem, x, c["u"], best_response_starts=2)  # stationarity, SLSQP best responses
+        assert report.passed, report.failures
+        firsts.add(first_across(x))
+    assert firsts == {0, 1}  # the two equilibria differ in who goes first
+    returned = next(c for c in searched.orders if c["returned"])
+    assert np.abs(returned["u"] - searched.u).max() < 1e-12
+
+
+def test_off_by_default_and_the_order_still_reported():
+    r = solve(crossing(), tol=TOL, time_limit=0)
+    assert r.orders == [] and r.order_attempts == 0
+    assert len(r.passing_order) == 1 and r.passing_order[0]["first"] == first_across(r.x)
+
+
+@pytest.mark.parametrize("group, message", [
+    (dict(candidates=-1), "solver.order.candidates must be >= 0"),
+    (dict(candidates=4, polish=0), "solver.order.polish must be >= 1"),
+    (dict(candidates=4, polish_iter=0), "solver.order.polish_iter must be >= 1"),
+    (dict(candidates=4, max_iter=0), "solver.order.max_iter must be >= 1"),
+    (dict(candidates=4, offset=-0.5), "solver.order.offset must be finite and >= 0"),
+    (dict(offset=float("nan")), "solver.order.offset must be finite"),
+    (dict(samples=3), "solver.order.samples is not a solver setting"),
+])
+def test_settings_validation_names_the_field(group, message):
+    with pytest.raises(ValueError, match=message.replace(".", r"\.")):
+        solve(crossing(), order=group)
+
+
+def test_solve_command_writes_the_orders_and_rejects_a_bad_setting(tmp_path, capsys):
+    good, out = tmp_path / "p.json", tmp_path / "r.json"
+    good.write_text(json.dumps(problem_to_dict(crossing(), solver={"tol": TOL, "order": {"candidates": 2}})))
+    assert main(["solve", str(good), "--out", str(out), "--time-limit", "0"]) == 0
+    doc = json.loads(out.read_text())
+    assert len(doc["passing_order"]) == 1 and doc["passing_order"][0]["first"] == first_across(np.asarray(doc["x"]))
+    assert sum(c["equilibrium"] for c in doc["orders"]) == 2 and len(doc["other_orders"]) == 1
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(problem_to_dict(crossing(), solver={"order": {"polish_iter": 0}})))
+    assert main(["solve", str(bad)]) == 2
+    assert f"{bad}: solver.order.polish_iter must be >= 1" in capsys.readouterr().err
