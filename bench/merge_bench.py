@@ -192,7 +192,7 @@ def run(solvers: list[str], cars: list[int], instances, workers: int, time_limit
         max_iter: int | None = None, settings: tuple = (), repeats: int = 1,
         best_response_check: int = -1) -> list[RunRecord]:
     """instances: a count (seeds 0..instances-1) or the seeds themselves. best_response_rounds > 0: RD3G starts
-    from solver_cpp.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none.
+    from solver_cpp.best_response.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none.
     settings: RD3G setting overrides, (name, value) pairs. repeats: with no time limit, a solve faster than
     REPEAT_BELOW_MS runs up to this many times and the fastest run's times are reported. best_response_check >= 0:
     every success is also checked by SLSQP best responses (best_response_gap) from it and that many perturbations;

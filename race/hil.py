@@ -15,7 +15,7 @@ transmitter box in another, running in real time.
 * With ``link_protocol="buzzracer-fhss"`` the box is the BuzzRacer firmware's emulation: its output is
   pulse widths per modem id, which each simulated car's receiver (``WorldSpec.receivers``) turns into
   wheel angle and throttle; its debug text goes back through the relay to the link.
-* Frames are rendered by ``tracking.SyntheticCamera`` at the camera rate and written to a shared
+* Frames are rendered by ``sim.camera.SyntheticCamera`` at the camera rate and written to a shared
   memory ring; a small message per frame carries its slot, capture time, the true states (for
   telemetry and tracking error only), simulator/box events and render time.
 

@@ -20,7 +20,7 @@ from app.realtime.operator_key import TerminalStopKey
 from app.realtime.mocap import add_mocap_arguments, open_mocap_hardware, open_mocap_hil
 from race.hil import HilWorld, WorldSpec
 from fileio import OutputFileError, atomic_write_text, check_output_path
-from race.config import LoopConfig, LoopConfigError, check_fault_cars, parse_fault
+from race.config import FAULT_KINDS, LoopConfig, LoopConfigError, check_fault_cars, parse_fault
 from race.loop import CarBinding, LoopError, RaceLoop, setup_document
 from race.planning import RacePlanners
 from race.recording import RaceRecorder
@@ -58,7 +58,7 @@ def add_realtime_arguments(p) -> None:
                         "rolling shutter, delivery latency, flicker; sim/camera_profile.py; default ideal); ideal+EFFECT adds "
                         "one of the realistic effects alone")
     g.add_argument("--fault", action="append", default=[], metavar="KIND@START[+DUR][:CAR]",
-                   help="HIL fault injection (repeatable): occlude, serial_corrupt, serial_vanish, solver_fail, nan_state")
+                   help=f"HIL fault injection (repeatable): {', '.join(FAULT_KINDS)}")
     g.add_argument("--marker-ids", default="0,1", help="ArUco ids of the RD3G car and the opponent (default 0,1)")
     g.add_argument("--radio-ids", default=None, help="serial-protocol ids of the two cars (default: the marker ids)")
     g.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
