@@ -30,7 +30,7 @@ from race.perception import Perception
 from race.world import WorldPacket
 from sim.camera import CarAppearance, CarPose, SyntheticCamera, TrackDrawing, overhead_camera
 from sim.camera_profile import SINGLE_EFFECTS, DeliveryClock, camera_profile
-from tracking.calibration import Intrinsics, calibrate_image, load_fixed_markers
+from tracking.calibration import load_fixed_markers
 from tracking.estimator import MultiCarEstimator
 from tracking.markers import ArucoTracker
 from tracks import load_track
@@ -92,9 +92,7 @@ def measure(profile_name: str, frames: int, seed: int, glued: bool = False, sear
 
     synth = SyntheticCamera(camera, TrackDrawing(left, right), list(fixed.markers.values()), car=car,
                             effects=profile.effects, world=world, fps=60.0)
-    estimated = profile.estimated(camera)
-    calibration = calibrate_image(synth.render([], -1.0).image, profile.surveyed(fixed),
-                                  Intrinsics(estimated.camera_matrix, estimated.dist_coeffs, estimated.image_size))
+    calibration = profile.lab_calibration(camera, synth.render([], -1.0).image, fixed)
     ids = list(range(len(speeds)))
     tracker = ArucoTracker(calibration, car.marker_size_m, car.roof_height_m, car_ids=ids, fixed_ids=fixed.markers,
                            full_search_every=1 if search == "full" else 10 ** 9)

@@ -27,7 +27,7 @@ import numpy as np
 from race.video_tracking import TrackedCar, track_video
 from sim.camera import CarAppearance, CarPose, SyntheticCamera, TrackDrawing, overhead_camera
 from sim.camera_profile import PROFILE_NAMES, CameraProfile, camera_profile
-from tracking.calibration import CameraCalibration, Intrinsics, calibrate_image, load_fixed_markers, save_calibration
+from tracking.calibration import CameraCalibration, load_fixed_markers, save_calibration
 from tracking.camera import ReadAhead, VideoFileCamera
 from tracking.estimator import MultiCarEstimator
 from tracking.markers import ArucoTracker
@@ -70,9 +70,7 @@ def render_clip(out: Path, frames: int, fps: float = 60.0, image_size=(1280, 800
     camera = overhead_camera(image_size=image_size, dist_coeffs=np.array(profile.dist_coeffs))
     synth = SyntheticCamera(camera, TrackDrawing(left, right), list(fixed.markers.values()), car=APPEARANCE,
                             effects=profile.effects, fps=fps)
-    estimated = profile.estimated(camera)
-    calibration = calibrate_image(synth.render([], 0.0).image, profile.surveyed(fixed),
-                                  Intrinsics(estimated.camera_matrix, estimated.dist_coeffs, estimated.image_size))
+    calibration = profile.lab_calibration(camera, synth.render([], 0.0).image, fixed)
     out.parent.mkdir(parents=True, exist_ok=True)
     writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"MJPG"), fps, image_size, isColor=False)
     if not writer.isOpened():

@@ -52,7 +52,8 @@ import numpy as np
 
 from sim.camera import RenderEffects
 from sim.charuco_views import BoardRenderer
-from tracking.calibration import CalibrationError, FixedMarkerSet, Intrinsics, load_intrinsics, save_intrinsics
+from tracking.calibration import (CalibrationError, CameraCalibration, FixedMarkerSet, Intrinsics, calibrate_image,
+                                  load_intrinsics, save_intrinsics)
 from tracking.charuco import BoardDetector, CharucoBoardSpec, calibrate_intrinsics
 from tracking.geometry import PinholeCamera
 
@@ -134,6 +135,14 @@ class CameraProfile:
             save_intrinsics(path, intrinsics)
         return PinholeCamera(intrinsics.camera_matrix, intrinsics.dist_coeffs, camera.rotation.copy(),
                              camera.translation.copy(), camera.image_size)
+
+    def lab_calibration(self, camera: PinholeCamera, image: np.ndarray, marker_set: FixedMarkerSet) -> CameraCalibration:
+        """The calibration a lab would make of ``camera`` (the renderer's true one): :meth:`estimated`'s
+        intrinsics, and the camera pose from `calibrate` on ``image`` (a frame showing the fixed markers)
+        with the markers as :meth:`surveyed`."""
+        estimated = self.estimated(camera)
+        return calibrate_image(image, self.surveyed(marker_set),
+                               Intrinsics(estimated.camera_matrix, estimated.dist_coeffs, estimated.image_size))
 
     def surveyed(self, marker_set: FixedMarkerSet) -> FixedMarkerSet:
         """The fixed markers as a lab surveyed them: x, y, z each off by N(0, survey_sigma_m), seeded."""
