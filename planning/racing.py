@@ -82,8 +82,10 @@ class _RecedingHorizon:
         self.control_period_s = float(control_period_s)
         self._prev: GameResult | None = None
         # The own car's states (T+1, 4) along the last plan it used, advanced one control period per
-        # fallback step since: what a fallback tracks (_track_previous).
+        # fallback step since, and the time (s) it has been advanced: what a fallback tracks
+        # (_track_previous) while the plan still covers the present.
         self._reference: np.ndarray | None = None
+        self._reference_age_s = 0.0
         # Set up at the first plan, then updated every plan (same structure all race long).
         self._solver: Solver | None = None
         self._solvers: dict[int, Solver] = {}       # one per number of agents (the game's player set changes)
@@ -101,6 +103,7 @@ class _RecedingHorizon:
     def reset(self) -> None:
         self._prev = None
         self._reference = None
+        self._reference_age_s = 0.0
         self.mapper.reset()
 
     @property
@@ -264,14 +267,34 @@ class _RecedingHorizon:
     def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None, u_all=None) -> np.ndarray:
         """Controls (N, T, 2) of the previous plan shifted by one control period (``u_all``: those
         controls already mapped to this plan's agents, _warm_start), the planning car's first control
-        replaced by the closed-loop tracking control towards the last plan it used (_reference, advanced
-        one control period). Not towards the previous plan: after a fallback that is the car's own
-        rollout, so a run of fallbacks saw no error and held the car's heading, off the track."""
+        replaced by the closed-loop tracking control towards _fallback_reference. Not towards the
+        previous plan: after a fallback that is the car's own rollout, so a run of fallbacks saw no
+        error and held the car's heading, off the track."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
-        self._reference = self._shifted((self._prev.x[0] if self._reference is None else self._reference)[None])[0]
-        x_ref = self._reference[0]
-        u_all[0, 0] = self.tracking_control(x0, x_ref, float(u_all[0, 0, 0]), ey_bound, top_speed)
+        x_ref, a_ref = self._fallback_reference(x0, top_speed)
+        u_all[0, 0] = self.tracking_control(x0, x_ref, a_ref, ey_bound, top_speed)
         return u_all
+
+    def _fallback_reference(self, x0, top_speed: float | None) -> tuple[np.ndarray, float]:
+        """(reference state, reference acceleration in m/s^2) of a fallback step: the last plan the
+        car used, advanced one control period per fallback step, while that plan still covers the
+        present; after its horizon, the track's own reference at the car (the cost's lateral
+        reference, heading along the track, the speed cap), at zero acceleration. Why: past its
+        horizon the held last state of an old plan is no reference (a plan that ended turning kept
+        the car turning, across the infield), and feeding back the previous fallback's acceleration
+        as the reference integrated the speed error."""
+        c = self.config
+        self._reference = self._shifted((self._prev.x[0] if self._reference is None else self._reference)[None])[0]
+        self._reference_age_s += self.control_period_s
+        if self._reference_age_s < c.horizon * c.plan_dt_s:
+            ref = self._reference
+            return ref[0], float(ref[1, V] - ref[0, V]) / c.plan_dt_s
+        x0 = np.asarray(x0, dtype=float)
+        top = self.speed_cap(x0, c.top_speed_mps if top_speed is None else float(top_speed))
+        cost = self._cost(top, c.reference_speed_mps, x0)
+        stage = cost.x_ref if cost.x_ref_steps is None else cost.x_ref_steps[0]
+        x_ref = np.array([x0[S], float(stage[EY]), min(float(stage[V]), top), 0.0])
+        return x_ref, 0.0
 
     def predict_other(self, x_other) -> np.ndarray:
         """(T+1, 2) positions (s, ey) of the other car at constant speed and lateral offset."""
@@ -408,7 +431,7 @@ class _RecedingHorizon:
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
         self._prev, self._prev_ids = result, tuple(ids)
         if used != "fallback" or warm is None:
-            self._reference = np.asarray(x[0])
+            self._reference, self._reference_age_s = np.asarray(x[0]), 0.0
         return Plan(x=np.asarray(x), u=np.asarray(u_all[0]), status=result.status, iterations=result.iterations,
                     solve_time_s=result.solve_time_s, max_violation=result.max_violation, used=used,
                     d_min=float(np.min(d_min)), ey_bound=ey_bound)

@@ -38,6 +38,36 @@ def test_a_run_of_fallbacks_steers_back_to_the_last_plan_used():
     assert max(ey) < 0.06 and abs(ey[-1]) < 0.02 and abs(float(x[EPSI])) < 0.05
 
 
+def test_a_run_of_fallbacks_past_the_plans_horizon_returns_to_the_track():
+    """The last plan used ends turning left (constant 0.03 rad steering from the centre line at
+    1 m/s: 0.16 m left and 0.33 rad off the track's heading after the 1 s horizon, inside the 0.223 m
+    track-limit bound). Then 3 s of fallback steps: the car follows that plan for its horizon, then the
+    track's own reference (centre line, heading along the track, at most the top speed). Holding the
+    plan's last state instead kept the car heading 0.33 rad off the track, across the track limit within the
+    next half second."""
+    setup = RaceSpec().load()
+    planner = make_planner(MPCOpponent, setup, 1.8)
+    c = planner.config
+    nobody = np.zeros((0, 4))
+    x = np.array([4.2, 0.0, 1.0, 0.0])
+    planner.plan(x, nobody)
+    turning = np.tile([0.0, 0.03], (c.horizon, 1))  # zero acceleration, constant left steering
+    planner._reference = np.asarray(planner.tm.rollout_model(c.plan_dt_s).rollout(x, turning))
+    planner._reference_age_s = 0.0
+    end = planner._reference[-1]
+    assert 0.05 < end[EY] < planner.tm.ey_bound([end[S]]) and end[EPSI] > 0.3  # a plan that ends turning
+    step = planner.tm.rollout_model(setup.control_period_s)
+    states = []
+    for _ in range(90):  # 3 s of fallback steps in closed loop (planning model, one control period each)
+        plan = planner.fallback_plan(x, nobody, "test: no plan this step")
+        x = np.asarray(step.rollout(x, plan.u[:1]))[1]
+        states.append(x)
+    states = np.array(states)
+    assert all(abs(x_k[EY]) < planner.tm.ey_bound([x_k[S]]) for x_k in states)
+    assert abs(x[EY] - c.raceline_ey_m) < 0.05 and abs(x[EPSI]) < 0.1
+    assert np.all(states[:, 2] <= c.top_speed_mps + 1e-6)
+
+
 # ---------------------------------------------------------------- who plays in an RD3G car's game
 @pytest.mark.parametrize("ey2, players, obstacles", [(0.18, [1, 2], [3]), (0.25, [1], [2, 3])])
 def test_an_obstacle_inside_a_players_collision_distance_becomes_a_player(ey2, players, obstacles):
