@@ -1,0 +1,79 @@
+"""Leave-one-run-out: claims fitted on several runs must agree across folds within their reported uncertainties,
+survive leaving out any one training run, and a run that differs must not move them (docs/sysid.md, "Stable under
+leaving out a run"). Logs from the project's simulator (sysid.generate), not from the fitter."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from sysid.agreement import jackknife_std
+from sysid.data import common_grid_step, build_trajectory, concatenate
+from sysid.diagnose import SysidSettings, identify
+from sysid.generate import generate_log, parse_effects
+from vehicles.params import load_car_params
+
+NOMINAL = load_car_params("buzzracer")
+SETTINGS = SysidSettings(fit_max_starts=80, heldout_max_starts=300, n_bootstrap=200)
+TRUE_OFFSET = 0.03
+ODD = 4  # the run whose steering offset differs
+
+
+def test_jackknife_std_of_a_mean_is_the_standard_error():
+    # For the sample mean, the leave-one-out means give exactly s / sqrt(n) (Efron and Stein 1981).
+    x = np.array([1.0, 4.0, 2.5, 7.0, 3.0])
+    loo = [(x.sum() - xi) / (x.size - 1) for xi in x]
+    assert jackknife_std(loo) == pytest.approx(np.std(x, ddof=1) / math.sqrt(x.size))
+    # By hand: values 1, 2, 3, 4 -> mean 2.5, squared deviations 5, sqrt(3/4 * 5).
+    assert jackknife_std([1.0, 2.0, 3.0, 4.0]) == pytest.approx(math.sqrt(3.75))
+    assert jackknife_std([0.7]) == 0.0
+
+
+@pytest.fixture(scope="module")
+def folds():
+    """Four 20 s runs of a car with a 0.03 rad steering offset and one with -0.01 rad (run ODD); each run held
+    out in turn, identified on the other four."""
+    specs = [(TRUE_OFFSET, 51), (TRUE_OFFSET, 52), (TRUE_OFFSET, 53), (TRUE_OFFSET, 54), (-0.01, 55)]
+    logs = [generate_log(NOMINAL, parse_effects(f"steering_offset={off}"), 1 / 3, seed=seed, physics_dt=0.002)
+            for off, seed in specs]
+    dt = common_grid_step(logs)
+    traj = concatenate([build_trajectory(log, dt) for log in logs])
+    return {k: identify(traj, NOMINAL, replace(SETTINGS, heldout_runs=(k,))) for k in range(len(specs))}
+
+
+def _claim(result, param):
+    for e in result.selected:
+        if param in e.params:
+            return e.params[param], e.params_std[param]
+    return None
+
+
+def test_claims_agree_across_folds_and_survive_leaving_out_a_run(folds):
+    claims = {k: _claim(r, "steering_offset_rad") for k, r in folds.items() if k != ODD}
+    # Every fold trained on the odd run and three shared ones claims the offset; the odd run is excluded from it.
+    assert all(c is not None for c in claims.values())
+    for k, r in folds.items():
+        if k == ODD:
+            continue
+        verdict = next(a for a in r.run_agreement if a.param == "steering_offset_rad")
+        assert verdict.excluded_runs == (ODD,)
+        checks = [c for c in r.claim_stability if c.effect == "steering_offset"]
+        # Each shared training run left out in turn (the odd one is excluded from the fit anyway): still claimed.
+        assert sorted(c.dropped_run for c in checks) == sorted(set(range(5)) - {k, ODD})
+        assert all(c.significant for c in checks)
+        assert claims[k][1] >= jackknife_std([c.values["steering_offset_rad"] for c in checks])
+    # Pairwise agreement within the reported uncertainties, and with the truth.
+    for a in claims.values():
+        assert a[0] == pytest.approx(TRUE_OFFSET, abs=3 * a[1] + 1e-3)
+        for b in claims.values():
+            assert abs(a[0] - b[0]) <= 2 * math.hypot(a[1], b[1])
+
+
+def test_a_run_that_differs_is_not_predicted_by_the_shared_claim(folds):
+    # Held out, the odd run (offset -0.01) is made worse by the others' 0.03: nothing is claimed from them.
+    r = folds[ODD]
+    assert _claim(r, "steering_offset_rad") is None
+    verdict = next(a for a in r.run_agreement if a.param == "steering_offset_rad")
+    assert verdict.agreement.verdict == "runs agree"
+    assert verdict.agreement.pooled.mean == pytest.approx(TRUE_OFFSET, abs=0.005)
