@@ -885,10 +885,12 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     # Several training runs: a claim must survive leaving out any one of them; the least stable failing one is
     # taken out of the candidates and the selection repeated.
     stability: dict[str, list[RunStability]] = {}
+    unstable: list[CandidateResult] = []  # the candidates taken out, as fitted alone before
     while True:
         families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s, cands)
                                  for ref in references])
         sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
+        sel.candidates.extend(unstable)
         checks = claim_stability(traj, split, horizon, sel.chosen, sel.effect_steps, sel.current, s)
         for c in sel.chosen:
             stability[c.effect] = [k for k in checks if k.effect == c.effect]
@@ -896,6 +898,7 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         if not failing:
             break
         worst = min(failing, key=lambda k: k.verdict.heldout_error_reduction).effect
+        unstable.append(next(c for c in sel.candidates if c.effect == worst))
         cands = tuple(c for c in cands if c.effect != worst)
     # Kept: the checks of the claims and of the effects taken out as unstable.
     stability = {e: v for e, v in stability.items()
