@@ -983,7 +983,8 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     # ... and at least the jackknife's over the training runs (each left out in turn).
     for checks in stability.values():
         for p in (checks[0].values if checks else {}):
-            final_std[p] = max(final_std.get(p, 0.0), jackknife_std([k.values[p] for k in checks]))
+            if p in final_std:
+                final_std[p] = max(final_std[p], jackknife_std([k.values[p] for k in checks]))
     for i, sel_i in enumerate(selected):
         if sel_i.effect != "other":
             keys = by_name[sel_i.effect].params
