@@ -8,6 +8,10 @@ the *other* runs (its own std, the others' spread tau and the pool's std combine
 one is excluded and the test repeated on the rest, as long as a strict majority of the runs remains. If more
 runs than that would have to go, the runs disagree and nothing is claimed for the parameter. The rule knows
 nothing about particular runs or parameters.
+
+A claim fitted jointly on several runs is also checked with each training run left out in turn (the jackknife,
+Quenouille 1956 and Tukey 1958): ``jackknife_std`` turns those leave-one-run-out values into the standard
+deviation of the estimate, which contains the spread between runs whether or not the Q test saw it.
 """
 
 from __future__ import annotations
@@ -88,3 +92,12 @@ def agreement(values, stds) -> Agreement:
         if 2 * (len(keep) - 1) <= k:  # excluding it would leave no strict majority
             return Agreement(pooled, tuple(keep), tuple(excluded), True)
         excluded.append(keep.pop(worst))
+
+
+def jackknife_std(loo_values) -> float:
+    """Jackknife standard deviation of an estimate from its values with each of k runs left out in turn:
+    sqrt((k - 1) / k * sum_i (theta_(-i) - mean)^2); 0 for fewer than two values."""
+    v = np.asarray(loo_values, dtype=float)
+    if v.size < 2:
+        return 0.0
+    return float(np.sqrt((v.size - 1) / v.size * np.sum((v - v.mean()) ** 2)))

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from sysid.agreement import Agreement, agreement
+from sysid.agreement import Agreement, agreement, jackknife_std
 from sysid.data import Trajectory
 from sysid.excitation import Excitation, excitation
 from sysid.lockstep import predict, side_by_side
@@ -288,6 +288,7 @@ class SysidResult:
     dropped_after_other: list[str] = field(default_factory=list)  # named effects dropped once `other` was in
     not_identifiable: list[NotIdentifiable] = field(default_factory=list)  # not excited by the logs: not fitted
     run_agreement: list[RunAgreement] = field(default_factory=list)  # per parameter: do the training runs agree
+    claim_stability: list[RunStability] = field(default_factory=list)  # each claim refitted without each training run
     numeric_warnings: int = 0  # numpy RuntimeWarnings of trial predictions, counted instead of printed
 
     @property
@@ -544,6 +545,53 @@ def run_agreement(traj: Trajectory, split: Split, horizon: int, base: ModelSetup
         if ok:
             out.append(dataclasses.replace(_with_params(c, ok), excluded_runs=tuple(sorted(excluded))))
     return tuple(out), verdicts
+
+
+@dataclass(frozen=True)
+class RunStability:
+    """A claimed effect refitted with one training run left out, judged on the same held-out data."""
+
+    effect: str
+    dropped_run: int  # run index (Trajectory.runs)
+    values: dict[str, float]  # the effect's parameters without that run
+    verdict: CandidateResult  # against the model without the effect, fitted without that run
+
+    @property
+    def significant(self) -> bool:
+        return self.verdict.significant
+
+
+def claim_stability(traj: Trajectory, split: Split, horizon: int, chosen: list[Candidate],
+                    effect_steps: list[tuple[Fit, Fit]], current: Fit, s: SysidSettings) -> list[RunStability]:
+    """Each claimed effect of the final named model ``current`` refitted with each training run left out (the
+    other effects refitted too), judged by the keep test against the model without it fitted on the same runs.
+    A claim that needs one particular run is not a property of the car (docs/sysid.md, "Stable under leaving
+    out a run"). Runs with fewer than MIN_RUN_WINDOWS fit windows, or excluded from every chosen effect, are
+    not left out (their absence changes nothing)."""
+    excluded_everywhere = set.intersection(*(set(c.excluded_runs) for c in chosen)) if chosen else set()
+    runs = [r for r in np.unique(traj.run[split.train]).tolist()
+            if np.count_nonzero(traj.run[split.fit] == r) >= MIN_RUN_WINDOWS and r not in excluded_everywhere]
+    if len(runs) < 2 or not chosen:
+        return []
+
+    def without_run(r: int) -> Split:
+        return Split(train=split.train[traj.run[split.train] != r], heldout=split.heldout,
+                     fit=split.fit[traj.run[split.fit] != r])
+
+    def checks(r: int) -> list[RunStability]:
+        sp = without_run(r)
+        full = fit_candidates(traj, sp, horizon, current.setup, chosen, s, current.effects)
+
+        def check(i: int) -> RunStability:
+            before, rest = effect_steps[i][0], chosen[:i] + chosen[i + 1:]
+            if rest:  # the model without the effect, its other effects fitted without run r too
+                before = fit_candidates(traj, sp, horizon, before.setup, rest, s, before.effects)
+            verdict = _judge(traj, sp, before, full, chosen[i].effect, s, channels=True)
+            return RunStability(chosen[i].effect, r, {p: full.values[p] for p in chosen[i].params}, verdict)
+
+        return side_by_side([lambda i=i: check(i) for i in range(len(chosen))])
+
+    return [k for per_run in side_by_side([lambda r=r: checks(r) for r in runs]) for k in per_run]
 
 
 # ----------------------------------------------------------------------------- sparse fallback
@@ -834,9 +882,27 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     cands, not_identifiable = restrict(candidates_for(car), exc)
     # Several training runs: they must agree on an effect before it is fitted on them jointly.
     cands, agreements = run_agreement(traj, split, horizon, dynamic_nominal.setup, cands, car, s)
-    families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s, cands)
-                             for ref in references])
-    sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
+    # Several training runs: a claim must survive leaving out any one of them; the least stable failing one is
+    # taken out of the candidates and the selection repeated.
+    stability: dict[str, list[RunStability]] = {}
+    unstable: list[CandidateResult] = []  # the candidates taken out, as fitted alone before
+    while True:
+        families = side_by_side([lambda ref=ref: _forward_select(traj, split, horizon, ref, s, cands)
+                                 for ref in references])
+        sel = min(families, key=lambda f: _training_mse(traj, split, horizon, f.current.setup))
+        sel.candidates.extend(unstable)
+        checks = claim_stability(traj, split, horizon, sel.chosen, sel.effect_steps, sel.current, s)
+        for c in sel.chosen:
+            stability[c.effect] = [k for k in checks if k.effect == c.effect]
+        failing = [k for k in checks if not k.significant]
+        if not failing:
+            break
+        worst = min(failing, key=lambda k: k.verdict.heldout_error_reduction).effect
+        unstable.append(next(c for c in sel.candidates if c.effect == worst))
+        cands = tuple(c for c in cands if c.effect != worst)
+    # Kept: the checks of the claims and of the effects taken out as unstable.
+    stability = {e: v for e, v in stability.items()
+                 if e in {c.effect for c in sel.chosen} or any(not k.significant for k in v)}
     reference, candidates, selected = sel.reference, sel.candidates, sel.selected
     effect_steps, current = sel.effect_steps, sel.current
     reference_is_dynamic, switched_after = sel.reference_is_dynamic, sel.switched_after
@@ -914,6 +980,11 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     for a in agreements:
         if a.param in final_std:
             final_std[a.param] = max(final_std[a.param], a.agreement.pooled.std)
+    # ... and at least the jackknife's over the training runs (each left out in turn).
+    for checks in stability.values():
+        for p in (checks[0].values if checks else {}):
+            if p in final_std:
+                final_std[p] = max(final_std[p], jackknife_std([k.values[p] for k in checks]))
     for i, sel_i in enumerate(selected):
         if sel_i.effect != "other":
             keys = by_name[sel_i.effect].params
@@ -944,4 +1015,5 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         switched_after=switched_after, families_compared=len(references) == 2,
         unnamed_effect_remains=unnamed_remains, dropped_after_other=dropped_after_other,
         not_identifiable=not_identifiable, run_agreement=agreements,
+        claim_stability=[k for checks in stability.values() for k in checks],
     )

@@ -150,6 +150,14 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
              "q": a.agreement.pooled.q, "p_value": a.agreement.pooled.p_value}
             for a in result.run_agreement
         ],
+        "claim_stability": [
+            {"effect": k.effect, "dropped_run": k.dropped_run + 1, "source": result.traj.runs[k.dropped_run].source,
+             "params": {p: float(v) for p, v in k.values.items()}, "significant": k.significant,
+             "heldout_error_reduction_vs_without": float(k.verdict.heldout_error_reduction),
+             "heading_reduction": float(k.verdict.heading_reduction), "speed_reduction": float(k.verdict.speed_reduction),
+             "confidence": float(k.verdict.confidence)}
+            for k in result.claim_stability
+        ],
         "heldout_runs": [
             {"run": i + 1, "source": result.traj.runs[i].source, "windows": n,
              "dynamic_nominal": nominal.json_dict(), "planner": planner.json_dict(), "after": after.json_dict()}
@@ -175,6 +183,20 @@ def disagreement_notes(result: SysidResult) -> list[str]:
             rest = ", ".join(name(r) for r in a.agreeing_runs)
             notes.append(f"Runs disagree on {a.effect} (`{a.param}`): {odd_text} vs {rest} "
                          f"{a.agreement.pooled.mean:.3g} ± {a.agreement.pooled.std:.2g}; fitted on {rest} only.")
+    return notes
+
+
+def instability_notes(result: SysidResult) -> list[str]:
+    """One sentence per effect not claimed because it needs one particular training run."""
+    notes = []
+    for effect in dict.fromkeys(k.effect for k in result.claim_stability if not k.significant):
+        failing = [k for k in result.claim_stability if k.effect == effect and not k.significant]
+        runs = ", ".join(f"{Path(result.traj.runs[k.dropped_run].source).name} "
+                         f"({100 * k.verdict.heldout_error_reduction:.0f} % position, "
+                         f"{100 * k.verdict.heading_reduction:+.0f} % heading, {100 * k.verdict.speed_reduction:+.0f} % "
+                         f"speed)" for k in failing)
+        notes.append(f"{effect} is not stable across runs: without {runs} it fails the keep test on the held-out "
+                     "data; not claimed.")
     return notes
 
 
@@ -339,6 +361,20 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                          f"{a.agreement.pooled.std:.2g} ({a.agreement.pooled.tau:.2g}) | {a.agreement.pooled.p_value:.2g} "
                          f"| {verdict} |")
         for note in disagreement_notes(result):
+            lines += ["", note]
+    if result.claim_stability:
+        lines += ["", "## Stable under leaving out a run", "",
+                  "Each claim refitted with each training run left out and judged by the keep test on the same "
+                  "held-out data (docs/sysid.md, \"Stable under leaving out a run\"); the reported ± includes the "
+                  "jackknife's standard deviation of these values.", "",
+                  "| effect | run left out | parameters | held-out position / heading / speed vs without it | keep |",
+                  "|---|---|---|---|---|"]
+        for k in result.claim_stability:
+            pars = "; ".join(f"`{p}` {v:.4g}" for p, v in k.values.items())
+            lines.append(f"| {k.effect} | {k.dropped_run + 1} | {pars} | {100 * k.verdict.heldout_error_reduction:.1f} / "
+                         f"{100 * k.verdict.heading_reduction:+.1f} / {100 * k.verdict.speed_reduction:+.1f} % | "
+                         f"{'yes' if k.significant else 'no'} |")
+        for note in instability_notes(result):
             lines += ["", note]
     lines += ["", "## Identified effects", ""]
     if result.selected:
