@@ -463,7 +463,10 @@ class RacingPlanner(_RecedingHorizon):
         that the other car shares the avoidance (accelerates, moves aside) does not hold for an MPC
         that does not, so the rear car closed in slowly until it hit the other car's back. The bound
         asks for at most 0.2 m/s less than our current speed per plan (2 m/s^2 over the first
-        planning step) so it stays reachable; the fallback's speed loop uses it too. Lateral moves
+        planning step) so it stays reachable; the fallback's speed loop uses it too. "In line" also
+        holds when the lateral gap, each car moved along its current heading to the second planning
+        step, is below W_c: a car cutting across in front of ours, or ours converging on its line,
+        closed in before the current gap counted (1-vs-3 seeds 86 and 99). Lateral moves
         stay free: once the lateral gap reaches W_c (pulling out to pass) or the separation is back
         above the collision distance, the bound is lifted.
 
@@ -478,12 +481,20 @@ class RacingPlanner(_RecedingHorizon):
         top = self.config.top_speed_mps
         ahead = float(x_other[S] - x_self[S])
         clearance = 2.0 * self.tm.lateral_half_extent + self.config.collision_margin_m
-        in_line = abs(float(x_other[EY] - x_self[EY])) < clearance
+        # In line now or at the second planning step along the current headings: positions up to k = 2
+        # hardly depend on the controls, so a car converging on the other's line is already in line.
+        t = 2.0 * self.config.plan_dt_s
+        drift = [float(x[V]) * math.sin(float(x[EPSI])) * t for x in (x_self, x_other)]
+        gap_now = float(x_other[EY] - x_self[EY])
+        in_line = min(abs(gap_now), abs(gap_now + drift[1] - drift[0])) < clearance
         if not (inside_collision_distance and ahead > 0 and in_line):
             return top
         kappa = self.tm.track.curvature(np.mod([x_self[S], x_other[S]], self.tm.track.length))
         stretch = [1.0 - float(kappa[i]) * float(x[EY]) for i, x in enumerate((x_self, x_other))]
         other_rate = max(float(x_other[V]), 0.0) * math.cos(float(x_other[EPSI])) / max(stretch[1], 0.2)
+        # Inside the collision distance, drop back at the rate the plans recover the separation
+        # (separation_recovery_mps) rather than hold the gap.
+        other_rate = max(other_rate - self.config.separation_recovery_mps, 0.0)
         v_match = other_rate * max(stretch[0], 0.2) / max(math.cos(float(x_self[EPSI])), 0.5)
         return min(top, max(v_match, float(x_self[V]) - _BOUND_DROP_MPS))
 

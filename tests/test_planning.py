@@ -261,21 +261,31 @@ def test_rd3g_behind_a_car_that_does_not_yield_never_touches_it(track, car, s0, 
         assert abs(x[1]) < 0.3 - 0.5 * g.footprint_width_m   # and stays on the track
 
 
-def test_follow_speed_cap_matches_progress_rate_only_in_line_behind(track, car):
-    """In a 1 m turn (kappa = 1), RD3G 0.2 m behind at ey 0.1 (inside), the other car at ey 0 and
-    1.6 m/s, both aligned with the track: equal progress rates need v = 1.6 (1 - 0.1) / 1 = 1.44
-    m/s (independent arc-length geometry), reachable from 1.6 m/s. The bound applies only when
-    inside the collision distance, behind, and within the lateral clearance."""
+def test_follow_speed_cap_drops_back_only_in_line_behind(track, car):
+    """In a 1 m turn (kappa = 1), RD3G 0.2 m behind at ey 0.1 (inside) at 1.3 m/s, the other car at
+    ey 0 and 1.6 m/s, both aligned with the track: dropping back at separation_recovery_mps (0.3 m/s)
+    along the track needs the progress rate 1.6 - 0.3 = 1.3 /s, so v = 1.3 (1 - 0.1) / 1 = 1.17 m/s
+    (independent arc-length geometry), reachable from 1.3 m/s. The bound applies only when inside
+    the collision distance, behind, and within the lateral clearance now or at the second planning
+    step along the cars' headings."""
     p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.6)
+    assert p.config.separation_recovery_mps == pytest.approx(0.3)
     s_turn = 1.0 + math.pi / 2                      # middle of the first turn: kappa = 1/m
     assert float(track.curvature(s_turn)) == pytest.approx(1.0, abs=1e-3)
-    x_self = np.array([s_turn - 0.2, 0.1, 1.6, 0.0])
+    x_self = np.array([s_turn - 0.2, 0.1, 1.3, 0.0])
     x_other = np.array([s_turn, 0.0, 1.6, 0.0])
-    assert p.follow_speed_cap(x_self, x_other, True) == pytest.approx(1.44, abs=2e-3)
+    assert p.follow_speed_cap(x_self, x_other, True) == pytest.approx(1.17, abs=2e-3)
     assert p.follow_speed_cap(x_self, x_other, False) == p.config.top_speed_mps        # not inside d_min
     assert p.follow_speed_cap(x_other, x_self, True) == p.config.top_speed_mps         # we are ahead
-    beside = np.array([s_turn - 0.2, -0.15, 1.6, 0.0])                                 # lateral gap 0.15 m
+    clearance = 2.0 * p.tm.lateral_half_extent + p.config.collision_margin_m
+    beside = np.array([s_turn - 0.2, -(clearance + 0.02), 1.3, 0.0])                   # outside the clearance
     assert p.follow_speed_cap(beside, x_other, True) == p.config.top_speed_mps
+    # The other car cutting across towards ours at 0.1 rad: at the second planning step (0.2 s) its
+    # ey has moved 1.6 sin(0.1) 0.2 = 0.032 m towards ours, 0.02 m past the clearance.
+    cutting = np.array([s_turn, 0.0, 1.6, -0.1])
+    assert 1.6 * math.sin(0.1) * 2 * p.config.plan_dt_s > 0.03
+    assert p.follow_speed_cap(beside, cutting, True) < p.config.top_speed_mps
+    assert p.follow_speed_cap(beside, np.array([s_turn, 0.0, 1.6, 0.1]), True) == p.config.top_speed_mps  # turning away
     fast = np.array([s_turn - 0.2, 0.1, 2.0, 0.0])  # far faster: at most 0.2 m/s drop per plan
     assert p.follow_speed_cap(fast, x_other, True) == pytest.approx(1.8)
 
