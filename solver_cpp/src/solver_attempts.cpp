@@ -75,9 +75,11 @@ bool Solver::rescue_wanted() const {
 }
 
 bool Solver::rescue(Result& found, Info& info, int& total_iter) {
-  // Its own budget beyond max_iter: order.max_iter game iterations per guess, order.polish_iter per polish.
+  // Its own budget beyond max_iter: order.max_iter game iterations for the solo plans and per guess,
+  // order.polish_iter per polish, and never more than max_iter (a solve stops within twice max_iter).
   const PassingOrderSettings& po = settings_.order;
-  iter_limit_ = total_iter + (po.candidates + 1) * po.max_iter + po.polish * (po.polish_iter + 1);
+  const int own = (po.candidates + 1) * po.max_iter + po.polish * (po.polish_iter + 1);
+  iter_limit_ = total_iter + std::min(own, settings_.max_iter);
   if (settings_.verbose) std::printf("no equilibrium after the restarts: passing-order search\n");
   // The pairs whose paths conflict: each agent's plan alone (the others ignored), from the initial controls. The
   // rolled-out initial guess misses most (a merge's cars collide only once they steer into the target lane).

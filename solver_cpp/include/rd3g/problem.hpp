@@ -243,8 +243,9 @@ struct SecondOrderSettings {
 /// best-response restart.
 /// By default the search is the restart schedule's last stage, the rescue: it runs only when every attempt of the
 /// schedule has ended without an equilibrium (never with restart.count 0), so a solve the schedule finishes is
-/// unchanged. The rescue has its own iteration budget beyond max_iter: at most max_iter (of this group) game
-/// iterations per guess and polish_iter per polished candidate; the time limit bounds it as every attempt.
+/// unchanged. The rescue has its own iteration budget beyond Settings::max_iter: at most max_iter (of this group)
+/// game iterations for the agents' solo plans (which define the conflicting pairs) and per guess, polish_iter per
+/// polished candidate, and never more than Settings::max_iter; the time limit bounds it as every attempt.
 /// With before_newton the search runs before attempt 0 instead, within max_iter, and the schedule runs after it
 /// (with the iterations left) only if no candidate reached an equilibrium.
 struct PassingOrderSettings {
@@ -261,7 +262,7 @@ struct PassingOrderSettings {
 /// Every setting of RD3G, grouped by concern (OSQP/proxsuite style); one documented default per field.
 struct Settings {
   double tol = 5e-4;   ///< stop when ||r||_2 < tol (and the other conditions hold)
-  int max_iter = 1000; ///< Newton iterations, all attempts together
+  int max_iter = 1000; ///< Newton iterations, all attempts together (the order rescue may add up to as many)
   /// (s), 0 = none. Checked every iteration, between Levenberg-Marquardt tries, inside LSCG (in chunks of 50
   /// iterations) and before a SparseQR factorisation, which is started only if this solver's previous QR
   /// took less than the time left (never before one was measured); otherwise a regularised least-squares step
