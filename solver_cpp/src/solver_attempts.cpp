@@ -34,7 +34,7 @@ Result Solver::solve(const WarmStart* warm) {
   if (run_schedule(res, sc, warm)) return res;
   // No attempt of the schedule found an equilibrium: the passing-order search as its last stage (the rescue).
   Info searched = info;
-  if (rescue_wanted() && rescue(found, searched, sc.total_iter)) return found;
+  if (rescue_wanted(info) && rescue(found, searched, sc.total_iter)) return found;
   take_counters(info, searched);
   if (sc.have_saddle && info.status != Status::Converged) return saddle_result(sc, info);
   return res;
@@ -70,9 +70,10 @@ bool Solver::run_schedule(Result& res, Schedule& sc, const WarmStart* warm) {
   return info.status == Status::Converged;
 }
 
-bool Solver::rescue_wanted() const {
+bool Solver::rescue_wanted(const Info& info) const {
+  // Not after the clock stopped the schedule (time_limit): the result is then the best iterate seen.
   return settings_.order.candidates > 0 && !settings_.order.before_newton && settings_.restart.count > 0 &&
-         !past_deadline();
+         info.status != Status::TimeLimit && !past_deadline();
 }
 
 bool Solver::rescue(Result& found, Info& info, int& total_iter) {

@@ -164,8 +164,9 @@ class Solver {
   /// The restart schedule's attempts; true if res holds an equilibrium (converged, second-order test passed),
   /// otherwise res holds the last attempt's point and sc the first saddle, if any.
   bool run_schedule(Result& res, Schedule& sc, const WarmStart* warm);
-  /// The passing-order search runs as the schedule's last stage (Settings::order, not before_newton).
-  bool rescue_wanted() const;
+  /// The passing-order search runs as the schedule's last stage (Settings::order, not before_newton), given the
+  /// schedule's result.
+  bool rescue_wanted(const Info& info) const;
   /// The search as the rescue, with its own iteration budget; true if `found` holds an equilibrium.
   bool rescue(Result& found, Info& info, int& total_iter);
   /// The counters and timings of the whole solve (from) onto a result kept from part of it (to).
