@@ -160,7 +160,7 @@ def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     problem = family_problem("merge-dense", 8, 15)
     records = {}
     for rounds in (0, 1):
-        r = solve(problem, time_limit=0, max_iter=300, best_response=dict(rounds=rounds))
+        r = solve(problem, time_limit=0, max_iter=300, best_response=dict(rounds=rounds), order=dict(candidates=0))
         records[rounds] = (r, merge_bench.record("rd3g", problem, r, 0.0, 8, 15, "merge-dense"))
     old, new = records[0], records[1]
     assert not old[1].success and old[0].best_response_attempts == 0
@@ -197,7 +197,7 @@ def test_best_response_margin_rescues_an_attempt_stuck_at_a_contact():
     from solver_cpp import solve
 
     problem = family_problem("merge-narrow", 4, 34)
-    stuck = solve(problem, time_limit=0, max_iter=1000, best_response=dict(margin=0.0))
+    stuck = solve(problem, time_limit=0, max_iter=1000, best_response=dict(margin=0.0), order=dict(candidates=0))
     freed = solve(problem, time_limit=0, max_iter=1000)
     assert stuck.status == "max_iterations"
     assert freed.status == "converged" and freed.attempts == 2

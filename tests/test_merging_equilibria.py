@@ -16,7 +16,9 @@ from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, Obstacle
 INSTANCES = [(3, 2), (3, 4), (3, 10), (5, 3)]  # (cars, seed)
 # The paper's globalisation rules in every attempt (rho lowered every iteration, monotone violation test) and its
 # restart schedule (no attempt from a best-response guess).
-PAPER_RULES = dict(restart=dict(deep_overlap=2.0, rho_progress=0.0, violation_memory=1), best_response=dict(rounds=0))
+# The paper's rules in every attempt, without the solver's extra attempts (best response, passing-order rescue).
+PAPER_RULES = dict(restart=dict(deep_overlap=2.0, rho_progress=0.0, violation_memory=1), best_response=dict(rounds=0),
+                   order=dict(candidates=0))
 SOLVE_TOL = 1e-8
 _solutions = {}
 

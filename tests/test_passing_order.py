@@ -1,9 +1,11 @@
-"""Passing-order search before Newton (setting group `order`, solver_cpp/src/passing_order.cpp).
+"""Passing-order search (setting group `order`, solver_cpp/src/passing_order.cpp), before Newton and as the rescue.
 
 A symmetric two-car crossing has two local equilibria, one per passing order (east-bound first or north-bound
-first). The search must find both, report the order of the one it returns, and each must pass the independent
-checks: bench/verify.py's per-player stationarity and SLSQP best responses, and the second-order test. The order
-reported is checked against the geometry: the car that crosses the other's lane first."""
+first). The search before Newton must find both, report the order of the one it returns, and each must pass the
+independent checks: bench/verify.py's per-player stationarity and SLSQP best responses, and the second-order test.
+The order reported is checked against the geometry: the car that crosses the other's lane first. As the rescue (the
+default) the search runs only when the restart schedule ends without an equilibrium: a solve the schedule finishes
+is the same with and without it, and a failing one becomes an equilibrium the independent checks confirm."""
 from __future__ import annotations
 
 import json
@@ -40,7 +42,7 @@ def first_across(x: np.ndarray) -> int:
 
 @pytest.fixture(scope="module")
 def searched():
-    return solve(crossing(), tol=TOL, time_limit=0, order=dict(candidates=2, polish=2))
+    return solve(crossing(), tol=TOL, time_limit=0, order=dict(candidates=2, polish=2, before_newton=True))
 
 
 def test_the_search_finds_both_orders_and_reports_the_returned_one(searched):
@@ -76,9 +78,11 @@ def test_each_order_is_a_local_equilibrium_by_the_independent_checks(searched):
     assert np.abs(returned["u"] - searched.u).max() < 1e-12
 
 
-def test_off_by_default_and_the_order_still_reported():
+def test_a_solve_the_schedule_finishes_does_not_search_and_the_order_is_still_reported():
     r = solve(crossing(), tol=TOL, time_limit=0)
-    assert r.orders == [] and r.order_attempts == 0
+    assert r.status == "converged" and r.orders == [] and r.order_attempts == 0
+    off = solve(crossing(), tol=TOL, time_limit=0, order=dict(candidates=0))
+    assert off.iterations == r.iterations and np.array_equal(off.u, r.u)
     assert len(r.passing_order) == 1 and r.passing_order[0]["first"] == first_across(r.x)
 
 
@@ -98,7 +102,7 @@ def test_settings_validation_names_the_field(group, message):
 
 def test_solve_command_writes_the_orders_and_rejects_a_bad_setting(tmp_path, capsys):
     good, out = tmp_path / "p.json", tmp_path / "r.json"
-    good.write_text(json.dumps(problem_to_dict(crossing(), solver={"tol": TOL, "order": {"candidates": 2}})))
+    good.write_text(json.dumps(problem_to_dict(crossing(), solver={"tol": TOL, "order": {"candidates": 2, "before_newton": True}})))
     assert main(["solve", str(good), "--out", str(out), "--time-limit", "0"]) == 0
     doc = json.loads(out.read_text())
     assert len(doc["passing_order"]) == 1 and doc["passing_order"][0]["first"] == first_across(np.asarray(doc["x"]))
@@ -107,3 +111,24 @@ def test_solve_command_writes_the_orders_and_rejects_a_bad_setting(tmp_path, cap
     bad.write_text(json.dumps(problem_to_dict(crossing(), solver={"order": {"polish_iter": 0}})))
     assert main(["solve", str(bad)]) == 2
     assert f"{bad}: solver.order.polish_iter must be >= 1" in capsys.readouterr().err
+
+
+# A head-on pair (bench.families, tuned family, a tuning seed) under a short restart schedule that ends without an
+# equilibrium: one restart, no best-response attempt, no escape from a saddle.
+SHORT_SCHEDULE = dict(restart=dict(count=1), best_response=dict(rounds=0), second_order=dict(escapes=0))
+
+
+def test_the_rescue_turns_a_failed_schedule_into_a_verified_equilibrium():
+    from bench.families import family_problem
+
+    problem = family_problem("head-on", 2, 0)
+    failed = solve(problem, tol=TOL, time_limit=0, order=dict(candidates=0), **SHORT_SCHEDULE)
+    assert failed.status != "converged" and failed.order_attempts == 0
+    rescued = solve(problem, tol=TOL, time_limit=0, **SHORT_SCHEDULE)
+    assert rescued.status == "converged" and rescued.order_attempts >= 1
+    assert rescued.attempts == failed.attempts + rescued.order_attempts  # the schedule ran in full before it
+    assert sum(c["returned"] for c in rescued.orders) == 1
+    assert rescued.iterations > failed.iterations  # the rescue's own budget comes after the schedule's
+    assert all(so >= 0 for so in rescued.second_order)  # the solver's second-order test
+    report = verify_equilibrium(problem, np.asarray(rescued.x), np.asarray(rescued.u), best_response_starts=2)
+    assert report.passed, report.failures  # stationarity and each player's SLSQP best response, independent

@@ -66,8 +66,10 @@ def _first_firing(history, window: int, ratio: float) -> int | None:
 def test_stalled():
     # A hair-trigger crawl rule (||r|| must fall 1e6-fold every 2 iterations) ends every attempt, whatever path the
     # iterates take: with one restart (the attempt from the initial guess and attempt 1) the solve ends stalled.
+    # The passing-order rescue is off: it would run after the schedule with its own budget.
     result = solve(merging_problem(3, 2), time_limit=0, restart=dict(count=1, rho_on_stall=False),
-                   stall=dict(crawl_window=2, crawl_ratio=1e-6, polish_gap=0), best_response=dict(rounds=0))
+                   stall=dict(crawl_window=2, crawl_ratio=1e-6, polish_gap=0), best_response=dict(rounds=0),
+                   order=dict(candidates=0))
     assert result.status == "stalled" and not result.converged
     assert result.attempts == 2 and result.best_response_attempts == 0
     assert result.residual_norm > 5e-4
@@ -149,10 +151,12 @@ def test_more_restarts_change_only_solves_that_used_every_restart():
     from bench.families import family_problem
 
     problem = family_problem("crossing", 2, 21)
-    needed = next((r for r in range(20) if solve(problem, time_limit=0, restart=dict(count=r)).status == "converged"), None)
+    off = dict(candidates=0)  # the schedule alone: the passing-order rescue would follow a schedule that fails
+    needed = next((r for r in range(20)
+                   if solve(problem, time_limit=0, restart=dict(count=r), order=off).status == "converged"), None)
     assert needed is not None, "crossing 2 cars seed 21 does not converge within 19 restarts"
-    enough = solve(problem, time_limit=0, restart=dict(count=needed))
+    enough = solve(problem, time_limit=0, restart=dict(count=needed), order=off)
     for restarts in (needed + 1, 19, 40):
-        more = solve(problem, time_limit=0, restart=dict(count=max(restarts, needed)))
+        more = solve(problem, time_limit=0, restart=dict(count=max(restarts, needed)), order=off)
         assert (more.status, more.iterations, more.attempts) == (enough.status, enough.iterations, enough.attempts)
         assert np.array_equal(more.u, enough.u)

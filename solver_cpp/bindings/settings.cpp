@@ -39,7 +39,7 @@ void bind_settings(py::module_& m) {
       RW(SecondOrderSettings, inertia);
   py::class_<PassingOrderSettings>(m, "PassingOrderSettings").def(py::init<>())
       RW(PassingOrderSettings, candidates) RW(PassingOrderSettings, polish) RW(PassingOrderSettings, polish_iter)
-      RW(PassingOrderSettings, max_iter) RW(PassingOrderSettings, offset);
+      RW(PassingOrderSettings, max_iter) RW(PassingOrderSettings, offset) RW(PassingOrderSettings, before_newton);
   // Groups are returned by reference (settings.stall.window = 8 changes the settings).
   py::class_<Settings>(m, "Settings").def(py::init<>())
       RW(Settings, tol) RW(Settings, max_iter) RW(Settings, time_limit) RW(Settings, violation_tol)

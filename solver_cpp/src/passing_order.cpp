@@ -1,6 +1,7 @@
-// Passing-order search before Newton (Settings::order; docs/solver.md, "Passing order"): the pairs whose rolled-out
-// initial guess collides, candidate orders (the winding of each such pair: who passes first and on which side), an
-// ordered guess per candidate from the best-response sub-solvers, and Newton's polish of the best-ranked ones.
+// Passing-order search (Settings::order; docs/solver.md, "Passing order"), the restart schedule's rescue or a search
+// before Newton: the pairs whose rolled-out initial guess collides, candidate orders (the winding of each such pair:
+// who passes first and on which side), an ordered guess per candidate from the best-response sub-solvers, and
+// Newton's polish of the best-ranked ones.
 #include <algorithm>
 #include <cmath>
 #include <numeric>
@@ -21,15 +22,9 @@ Eigen::Vector2d position(const Mat& x, int px, int py, int k) { return {x(px, k)
 double cross(const Eigen::Vector2d& a, const Eigen::Vector2d& b) { return a.x() * b.y() - a.y() * b.x(); }
 }  // namespace
 
-void Solver::find_conflicts() {
+void Solver::find_conflicts(const Iterate& y) {
   conflicts_.clear();
   if (!prob_.collision.enabled || N_ < 2) return;
-  Iterate& y = trial_;  // free until the first line search
-  for (int i = 0; i < N_; ++i) {
-    y.x[i].col(0) = prob_.x0[i];
-    y.u[i] = u_init_[i];
-    roll_out(y, i);
-  }
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   for (int i = 0; i < N_; ++i)
     for (int j = i + 1; j < N_; ++j) {
@@ -97,10 +92,34 @@ void Solver::candidate_orders() {
   }
 }
 
-int Solver::ordered_guess(const std::vector<int>& winding, int budget) {
+int Solver::solo_plans(int budget) {
   for (int i = 0; i < N_; ++i) {
     y_.x[i].col(0) = prob_.x0[i];
     y_.u[i] = u_init_[i];
+    roll_out(y_, i);
+  }
+  prepare_sub_solvers();
+  const int n_obs = static_cast<int>(prob_.obstacles.size());
+  int used = 0;
+  for (int i = 0; i < N_; ++i) {
+    const int left = budget - used;
+    const double time = settings_.time_limit > 0 ? time_left() : 0.0;
+    if (left <= 0 || (settings_.time_limit > 0 && time <= 0)) break;
+    br_positions_.setConstant(kFar);
+    for (int j = 0, o = n_obs; j < N_; ++j) {
+      if (j == i) continue;
+      auto [d, steps] = sub_solve_distance(i, j);
+      br_[i]->update_obstacle(o++, br_positions_, d, steps);
+    }
+    used += sub_solve(i, std::min(settings_.order.max_iter, left), time);
+  }
+  return used;
+}
+
+int Solver::ordered_guess(const std::vector<int>& winding, int budget) {
+  for (int i = 0; i < N_; ++i) {
+    y_.x[i].col(0) = prob_.x0[i];
+    y_.u[i] = order_from_[i];
     y_.lam[i].setZero();
     roll_out(y_, i);
   }
@@ -190,8 +209,8 @@ int Solver::build_ordered_guesses(Info& info, int& total_iter) {
   info.orders.assign(K, OrderCandidate{});
   int built = 0;
   for (; built < K; ++built) {
-    if (total_iter >= settings_.max_iter || past_deadline()) break;
-    const int used = ordered_guess(order_signs_[built], N_ * (settings_.max_iter - total_iter));
+    if (total_iter >= iter_limit_ || past_deadline()) break;
+    const int used = ordered_guess(order_signs_[built], N_ * (iter_limit_ - total_iter));
     total_iter += (used + N_ - 1) / N_;  // a sub-solve iteration counts 1/N of a game iteration
     info.order_iterations += used;
     order_u_[built] = y_.u;
@@ -221,9 +240,10 @@ bool Solver::polish_candidate(int c, Result& found, Info& info, int& total_iter)
   rho_ = settings_.barrier.rho_init;
   barrier_ = settings_.barrier.mode;
   inertia_on_ = false;
-  info.attempts = ++info.order_attempts;
+  ++info.attempts;
+  ++info.order_attempts;
   const int start = total_iter;
-  attempt_cap_ = std::min(settings_.max_iter, total_iter + settings_.order.polish_iter);
+  attempt_cap_ = std::min(iter_limit_, total_iter + settings_.order.polish_iter);
   run_attempt(info, total_iter);
   attempt_cap_ = 0;
   OrderCandidate& oc = info.orders[c];
@@ -255,7 +275,7 @@ bool Solver::search_orders(Result& found, Info& info, int& total_iter) {
   int best = -1;
   Result cand;
   for (int p = 0; p < std::min(settings_.order.polish, built); ++p) {
-    if (total_iter >= settings_.max_iter || past_deadline()) break;
+    if (total_iter >= iter_limit_ || past_deadline()) break;
     if (polish_candidate(rank[p], best < 0 ? found : cand, info, total_iter) && best < 0) best = rank[p];
     if (info.status == Status::TimeLimit) break;
     ++total_iter;
@@ -263,16 +283,8 @@ bool Solver::search_orders(Result& found, Info& info, int& total_iter) {
   if (best < 0) return false;
   info.orders[best].returned = true;
   // The kept point with the whole search's counters.
-  Info& out = found.info;
-  out.orders = info.orders;
-  out.iterations = total_iter - 1;
-  out.attempts = info.attempts;
-  out.order_attempts = info.order_attempts;
-  out.order_iterations = info.order_iterations;
-  out.residual_history = info.residual_history;
-  out.step_history = info.step_history;
-  out.timings = info.timings;
-  out.timings.total = seconds_since(t_start_);
+  take_counters(found.info, info);
+  found.info.iterations = total_iter - 1;
   return true;
 }
 

@@ -1,5 +1,6 @@
 // The solve's attempt schedule: initial guess, restarts (barrier variants, perturbed controls, best response,
-// escapes from saddles), the globalisation rules of an attempt, stall handling and the result.
+// escapes from saddles), the passing-order rescue after them, the globalisation rules of an attempt, stall handling
+// and the result.
 #include "rd3g/solver.hpp"
 
 #include <algorithm>
@@ -28,8 +29,19 @@ Result Solver::solve(const WarmStart* warm) {
   Info& info = res.info;
   begin_solve(info, warm);
   Schedule sc;
-  Result ordered;
-  if (search_orders(ordered, info, sc.total_iter)) return ordered;
+  Result found;
+  if (settings_.order.before_newton && search_orders(found, info, sc.total_iter)) return found;
+  if (run_schedule(res, sc, warm)) return res;
+  // No attempt of the schedule found an equilibrium: the passing-order search as its last stage (the rescue).
+  Info searched = info;
+  if (rescue_wanted(info) && rescue(found, searched, sc.total_iter)) return found;
+  take_counters(info, searched);
+  if (sc.have_saddle && info.status != Status::Converged) return saddle_result(sc, info);
+  return res;
+}
+
+bool Solver::run_schedule(Result& res, Schedule& sc, const WarmStart* warm) {
+  Info& info = res.info;
   for (int attempt = 0; attempt <= settings_.restart.count; ++attempt) {
     const bool br_now = !sc.from_saddle && sc.br_attempts == 0 && settings_.best_response.rounds > 0 &&
                         attempt == kBestResponseAttempt;
@@ -42,7 +54,7 @@ Result Solver::solve(const WarmStart* warm) {
       if (!look_past_saddle(attempt, br_now, sc, info)) break;
       Result cand = res;
       write_result(cand, cand.info);
-      if (cand.info.status != Status::Saddle) return cand;
+      if (cand.info.status != Status::Saddle) { res = std::move(cand); return true; }
       if (settings_.verbose) std::printf("converged to a saddle, restarting\n");
       if (!sc.have_saddle) { sc.saddle = std::move(cand); sc.have_saddle = true; }
       if (leave_saddle(sc.escapes)) {
@@ -55,8 +67,46 @@ Result Solver::solve(const WarmStart* warm) {
     if (repeat) --attempt;
   }
   write_result(res, info);
-  if (sc.have_saddle && info.status != Status::Converged) return saddle_result(sc, info);
-  return res;
+  return info.status == Status::Converged;
+}
+
+bool Solver::rescue_wanted(const Info& info) const {
+  // Not after the clock stopped the schedule (time_limit): the result is then the best iterate seen.
+  return settings_.order.candidates > 0 && !settings_.order.before_newton && settings_.restart.count > 0 &&
+         info.status != Status::TimeLimit && !past_deadline();
+}
+
+bool Solver::rescue(Result& found, Info& info, int& total_iter) {
+  // Its own budget beyond max_iter: order.max_iter game iterations for the solo plans and per guess,
+  // order.polish_iter per polish, and never more than max_iter (a solve stops within twice max_iter).
+  const PassingOrderSettings& po = settings_.order;
+  const int own = (po.candidates + 1) * po.max_iter + po.polish * (po.polish_iter + 1);
+  iter_limit_ = total_iter + std::min(own, settings_.max_iter);
+  if (settings_.verbose) std::printf("no equilibrium after the restarts: passing-order search\n");
+  // The pairs whose paths conflict: each agent's plan alone (the others ignored), from the initial controls. The
+  // rolled-out initial guess misses most (a merge's cars collide only once they steer into the target lane).
+  const int used = solo_plans(N_ * (iter_limit_ - total_iter));
+  total_iter += (used + N_ - 1) / N_;
+  info.order_iterations += used;
+  order_from_ = y_.u;
+  find_conflicts(y_);
+  return search_orders(found, info, total_iter);
+}
+
+// The counters of a whole solve (every attempt and the search) onto a result kept from part of it.
+void Solver::take_counters(Info& to, const Info& from) const {
+  to.iterations = from.iterations;
+  to.attempts = from.attempts;
+  to.saddle_escapes = from.saddle_escapes;
+  to.best_response_attempts = from.best_response_attempts;
+  to.best_response_iterations = from.best_response_iterations;
+  to.orders = from.orders;
+  to.order_attempts = from.order_attempts;
+  to.order_iterations = from.order_iterations;
+  to.residual_history = from.residual_history;
+  to.step_history = from.step_history;
+  to.timings = from.timings;
+  to.timings.total = seconds_since(t_start_);
 }
 
 void Solver::begin_solve(Info& info, const WarmStart* warm) {
@@ -75,7 +125,15 @@ void Solver::begin_solve(Info& info, const WarmStart* warm) {
   best_merit_ = kInf;
   inertia_delta_.assign(N_, 0.0);
   attempt_cap_ = 0;
-  find_conflicts();
+  iter_limit_ = settings_.max_iter;
+  // The conflicting pairs of the rolled-out initial guess (reported in every result; the search's before Newton).
+  for (int i = 0; i < N_; ++i) {
+    trial_.x[i].col(0) = prob_.x0[i];
+    trial_.u[i] = u_init_[i];
+    roll_out(trial_, i);
+  }
+  find_conflicts(trial_);
+  order_from_ = u_init_;
 }
 
 void Solver::start_scheduled_attempt(int attempt, bool best_response, const WarmStart* warm, Schedule& sc,
@@ -84,7 +142,7 @@ void Solver::start_scheduled_attempt(int attempt, bool best_response, const Warm
     ++sc.br_attempts;
     info.best_response_attempts = sc.br_attempts;
     // A sub-solve iteration (one agent's Newton system, N times smaller) counts 1/N of a game iteration.
-    const int used = start_best_response_attempt(N_ * (settings_.max_iter - sc.total_iter));
+    const int used = start_best_response_attempt(N_ * (iter_limit_ - sc.total_iter));
     sc.total_iter += (used + N_ - 1) / N_;
     info.best_response_iterations += used;
   } else if (!sc.from_saddle) {
@@ -98,21 +156,13 @@ bool Solver::look_past_saddle(int attempt, bool best_response, const Schedule& s
   const SecondOrderSettings& so = settings_.second_order;
   const bool attempt_left = attempt < settings_.restart.count || best_response || sc.escapes < so.escapes;
   return so.restart_on_saddle && info.status == Status::Converged && so.gap >= 0 && attempt_left &&
-         sc.total_iter < settings_.max_iter && !past_deadline();
+         sc.total_iter < iter_limit_ && !past_deadline();
 }
 
 // No later attempt found an equilibrium: the saddle (feasible, first-order stationary) beats a failure.
 Result Solver::saddle_result(Schedule& sc, const Info& info) const {
   Result saddle = std::move(sc.saddle);
-  saddle.info.iterations = info.iterations;
-  saddle.info.attempts = info.attempts;
-  saddle.info.saddle_escapes = info.saddle_escapes;
-  saddle.info.best_response_attempts = info.best_response_attempts;
-  saddle.info.best_response_iterations = info.best_response_iterations;
-  saddle.info.orders = info.orders;
-  saddle.info.order_attempts = info.order_attempts;
-  saddle.info.order_iterations = info.order_iterations;
-  saddle.info.timings.total = seconds_since(t_start_);
+  take_counters(saddle.info, info);
   return saddle;
 }
 
@@ -248,7 +298,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     const double rnorm = merit(r_, rc_);
     record_iterate(rnorm, total_iter, info);
     if (converged(rnorm)) { info.status = Status::Converged; break; }
-    if (total_iter >= settings_.max_iter || (attempt_cap_ > 0 && total_iter >= attempt_cap_)) {
+    if (total_iter >= iter_limit_ || (attempt_cap_ > 0 && total_iter >= attempt_cap_)) {
       info.status = Status::MaxIterations;
       break;
     }
@@ -263,7 +313,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (rules_.rho_progress <= 0 || rnorm <= rules_.rho_progress * rho_) lower_rho();
   }
   if (info.status == Status::Converged || info.status == Status::TimeLimit || info.status == Status::NumericalError ||
-      total_iter >= settings_.max_iter)
+      total_iter >= iter_limit_)
     return AttemptEnd::Finished;
   if (polished && info.status == Status::LineSearchFailed) stalled = true;  // the polish was the stall's last resort
   if (stalled) info.status = Status::Stalled;  // reported if no attempt is left

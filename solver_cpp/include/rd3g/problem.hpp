@@ -231,30 +231,38 @@ struct SecondOrderSettings {
   double inertia = 1.5;
 };
 
-/// Passing-order search before Newton (Settings::order; docs/solver.md, "Passing order"). The conflicting pairs are
-/// those whose rolled-out initial guess comes closer than their collision distance; an order gives each the sign of
-/// its winding (+1: p_j - p_i turns counterclockwise over the horizon, i < j), which says who passes first and on
-/// which side. Per candidate order an ordered guess is built by one Gauss-Seidel sweep of single-agent sub-solves
-/// (the best-response sub-solvers) in agent order, in which the lower agent of a conflicting pair ignores the higher,
-/// and the higher sees the lower's disc moved by `offset` d_min towards the side it must not take (radius grown by
-/// as much). The `polish` candidates with the lowest residual ||r|| at their guess are polished by Newton, each an
-/// attempt of at most `polish_iter` iterations; the first (by guess residual) that converges and passes the
-/// second-order test is returned, the others are reported in Info::orders. If none does, the restart schedule runs
-/// as without the search. Sub-solve iterations count 1/N of a game iteration, as in the best-response restart.
+/// Passing-order search (Settings::order; docs/solver.md, "Passing order"). The conflicting pairs are those whose
+/// rolled-out initial guess comes closer than their collision distance; an order gives each the sign of its winding
+/// (+1: p_j - p_i turns counterclockwise over the horizon, i < j), which says who passes first and on which side. Per
+/// candidate order an ordered guess is built by one Gauss-Seidel sweep of single-agent sub-solves (the best-response
+/// sub-solvers) in agent order, in which the lower agent of a conflicting pair ignores the higher, and the higher sees
+/// the lower's disc moved by `offset` d_min towards the side it must not take (radius grown by as much). The `polish`
+/// candidates with the lowest residual ||r|| at their guess are polished by Newton, each an attempt of at most
+/// `polish_iter` iterations; the first (by guess residual) that converges and passes the second-order test is
+/// returned, the others are reported in Info::orders. Sub-solve iterations count 1/N of a game iteration, as in the
+/// best-response restart.
+/// By default the search is the restart schedule's last stage, the rescue: it runs only when every attempt of the
+/// schedule has ended without an equilibrium (never with restart.count 0), so a solve the schedule finishes is
+/// unchanged. The rescue has its own iteration budget beyond Settings::max_iter: at most max_iter (of this group)
+/// game iterations for the agents' solo plans (which define the conflicting pairs) and per guess, polish_iter per
+/// polished candidate, and never more than Settings::max_iter; the time limit bounds it as every attempt.
+/// With before_newton the search runs before attempt 0 instead, within max_iter, and the schedule runs after it
+/// (with the iterations left) only if no candidate reached an equilibrium.
 struct PassingOrderSettings {
   /// Candidate orders built (0 = off): every one of the 2^P orders of P conflicting pairs if 2^P <= candidates,
   /// else the rolled-out guess's own order, its single flips, then seeded random orders, up to `candidates`.
-  int candidates = 0;
+  int candidates = 4;
   int polish = 2;          ///< candidates polished by Newton (best guess residual first), >= 1 (at most candidates)
   int polish_iter = 150;   ///< Newton iterations per polished candidate (game iterations), >= 1
   int max_iter = 50;       ///< Newton iterations per single-agent sub-solve of an ordered guess, >= 1
   double offset = 1.0;     ///< displacement of a leader's disc, fraction of the collision distance, finite, >= 0
+  bool before_newton = false;  ///< search before attempt 0 (every solve with a conflicting pair), not as the rescue
 };
 
 /// Every setting of RD3G, grouped by concern (OSQP/proxsuite style); one documented default per field.
 struct Settings {
   double tol = 5e-4;   ///< stop when ||r||_2 < tol (and the other conditions hold)
-  int max_iter = 1000; ///< Newton iterations, all attempts together
+  int max_iter = 1000; ///< Newton iterations, all attempts together (the order rescue may add up to as many)
   /// (s), 0 = none. Checked every iteration, between Levenberg-Marquardt tries, inside LSCG (in chunks of 50
   /// iterations) and before a SparseQR factorisation, which is started only if this solver's previous QR
   /// took less than the time left (never before one was measured); otherwise a regularised least-squares step
@@ -337,7 +345,8 @@ struct Info {
   /// Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
   /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.
   std::vector<double> second_order;
-  /// The conflicting pairs of the initial guess and the order the returned point gives them (always filled).
+  /// The conflicting pairs of the initial guess (of the solo plans in a point the order rescue returns) and the order
+  /// the returned point gives them (always filled).
   std::vector<PassingPair> passing_order;
   std::vector<OrderCandidate> orders;  ///< the passing-order search's candidates (empty if it did not run)
   int order_attempts = 0;              ///< polish attempts of the passing-order search

@@ -119,11 +119,14 @@ class Solver {
     Eigen::Vector2d n = Eigen::Vector2d::Zero();
     int natural = 1;
   };
-  /// The conflicting pairs of y_ (the rolled-out initial guess) into conflicts_.
-  void find_conflicts();
+  /// The conflicting pairs of y (rolled-out trajectories) into conflicts_.
+  void find_conflicts(const Iterate& y);
+  /// y_ = each agent's own plan with the others ignored (one sub-solve each from the initial controls); returns the
+  /// sub-solve iterations (<= budget).
+  int solo_plans(int budget);
   /// The candidate orders (winding per conflicting pair) into order_signs_.
   void candidate_orders();
-  /// y_ from the initial controls and one ordered sweep for the given windings; returns sub-solve iterations.
+  /// y_ from order_from_ and one ordered sweep for the given windings; returns sub-solve iterations.
   int ordered_guess(const std::vector<int>& winding, int budget);
   /// The order of every conflicting pair at y_.
   void passing_of(std::vector<PassingPair>& out) const;
@@ -137,7 +140,9 @@ class Solver {
   std::vector<ConflictPair> conflicts_;
   std::vector<std::vector<int>> order_signs_;
   std::vector<std::vector<Mat>> order_u_;  // per candidate: the ordered guess's controls (nu x T per agent)
+  std::vector<Mat> order_from_;            // controls the ordered guesses start from (initial, or the solo plans)
   int attempt_cap_ = 0;                    // > 0: the current attempt ends at this total iteration count
+  int iter_limit_ = 0;                     // the solve stops at this total iteration count (max_iter; the rescue's own)
   // Set-up steps.
   void list_and_allocate();  // constraint list of prob_ and every buffer sized by it
   void finish_update(Clock::time_point t0);
@@ -156,6 +161,16 @@ class Solver {
     bool have_saddle = false;
     Result saddle;             // the first converged attempt the second-order test rejected (restart_on_saddle)
   };
+  /// The restart schedule's attempts; true if res holds an equilibrium (converged, second-order test passed),
+  /// otherwise res holds the last attempt's point and sc the first saddle, if any.
+  bool run_schedule(Result& res, Schedule& sc, const WarmStart* warm);
+  /// The passing-order search runs as the schedule's last stage (Settings::order, not before_newton), given the
+  /// schedule's result.
+  bool rescue_wanted(const Info& info) const;
+  /// The search as the rescue, with its own iteration budget; true if `found` holds an equilibrium.
+  bool rescue(Result& found, Info& info, int& total_iter);
+  /// The counters and timings of the whole solve (from) onto a result kept from part of it (to).
+  void take_counters(Info& to, const Info& from) const;
   /// Timings, counters, initial guess and the restart offsets' random sequence at the start of a solve.
   void begin_solve(Info& info, const WarmStart* warm);
   /// y_, rho_ and the rules of the next attempt: from the best-response guess, the schedule's start or a saddle.
