@@ -284,7 +284,7 @@ class _RecedingHorizon:
         the car turning, across the infield), and feeding back the previous fallback's acceleration
         as the reference integrated the speed error."""
         c = self.config
-        self._reference = self._shifted((self._prev.x[0] if self._reference is None else self._reference)[None])[0]
+        self._reference = self._shifted(self._reference[None])[0]  # set with _prev by every plan _finish keeps
         self._reference_age_s += self.control_period_s
         if self._reference_age_s < c.horizon * c.plan_dt_s:
             ref = self._reference
