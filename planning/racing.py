@@ -152,10 +152,21 @@ class _RecedingHorizon:
     def ey_limits(self, s_values) -> tuple[float, float]:
         """(lowest, highest) ey of a plan over the window of the given progress values: the track-limit
         bound, within which the inside of every turn keeps the radius the car turns at the planner's
-        steering limit (FrenetTrackModel.ey_limits; left turns at delta_max, right turns at delta_min)."""
+        steering limit (FrenetTrackModel.ey_limits; left turns at delta_max, right turns at delta_min).
+        That limit holds a path at a constant offset round the turn; a racing line cuts across the turn
+        on a wider radius (tightest 0.228 m on the tile tracks) and touches the inside at its apex, so
+        following one the limits also keep the line's own offsets over the window plus line_margin_m
+        (within the track-limit bound)."""
         g = self.tm.car.geometry
-        return self.tm.ey_limits(s_values, min_turn_radius(g.lf_m, g.lr_m, self.mapper.delta_max),
-                                 min_turn_radius(g.lf_m, g.lr_m, self.mapper.delta_min))
+        low, high = self.tm.ey_limits(s_values, min_turn_radius(g.lf_m, g.lr_m, self.mapper.delta_max),
+                                      min_turn_radius(g.lf_m, g.lr_m, self.mapper.delta_min))
+        if self.line is None:
+            return low, high
+        bound = self.tm.ey_bound(s_values)
+        line_ey = self.line.lateral_offset(np.mod(self.tm.window(s_values), self.tm.track.length))
+        margin = self.config.line_margin_m
+        return (max(min(low, float(np.min(line_ey)) - margin), -bound),
+                min(max(high, float(np.max(line_ey)) + margin), bound))
 
     def _agent(self, x0, top_speed: float, ey_limits: tuple[float, float], cost: QuadraticCost, lead: float) -> Agent:
         a_min, a_max = self.mapper.acceleration_bounds(float(x0[V]))
