@@ -97,3 +97,30 @@ def test_a_turn_tighter_than_the_car_is_an_error_naming_the_turn(car):
     p = _planner(load_track("buzzracer:full"), car)
     with pytest.raises(ValueError, match="too tight"):
         p.tm.ey_limits([0.0], 5.0, 5.0)
+
+
+def test_a_racing_line_keeps_its_apex_within_the_limits(full, car):
+    """Following a racing line, the limits never cut off the line's own offsets (plus line_margin_m) in the
+    window, within the track-limit bound: a line that crosses a 0.3 m turn on a wide radius touches the
+    inside at its apex, where a constant-offset path could not go. A line (written here) that dips to
+    -0.17 m at the middle of a right turn and is 0 elsewhere: without it the inside of that turn is held
+    at the constant-offset limit; with it the lower limit reaches the dip plus the margin."""
+    from tracks.racing_line import RacingLine
+
+    p = _planner(full, car)
+    n = 2000
+    s = np.arange(n) * full.length / n
+    kappa = np.asarray(full.curvature(s))
+    right = int(np.argmax(kappa < -3.0))
+    apex = right + int(np.argmax(kappa[right:] > -3.0)) // 2
+    ey = np.zeros(n)
+    ey[apex - 5: apex + 5] = -0.17
+    s0 = float(s[apex]) - 1.0
+    low, _ = p.ey_limits([s0])
+    assert low == pytest.approx(-(0.3 - min_turn_radius(car.geometry.lf_m, car.geometry.lr_m, p.mapper.delta_min)),
+                                abs=1e-3)
+    p.line = RacingLine(full.name, float(full.length), None, ey, np.full(n, 1.0), np.zeros(n), np.full(n, full.length / n))
+    low_line, high_line = p.ey_limits([s0])
+    bound = p.tm.ey_bound([s0])
+    assert low_line == pytest.approx(max(-0.17 - p.config.line_margin_m, -bound))
+    assert high_line <= bound
