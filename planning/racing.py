@@ -576,7 +576,8 @@ class RacingPlanner(_RecedingHorizon):
         steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min)
                  for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
         collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,
-                              pos_x_scale=[scale] * c.horizon, pair_distances=[PairDistance(agents=ij, min_distance=d) for ij, d in steps.items()
+                              pos_x_scale=[scale] * c.horizon,
+                              pair_distances=[PairDistance(agents=ij, min_distance=d) for ij, d in steps.items()
                                               if ij[1] < n])
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents, collision=collision,
                               obstacles=[Obstacle(positions=o, min_distance=steps.get((0, n + k), nominal_d_min))
