@@ -58,13 +58,17 @@ class FrenetTrackModel:
 
     * model: KinematicBicycleFrenet(lf, lr) of the car on the track's curvature table (periodic).
     * lateral bound: |ey| <= width/2 - (half the footprint width, plus the corner swing at
-      heading_allowance_rad) - track_margin_m, at the narrowest point of the planning window.
+      heading_allowance_rad) - track_margin_m, at the narrowest point of the planning window;
+      ey_limits also keeps the inside of every turn in the window drivable: a path at offset ey in
+      a turn of curvature kappa has radius 1/|kappa| - |ey| on the inside, so ey <= 1/kappa - r_min
+      (kappa > 0, left turn; mirrored for right turns), r_min the car's tightest radius.
     * collision distance: the cars are discs of the footprint's circumscribed radius, so in
       Cartesian coordinates d_min = r_a + r_b + collision_margin_m. The constraint is evaluated
-      on (s, ey), where an arc-length gap ds at lateral offset ey is only (1 - kappa ey) ds long
-      on the inside of a curve; d_min is divided by (1 - |kappa|max ey_max) over the window so the
-      Frenet distance never under-estimates the Cartesian one (it over-estimates it on the
-      outside of curves and is exact on straights).
+      on (s, ey): a lateral gap is exact, but an arc-length gap ds at lateral offset ey is only
+      (1 - kappa ey) ds long on the inside of a curve; so the solver measures the separation as
+      |(a ds, dey)| with the along-track scale a = 1 - |kappa|max ey_max over the window
+      (along_track_scale, the collision's pos_x_scale), which never over-states the Cartesian
+      distance and leaves the lateral one exact.
     """
 
     def __init__(self, track, car: CarParams, config: PlannerConfig) -> None:
@@ -83,7 +87,7 @@ class FrenetTrackModel:
         self.footprint_radius = math.hypot(0.5 * g.footprint_length_m + abs(g.footprint_offset_m),
                                            0.5 * g.footprint_width_m)
         self._window_key: tuple[float, float] | None = None  # the last window's (min, max) progress
-        self._window_limits = (math.nan, math.nan)
+        self._window_limits = (math.nan, math.nan, math.nan)
 
     @lru_cache(maxsize=8)
     def rollout_model(self, dt: float):
@@ -96,14 +100,16 @@ class FrenetTrackModel:
         reach = self.config.top_speed_mps * self.config.horizon * self.config.plan_dt_s + 0.5
         return np.arange(float(s_values.min()) - 0.2, float(s_values.max()) + reach, 0.01)
 
-    def _limits(self, s_values) -> tuple[float, float]:
-        """(smallest track width m, largest |curvature| 1/m) over the window of the given progress values;
-        a plan asks for both (ey_bound, collision_distance) with the same values, so the last window's are kept."""
+    def _limits(self, s_values) -> tuple[float, float, float]:
+        """(smallest track width m, largest and smallest curvature 1/m) over the window of the given
+        progress values; a plan asks for the limits and the along-track scale with the same values, so the
+        last window's are kept."""
         s_values = np.asarray(s_values, dtype=float)
         key = (float(s_values.min()), float(s_values.max()))
         if key != self._window_key:
             s = np.mod(self.window(s_values), self.track.length)
-            self._window_limits = (float(np.min(self.track.width(s))), float(np.max(np.abs(self.track.curvature(s)))))
+            kappa = np.asarray(self.track.curvature(s), dtype=float)
+            self._window_limits = (float(np.min(self.track.width(s))), float(np.max(kappa)), float(np.min(kappa)))
             self._window_key = key
         return self._window_limits
 
@@ -116,14 +122,48 @@ class FrenetTrackModel:
                              f"(half-width {0.5 * w:.3f} m, car needs {self.lateral_half_extent + self.config.track_margin_m:.3f} m)")
         return bound
 
-    def collision_distance(self, s_values, ey_values=None, other_radius: float | None = None) -> float:
-        """Frenet d_min (m) between this car and another over the window (see class doc). With
-        ey_values (the cars' current lateral offsets) the curvature factor uses the largest of them
-        plus lateral_reach_m instead of the track-limit bound, which is less conservative."""
-        r_other = self.footprint_radius if other_radius is None else other_radius
-        d_cart = self.footprint_radius + r_other + self.config.collision_margin_m
-        kappa_max = self._limits(s_values)[1]
+    def ey_limits(self, s_values, min_radius_left: float, min_radius_right: float) -> tuple[float, float]:
+        """(lowest, highest) ey the planner allows over the window ahead of the given progress values
+        (m): the track-limit bound (ey_bound), and on the inside of every turn in the window the offset
+        whose path radius is the car's tightest (min_radius_left for left turns, kappa > 0: ey <= 1/kappa -
+        min_radius_left; min_radius_right for right turns: ey >= -(1/|kappa| - min_radius_right))."""
+        bound = self.ey_bound(s_values)
+        _, k_max, k_min = self._limits(s_values)
+        k_left, k_right = max(k_max, 0.0), max(-k_min, 0.0)
+        high = min(bound, 1.0 / k_left - min_radius_left) if k_left > 0 else bound
+        low = max(-bound, min_radius_right - 1.0 / k_right) if k_right > 0 else -bound
+        if high <= low:
+            raise ValueError(f"track: {self.track.name!r} has a turn too tight for car {self.car.name!r} "
+                             f"(radius {1.0 / max(k_left, k_right):.3f} m within the reach from s = {float(np.min(s_values)):.2f} m; the car "
+                             f"turns {min(min_radius_left, min_radius_right):.3f} m at the least, its track-limit bound "
+                             f"is {bound:.3f} m)")
+        return low, high
+
+    def along_track_scale(self, s_values, ey_values=None) -> float:
+        """The along-track scale a (see class doc) over the window of the given progress values: with
+        ey_values (the cars' current lateral offsets) ey_max is the largest of them plus lateral_reach_m
+        (capped at the track-limit bound), else the bound. Never below 0.2."""
+        _, k_max, k_min = self._limits(s_values)
+        kappa_max = max(k_max, -k_min)
         ey_max = self.ey_bound(s_values)
         if ey_values is not None:
             ey_max = min(ey_max, float(np.max(np.abs(ey_values))) + self.config.lateral_reach_m)
-        return d_cart / max(1.0 - kappa_max * ey_max, 0.2)
+        return max(1.0 - kappa_max * ey_max, 0.2)
+
+    def collision_distance(self, other_radius: float | None = None) -> float:
+        """Cartesian d_min (m) between this car and another (see class doc): the sum of the footprint
+        radii plus collision_margin_m; the Frenet separation it bounds is frenet_separation."""
+        r_other = self.footprint_radius if other_radius is None else other_radius
+        return self.footprint_radius + r_other + self.config.collision_margin_m
+
+
+def frenet_separation(d_s, d_ey, along_track_scale: float):
+    """The collision constraint's separation |(a ds, dey)| (m) of Frenet gaps (ds, dey) (arrays or
+    numbers), a the along-track scale (FrenetTrackModel.along_track_scale)."""
+    return np.hypot(along_track_scale * np.asarray(d_s, dtype=float), np.asarray(d_ey, dtype=float))
+
+
+def min_turn_radius(lf: float, lr: float, delta: float) -> float:
+    """Radius (m) of the kinematic bicycle's CG path at wheel angle ``delta`` (rad, nonzero):
+    sqrt(lr^2 + ((lf + lr) / tan(delta))^2), the rear-axle radius wheelbase / tan(delta) seen from the CG."""
+    return math.hypot(lr, (lf + lr) / math.tan(abs(delta)))

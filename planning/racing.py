@@ -33,7 +33,7 @@ from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, Pair
 
 from .commands import CommandMapper
 from .config import PlannerConfig, solver_settings
-from .frenet import EPSI, EY, S, V, FrenetTrackModel
+from .frenet import EPSI, EY, S, V, FrenetTrackModel, frenet_separation, min_turn_radius
 from .reference import planner_racing_line, stage_reference
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
@@ -152,11 +152,30 @@ class _RecedingHorizon:
         if weight is not None:
             cost.Q_ref = [*cost.Q_ref[:index], float(weight), *cost.Q_ref[index + 1:]]
 
-    def _agent(self, x0, top_speed: float, ey_bound: float, cost: QuadraticCost, lead: float) -> Agent:
+    def ey_limits(self, s_values) -> tuple[float, float]:
+        """(lowest, highest) ey of a plan over the window of the given progress values: the track-limit
+        bound, within which the inside of every turn keeps the radius the car turns at the planner's
+        steering limit (FrenetTrackModel.ey_limits; left turns at delta_max, right turns at delta_min).
+        That limit holds a path at a constant offset round the turn; a racing line cuts across the turn
+        on a wider radius (tightest 0.228 m on the tile tracks) and touches the inside at its apex, so
+        following one the limits also keep the line's own offsets over the window plus line_margin_m
+        (within the track-limit bound)."""
+        g = self.tm.car.geometry
+        low, high = self.tm.ey_limits(s_values, min_turn_radius(g.lf_m, g.lr_m, self.mapper.delta_max),
+                                      min_turn_radius(g.lf_m, g.lr_m, self.mapper.delta_min))
+        if self.line is None:
+            return low, high
+        bound = self.tm.ey_bound(s_values)
+        line_ey = self.line.lateral_offset(np.mod(self.tm.window(s_values), self.tm.track.length))
+        margin = self.config.line_margin_m
+        return (max(min(low, float(np.min(line_ey)) - margin), -bound),
+                min(max(high, float(np.max(line_ey)) + margin), bound))
+
+    def _agent(self, x0, top_speed: float, ey_limits: tuple[float, float], cost: QuadraticCost, lead: float) -> Agent:
         a_min, a_max = self.mapper.acceleration_bounds(float(x0[V]))
         return Agent(self.tm.model, x0=list(map(float, x0)), cost=cost,
                      u_min=[a_min, self.mapper.delta_min], u_max=[a_max, self.mapper.delta_max],
-                     x_min=[-np.inf, -ey_bound, -np.inf, -np.inf], x_max=[np.inf, ey_bound, top_speed, np.inf],
+                     x_min=[-np.inf, ey_limits[0], -np.inf, -np.inf], x_max=[np.inf, ey_limits[1], top_speed, np.inf],
                      lead_weight=lead, lead_index=S)
 
     def _shifted(self, a: np.ndarray) -> np.ndarray:
@@ -210,42 +229,55 @@ class _RecedingHorizon:
         a = min(a, (top - x0[V]) / c.plan_dt_s)  # never plan past the top speed
         return np.array([np.clip(a, a_min, a_max), np.clip(delta, self.mapper.delta_min, self.mapper.delta_max)])
 
-    def _feasible_limits(self, x0s, ey_bound: float, d_min: float, obstacle_positions=()) -> tuple[float, float, np.ndarray]:
-        """Track-limit bound and collision distance relaxed just enough that the problem is feasible
-        from the current states. A car beyond the bound (or heading out of it) cannot be back inside
-        at k = 1 (the first planned position hardly depends on the controls), nor can two cars closer
-        than d_min be d_min apart; the solver then fails at once (line search) and the car used to be
-        driven open loop until it left the track. Bound: the largest |ey| of a full-lock recovery
-        towards the centre line over the horizon, if that exceeds the nominal bound (the lateral cost
-        then pulls the car back); distance: at most the current separation and the one at k = 1 with
-        zero controls, minus 1 cm (the bound gets 3 cm of room: with 1-2 cm the solves from such states
-        stalled), but never below _MIN_COLLISION_DISTANCE_M. Returns (bound, the smallest pair's
-        distance, each pair's distance: a symmetric matrix over x0s then obstacle_positions; only the
-        pairs that start too close are relaxed, the others keep d_min)."""
+    def _feasible_limits(self, x0s, ey_limits: tuple[float, float], d_min: float, along_track_scale: float,
+                         obstacle_positions=()) -> tuple[tuple[float, float], float, np.ndarray]:
+        """Track-limit bounds (lowest, highest ey) and collision distance relaxed just enough that the
+        problem is feasible from the current states. A car beyond a bound (or heading out of it) cannot be
+        back inside at k = 1 (the first planned position hardly depends on the controls), nor can two cars
+        closer than d_min be d_min apart; the solver then fails at once (line search) and the car used to
+        be driven open loop until it left the track. Bound: the farthest ey of a full-lock recovery towards
+        the middle of the bounds over the horizon, if that is beyond the nominal bound on its side (the
+        lateral cost then pulls the car back); distance: at most the current separation and the one at k = 1
+        with zero controls (both measured as the constraint does, frenet_separation with along_track_scale),
+        minus 1 cm (the bound gets 3 cm of room: with 1-2 cm the solves from such states stalled), but never
+        below _MIN_COLLISION_DISTANCE_M. Returns (bounds, the smallest pair's distance, each pair's
+        distance: a symmetric matrix over x0s then obstacle_positions; only the pairs that start too close
+        are relaxed, the others keep d_min)."""
         c = self.config
         model = self.tm.rollout_model(c.plan_dt_s)
+        low, high = ey_limits
+        middle = 0.5 * (low + high)
         first = []
         for x0 in x0s:
             x0 = np.asarray(x0, dtype=float)
+            side = 1.0 if x0[EY] >= middle else -1.0  # the bound the car is nearer
             u = np.zeros((c.horizon, 2))
-            u[:, 1] = self.mapper.delta_max if x0[EY] < 0 else self.mapper.delta_min
+            u[:, 1] = self.mapper.delta_min if side > 0 else self.mapper.delta_max
             x = np.asarray(model.rollout(x0, u))
-            # recovery: steer toward the centre until heading inward, then the bound is not needed further
-            inward = np.sign(-x0[EY]) * x[:, EPSI] > 0
+            # recovery: steer towards the middle until heading inward, then the bound is not needed further
+            inward = -side * x[:, EPSI] > 0
             stop = int(np.argmax(inward)) if inward.any() else c.horizon
-            reach = float(np.max(np.abs(x[1: stop + 2, EY])))  # x0 itself is not constrained
-            if reach > ey_bound:
-                ey_bound = reach + 0.03  # interior room for the barrier
+            reach = side * x[1: stop + 2, EY]  # x0 itself is not constrained
+            if side > 0 and float(np.max(reach)) > high:
+                high = float(np.max(reach)) + 0.03  # interior room for the barrier
+            elif side < 0 and -float(np.max(reach)) < low:
+                low = -float(np.max(reach)) - 0.03
             first.append(np.asarray(model.rollout(x0, np.zeros((1, 2))))[:, :2])
+        # A relaxed track-limit bound is relaxed on both sides (the oval's cold solves from a car beyond the
+        # bound were usable and turned back more often so); a side held at a turn's inner limit keeps it.
+        outer, relaxed = max(-ey_limits[0], ey_limits[1]), max(-low, high)
+        if relaxed > outer:
+            low, high = (-relaxed if ey_limits[0] == -outer else low), (relaxed if ey_limits[1] == outer else high)
         positions = first + [np.asarray(o)[:2] for o in obstacle_positions]
         nominal = float(d_min)
         pair = np.full((len(positions), len(positions)), nominal)
         for i in range(len(first)):  # obstacles constrain the agents only, not each other
             for j in range(i + 1, len(positions)):
-                d = float(np.min(np.hypot(*(positions[i] - positions[j]).T)))
+                gap = positions[i] - positions[j]
+                d = float(np.min(frenet_separation(gap[:, 0], gap[:, 1], along_track_scale)))
                 pair[i, j] = pair[j, i] = max(min(nominal, d - 0.01), _MIN_COLLISION_DISTANCE_M)
                 d_min = min(d_min, d - 0.01)
-        return ey_bound, max(d_min, _MIN_COLLISION_DISTANCE_M), pair
+        return (low, high), max(d_min, _MIN_COLLISION_DISTANCE_M), pair
 
     def corner_speed_cap(self, x, top_speed: float) -> float:
         """Speed bound (m/s) for a plan from state x: top_speed, lowered to sqrt(max_lateral_accel /
@@ -378,20 +410,24 @@ class _RecedingHorizon:
         k = np.arange(1, self.config.horizon + 1)
         return np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
 
-    def _violation(self, problem: GameProblem, x: np.ndarray, ey_bound: float) -> float:
-        """Largest violation (m or m/s) of track limits, top speed and separation (each pair at its own
-        distance) along trajectories x."""
-        worst = float(np.max(np.abs(x[:, 1:, EY])) - ey_bound)
+    def _violation(self, problem: GameProblem, x: np.ndarray) -> float:
+        """Largest violation (m or m/s) of the agents' track-limit bounds and top speeds and of separation
+        (each pair at its own distance, measured as the constraint does) along trajectories x."""
+        worst = 0.0
         for i, a in enumerate(problem.agents):
-            worst = max(worst, float(np.max(x[i, 1:, V]) - a.x_max[V]))
+            worst = max(worst, float(np.max(x[i, 1:, EY] - a.x_max[EY])), float(np.max(a.x_min[EY] - x[i, 1:, EY])),
+                        float(np.max(x[i, 1:, V]) - a.x_max[V]))
         n = len(problem.agents)
+        scale = 1.0 if problem.collision.pos_x_scale is None else np.asarray(problem.collision.pos_x_scale, dtype=float)
         positions = [x[i, 1:, :2] for i in range(n)]
         d_pair = problem.collision.pair_min_distances(n, problem.horizon) if n > 1 else None
         for i in range(n):
             for j in range(i + 1, n):
-                worst = max(worst, float(np.max(d_pair[i, j] - np.hypot(*(positions[i] - positions[j]).T))))
+                gap = positions[i] - positions[j]
+                worst = max(worst, float(np.max(d_pair[i, j] - frenet_separation(gap[:, 0], gap[:, 1], scale))))
             for o in problem.obstacles:  # each obstacle at its own distance
-                worst = max(worst, float(np.max(o.min_distance - np.hypot(*(positions[i] - o.positions[1:]).T))))
+                gap = positions[i] - np.asarray(o.positions)[1:]
+                worst = max(worst, float(np.max(o.min_distance - frenet_separation(gap[:, 0], gap[:, 1], scale))))
         return max(worst, 0.0)
 
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = ()) -> Plan:
@@ -418,7 +454,7 @@ class _RecedingHorizon:
             used = "fallback"
             if finite:
                 x = self._rollout(problem, result.u)
-                if np.all(np.isfinite(x)) and self._violation(problem, x, ey_bound) <= self.config.accept_violation_m:
+                if np.all(np.isfinite(x)) and self._violation(problem, x) <= self.config.accept_violation_m:
                     used, u_all = "accepted", result.u
         if used == "fallback":
             if warm is None:  # nothing to track yet: the best the solver found
@@ -550,19 +586,23 @@ class RacingPlanner(_RecedingHorizon):
         ids = tuple(range(len(rows))) if other_ids is None else tuple(other_ids)
         s_now = [x_self[S], *(x[S] for x in rows), *(x[S] for x in far)]
         ey_bound = self.tm.ey_bound(s_now)
-        d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
+        limits = self.ey_limits(s_now)
+        scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
+        d_min = self.tm.collision_distance()
         own_top = self.speed_cap(x_self, c.top_speed_mps)
         other_top = [self.speed_cap(x, top) for x, top in zip(rows, tops)]
         own_cost = self._cost(own_top, c.reference_speed_mps, x_self)
         defend_ey = self.defend_reference(x_self, rows, ey_bound, refs)
-        if defend_ey is not None:
+        if defend_ey is not None:  # on the inside of the turn, within the turn's radius limit
+            defend_ey = min(max(defend_ey, limits[0] + c.defend_margin_m), limits[1] - c.defend_margin_m)
             self._set_reference(own_cost, EY, defend_ey, c.q_defend)
         nominal_d_min = d_min
         predicted = [self.predict_other(x) for x in far]
-        ey_bound, d_min, pair = self._feasible_limits([x_self, *rows], ey_bound, d_min, predicted)
+        limits, d_min, pair = self._feasible_limits([x_self, *rows], limits, d_min, scale, predicted)
+        ey_bound = max(-limits[0], limits[1])
         top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
-        agents = [self._agent(x_self, top, ey_bound, own_cost, c.lead_weight),
-                  *(self._agent(x, t, ey_bound, self._cost(t, r, x), c.lead_weight)
+        agents = [self._agent(x_self, top, limits, own_cost, c.lead_weight),
+                  *(self._agent(x, t, limits, self._cost(t, r, x), c.lead_weight)
                     for x, t, r in zip(rows, other_top, refs))]
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
@@ -570,6 +610,7 @@ class RacingPlanner(_RecedingHorizon):
         steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min)
                  for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
         collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,
+                              pos_x_scale=[scale] * c.horizon,
                               pair_distances=[PairDistance(agents=ij, min_distance=d) for ij, d in steps.items()
                                               if ij[1] < n])
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents, collision=collision,
@@ -591,8 +632,9 @@ class MPCOpponent(_RecedingHorizon):
         c = self.config
         rows = _rows(x_others)
         s_now = [x_self[S], *(x[S] for x in rows)]
-        ey_bound = self.tm.ey_bound(s_now)
-        d_min = self.tm.collision_distance(s_now, [x_self[EY], *(x[EY] for x in rows)])
+        limits = self.ey_limits(s_now)
+        scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows)])
+        d_min = self.tm.collision_distance()
         top = self.speed_cap(x_self, c.top_speed_mps)
         cost = self._cost(top, c.reference_speed_mps, x_self)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
@@ -601,13 +643,14 @@ class MPCOpponent(_RecedingHorizon):
         nominal_d_min = d_min
         # Each obstacle has its own distance: relaxing one car that is too close leaves the others at
         # the nominal distance.
-        ey_bound, d_min, pair = self._feasible_limits([x_self], ey_bound, d_min, others)
+        limits, d_min, pair = self._feasible_limits([x_self], limits, d_min, scale, others)
         steps = [self._distance_steps(float(pair[0, k + 1]), nominal_d_min) for k in range(len(others))]
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon,
-                              agents=[self._agent(x_self, top, ey_bound, cost, 0.0)],
-                              collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY),
+                              agents=[self._agent(x_self, top, limits, cost, 0.0)],
+                              collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY,
+                                                  pos_x_scale=[scale] * c.horizon),
                               obstacles=[Obstacle(positions=o, min_distance=d) for o, d in zip(others, steps)])
-        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound)
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), max(-limits[0], limits[1]))
         plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in rows)], axis=0)
         return plan
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, ProgressUnwrapper, PurePursuitController, RacingPlanner, frenet_state
 from planning.commands import rollout_controls
-from planning.frenet import EY, S, V
+from planning.frenet import EY, S, V, frenet_separation
 from race.command_history import CommandHistory, controls_between  # noqa: F401 (controls_between: race.planning's name)
 from race.config import lower_realtime_priority
 from race.setup import RaceSetup
@@ -246,13 +246,18 @@ class RacePlanners:
             return players, far
         players, far = list(players), list(far)
         rows = dict(zip(players + far, self._in_frame(at_plan, i, players + far)))
-        d = planner.tm.collision_distance([at_plan[i, S], *(r[S] for r in rows.values())],
-                                          [at_plan[i, EY], *(r[EY] for r in rows.values())])
-        close = [o for o in far if any(math.hypot(*(rows[o][:2] - rows[p][:2])) < d + 0.02 for p in players)]
+        scale = planner.tm.along_track_scale([at_plan[i, S], *(r[S] for r in rows.values())],
+                                             [at_plan[i, EY], *(r[EY] for r in rows.values())])
+        d = planner.tm.collision_distance()
+
+        def near(o: int, p: int) -> bool:  # measured as the collision constraint does
+            return float(frenet_separation(*(rows[o][:2] - rows[p][:2]), scale)) < d + 0.02
+
+        close = [o for o in far if any(near(o, p) for p in players)]
         while close:
             players.append(close[0])
             far.remove(close[0])
-            close = [o for o in far if any(math.hypot(*(rows[o][:2] - rows[p][:2])) < d + 0.02 for p in players)]
+            close = [o for o in far if any(near(o, p) for p in players)]
         return players, far
 
     def _in_frame(self, at_plan: np.ndarray, i: int, others: list[int]) -> np.ndarray:

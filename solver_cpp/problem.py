@@ -112,9 +112,11 @@ class PairDistance:
 
 @dataclass
 class Collision:
-    """Pairwise h = d_min - |p_i - p_j| ("distance") or d_min^2 - |p_i - p_j|^2 ("squared") <= 0.
+    """Pairwise h = d_min - |A (p_i - p_j)| ("distance") or d_min^2 - |A (p_i - p_j)|^2 ("squared") <= 0.
     min_distance: d_min in m, one number for every step or a sequence of T numbers (k = 1..T), for every
-    pair not in pair_distances (at most one entry per pair)."""
+    pair not in pair_distances (at most one entry per pair). pos_x_scale: None (A = identity) or T positive
+    numbers a_k, A = diag(a_k, 1) at step k, for pairs and obstacles alike (an ellipse: e.g. the Frenet
+    along-track stretch 1 - kappa ey, planning.frenet)."""
 
     min_distance: float | Sequence[float]
     form: str = "distance"
@@ -122,6 +124,7 @@ class Collision:
     pos_x: int = 0
     pos_y: int = 1
     pair_distances: list[PairDistance] = field(default_factory=list)
+    pos_x_scale: Sequence[float] | None = None
 
     def pair_min_distances(self, num_agents: int, horizon: int) -> np.ndarray:
         """d_min (m) of every pair of agents for k = 1..T, shape (N, N, T), symmetric: the pair's entry of
@@ -226,6 +229,7 @@ class GameProblem:
                 raise ValueError(f"collision.form must be 'distance' or 'squared', got {col.form!r}")
             cs.form = getattr(_core.CollisionForm, col.form)
             cs.pos_x, cs.pos_y = _integer("collision.pos_x", col.pos_x), _integer("collision.pos_y", col.pos_y)
+            cs.pos_x_scale_steps = _optional_floats("collision.pos_x_scale", col.pos_x_scale)
             if col.enabled and len(self.agents) >= 2:
                 cs.min_distance, cs.min_distance_steps = _min_distance("collision.min_distance", col.min_distance)
                 cs.pair_distances = _pair_distances(col.pair_distances)

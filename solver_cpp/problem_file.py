@@ -79,7 +79,8 @@ def _schema() -> Table:
     pair_distance = table(PairDistance, overrides={"agents": Array(1, _INDEX, length=2), "min_distance": _DISTANCE})
     collision = table(Collision, overrides={"min_distance": _DISTANCE, "form": String(choices=("distance", "squared")),
                                             "pos_x": _INDEX, "pos_y": _INDEX,
-                                            "pair_distances": ListOf(pair_distance)})
+                                            "pair_distances": ListOf(pair_distance),
+                                            "pos_x_scale": Array(1, Number(gt=0))})
     obstacle = table(Obstacle, overrides={"positions": Array(2), "min_distance": _DISTANCE})
     return table(GameProblem, overrides={
         "dt": Number(gt=0), "horizon": Number(integer=True, ge=1, le=fileio.schema.INT32_MAX),
@@ -163,6 +164,8 @@ def problem_to_dict(problem: GameProblem, solver: dict | None = None) -> dict:
     if col is not None:
         out["collision"] = {"min_distance": _number_or_list(col.min_distance), "form": col.form,
                             "enabled": col.enabled, "pos_x": col.pos_x, "pos_y": col.pos_y}
+        if col.pos_x_scale is not None:
+            out["collision"]["pos_x_scale"] = [float(a) for a in col.pos_x_scale]
         if col.pair_distances:
             out["collision"]["pair_distances"] = [{"agents": [int(a) for a in q.agents],
                                                    "min_distance": _number_or_list(q.min_distance)}

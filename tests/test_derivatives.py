@@ -5,7 +5,8 @@
    finite differences of each player's Lagrangian written here from the problem definition, and the
    dense Jacobian J against finite differences of r, for both barrier modes and both collision forms,
    with bounds, an obstacle and three distinct pair distances (the default, a per-pair number and a per-pair
-   per-step list), at points where some constraints are violated and some satisfied.
+   per-step list), with and without a per-step scale of the first position coordinate (Collision.pos_x_scale:
+   an ellipse), at points where some constraints are violated and some satisfied.
 """
 import numpy as np
 import pytest
@@ -93,7 +94,7 @@ RHO = 0.05
 MARGIN = 1e-4  # Settings.barrier_margin default: constraints with -margin <= h < 0 are left out
 
 
-def _residual_problem(form: str, rng) -> GameProblem:
+def _residual_problem(form: str, rng, pos_x_scale=None) -> GameProblem:
     agents = []
     for i in range(3):
         cost = QuadraticCost(x_ref=[0.0, 1.0, 2.0, 0.0], Q_ref=rng.uniform(0.1, 1.0, 4), R=rng.uniform(0.1, 1.0, 2),
@@ -107,7 +108,8 @@ def _residual_problem(form: str, rng) -> GameProblem:
     pairs = [PairDistance(agents=(2, 0), min_distance=1.4),
              PairDistance(agents=(1, 2), min_distance=np.linspace(1.7, 2.6, T_RES))]
     return GameProblem(dt=0.2, horizon=T_RES, agents=agents,
-                       collision=Collision(min_distance=2.0, form=form, pair_distances=pairs), obstacles=[obstacle])
+                       collision=Collision(min_distance=2.0, form=form, pair_distances=pairs, pos_x_scale=pos_x_scale),
+                       obstacles=[obstacle])
 
 
 def _constraint_values(problem: GameProblem, constraints, x, u, form):
@@ -117,7 +119,10 @@ def _constraint_values(problem: GameProblem, constraints, x, u, form):
     d_pair = {frozenset(q.agents): np.broadcast_to(q.min_distance, (T,)) for q in problem.collision.pair_distances}
     d_default = np.broadcast_to(problem.collision.min_distance, (T,))
 
-    def dist_h(d, dmin):
+    scale = np.ones(T) if problem.collision.pos_x_scale is None else np.asarray(problem.collision.pos_x_scale)
+
+    def dist_h(d, dmin, k):
+        d = np.array([scale[k - 1] * d[0], d[1]])  # the ellipse: the first coordinate scaled at step k
         return dmin - np.linalg.norm(d) if form == "distance" else dmin ** 2 - d @ d
 
     out = []
@@ -126,10 +131,10 @@ def _constraint_values(problem: GameProblem, constraints, x, u, form):
         a = problem.agents[c.i]
         if kind == "pair":
             d_min = d_pair.get(frozenset((c.i, c.j)), d_default)[c.k - 1]
-            out.append((dist_h(x[c.i, c.k, :2] - x[c.j, c.k, :2], d_min), (c.i, c.j)))
+            out.append((dist_h(x[c.i, c.k, :2] - x[c.j, c.k, :2], d_min, c.k), (c.i, c.j)))
         elif kind == "obstacle":
             o = problem.obstacles[c.j]
-            out.append((dist_h(x[c.i, c.k, :2] - o.positions[c.k], o.min_distance), (c.i,)))
+            out.append((dist_h(x[c.i, c.k, :2] - o.positions[c.k], o.min_distance, c.k), (c.i,)))
         elif kind == "state_max":
             out.append((x[c.i, c.k, c.idx] - a.x_max[c.idx], (c.i,)))
         elif kind == "state_min":
@@ -178,11 +183,13 @@ def _random_point(problem, constraints, rng):
             return x, u, lam, mu, h
 
 
-@pytest.mark.parametrize("barrier", ["primal", "primal_dual"])
-@pytest.mark.parametrize("form", ["distance", "squared"])
-def test_newton_residual_and_jacobian_match_finite_differences(barrier, form):
+@pytest.mark.parametrize("barrier, form, pos_x_scale", [
+    ("primal", "distance", None), ("primal_dual", "distance", None), ("primal", "squared", None),
+    ("primal_dual", "squared", None), ("primal", "distance", [0.4, 0.7, 1.0, 1.3]),
+    ("primal_dual", "squared", [1.5, 0.5, 0.8, 0.3])])
+def test_newton_residual_and_jacobian_match_finite_differences(barrier, form, pos_x_scale):
     rng = np.random.default_rng(11 if form == "distance" else 12)
-    problem = _residual_problem(form, rng)
+    problem = _residual_problem(form, rng, pos_x_scale)
     solver = Solver(problem, barrier=dict(mode=barrier))
     core = solver._solver
     constraints = core.constraints()

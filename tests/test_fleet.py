@@ -187,7 +187,7 @@ def test_only_the_car_that_starts_too_close_is_relaxed(cls, monkeypatch):
     monkeypatch.setattr(cls, "_finish", capture)
     me, close, far = np.array([1.0, 0.0, 1.0, 0.0]), np.array([1.12, 0.05, 1.0, 0.0]), np.array([2.5, 0.0, 1.0, 0.0])
     planner.plan(me, np.array([close, far]))
-    nominal = planner.tm.collision_distance([1.0, 1.12, 2.5], [0.0, 0.05, 0.0])
+    nominal = planner.tm.collision_distance()
     problem = seen["problem"]
     if cls is MPCOpponent:
         d_close, d_far = (np.atleast_1d(o.min_distance) for o in problem.obstacles)

@@ -8,6 +8,7 @@ import pytest
 from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, ProgressUnwrapper, RacingPlanner
 from planning.commands import rollout_controls
 from planning.config import PlannerConfigError
+from planning.frenet import frenet_separation
 from tracks import load_track
 from vehicles.params import CarParams, Corrections
 
@@ -123,7 +124,8 @@ def test_rd3g_plan_respects_track_limits_and_control_bounds(track, car):
     ey_max = 0.3 - (0.5 * g.footprint_width_m * math.cos(cfg.heading_allowance_rad)
                     + 0.5 * g.footprint_length_m * math.sin(cfg.heading_allowance_rad)) - cfg.track_margin_m
     x_self, x_other = np.array([0.8, 0.15, 1.8, 0.1]), np.array([1.1, -0.05, 1.7, 0.0])
-    for _ in range(5):  # a few receding-horizon steps with warm starts, moving into the curve
+    w = PERIOD / cfg.plan_dt_s  # the cars move on one control period between plans, as in a race
+    for _ in range(15):  # receding-horizon steps with warm starts, moving into the curve
         plan = p.plan(x_self, x_other)
         assert plan.ey_bound == pytest.approx(ey_max)
         assert np.all(np.abs(plan.x[:, 1:, 1]) <= ey_max + p.config.accept_violation_m)
@@ -135,10 +137,11 @@ def test_rd3g_plan_respects_track_limits_and_control_bounds(track, car):
         # The plan is a trajectory of the planning model: re-simulate its controls.
         replay = p.tm.rollout_model(p.config.plan_dt_s).rollout(x_self, plan.u)
         assert np.asarray(replay) == pytest.approx(plan.x[0], abs=1e-6)
-        # Cars keep the collision distance in (s, ey) at every planned step.
-        gap = np.hypot(*(plan.x[0, 1:, :2] - plan.x[1, 1:, :2]).T)
+        # Cars keep the collision distance in (s, ey) at every planned step, the along-track gap scaled.
+        scale = p.tm.along_track_scale([x_self[0], x_other[0]], [x_self[1], x_other[1]])
+        gap = frenet_separation(*(plan.x[0, 1:, :2] - plan.x[1, 1:, :2]).T, scale)
         assert np.all(gap >= plan.d_min - p.config.accept_violation_m)
-        x_self, x_other = plan.x[0, 1], plan.x[1, 1]
+        x_self, x_other = (1 - w) * plan.x[:2, 0] + w * plan.x[:2, 1]
 
 
 def test_mpc_avoids_constant_speed_obstacle(track, car):
@@ -299,13 +302,14 @@ def test_separation_below_the_collision_distance_is_recovered_over_the_plan(trac
         p = _planner(cls, track, car, config={"top_speed_mps": 2.0}, **kw)
         x_self = np.array([4.5, 0.0, 1.9, 0.0])   # the top straight is s in [1 + pi, 3 + pi]
         x_other = np.array([4.65, 0.03, 1.5, 0.0])  # 0.15 m ahead, 3 cm aside: nominal d_min is 0.195 m
-        nominal = p.tm.collision_distance([x_self[0], x_other[0]], [x_self[1], x_other[1]])
+        nominal = p.tm.collision_distance()
         assert nominal > 0.17
         plan = p.plan(x_self, x_other)
         assert plan.used in ("converged", "accepted")
         k = np.arange(1, p.config.horizon + 1)
         required = np.minimum(nominal, plan.d_min + p.config.separation_recovery_mps * p.config.plan_dt_s * np.maximum(k - 2, 0))
-        gap = np.hypot(*(plan.x[0, 1:, :2] - plan.x[1, 1:, :2]).T)
+        scale = p.tm.along_track_scale([x_self[0], x_other[0]], [x_self[1], x_other[1]])
+        gap = frenet_separation(*(plan.x[0, 1:, :2] - plan.x[1, 1:, :2]).T, scale)
         assert np.all(gap >= required - p.config.accept_violation_m), (cls.__name__, gap - required)
         assert gap[-1] >= nominal - p.config.accept_violation_m  # back to the nominal distance by the end
         assert plan.d_min < nominal - 0.02                     # the scenario needs the relaxation
@@ -336,22 +340,28 @@ def test_defend_reference_is_the_inside_of_the_turn_ahead_only_against_a_faster_
 
 
 def test_defending_plan_moves_to_the_inside_before_the_turn(track, car):
-    """On the straight before the first (left) turn, a faster car 0.4 m behind and to the right: the
-    defending plan ends well left of the centre line (inside of the turn, where the other car cannot
-    fit between us and the track limit); without the rule the plan leaves room there."""
+    """On the straight before the first (left) turn, a faster car 0.3-0.45 m behind and 3-8 cm to the
+    right (five starting states): the defending plans end well left of the centre line (inside of the
+    turn, where the other car cannot fit between us and the track limit); without the rule the plans
+    leave room there. Each plan is a nonconvex game's local solution, so the claim is for most of the
+    five states (3 or more), not for each."""
     x_self = np.array([0.4, 0.0, 1.6, 0.0])
-    x_other = np.array([0.0, -0.05, 1.9, 0.0])
+    others = [np.array([s, ey, 1.9, 0.0]) for s, ey in ((0.0, -0.05), (0.0, -0.03), (0.0, -0.08), (0.05, -0.05),
+                                                         (-0.05, -0.05))]
     ends = {}
     for distance in (1.0, 0.0):
         p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=2.0,
                      config={"top_speed_mps": 1.6, "defend_distance_m": distance})
-        plan = p.plan(x_self, x_other)
-        assert plan.used in ("converged", "accepted")
-        ends[distance] = float(plan.x[0, -1, 1])
-    bound = p.tm.ey_bound([x_self[0], x_other[0]])
+        ends[distance] = []
+        for x_other in others:
+            p.reset()
+            plan = p.plan(x_self, x_other)
+            assert plan.used in ("converged", "accepted")
+            ends[distance].append(float(plan.x[0, -1, 1]))
+    bound = p.tm.ey_bound([x_self[0], others[0][0]])
     d_min = 2 * p.tm.footprint_radius + p.config.collision_margin_m  # between the discs, on the straight
-    assert ends[1.0] > bound - d_min + 0.05   # the inside is closed: no room for the other disc
-    assert ends[0.0] < bound - d_min          # without the rule the inside stays open
+    assert sum(e > bound - d_min + 0.05 for e in ends[1.0]) >= 3, ends   # the inside is closed
+    assert sum(e < bound - d_min for e in ends[0.0]) >= 3, ends          # without the rule it stays open
 
 
 def test_corner_speed_cap_from_the_curvature_within_reach(track, car):

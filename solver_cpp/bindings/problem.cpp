@@ -37,7 +37,8 @@ void bind_problem(py::module_& m) {
       .def_readwrite("pair_distances", &CollisionSpec::pair_distances)
       .def_readwrite("form", &CollisionSpec::form)
       .def_readwrite("pos_x", &CollisionSpec::pos_x)
-      .def_readwrite("pos_y", &CollisionSpec::pos_y);
+      .def_readwrite("pos_y", &CollisionSpec::pos_y)
+      .def_readwrite("pos_x_scale_steps", &CollisionSpec::pos_x_scale_steps);
   py::class_<Obstacle>(m, "Obstacle")
       .def(py::init<>())
       .def_readwrite("positions", &Obstacle::positions)

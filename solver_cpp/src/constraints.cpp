@@ -33,8 +33,9 @@ std::vector<Constraint> list_constraints(const Problem& p, bool with_bounds) {
   return out;
 }
 
-void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d* g,
-                         Eigen::Matrix2d* H) {
+void distance_constraint(CollisionForm form, const Eigen::Vector2d& d_raw, double dmin, double& h, Eigen::Vector2d* g,
+                         Eigen::Matrix2d* H, double sx) {
+  const Eigen::Vector2d d(sx * d_raw[0], d_raw[1]);
   if (form == CollisionForm::Squared) {
     h = dmin * dmin - d.squaredNorm();
     if (g) *g = -2.0 * d;
@@ -46,6 +47,12 @@ void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dm
     const Eigen::Vector2d e = d / n;
     if (g) *g = -e;
     if (H) *H = -(Eigen::Matrix2d::Identity() - e * e.transpose()) / n;
+  }
+  // Chain rule through A = diag(sx, 1): g <- A g, H <- A H A.
+  if (g) (*g)[0] *= sx;
+  if (H) {
+    H->row(0) *= sx;
+    H->col(0) *= sx;
   }
 }
 
@@ -60,7 +67,7 @@ void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Ma
   switch (c.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(x[c.i](px, c.k) - x[c.j](px, c.k), x[c.i](py, c.k) - x[c.j](py, c.k));
-      distance_constraint(p.collision.form, d, p.collision.at(c.i, c.j, c.k), out.h, &gd, &Hd);
+      distance_constraint(p.collision.form, d, p.collision.at(c.i, c.j, c.k), out.h, &gd, &Hd, p.collision.x_scale(c.k));
       out.n = 4;
       const int ag[4] = {c.i, c.i, c.j, c.j}, cp[4] = {px, py, px, py};
       const double gg[4] = {gd[0], gd[1], -gd[0], -gd[1]};
@@ -74,7 +81,7 @@ void eval_constraint(const Problem& p, const Constraint& c, const std::vector<Ma
     case K::Obstacle: {
       const Obstacle& o = p.obstacles[c.j];
       const Eigen::Vector2d d(x[c.i](px, c.k) - o.positions(c.k, 0), x[c.i](py, c.k) - o.positions(c.k, 1));
-      distance_constraint(p.collision.form, d, o.at(c.k), out.h, &gd, &Hd);
+      distance_constraint(p.collision.form, d, o.at(c.k), out.h, &gd, &Hd, p.collision.x_scale(c.k));
       out.n = 2;
       out.agent[0] = out.agent[1] = c.i;
       out.comp[0] = px;

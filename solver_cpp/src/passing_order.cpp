@@ -31,8 +31,9 @@ void Solver::find_conflicts(const Iterate& y) {
       int deepest = 0;
       double depth = 0;  // largest d_min - |p_j - p_i| over k = 1..T
       for (int k = 1; k <= T_; ++k) {
-        const double dk = prob_.collision.at(i, j, k) -
-                          (position(y.x[j], px, py, k) - position(y.x[i], px, py, k)).norm();
+        Eigen::Vector2d d = position(y.x[j], px, py, k) - position(y.x[i], px, py, k);
+        d[0] *= prob_.collision.x_scale(k);
+        const double dk = prob_.collision.at(i, j, k) - d.norm();
         if (dk > depth) { depth = dk; deepest = k; }
       }
       if (deepest == 0) continue;

@@ -253,6 +253,7 @@ bool Solver::deep_overlap() const {
     } else {
       continue;
     }
+    d[0] *= prob_.collision.x_scale(cn.k);
     if (d.norm() < (1.0 - settings_.restart.deep_overlap) * dmin) return true;
   }
   return false;

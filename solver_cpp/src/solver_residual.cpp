@@ -22,13 +22,13 @@ void Solver::eval_constraint(const Iterate& y, int c, double& h, Eigen::Vector2d
   switch (cn.kind) {
     case K::Pair: {
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - y.x[cn.j](px, cn.k), y.x[cn.i](py, cn.k) - y.x[cn.j](py, cn.k));
-      distance_constraint(prob_.collision.form, d, prob_.collision.at(cn.i, cn.j, cn.k), h, g, H);
+      distance_constraint(prob_.collision.form, d, prob_.collision.at(cn.i, cn.j, cn.k), h, g, H, prob_.collision.x_scale(cn.k));
       return;
     }
     case K::Obstacle: {
       const Obstacle& o = prob_.obstacles[cn.j];
       const Eigen::Vector2d d(y.x[cn.i](px, cn.k) - o.positions(cn.k, 0), y.x[cn.i](py, cn.k) - o.positions(cn.k, 1));
-      distance_constraint(prob_.collision.form, d, o.at(cn.k), h, g, H);
+      distance_constraint(prob_.collision.form, d, o.at(cn.k), h, g, H, prob_.collision.x_scale(cn.k));
       return;
     }
     case K::StateMax: h = y.x[cn.i](cn.idx, cn.k) - prob_.x_max[cn.i][cn.idx]; sign = 1; break;

@@ -114,6 +114,15 @@ void validate_collision(const CollisionSpec& c, int num_agents, int horizon, int
     }
   }
   require(c.form == CollisionForm::Distance || c.form == CollisionForm::Squared, "collision.form is not a known form");
+  if (c.pos_x_scale_steps.size()) {
+    require(c.pos_x_scale_steps.size() == horizon, "collision.pos_x_scale must be empty or " + std::to_string(horizon) +
+                                                       " numbers (one per step k = 1..T), got " +
+                                                       std::to_string(c.pos_x_scale_steps.size()));
+    for (int k = 0; k < horizon; ++k)
+      require(std::isfinite(c.pos_x_scale_steps[k]) && c.pos_x_scale_steps[k] > 0,
+              "collision.pos_x_scale[" + std::to_string(k) + "] (step k = " + std::to_string(k + 1) +
+                  ") must be a positive finite number, got " + num(c.pos_x_scale_steps[k]));
+  }
   if (!pairs) return;
   validate_min_distance(c.min_distance, c.min_distance_steps, horizon, "collision.min_distance");
   const auto& pd = c.pair_distances;

@@ -25,10 +25,11 @@ struct Constraint {
 /// keeps RD3G's multiplier numbering close to its stage ordering. Bounds are listed only if with_bounds.
 std::vector<Constraint> list_constraints(const Problem& p, bool with_bounds = true);
 
-/// h = dmin - |d| (Distance) or dmin^2 - |d|^2 (Squared) with d the separation (p_i - p_j or p_i - o_k),
-/// g = dh/dd and H = d2h/dd2, each only where non-null (the line search's trials need h alone, or h and g).
+/// h = dmin - |A d| (Distance) or dmin^2 - |A d|^2 (Squared) with d the separation (p_i - p_j or p_i - o_k) and
+/// A = diag(sx, 1) (CollisionSpec::x_scale), g = dh/dd and H = d2h/dd2, each only where non-null (the line
+/// search's trials need h alone, or h and g).
 void distance_constraint(CollisionForm form, const Eigen::Vector2d& d, double dmin, double& h, Eigen::Vector2d* g,
-                         Eigen::Matrix2d* H);
+                         Eigen::Matrix2d* H, double sx = 1.0);
 
 /// A constraint's value and derivatives with respect to the (at most 4) scalar variables it touches:
 /// variable a is component comp[a] of agent agent[a]'s state x_k (or control u_k if on_u).

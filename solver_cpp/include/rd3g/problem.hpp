@@ -51,8 +51,10 @@ struct PairDistance {
 };
 
 /// Pairwise collision avoidance between every pair of agents at k = 1..T:
-///   Distance: h = d_min - ||p^i - p^j|| <= 0;  Squared: h = d_min^2 - ||p^i - p^j||^2 <= 0,
-/// with p the state components (pos_x, pos_y) and d_min the pair's entry of pair_distances, else min_distance.
+///   Distance: h = d_min - ||A_k (p^i - p^j)|| <= 0;  Squared: h = d_min^2 - ||A_k (p^i - p^j)||^2 <= 0,
+/// with p the state components (pos_x, pos_y), d_min the pair's entry of pair_distances, else min_distance, and
+/// A_k = diag(pos_x_scale_steps[k-1], 1) (identity when empty): an ellipse, e.g. in Frenet coordinates (s, ey) an
+/// arc-length gap is only (1 - kappa ey) times as long in the plane, a lateral gap is exact.
 struct CollisionSpec {
   bool enabled = true;
   double min_distance = 0.0;  ///< d_min (m) of every pair not in pair_distances
@@ -63,6 +65,11 @@ struct CollisionSpec {
   std::vector<PairDistance> pair_distances;
   CollisionForm form = CollisionForm::Distance;
   int pos_x = 0, pos_y = 1;   ///< state indices of the position used by the constraint
+  /// Optional scale (> 0) of the pos_x separation per step k = 1..T, length T; empty = 1. Applies to pairs and
+  /// obstacles alike.
+  Vec pos_x_scale_steps;
+  /// The scale of the pos_x separation at step k (1..T).
+  double x_scale(int k) const { return pos_x_scale_steps.size() ? pos_x_scale_steps[k - 1] : 1.0; }
   /// The entry of pair_distances for agents i and j, or nullptr (the pair uses min_distance).
   const PairDistance* pair_distance(int i, int j) const {
     for (const PairDistance& q : pair_distances)
@@ -77,7 +84,7 @@ struct CollisionSpec {
 };
 
 /// A moving obstacle every agent avoids (used by a single-agent MPC that predicts its opponent):
-/// h = d_min - ||p^i_k - o_k|| <= 0 for k = 1..T (form as in CollisionSpec).
+/// h = d_min - ||A_k (p^i_k - o_k)|| <= 0 for k = 1..T (form and A_k as in CollisionSpec).
 struct Obstacle {
   Eigen::MatrixXd positions;  ///< (T+1) x 2, o_k in the same coordinates as the agents' positions
   double min_distance = 0.0;  ///< (m)
