@@ -23,32 +23,41 @@ SETTING_GROUPS = ("barrier", "line_search", "linear", "stall", "restart", "best_
 FLAT_SETTING_NAMES = {
     "rho_init": "barrier.rho_init", "rho_floor_factor": "barrier.rho_floor_factor", "rho_kappa": "barrier.rho_kappa",
     "rho_beta": "barrier.rho_beta", "rho_progress": "barrier.rho_progress", "barrier_margin": "barrier.margin",
-    "fraction_to_boundary": "barrier.fraction_to_boundary", "barrier": "barrier.mode",
+    "barrier": "barrier.mode",
     "ls_alpha": "line_search.alpha", "ls_beta": "line_search.beta", "ls_max_steps": "line_search.max_steps",
     "violation_memory": "line_search.violation_memory", "lm_tries": "line_search.lm_tries",
-    "lm_below_step": "line_search.lm_below_step", "lm_nu_init": "line_search.lm_nu_init",
-    "linear_solver": "linear.solver", "refinement_steps": "linear.refinement_steps", "lscg_tol": "linear.lscg_tol",
+    "linear_solver": "linear.solver", "lscg_tol": "linear.lscg_tol",
     "lscg_max_iter": "linear.lscg_max_iter",
     "stall_window": "stall.window", "stall_floor_window": "stall.floor_window", "crawl_window": "stall.crawl_window",
     "crawl_ratio": "stall.crawl_ratio", "polish_gap": "stall.polish_gap",
-    "restarts": "restart.count", "restart_u_std": "restart.u_std", "restart_rho_progress": "restart.rho_progress",
+    "restarts": "restart.count", "restart_rho_progress": "restart.rho_progress",
     "restart_violation_memory": "restart.violation_memory", "restart_rho_on_stall": "restart.rho_on_stall",
     "deep_overlap": "restart.deep_overlap",
     "best_response_rounds": "best_response.rounds",
     "best_response_max_iter": "best_response.max_iter", "best_response_margin": "best_response.margin",
     "second_order_gap": "second_order.gap", "second_order_tol": "second_order.tol",
     "restart_on_saddle": "second_order.restart_on_saddle", "saddle_escapes": "second_order.escapes",
-    "saddle_step": "second_order.escape_step", "saddle_rho": "second_order.escape_rho",
     "saddle_inertia": "second_order.inertia",
+}
+
+# Settings of the previous release that are now fixed constants of the solver (no caller ever set them), by their
+# flat names, with the value the solver uses: accepted with a DeprecationWarning and ignored until the next release.
+REMOVED_SETTING_NAMES = {
+    "multiplier_tol": 1e-6, "fraction_to_boundary": 0.99, "lm_below_step": 0.01, "lm_nu_init": 1e-6,
+    "refinement_steps": 2, "restart_u_std": 0.2, "saddle_step": 1.0, "saddle_rho": 0.01,
 }
 
 
 def grouped_settings(overrides: Mapping, where: str = "solver", stacklevel: int = 3, source: str = "") -> dict:
     """Overrides in the grouped form: a flat name of the previous release moves into its group with a
-    DeprecationWarning naming the new name (``barrier="primal"`` becomes ``barrier={"mode": "primal"}``)."""
+    DeprecationWarning naming the new name (``barrier="primal"`` becomes ``barrier={"mode": "primal"}``); a removed
+    setting (REMOVED_SETTING_NAMES) is dropped with a DeprecationWarning giving the value the solver uses."""
     out: dict = {}
     for name, value in overrides.items():
-        if name in SETTING_GROUPS and isinstance(value, Mapping):
+        if name in REMOVED_SETTING_NAMES:
+            warnings.warn(f"{source}{where}.{name} is deprecated and ignored: the solver uses the fixed value "
+                          f"{REMOVED_SETTING_NAMES[name]}", DeprecationWarning, stacklevel=stacklevel)
+        elif name in SETTING_GROUPS and isinstance(value, Mapping):
             out.setdefault(name, {}).update(value)
         elif name in FLAT_SETTING_NAMES:
             group, field_name = FLAT_SETTING_NAMES[name].split(".")

@@ -20,6 +20,8 @@ namespace {
 // The best-response attempt is inserted before restart attempt 1 (attempt 0 keeps the initial guess; measured
 // before attempt 4 it rescued fewer instances, docs/solver.md "Best-response restart: measurements").
 constexpr int kBestResponseAttempt = 1;
+// Std of the seeded constant control offsets of restart attempts 4.. (control units).
+constexpr double kRestartOffsetStd = 0.2;
 }  // namespace
 
 // -------------------------------------------------------------------------------------------------
@@ -196,7 +198,7 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
       // A constant offset per agent and control component (not white noise, which averages out):
       // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
       for (int q = 0; q < nu_; ++q) {
-        const double offset = settings_.restart.u_std * noise_(rng_);
+        const double offset = kRestartOffsetStd * noise_(rng_);
         y_.u[i].row(q).array() += offset;
       }
     if (attempt == 0) y_.lam[i] = lam_init_[i];
@@ -273,7 +275,7 @@ bool Solver::converged(double rnorm) const {
   const int C = static_cast<int>(cons_.size());
   for (int c = 0; c < C; ++c)
     if (state_[c] == ConstraintState::Active &&
-        (y_.mu[c] < -settings_.multiplier_tol || (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol)))
+        (y_.mu[c] < -kMultiplierTol || (mu2_col_[c] >= 0 && y_.mu2[c] < -kMultiplierTol)))
       return false;  // an active constraint pushes the wrong way: not an equilibrium
   const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
   double max_defect = 0;

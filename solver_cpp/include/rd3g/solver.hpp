@@ -23,6 +23,10 @@ namespace rd3g {
 
 class SecondOrderCheck;
 
+/// An equality-held constraint's multiplier below -kMultiplierTol has the wrong sign: the constraint is released, and
+/// the point is not an equilibrium.
+constexpr double kMultiplierTol = 1e-6;
+
 /// How a constraint enters the current Newton system.
 enum class ConstraintState : char {
   Barrier,  ///< satisfied: -rho log(-h) in the Lagrangian, no multiplier variable
