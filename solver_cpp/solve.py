@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -183,10 +183,10 @@ class GameResult:
     # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
     # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
     second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    # The pairs whose rolled-out initial guess comes closer than d_min, with the order the returned point gives them:
-    # dicts i, j, winding (+1: p_j - p_i turns counterclockwise over the horizon), first (the agent ahead at their
-    # closest approach), side ("left"/"right": where the other passes first), gap (m).
-    passing_order: list = field(default_factory=list)
+    # See the passing_order property: filled by the solver when its passing-order search ran, else computed on
+    # first use by passing_order_report (the solve itself no longer rolls out and scans the initial guess for it).
+    passing_order_found: list = field(default_factory=list)
+    passing_order_report: Callable[[], list] | None = field(default=None, repr=False, compare=False)
     # The passing-order search's candidates (setting order.candidates; empty if it did not run): dicts requested and
     # found (winding per pair of passing_order), guess_residual, polished, status, iterations, equilibrium, returned,
     # u (N, T, nu): the polished point's controls if it converged, else None (warm-start a solve from them).
@@ -201,6 +201,17 @@ class GameResult:
     @property
     def converged(self) -> bool:
         return self.status == "converged"
+
+    @property
+    def passing_order(self) -> list:
+        """The pairs whose rolled-out initial guess comes closer than d_min (in a point the passing-order rescue
+        returns: whose solo plans do), with the order the returned point gives them: dicts i, j, winding (+1: p_j - p_i
+        turns counterclockwise over the horizon), first (the agent ahead at their closest approach), side
+        ("left"/"right": where the other passes first), gap (m)."""
+        if not self.passing_order_found and self.passing_order_report is not None:
+            self.passing_order_found = self.passing_order_report()
+            self.passing_order_report = None
+        return self.passing_order_found
 
     @property
     def other_orders(self) -> list:
@@ -259,6 +270,7 @@ class Solver:
         self._sizes = (len(core.x0), int(core.horizon), core.dynamics[0].nx, core.dynamics[0].nu)
         self._constraints = list(self._solver.constraints())
         self._structure = self._solver.structure_version()
+        self._updates = 0  # problem updates since the set-up (a result's lazy report must see its own problem)
 
     @property
     def constraints(self):
@@ -278,6 +290,7 @@ class Solver:
                                  "for another model")
         self._solver.update(problem.to_core(validate=False, models=False))
         self.problem = problem
+        self._updates += 1
 
     def update_settings(self, settings: _core.Settings | None = None, **overrides) -> None:
         """New settings: a complete Settings, or keyword overrides of the current ones."""
@@ -292,6 +305,7 @@ class Solver:
             ws = _to_core_warm(warm_start, self._sizes, len(self.constraints))
         r = self._solver.solve(ws)
         i = r.info
+        found = [_passing_pair(p) for p in i.passing_order]
         return GameResult(
             status=_core.status_name(i.status),
             x=np.stack(r.x), u=np.stack(r.u), lam=np.stack(r.lam), mu=np.asarray(r.mu), h=np.asarray(r.h),
@@ -304,8 +318,22 @@ class Solver:
             constraints=self.constraints,
             setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups,
             second_order=np.asarray(i.second_order, dtype=float),
-            passing_order=[_passing_pair(p) for p in i.passing_order], orders=[_order_candidate(c) for c in i.orders],
-            order_attempts=i.order_attempts, order_iterations=i.order_iterations)
+            orders=[_order_candidate(c) for c in i.orders],
+            order_attempts=i.order_attempts, order_iterations=i.order_iterations,
+            passing_order_found=found, passing_order_report=None if found else self._order_report(r.x, ws))
+
+    def _order_report(self, x, ws) -> Callable[[], list]:
+        """The passing order of trajectories x from this solve's initial guess, computed when first asked for: by this
+        solver while its problem is unchanged, else by a fresh set-up of the problem it solved."""
+        problem, updates = self.problem, self._updates
+
+        def report() -> list:
+            core = self._solver
+            if self._updates != updates:
+                core = _core.Solver()
+                core.setup(problem.to_core(validate=False), self.settings)
+            return [_passing_pair(p) for p in core.passing_order(x, ws)]
+        return report
 
     def best_response(self, rounds: int, warm_start: WarmStart | None = None) -> WarmStart:
         """Controls (N, T, nu) after `rounds` (>= 1) Gauss-Seidel sweeps of iterated best response from the warm

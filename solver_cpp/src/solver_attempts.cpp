@@ -32,7 +32,10 @@ Result Solver::solve(const WarmStart* warm) {
   begin_solve(info, warm);
   Schedule sc;
   Result found;
-  if (settings_.order.before_newton && search_orders(found, info, sc.total_iter)) return found;
+  if (settings_.order.before_newton && settings_.order.candidates > 0) {
+    initial_conflicts();
+    if (search_orders(found, info, sc.total_iter)) return found;
+  }
   if (run_schedule(res, sc, warm)) return res;
   // No attempt of the schedule found an equilibrium: the passing-order search as its last stage (the rescue).
   Info searched = info;
@@ -128,14 +131,10 @@ void Solver::begin_solve(Info& info, const WarmStart* warm) {
   inertia_delta_.assign(N_, 0.0);
   attempt_cap_ = 0;
   iter_limit_ = settings_.max_iter;
-  // The conflicting pairs of the rolled-out initial guess (reported in every result; the search's before Newton).
-  for (int i = 0; i < N_; ++i) {
-    trial_.x[i].col(0) = prob_.x0[i];
-    trial_.u[i] = u_init_[i];
-    roll_out(trial_, i);
-  }
-  find_conflicts(trial_);
-  order_from_ = u_init_;
+  // The conflicting pairs are found only when the passing-order search runs (initial_conflicts, rescue); a result
+  // reports them then, and Solver::passing_order computes them for any other result when asked.
+  conflicts_.clear();
+  conflicts_known_ = false;
 }
 
 void Solver::start_scheduled_attempt(int attempt, bool best_response, const WarmStart* warm, Schedule& sc,
@@ -428,7 +427,8 @@ void Solver::write_result(Result& res, Info& info) {
     }
   }
   res.h = h_;
-  passing_of(info.passing_order);
+  if (conflicts_known_) passing_of(y_, info.passing_order);
+  else info.passing_order.clear();
   info.active_constraints = nact;
   info.max_violation = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
   info.rho = rho_;

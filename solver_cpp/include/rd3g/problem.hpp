@@ -345,7 +345,8 @@ struct Info {
   /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.
   std::vector<double> second_order;
   /// The conflicting pairs of the initial guess (of the solo plans in a point the order rescue returns) and the order
-  /// the returned point gives them (always filled).
+  /// the returned point gives them; filled only when the passing-order search ran (else empty: Solver::passing_order
+  /// computes it on demand).
   std::vector<PassingPair> passing_order;
   std::vector<OrderCandidate> orders;  ///< the passing-order search's candidates (empty if it did not run)
   int order_attempts = 0;              ///< polish attempts of the passing-order search
