@@ -17,8 +17,7 @@
 namespace rd3g {
 
 namespace {
-// The best-response attempt is inserted before restart attempt 1 (attempt 0 keeps the initial guess; measured
-// before attempt 4 it rescued fewer instances, docs/solver.md "Best-response restart: measurements").
+// The best-response attempt is inserted before restart attempt 1 (attempt 0 keeps the initial guess).
 constexpr int kBestResponseAttempt = 1;
 // Std of the seeded constant control offsets of restart attempts 4.. (control units).
 constexpr double kRestartOffsetStd = 0.2;
