@@ -13,7 +13,8 @@ from fileio import Array, FieldSpec, ListOf, Number, String, Table, Tagged
 from . import _core
 from .models import KinematicBicycle, LinearModel
 from .problem import Agent, Collision, GameProblem, Obstacle, PairDistance, QuadraticCost
-from .solve import FLAT_SETTING_NAMES, SETTING_GROUPS, GameResult, WarmStart, grouped_settings, settings_dict
+from .solve import (FLAT_SETTING_NAMES, REMOVED_SETTING_NAMES, SETTING_GROUPS, GameResult, WarmStart, grouped_settings,
+                    settings_dict)
 
 MAX_FILE_BYTES = 64 * 2**20
 
@@ -60,8 +61,11 @@ def _settings_table(settings, where: str, flat: dict) -> Table:
 
 
 def _solver_table() -> Table:
-    """Every C++ solver setting by its grouped name (docs/problem-format.md), and the deprecated flat names."""
-    return _settings_table(_core.Settings(), "solver", FLAT_SETTING_NAMES)
+    """Every C++ solver setting by its grouped name (docs/problem-format.md), the deprecated flat names, and the
+    removed settings' names (accepted and ignored with a warning, typed as before)."""
+    table = _settings_table(_core.Settings(), "solver", FLAT_SETTING_NAMES)
+    removed = {name: FieldSpec(_setting_spec(value, ()), required=False) for name, value in REMOVED_SETTING_NAMES.items()}
+    return Table({**table.fields, **removed}, table.name)
 
 
 def _schema() -> Table:

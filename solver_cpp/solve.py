@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,32 +23,41 @@ SETTING_GROUPS = ("barrier", "line_search", "linear", "stall", "restart", "best_
 FLAT_SETTING_NAMES = {
     "rho_init": "barrier.rho_init", "rho_floor_factor": "barrier.rho_floor_factor", "rho_kappa": "barrier.rho_kappa",
     "rho_beta": "barrier.rho_beta", "rho_progress": "barrier.rho_progress", "barrier_margin": "barrier.margin",
-    "fraction_to_boundary": "barrier.fraction_to_boundary", "barrier": "barrier.mode",
+    "barrier": "barrier.mode",
     "ls_alpha": "line_search.alpha", "ls_beta": "line_search.beta", "ls_max_steps": "line_search.max_steps",
     "violation_memory": "line_search.violation_memory", "lm_tries": "line_search.lm_tries",
-    "lm_below_step": "line_search.lm_below_step", "lm_nu_init": "line_search.lm_nu_init",
-    "linear_solver": "linear.solver", "refinement_steps": "linear.refinement_steps", "lscg_tol": "linear.lscg_tol",
+    "linear_solver": "linear.solver", "lscg_tol": "linear.lscg_tol",
     "lscg_max_iter": "linear.lscg_max_iter",
     "stall_window": "stall.window", "stall_floor_window": "stall.floor_window", "crawl_window": "stall.crawl_window",
     "crawl_ratio": "stall.crawl_ratio", "polish_gap": "stall.polish_gap",
-    "restarts": "restart.count", "restart_u_std": "restart.u_std", "restart_rho_progress": "restart.rho_progress",
+    "restarts": "restart.count", "restart_rho_progress": "restart.rho_progress",
     "restart_violation_memory": "restart.violation_memory", "restart_rho_on_stall": "restart.rho_on_stall",
     "deep_overlap": "restart.deep_overlap",
     "best_response_rounds": "best_response.rounds",
     "best_response_max_iter": "best_response.max_iter", "best_response_margin": "best_response.margin",
     "second_order_gap": "second_order.gap", "second_order_tol": "second_order.tol",
     "restart_on_saddle": "second_order.restart_on_saddle", "saddle_escapes": "second_order.escapes",
-    "saddle_step": "second_order.escape_step", "saddle_rho": "second_order.escape_rho",
     "saddle_inertia": "second_order.inertia",
+}
+
+# Settings of the previous release that are now fixed constants of the solver (no caller ever set them), by their
+# flat names, with the value the solver uses: accepted with a DeprecationWarning and ignored until the next release.
+REMOVED_SETTING_NAMES = {
+    "multiplier_tol": 1e-6, "fraction_to_boundary": 0.99, "lm_below_step": 0.01, "lm_nu_init": 1e-6,
+    "refinement_steps": 2, "restart_u_std": 0.2, "saddle_step": 1.0, "saddle_rho": 0.01,
 }
 
 
 def grouped_settings(overrides: Mapping, where: str = "solver", stacklevel: int = 3, source: str = "") -> dict:
     """Overrides in the grouped form: a flat name of the previous release moves into its group with a
-    DeprecationWarning naming the new name (``barrier="primal"`` becomes ``barrier={"mode": "primal"}``)."""
+    DeprecationWarning naming the new name (``barrier="primal"`` becomes ``barrier={"mode": "primal"}``); a removed
+    setting (REMOVED_SETTING_NAMES) is dropped with a DeprecationWarning giving the value the solver uses."""
     out: dict = {}
     for name, value in overrides.items():
-        if name in SETTING_GROUPS and isinstance(value, Mapping):
+        if name in REMOVED_SETTING_NAMES:
+            warnings.warn(f"{source}{where}.{name} is deprecated and ignored: the solver uses the fixed value "
+                          f"{REMOVED_SETTING_NAMES[name]}", DeprecationWarning, stacklevel=stacklevel)
+        elif name in SETTING_GROUPS and isinstance(value, Mapping):
             out.setdefault(name, {}).update(value)
         elif name in FLAT_SETTING_NAMES:
             group, field_name = FLAT_SETTING_NAMES[name].split(".")
@@ -174,10 +183,10 @@ class GameResult:
     # Per agent: smallest eigenvalue of the reduced Hessian of its Lagrangian at the returned point (cost units per
     # control unit^2, inf = no free direction; empty if the test is off). Negative = a saddle of that agent's problem.
     second_order: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    # The pairs whose rolled-out initial guess comes closer than d_min, with the order the returned point gives them:
-    # dicts i, j, winding (+1: p_j - p_i turns counterclockwise over the horizon), first (the agent ahead at their
-    # closest approach), side ("left"/"right": where the other passes first), gap (m).
-    passing_order: list = field(default_factory=list)
+    # See the passing_order property: filled by the solver when its passing-order search ran, else computed on
+    # first use by passing_order_report (the solve itself no longer rolls out and scans the initial guess for it).
+    passing_order_found: list = field(default_factory=list)
+    passing_order_report: Callable[[], list] | None = field(default=None, repr=False, compare=False)
     # The passing-order search's candidates (setting order.candidates; empty if it did not run): dicts requested and
     # found (winding per pair of passing_order), guess_residual, polished, status, iterations, equilibrium, returned,
     # u (N, T, nu): the polished point's controls if it converged, else None (warm-start a solve from them).
@@ -192,6 +201,17 @@ class GameResult:
     @property
     def converged(self) -> bool:
         return self.status == "converged"
+
+    @property
+    def passing_order(self) -> list:
+        """The pairs whose rolled-out initial guess comes closer than d_min (in a point the passing-order rescue
+        returns: whose solo plans do), with the order the returned point gives them: dicts i, j, winding (+1: p_j - p_i
+        turns counterclockwise over the horizon), first (the agent ahead at their closest approach), side
+        ("left"/"right": where the other passes first), gap (m)."""
+        if not self.passing_order_found and self.passing_order_report is not None:
+            self.passing_order_found = self.passing_order_report()
+            self.passing_order_report = None
+        return self.passing_order_found
 
     @property
     def other_orders(self) -> list:
@@ -250,6 +270,7 @@ class Solver:
         self._sizes = (len(core.x0), int(core.horizon), core.dynamics[0].nx, core.dynamics[0].nu)
         self._constraints = list(self._solver.constraints())
         self._structure = self._solver.structure_version()
+        self._updates = 0  # problem updates since the set-up (a result's lazy report must see its own problem)
 
     @property
     def constraints(self):
@@ -269,6 +290,7 @@ class Solver:
                                  "for another model")
         self._solver.update(problem.to_core(validate=False, models=False))
         self.problem = problem
+        self._updates += 1
 
     def update_settings(self, settings: _core.Settings | None = None, **overrides) -> None:
         """New settings: a complete Settings, or keyword overrides of the current ones."""
@@ -283,6 +305,7 @@ class Solver:
             ws = _to_core_warm(warm_start, self._sizes, len(self.constraints))
         r = self._solver.solve(ws)
         i = r.info
+        found = [_passing_pair(p) for p in i.passing_order]
         return GameResult(
             status=_core.status_name(i.status),
             x=np.stack(r.x), u=np.stack(r.u), lam=np.stack(r.lam), mu=np.asarray(r.mu), h=np.asarray(r.h),
@@ -295,8 +318,22 @@ class Solver:
             constraints=self.constraints,
             setup_time_s=i.timings.setup, update_time_s=i.timings.update, setups=i.setups,
             second_order=np.asarray(i.second_order, dtype=float),
-            passing_order=[_passing_pair(p) for p in i.passing_order], orders=[_order_candidate(c) for c in i.orders],
-            order_attempts=i.order_attempts, order_iterations=i.order_iterations)
+            orders=[_order_candidate(c) for c in i.orders],
+            order_attempts=i.order_attempts, order_iterations=i.order_iterations,
+            passing_order_found=found, passing_order_report=None if found else self._order_report(r.x, ws))
+
+    def _order_report(self, x, ws) -> Callable[[], list]:
+        """The passing order of trajectories x from this solve's initial guess, computed when first asked for: by this
+        solver while its problem is unchanged, else by a fresh set-up of the problem it solved."""
+        problem, updates = self.problem, self._updates
+
+        def report() -> list:
+            core = self._solver
+            if self._updates != updates:
+                core = _core.Solver()
+                core.setup(problem.to_core(validate=False), self.settings)
+            return [_passing_pair(p) for p in core.passing_order(x, ws)]
+        return report
 
     def best_response(self, rounds: int, warm_start: WarmStart | None = None) -> WarmStart:
         """Controls (N, T, nu) after `rounds` (>= 1) Gauss-Seidel sweeps of iterated best response from the warm

@@ -15,7 +15,7 @@ import pytest
 
 from app.cli import main
 from bench.verify import verify_equilibrium
-from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, QuadraticCost, solve
+from solver_cpp import Agent, Collision, GameProblem, KinematicBicycle, QuadraticCost, Solver, solve
 from solver_cpp.problem_file import problem_to_dict, result_to_dict
 
 TOL = 1e-5  # best-response checks need an accurate solve (bench/verify.py)
@@ -84,6 +84,36 @@ def test_a_solve_the_schedule_finishes_does_not_search_and_the_order_is_still_re
     off = solve(crossing(), tol=TOL, time_limit=0, order=dict(candidates=0))
     assert off.iterations == r.iterations and np.array_equal(off.u, r.u)
     assert len(r.passing_order) == 1 and r.passing_order[0]["first"] == first_across(r.x)
+
+
+def numpy_passing_order(problem: GameProblem, x: np.ndarray) -> list[tuple[int, int, int, float]]:
+    """Independent of the solver: the pairs whose zero-control rollout comes closer than d_min at some step 1..T, each
+    with the sign of the angle p_j - p_i turns through over x (summed step angles) and its smallest distance in x."""
+    guess = problem.rollout(np.zeros((len(problem.agents), problem.horizon, 2)))
+    d_min = problem.collision.min_distance
+    out = []
+    for i in range(len(problem.agents)):
+        for j in range(i + 1, len(problem.agents)):
+            if np.linalg.norm(guess[j, 1:, :2] - guess[i, 1:, :2], axis=1).min() >= d_min:
+                continue
+            d = x[j, :, :2] - x[i, :, :2]
+            turn = np.arctan2(d[:-1, 0] * d[1:, 1] - d[:-1, 1] * d[1:, 0], (d[:-1] * d[1:]).sum(axis=1)).sum()
+            out.append((i, j, 1 if turn >= 0 else -1, float(np.linalg.norm(d[1:], axis=1).min())))
+    return out
+
+
+def test_a_solve_without_search_skips_the_scan_and_reports_the_order_of_its_own_problem_when_asked():
+    solver = Solver(crossing(), tol=TOL, time_limit=0)
+    r = solver.solve()
+    assert r.status == "converged" and r.orders == []
+    assert r.passing_order_found == []  # the solve neither rolled out nor scanned the initial guess
+    solver.update(crossing(offset=3.0))  # car 1 three metres further back: its zero-control rollout never conflicts
+    later = solver.solve()
+    expected = numpy_passing_order(crossing(), r.x)
+    assert len(expected) == 1  # the crossing's own zero-control rollout collides
+    got = [(p["i"], p["j"], p["winding"], p["gap"]) for p in r.passing_order]  # computed now, for its own problem
+    assert got[0][:3] == expected[0][:3] and abs(got[0][3] - expected[0][3]) < 1e-12
+    assert later.passing_order == [] == numpy_passing_order(crossing(offset=3.0), later.x)
 
 
 @pytest.mark.parametrize("group, message", [

@@ -10,7 +10,7 @@ from app.cli import main
 from bench.merging import merging_problem
 from solver_cpp import Solver, _core, make_settings, settings_dict, solve
 from solver_cpp.problem_file import ProblemFileError, problem_from_dict, problem_to_dict
-from solver_cpp.solve import FLAT_SETTING_NAMES, SETTING_GROUPS, merge_settings
+from solver_cpp.solve import FLAT_SETTING_NAMES, REMOVED_SETTING_NAMES, SETTING_GROUPS, merge_settings
 
 
 def test_every_group_and_field_of_the_cpp_struct_is_reachable_and_documented_once():
@@ -50,6 +50,30 @@ def test_flat_name_warns_naming_the_new_name_and_sets_the_same_field(flat, group
     assert settings_dict(new)[group][field] == value
 
 
+def test_settings_surface_is_smaller_than_the_51_flat_fields_it_replaced():
+    d = settings_dict(_core.Settings())
+    leaves = sum(len(d[g]) for g in SETTING_GROUPS) + sum(1 for k in d if k not in SETTING_GROUPS)
+    assert leaves < 51
+    assert not set(REMOVED_SETTING_NAMES) & {k for k in d if k not in SETTING_GROUPS}
+
+
+@pytest.mark.parametrize("name", sorted(REMOVED_SETTING_NAMES))
+def test_removed_setting_warns_giving_its_fixed_value_and_changes_nothing(name):
+    value = REMOVED_SETTING_NAMES[name]
+    with pytest.warns(DeprecationWarning, match=rf"solver\.{name} is deprecated and ignored: the solver uses the fixed "
+                                                rf"value {value}"):
+        s = make_settings(**{name: 3 * value})
+    assert settings_dict(s) == settings_dict(_core.Settings())
+
+
+def test_problem_file_accepts_a_removed_setting_with_a_warning():
+    data = problem_to_dict(merging_problem(2, 0), solver={"tol": 1e-4})
+    data["solver"]["lm_nu_init"] = 1e-5
+    with pytest.warns(DeprecationWarning, match=r"p\.json: solver\.lm_nu_init is deprecated and ignored"):
+        _, settings, _ = problem_from_dict(data, "p.json")
+    assert settings == {"tol": 1e-4}
+
+
 def test_flat_and_grouped_solves_are_the_same_solve():
     problem = merging_problem(2, 0)
     with pytest.warns(DeprecationWarning):
@@ -81,9 +105,9 @@ def test_update_settings_keeps_the_other_overrides():
 
 
 def test_merge_settings_layers_field_by_field_and_none_means_default():
-    merged = merge_settings({"restart": {"count": 3, "u_std": 0.5}, "tol": 1e-3},
+    merged = merge_settings({"restart": {"count": 3, "rho_progress": 0.5}, "tol": 1e-3},
                             {"restart": {"count": None}, "tol": None, "stall": {"window": 2}})
-    assert merged == {"restart": {"u_std": 0.5}, "stall": {"window": 2}}
+    assert merged == {"restart": {"rho_progress": 0.5}, "stall": {"window": 2}}
 
 
 def test_problem_file_takes_grouped_settings_and_warns_about_flat_ones():

@@ -101,10 +101,10 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"max_iter": -1}, "solver.max_iter"),
     ({"barrier": {"rho_kappa": 1.5}}, "solver.barrier.rho_kappa"),
     ({"line_search": {"beta": 2.0}}, "solver.line_search.beta"),
+    ({"line_search": {"lm_tries": -1}}, "solver.line_search.lm_tries"),
     ({"tol": "abc"}, "solver.tol"),  # float('abc') error text, no field
     ({"linear": {"solver": 3}}, "solver.linear.solver"),  # pybind TypeError
     ({"restart": {"count": -1}}, "solver.restart.count"),  # accepted: no attempt runs, x returned as zeros (not x0)
-    ({"barrier": {"fraction_to_boundary": 0.0}}, "solver.barrier.fraction_to_boundary"),  # accepted: line search fails
     ({"violation_tol": -1.0}, "solver.violation_tol"),  # accepted: can never converge
     ({"time_limit": -1.0}, "solver.time_limit"),  # accepted as "no limit"
     ({"stall": {"polish_gap": -1.0}}, "solver.stall.polish_gap"),
@@ -117,8 +117,6 @@ SETTINGS_WITHOUT_FIELD_NAME = [
     ({"restart": {"rho_progress": -1.0}}, "solver.restart.rho_progress"),
     ({"restart": {"deep_overlap": -0.5}}, "solver.restart.deep_overlap"),
     ({"second_order": {"escapes": -1}}, "solver.second_order.escapes"),
-    ({"second_order": {"escape_step": 0.0}}, "solver.second_order.escape_step"),
-    ({"second_order": {"escape_rho": -1e-3}}, "solver.second_order.escape_rho"),
     ({"second_order": {"inertia": -1.0}}, "solver.second_order.inertia"),
     ({"best_response": {"rounds": -1}}, "solver.best_response.rounds"),
     ({"best_response": {"max_iter": 0}}, "solver.best_response.max_iter"),

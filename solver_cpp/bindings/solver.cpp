@@ -143,6 +143,7 @@ void bind_solver(py::module_& m) {
       .def(
           "best_response", [](Solver& s, int rounds, const WarmStart* w) { return s.best_response(rounds, w); },
           py::arg("rounds"), py::arg("warm_start") = nullptr, py::call_guard<py::gil_scoped_release>())
+      .def("passing_order", &Solver::passing_order, py::arg("x"), py::arg("warm_start") = nullptr)
       .def("constraints", &Solver::constraints)
       .def("structure_version", &Solver::structure_version)
       .def("column_of", &Solver::column_of, py::arg("i"), py::arg("k"), py::arg("kind"))

@@ -6,10 +6,12 @@
 #include <cmath>
 #include <numeric>
 #include <random>
+#include <stdexcept>
 #include <utility>
 
 #include "rd3g/clock.hpp"
 #include "rd3g/solver.hpp"
+#include "rd3g/validate.hpp"
 
 namespace rd3g {
 
@@ -22,8 +24,34 @@ Eigen::Vector2d position(const Mat& x, int px, int py, int k) { return {x(px, k)
 double cross(const Eigen::Vector2d& a, const Eigen::Vector2d& b) { return a.x() * b.y() - a.y() * b.x(); }
 }  // namespace
 
+void Solver::initial_conflicts() {
+  // trial_ is scratch here: every line-search trial overwrites all of it.
+  for (int i = 0; i < N_; ++i) {
+    trial_.x[i].col(0) = prob_.x0[i];
+    trial_.u[i] = u_init_[i];
+    roll_out(trial_, i);
+  }
+  find_conflicts(trial_);
+  order_from_ = u_init_;
+}
+
+std::vector<PassingPair> Solver::passing_order(const std::vector<Mat>& x, const WarmStart* warm) {
+  if (N_ == 0) throw std::logic_error("setup() must be called before passing_order()");
+  require(static_cast<int>(x.size()) == N_, "passing_order: x must hold one trajectory per agent");
+  for (const Mat& xi : x)
+    require(xi.rows() == T_ + 1 && xi.cols() == nx_ && xi.allFinite(),
+            "passing_order: every trajectory must be finite, (horizon + 1) x nx");
+  load_initial_guess(warm);  // the next solve loads its own
+  initial_conflicts();
+  for (int i = 0; i < N_; ++i) trial_.x[i] = x[i].transpose();
+  std::vector<PassingPair> out;
+  passing_of(trial_, out);
+  return out;
+}
+
 void Solver::find_conflicts(const Iterate& y) {
   conflicts_.clear();
+  conflicts_known_ = true;
   if (!prob_.collision.enabled || N_ < 2) return;
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   for (int i = 0; i < N_; ++i)
@@ -175,7 +203,7 @@ int Solver::winding_of(const Iterate& y, int i, int j) const {
   return angle >= 0 ? 1 : -1;
 }
 
-void Solver::passing_of(std::vector<PassingPair>& out) const {
+void Solver::passing_of(const Iterate& y, std::vector<PassingPair>& out) const {
   const int px = prob_.collision.pos_x, py = prob_.collision.pos_y;
   out.resize(conflicts_.size());
   for (size_t p = 0; p < conflicts_.size(); ++p) {
@@ -183,19 +211,19 @@ void Solver::passing_of(std::vector<PassingPair>& out) const {
     PassingPair& q = out[p];
     q.i = i;
     q.j = j;
-    q.winding = winding_of(y_, i, j);
+    q.winding = winding_of(y, i, j);
     int closest = 1;
     q.gap = kInf;
     for (int k = 1; k <= T_; ++k) {
-      const double g = (position(y_.x[j], px, py, k) - position(y_.x[i], px, py, k)).norm();
+      const double g = (position(y.x[j], px, py, k) - position(y.x[i], px, py, k)).norm();
       if (g < q.gap) { q.gap = g; closest = k; }
     }
     const int k0 = closest < T_ ? closest : closest - 1;
     auto heading = [&](int a) {
-      const Eigen::Vector2d v = position(y_.x[a], px, py, k0 + 1) - position(y_.x[a], px, py, k0);
+      const Eigen::Vector2d v = position(y.x[a], px, py, k0 + 1) - position(y.x[a], px, py, k0);
       return v.norm() > 0 ? Eigen::Vector2d(v / v.norm()) : v;
     };
-    const Eigen::Vector2d d = position(y_.x[j], px, py, closest) - position(y_.x[i], px, py, closest);
+    const Eigen::Vector2d d = position(y.x[j], px, py, closest) - position(y.x[i], px, py, closest);
     // How far each is ahead of the other along its own heading (i is at -d from j).
     const double ahead_i = -d.dot(heading(i)), ahead_j = d.dot(heading(j));
     q.first = ahead_i >= ahead_j ? i : j;

@@ -8,6 +8,13 @@
 
 namespace rd3g {
 
+namespace {
+// The escape from a saddle: the first step along the unit direction (control units), and rho at its restart (at its
+// floor the barrier would hold the agent at the saddle's contacts).
+constexpr double kEscapeStep = 1.0;
+constexpr double kEscapeRho = 1e-2;
+}  // namespace
+
 void SecondOrderCheck::setup(int num_agents, int horizon, int nx, int nu) {
   N_ = num_agents;
   T_ = horizon;
@@ -265,7 +272,7 @@ bool Solver::leave_saddle(int escapes) {
     double max_h;
     const double L0 = agent_lagrangian(a, trial_, w_i, w_j, max_h);
     const Mat u0 = trial_.u[a];
-    double step = settings_.second_order.escape_step, best_sign = 0;
+    double step = kEscapeStep, best_sign = 0;
     for (int q = 0; q < settings_.line_search.max_steps && best_sign == 0; ++q, step *= settings_.line_search.beta) {
       // Along +-d the quadratic model predicts L0 + 0.5 step^2 lambda_min; ask for a tenth of that decrease.
       double best_L = L0 + 0.05 * step * step * ag.min_eigenvalue;
@@ -290,7 +297,7 @@ bool Solver::leave_saddle(int escapes) {
   std::swap(y_, trial_);
   // Multipliers: the others' kept; constraints now inside the margin go to the barrier on the central path of a
   // moderate rho (at rho's floor the barrier would hold the moved agent near the saddle's contacts).
-  rho_ = settings_.second_order.escape_rho;
+  rho_ = kEscapeRho;
   eval_all_constraints(y_, h_);
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
     if (h_[c] < -margin) {

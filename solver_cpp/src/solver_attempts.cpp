@@ -17,9 +17,10 @@
 namespace rd3g {
 
 namespace {
-// The best-response attempt is inserted before restart attempt 1 (attempt 0 keeps the initial guess; measured
-// before attempt 4 it rescued fewer instances, docs/solver.md "Best-response restart: measurements").
+// The best-response attempt is inserted before restart attempt 1 (attempt 0 keeps the initial guess).
 constexpr int kBestResponseAttempt = 1;
+// Std of the seeded constant control offsets of restart attempts 4.. (control units).
+constexpr double kRestartOffsetStd = 0.2;
 }  // namespace
 
 // -------------------------------------------------------------------------------------------------
@@ -30,7 +31,10 @@ Result Solver::solve(const WarmStart* warm) {
   begin_solve(info, warm);
   Schedule sc;
   Result found;
-  if (settings_.order.before_newton && search_orders(found, info, sc.total_iter)) return found;
+  if (settings_.order.before_newton && settings_.order.candidates > 0) {
+    initial_conflicts();
+    if (search_orders(found, info, sc.total_iter)) return found;
+  }
   if (run_schedule(res, sc, warm)) return res;
   // No attempt of the schedule found an equilibrium: the passing-order search as its last stage (the rescue).
   Info searched = info;
@@ -126,14 +130,10 @@ void Solver::begin_solve(Info& info, const WarmStart* warm) {
   inertia_delta_.assign(N_, 0.0);
   attempt_cap_ = 0;
   iter_limit_ = settings_.max_iter;
-  // The conflicting pairs of the rolled-out initial guess (reported in every result; the search's before Newton).
-  for (int i = 0; i < N_; ++i) {
-    trial_.x[i].col(0) = prob_.x0[i];
-    trial_.u[i] = u_init_[i];
-    roll_out(trial_, i);
-  }
-  find_conflicts(trial_);
-  order_from_ = u_init_;
+  // The conflicting pairs are found only when the passing-order search runs (initial_conflicts, rescue); a result
+  // reports them then, and Solver::passing_order computes them for any other result when asked.
+  conflicts_.clear();
+  conflicts_known_ = false;
 }
 
 void Solver::start_scheduled_attempt(int attempt, bool best_response, const WarmStart* warm, Schedule& sc,
@@ -196,7 +196,7 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
       // A constant offset per agent and control component (not white noise, which averages out):
       // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
       for (int q = 0; q < nu_; ++q) {
-        const double offset = settings_.restart.u_std * noise_(rng_);
+        const double offset = kRestartOffsetStd * noise_(rng_);
         y_.u[i].row(q).array() += offset;
       }
     if (attempt == 0) y_.lam[i] = lam_init_[i];
@@ -273,7 +273,7 @@ bool Solver::converged(double rnorm) const {
   const int C = static_cast<int>(cons_.size());
   for (int c = 0; c < C; ++c)
     if (state_[c] == ConstraintState::Active &&
-        (y_.mu[c] < -settings_.multiplier_tol || (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol)))
+        (y_.mu[c] < -kMultiplierTol || (mu2_col_[c] >= 0 && y_.mu2[c] < -kMultiplierTol)))
       return false;  // an active constraint pushes the wrong way: not an equilibrium
   const double maxviol = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
   double max_defect = 0;
@@ -426,7 +426,8 @@ void Solver::write_result(Result& res, Info& info) {
     }
   }
   res.h = h_;
-  passing_of(info.passing_order);
+  if (conflicts_known_) passing_of(y_, info.passing_order);
+  else info.passing_order.clear();
   info.active_constraints = nact;
   info.max_violation = C ? std::max(0.0, h_.maxCoeff()) : 0.0;
   info.rho = rho_;

@@ -10,6 +10,15 @@
 
 namespace rd3g {
 
+namespace {
+// Fixed constants (settings before; never set by any caller): the primal-dual barrier keeps z >= (1 - 0.99) z along a
+// step (IPOPT's fraction to the boundary); Levenberg-Marquardt's nu = 1e-6 10^q ||r||, and its tries compete with an
+// accepted Newton step shorter than t = 0.01.
+constexpr double kFractionToBoundary = 0.99;
+constexpr double kLmNuInit = 1e-6;
+constexpr double kLmBelowStep = 1e-2;
+}  // namespace
+
 void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const {
   // Plain loops over the stage blocks (this runs for every line-search trial; Eigen's expressions on 2- and
   // 4-element dynamic columns cost several times the arithmetic).
@@ -46,7 +55,7 @@ double Solver::line_search(double merit0) {
     // Fraction to the boundary: barrier duals stay positive.
     for (int c = 0; c < static_cast<int>(cons_.size()); ++c)
       if (state_[c] == ConstraintState::Barrier && dz_[c] < 0)
-        t = std::min(t, -settings_.barrier.fraction_to_boundary * y_.z[c] / dz_[c]);
+        t = std::min(t, -kFractionToBoundary * y_.z[c] / dz_[c]);
   } else {
     dz_.setZero();
   }
@@ -111,7 +120,7 @@ double Solver::take_step(double rnorm, Info& info) {
 
   t0 = Clock::now();
   double t = line_search(rnorm);
-  if (t > 0 && t < settings_.line_search.lm_below_step) {
+  if (t > 0 && t < kLmBelowStep) {
     // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
     // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it: from the
     // largest nu down (it wins most often), until a smaller nu no longer lowers the merit; each try
@@ -121,7 +130,7 @@ double Solver::take_step(double rnorm, Info& info) {
     double last_m = HUGE_VAL;
     bool lm_won = false;
     for (int q = settings_.line_search.lm_tries - 1; q >= 0 && !past_deadline(); --q) {
-      if (!solve_levenberg_marquardt(settings_.line_search.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+      if (!solve_levenberg_marquardt(kLmNuInit * std::pow(10.0, q) * rnorm, dy_)) break;
       const double tl = line_search(rnorm);
       const double m = tl > 0 ? merit(r_trial_, rc_trial_) : HUGE_VAL;
       if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
@@ -133,7 +142,7 @@ double Solver::take_step(double rnorm, Info& info) {
   }
   for (int q = 0; t == 0.0 && q < settings_.line_search.lm_tries; ++q) {
     if (past_deadline()) { timed_out_ = true; break; }
-    if (!solve_levenberg_marquardt(settings_.line_search.lm_nu_init * std::pow(10.0, q) * rnorm, dy_)) break;
+    if (!solve_levenberg_marquardt(kLmNuInit * std::pow(10.0, q) * rnorm, dy_)) break;
     t = line_search(rnorm);
     if (t > 0) info.lm_steps++;
   }

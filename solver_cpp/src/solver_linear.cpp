@@ -13,6 +13,7 @@
 namespace rd3g {
 
 namespace {
+constexpr int kRefinementSteps = 2;  // iterative refinement steps after each sparse LU solve
 // LSCG iterations between deadline checks when a time limit is set.
 constexpr int kLscgChunk = 50;
 // Sparse factorisation speed assumed before this solver has measured its own (flop/s): low, so that a
@@ -97,7 +98,7 @@ bool Solver::solve_lu(Vec& dy, Info& info) {
     dy.head(n) = lu_.solve(rhs);
     // Iterative refinement with the same factors: the Newton matrix can be badly scaled (barrier
     // curvature z/(-h) next to O(1) entries), and an inaccurate step is not a descent direction.
-    for (int ref = 0; ref < settings_.linear.refinement_steps; ++ref) {
+    for (int ref = 0; ref < kRefinementSteps; ++ref) {
       lin_res_.head(n) = rhs - J_ * dy.head(n);
       const double res_norm = lin_res_.head(n).norm();
       if (settings_.verbose) std::printf("   linear residual %.2e (rhs %.2e)\n", res_norm, rhs.norm());

@@ -70,8 +70,8 @@ void Solver::classify(const Vec& h, bool first) {
         if (h[c] >= 0) st = ConstraintState::Active;  // only possible if the line search was bypassed
         break;
       case ConstraintState::Active: {
-        const bool wrong_sign = y_.mu[c] < -settings_.multiplier_tol ||
-                                (mu2_col_[c] >= 0 && y_.mu2[c] < -settings_.multiplier_tol);
+        const bool wrong_sign = y_.mu[c] < -kMultiplierTol ||
+                                (mu2_col_[c] >= 0 && y_.mu2[c] < -kMultiplierTol);
         if (h[c] < -margin) st = ConstraintState::Barrier;
         else if (wrong_sign && h[c] <= settings_.violation_tol) st = ConstraintState::Free;
         break;

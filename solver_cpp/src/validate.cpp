@@ -210,17 +210,14 @@ void validate_settings(const Settings& s) {
   require(s.line_search.max_steps >= 1, "solver.line_search.max_steps must be >= 1");
   require(s.violation_tol >= 0, "solver.violation_tol must be >= 0");
   require(s.dynamics_tol > 0, "solver.dynamics_tol must be positive");
-  require(s.multiplier_tol >= 0, "solver.multiplier_tol must be >= 0");
   require(s.barrier.margin >= 0, "solver.barrier.margin must be >= 0");
-  require(s.barrier.fraction_to_boundary > 0 && s.barrier.fraction_to_boundary < 1, "solver.barrier.fraction_to_boundary must be in (0, 1)");
   require(s.domain_fraction >= 0 && s.domain_fraction < 1, "solver.domain_fraction must be in [0, 1) (0 = off)");
-  require(s.line_search.lm_tries >= 0 && s.line_search.lm_nu_init > 0, "solver.line_search.lm_tries must be >= 0 and solver.line_search.lm_nu_init positive");
+  require(s.line_search.lm_tries >= 0, "solver.line_search.lm_tries must be >= 0 (0 = off)");
   require(s.restart.count >= 0, "solver.restart.count must be >= 0");
   require(s.stall.window >= 0, "solver.stall.window must be >= 0 (0 = never)");
   require(s.stall.floor_window >= 0, "solver.stall.floor_window must be >= 0 (0 = never)");
   require(s.stall.crawl_window >= 0, "solver.stall.crawl_window must be >= 0 (0 = never)");
   require(s.stall.crawl_ratio > 0 && s.stall.crawl_ratio <= 1, "solver.stall.crawl_ratio must be in (0, 1]");
-  require(s.restart.u_std >= 0, "solver.restart.u_std must be >= 0");
   require(s.stall.polish_gap >= 0, "solver.stall.polish_gap must be >= 0 (0 = off)");
   require(s.line_search.violation_memory >= 1, "solver.line_search.violation_memory must be >= 1");
   require(s.restart.violation_memory >= 1, "solver.restart.violation_memory must be >= 1");
@@ -239,8 +236,6 @@ void validate_settings(const Settings& s) {
   require(std::isfinite(s.order.offset) && s.order.offset >= 0,
           "solver.order.offset must be finite and >= 0 (a fraction of the collision distance)");
   require(s.second_order.escapes >= 0, "solver.second_order.escapes must be >= 0 (0 = off)");
-  require(std::isfinite(s.second_order.escape_step) && s.second_order.escape_step > 0, "solver.second_order.escape_step must be positive and finite (control units)");
-  require(std::isfinite(s.second_order.escape_rho) && s.second_order.escape_rho > 0, "solver.second_order.escape_rho must be positive and finite");
   require(std::isfinite(s.second_order.inertia) && s.second_order.inertia >= 0, "solver.second_order.inertia must be finite and >= 0 (0 = off)");
 }
 

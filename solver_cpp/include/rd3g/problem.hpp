@@ -137,7 +137,6 @@ struct BarrierSettings {
   /// ||r|| <= rho_progress * rho, i.e. the barrier subproblem is nearly solved (IPOPT's monotone rule).
   double rho_progress = 0.0;
   double margin = 1e-4;  ///< (constraint units) released constraints re-enter the barrier once h < -margin
-  double fraction_to_boundary = 0.99;  ///< primal-dual: keep z >= (1 - fraction_to_boundary) z along a step
 };
 
 /// Backtracking line search on ||r|| and its Levenberg-Marquardt fallback (Settings::line_search).
@@ -149,18 +148,15 @@ struct LineSearchSettings {
   /// the total violation above the largest of the last violation_memory iterates' (1 = monotone, the paper's rule).
   int violation_memory = 1;
   /// When the Newton step fails the line search (near-singular Jacobian), try Levenberg-Marquardt steps
-  /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = lm_nu_init * 10^q ||r||, q = 0..lm_tries-1
-  /// (the first that passes the line search is taken). After a Newton step shorter than lm_below_step they compete
+  /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = 1e-6 * 10^q ||r||, q = 0..lm_tries-1
+  /// (the first that passes the line search is taken). After a Newton step shorter than t = 0.01 they compete
   /// with it instead: q from lm_tries-1 down while the merit keeps falling, the best step taken. 0 = off.
   int lm_tries = 4;
-  double lm_below_step = 1e-2;  ///< also try LM when the accepted Newton step t is below this
-  double lm_nu_init = 1e-6;
 };
 
 /// The Newton system's linear solver (Settings::linear).
 struct LinearSettings {
   LinearSolver solver = LinearSolver::Riccati;
-  int refinement_steps = 2;  ///< iterative refinement steps after each sparse LU solve
   double lscg_tol = 1e-10;   ///< LSCG relative tolerance
   int lscg_max_iter = 2000;
 };
@@ -185,10 +181,9 @@ struct StallSettings {
 /// The restart schedule (Settings::restart; docs/solver.md, "Restarts"). When an attempt stalls or its line search
 /// fails, restart from the initial guess with rho_init * 10 (attempt 1), the other barrier form (2), both (3), then
 /// the same four again and again from the initial controls plus a seeded constant offset per agent and control of
-/// std u_std (attempts 4..count). Every attempt counts towards iterations, max_iter and the reported time.
+/// std 0.2 control units (attempts 4..count). Every attempt counts towards iterations, max_iter and the reported time.
 struct RestartSettings {
   int count = 19;           ///< restart attempts after attempt 0 (0 = none)
-  double u_std = 0.2;       ///< (control units)
   /// The rules of every restart attempt, and of attempt 0 when its initial guess overlaps deeply (deep_overlap):
   /// BarrierSettings::rho_progress, LineSearchSettings::violation_memory, and lowering rho on a stall above its
   /// floor instead of polishing or restarting (rho_on_stall; attempt 0 never does).
@@ -224,13 +219,11 @@ struct SecondOrderSettings {
   /// that passes; if none is found the kept saddle is returned (status saddle).
   bool restart_on_saddle = true;
   /// Attempts from a saddle along negative curvature (with restart_on_saddle; docs/solver.md, "Second-order test"):
-  /// each failing agent moves its controls along +-its eigenvector of the smallest eigenvalue, steps escape_step,
-  /// escape_step * line_search.beta, ... until its shooting Lagrangian falls enough with its constraints kept
-  /// inside the barrier margin; Newton runs again from there at rho = escape_rho. At most `escapes` per solve
+  /// each failing agent moves its controls along +-its eigenvector of the smallest eigenvalue, steps of 1 control
+  /// unit, line_search.beta, beta^2, ... until its shooting Lagrangian falls enough with its constraints kept
+  /// inside the barrier margin; Newton runs again from there at rho = 0.01. At most `escapes` per solve
   /// (0 = off); they count in attempts, iterations, max_iter and time.
   int escapes = 2;
-  double escape_step = 1.0;  ///< (control units) first step length along the unit direction
-  double escape_rho = 1e-2;  ///< barrier weight rho at the restart from a saddle
   /// Per-agent inertia correction in the attempts from a saddle: every agent that has failed the test gets
   /// delta = inertia * |its smallest eigenvalue| added on its control rows of the Newton matrix, scaled by
   /// min(1, ||r|| / ||r|| at the attempt's first iteration) (a proximal term that vanishes at convergence).
@@ -279,7 +272,6 @@ struct Settings {
   double time_limit = 0.0;
   double violation_tol = 1e-6;   ///< converged only if every h <= violation_tol (constraint units)
   double dynamics_tol = 1e-7;    ///< converged only if every dynamics defect <= dynamics_tol (state units)
-  double multiplier_tol = 1e-6;  ///< active constraints need mu >= -multiplier_tol (true equilibrium)
   /// Keep the controls in their models' domains (Dynamics::control_domain; the bicycles: |delta| < pi/2): a step is
   /// shortened so that no control leaves its domain's box shrunk about the centre to domain_fraction of its
   /// half-width. Dimensionless, in [0, 1); 0 = off (docs/solver.md, "Staying in the model's domain").
@@ -353,7 +345,8 @@ struct Info {
   /// control unit^2; +inf = its active constraints leave no free direction); empty if the test is off.
   std::vector<double> second_order;
   /// The conflicting pairs of the initial guess (of the solo plans in a point the order rescue returns) and the order
-  /// the returned point gives them (always filled).
+  /// the returned point gives them; filled only when the passing-order search ran (else empty: Solver::passing_order
+  /// computes it on demand).
   std::vector<PassingPair> passing_order;
   std::vector<OrderCandidate> orders;  ///< the passing-order search's candidates (empty if it did not run)
   int order_attempts = 0;              ///< polish attempts of the passing-order search

@@ -23,6 +23,10 @@ namespace rd3g {
 
 class SecondOrderCheck;
 
+/// An equality-held constraint's multiplier below -kMultiplierTol has the wrong sign: the constraint is released, and
+/// the point is not an equilibrium.
+constexpr double kMultiplierTol = 1e-6;
+
 /// How a constraint enters the current Newton system.
 enum class ConstraintState : char {
   Barrier,  ///< satisfied: -rho log(-h) in the Lagrangian, no multiplier variable
@@ -62,6 +66,12 @@ class Solver {
   /// game-iteration equivalents, as in the restart). Result: x, u and info (iterations = best_response_iterations,
   /// timings.total); no multipliers.
   Result best_response(int rounds, const WarmStart* warm = nullptr);
+
+  /// The pairs whose rolled-out initial guess (the warm start's controls, zero without) comes closer than their
+  /// collision distance, and the order trajectories x (per agent (T+1) x nx, e.g. a Result's) give them. A solve
+  /// fills Info::passing_order only when its passing-order search ran; this computes it for any other result, on
+  /// demand (a rollout and a scan of every pair at every step that the solve itself no longer pays).
+  std::vector<PassingPair> passing_order(const std::vector<Mat>& x, const WarmStart* warm = nullptr);
 
   const std::vector<Constraint>& constraints() const { return cons_; }
   /// Changes whenever the constraint list does (set-up, or an update that made a bound finite or infinite).
@@ -121,6 +131,9 @@ class Solver {
   };
   /// The conflicting pairs of y (rolled-out trajectories) into conflicts_.
   void find_conflicts(const Iterate& y);
+  /// The conflicting pairs of the rolled-out initial controls u_init_ (into conflicts_; trial_ as scratch), from
+  /// which the ordered guesses start.
+  void initial_conflicts();
   /// y_ = each agent's own plan with the others ignored (one sub-solve each from the initial controls); returns the
   /// sub-solve iterations (<= budget).
   int solo_plans(int budget);
@@ -128,8 +141,8 @@ class Solver {
   void candidate_orders();
   /// y_ from order_from_ and one ordered sweep for the given windings; returns sub-solve iterations.
   int ordered_guess(const std::vector<int>& winding, int budget);
-  /// The order of every conflicting pair at y_.
-  void passing_of(std::vector<PassingPair>& out) const;
+  /// The order of every conflicting pair at y.
+  void passing_of(const Iterate& y, std::vector<PassingPair>& out) const;
   int winding_of(const Iterate& y, int i, int j) const;
   /// Builds, ranks and polishes the candidates; true if `found` holds an equilibrium to return.
   bool search_orders(Result& found, Info& info, int& total_iter);
@@ -138,6 +151,7 @@ class Solver {
   /// Newton from candidate c's guess (one attempt, order.polish_iter); true if it reached an equilibrium, then in out.
   bool polish_candidate(int c, Result& out, Info& info, int& total_iter);
   std::vector<ConflictPair> conflicts_;
+  bool conflicts_known_ = false;           // conflicts_ was found in this solve (the search ran or was asked for)
   std::vector<std::vector<int>> order_signs_;
   std::vector<std::vector<Mat>> order_u_;  // per candidate: the ordered guess's controls (nu x T per agent)
   std::vector<Mat> order_from_;            // controls the ordered guesses start from (initial, or the solo plans)
