@@ -34,7 +34,7 @@ from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, Pair
 from .commands import CommandMapper
 from .config import PlannerConfig, solver_settings
 from .frenet import EPSI, EY, S, V, FrenetTrackModel, frenet_separation, min_turn_radius
-from .reference import planner_racing_line, stage_reference
+from .reference import path_curvature, path_speed_bounds, planner_racing_line, stage_reference
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
 # Smallest collision distance a relaxed problem gets (m). The solver rejects d_min <= 0, which the
@@ -142,6 +142,23 @@ class _RecedingHorizon:
             return self.corner_speed_cap(x, top_speed)
         v_line = float(self._stages(x).v[0])
         return float(min(top_speed, max(v_line, float(x[V]) - _BOUND_DROP_MPS)))
+
+    def path_speed_cap(self, x, top_speed: float) -> float:
+        """Speed bound (m/s) of this car's plan from state x following the racing line: the tyre limit along
+        the path of its last plan (shifted to now; planning.reference.path_speed_bounds at
+        path_lateral_accel_mps2 and max_brake_mps2, the path's curvature from the plan's steering) at the
+        first planned stage, asking for at most 0.2 m/s below the current speed per plan; top_speed on the
+        centre line or before the first plan. Why: the line's speed profile holds on the line's path, and
+        the kinematic planning model has no tyre limit, so a car off the line (e.g. 0.16 m outside it
+        entering a 0.3 m turn) planned the line's speed on a tighter path and slid off the track."""
+        if self.line is None or self._prev is None:
+            return float(top_speed)
+        c, g = self.config, self.tm.car.geometry
+        x_prev, u_prev = self._shifted(np.asarray(self._prev.x)[:1])[0], self._shifted(np.asarray(self._prev.u)[:1])[0]
+        bounds = path_speed_bounds(x_prev[:-1, V], path_curvature(u_prev[:, 1], g.lf_m, g.lr_m), c.plan_dt_s,
+                                   c.path_lateral_accel_mps2, c.max_brake_mps2)
+        v_path = float(np.min(bounds[:2]))  # stage 1 ends segment 0 and starts segment 1
+        return float(min(top_speed, max(v_path, float(x[V]) - _BOUND_DROP_MPS)))
 
     @staticmethod
     def _set_reference(cost: QuadraticCost, index: int, value: float, weight: float | None = None) -> None:
@@ -589,7 +606,7 @@ class RacingPlanner(_RecedingHorizon):
         limits = self.ey_limits(s_now)
         scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
         d_min = self.tm.collision_distance()
-        own_top = self.speed_cap(x_self, c.top_speed_mps)
+        own_top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps))
         other_top = [self.speed_cap(x, top) for x, top in zip(rows, tops)]
         own_cost = self._cost(own_top, c.reference_speed_mps, x_self)
         defend_ey = self.defend_reference(x_self, rows, ey_bound, refs)
@@ -635,7 +652,7 @@ class MPCOpponent(_RecedingHorizon):
         limits = self.ey_limits(s_now)
         scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows)])
         d_min = self.tm.collision_distance()
-        top = self.speed_cap(x_self, c.top_speed_mps)
+        top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps))
         cost = self._cost(top, c.reference_speed_mps, x_self)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
             self._set_reference(cost, S, float(x_self[S]) + _PROGRESS_ANCHOR_M, c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M))
