@@ -112,35 +112,39 @@ class _RecedingHorizon:
         c = self.config
         return c.top_speed_mps if c.reference_speed_mps is None else c.reference_speed_mps
 
-    def _cost(self, top_speed: float, reference: float | None = None, x0=None) -> QuadraticCost:
+    def _cost(self, top_speed: float, reference: float | None = None, x0=None, stages=None) -> QuadraticCost:
         """The racing cost at speed reference min(reference, top_speed) (reference None: top_speed).
         Following the racing line (self.line) from state x0: the stage-varying reference (x_ref_steps)
-        of the line's offset and speed at each stage (planning.reference), the speed at most that
-        constant reference."""
+        of the line's offset and speed at each stage (``stages``: _stages(x0) if already computed), the
+        speed at most that constant reference."""
         c = self.config
         v_ref = top_speed if reference is None else min(float(reference), top_speed)
         cost = QuadraticCost(x_ref=[0.0, c.raceline_ey_m, v_ref, 0.0], Q_ref=[0.0, c.q_lateral, c.q_speed, c.q_heading],
                              R=[c.r_accel, c.r_steer])
         if self.line is not None and x0 is not None:
-            stages = self._stages(x0)
+            stages = self._stages(x0) if stages is None else stages
             steps = np.tile(np.asarray(cost.x_ref, dtype=float), (c.horizon, 1))
             steps[:, EY], steps[:, V] = stages.ey, np.minimum(stages.v, v_ref)
             cost.x_ref, cost.x_ref_steps = list(steps[-1]), steps
         return cost
 
     def _stages(self, x0):
-        """The racing line's references at this plan's stages from state x0 (planning.reference)."""
+        """The racing line's references at this plan's stages from state x0 (planning.reference); None on
+        the centre line."""
+        if self.line is None:
+            return None
         c, limits = self.config, self.line.limits
         return stage_reference(self.line, self.tm.track.curvature, float(x0[S]), float(x0[V]), c.horizon,
                                c.plan_dt_s, limits.accel_mps2, limits.brake_mps2)
 
-    def speed_cap(self, x, top_speed: float) -> float:
+    def speed_cap(self, x, top_speed: float, stages=None) -> float:
         """Speed bound (m/s) of a plan from state x: corner_speed_cap on the centre line; following
-        the racing line, the line's speed at the first stage (its profile already brakes for the turns
-        ahead), asking for at most 0.2 m/s below the current speed per plan."""
+        the racing line, the line's speed at the first stage (``stages``: _stages(x) if already computed;
+        its profile already brakes for the turns ahead), asking for at most 0.2 m/s below the current speed
+        per plan."""
         if self.line is None:
             return self.corner_speed_cap(x, top_speed)
-        v_line = float(self._stages(x).v[0])
+        v_line = float((self._stages(x) if stages is None else stages).v[0])
         return float(min(top_speed, max(v_line, float(x[V]) - _BOUND_DROP_MPS)))
 
     def path_speed_cap(self, x, top_speed: float) -> float:
@@ -339,8 +343,9 @@ class _RecedingHorizon:
             ref = self._reference
             return ref[0], float(ref[1, V] - ref[0, V]) / c.plan_dt_s
         x0 = np.asarray(x0, dtype=float)
-        top = self.speed_cap(x0, c.top_speed_mps if top_speed is None else float(top_speed))
-        cost = self._cost(top, c.reference_speed_mps, x0)
+        stages = self._stages(x0)
+        top = self.speed_cap(x0, c.top_speed_mps if top_speed is None else float(top_speed), stages)
+        cost = self._cost(top, c.reference_speed_mps, x0, stages)
         stage = cost.x_ref if cost.x_ref_steps is None else cost.x_ref_steps[0]
         x_ref = np.array([x0[S], float(stage[EY]), min(float(stage[V]), top), 0.0])
         return x_ref, 0.0
@@ -606,9 +611,10 @@ class RacingPlanner(_RecedingHorizon):
         limits = self.ey_limits(s_now)
         scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
         d_min = self.tm.collision_distance()
-        own_top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps))
-        other_top = [self.speed_cap(x, top) for x, top in zip(rows, tops)]
-        own_cost = self._cost(own_top, c.reference_speed_mps, x_self)
+        own_stages, other_stages = self._stages(x_self), [self._stages(x) for x in rows]
+        own_top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps, own_stages))
+        other_top = [self.speed_cap(x, top, st) for x, top, st in zip(rows, tops, other_stages)]
+        own_cost = self._cost(own_top, c.reference_speed_mps, x_self, own_stages)
         defend_ey = self.defend_reference(x_self, rows, ey_bound, refs)
         if defend_ey is not None:  # on the inside of the turn, within the turn's radius limit
             defend_ey = min(max(defend_ey, limits[0] + c.defend_margin_m), limits[1] - c.defend_margin_m)
@@ -619,8 +625,8 @@ class RacingPlanner(_RecedingHorizon):
         ey_bound = max(-limits[0], limits[1])
         top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
         agents = [self._agent(x_self, top, limits, own_cost, c.lead_weight),
-                  *(self._agent(x, t, limits, self._cost(t, r, x), c.lead_weight)
-                    for x, t, r in zip(rows, other_top, refs))]
+                  *(self._agent(x, t, limits, self._cost(t, r, x, st), c.lead_weight)
+                    for x, t, r, st in zip(rows, other_top, refs, other_stages))]
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
         n = len(agents)
@@ -652,8 +658,9 @@ class MPCOpponent(_RecedingHorizon):
         limits = self.ey_limits(s_now)
         scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows)])
         d_min = self.tm.collision_distance()
-        top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps))
-        cost = self._cost(top, c.reference_speed_mps, x_self)
+        stages = self._stages(x_self)
+        top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps, stages))
+        cost = self._cost(top, c.reference_speed_mps, x_self, stages)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
             self._set_reference(cost, S, float(x_self[S]) + _PROGRESS_ANCHOR_M, c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M))
         others = [self.predict_other(x) for x in rows]
