@@ -63,7 +63,7 @@ class PlannerConfig:
     # Following the racing line, the plan's speed bound also keeps the lateral acceleration on the path of
     # the car's last plan (its steering) within this (m/s^2; _RecedingHorizon.path_speed_cap): the line's
     # speed profile holds on the line's own path, and a car off the line turns tighter.
-    path_lateral_accel_mps2: float = 8.0
+    path_lateral_accel_mps2: float = 6.0
     track_margin_m: float = 0.03      # extra clearance to the track edge beyond the car's half-extent
     heading_allowance_rad: float = 0.15  # yaw assumed when computing the lateral half-extent of the footprint
     collision_margin_m: float = 0.02  # added to the footprints' circumscribed-circle distance

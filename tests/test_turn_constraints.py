@@ -174,13 +174,15 @@ def _entry_speeds(full, car, ey0: float, path_lateral_accel: float) -> list[tupl
 def test_a_car_entering_a_turn_off_the_line_slows(full, car):
     """The racing line takes this 0.3 m quarter turn at 1.9 m/s on a wide radius (0.8 m); a car 0.15 m outside
     the line turns on a tighter path, which the kinematic planning model drives at any speed. With the tyre-aware
-    bound (path_lateral_accel_mps2, 8 m/s^2) it slows in the turn to about the speed of a path 0.1 m outside the
-    centre line (radius 0.4 m: sqrt(8 x 0.4) = 1.79 m/s, within 0.05 m/s: the bound acts one plan late), at least
-    0.05 m/s below the run without it (1e6 m/s^2: no bound), and not below that run before the turn."""
+    bound (path_lateral_accel_mps2 a, default 6 m/s^2) it slows in the turn to about the speed of its path, 0.1 m
+    outside the centre line (radius 0.4 m: sqrt(a x 0.4) = 1.55 m/s, within 0.05 m/s: the bound acts one plan
+    late), at least 0.05 m/s below the run without it (1e6 m/s^2: no bound), and not below that run before the
+    turn."""
     def in_turn(run):
         return max(v for s, v in run if 11.6 <= s <= 11.95), min(v for s, v in run if 11.6 <= s <= 11.95)
 
-    bounded, free = _entry_speeds(full, car, 0.15, 8.0), _entry_speeds(full, car, 0.15, 1e6)
-    assert in_turn(bounded)[1] < min(in_turn(free)[1] - 0.05, math.sqrt(8.0 * 0.4) + 0.05)
+    a = PlannerConfig().path_lateral_accel_mps2
+    bounded, free = _entry_speeds(full, car, 0.15, a), _entry_speeds(full, car, 0.15, 1e6)
+    assert in_turn(bounded)[1] < min(in_turn(free)[1] - 0.05, math.sqrt(a * 0.4) + 0.05)
     before = [vb - vf for (sb, vb), (sf, vf) in zip(bounded, free) if sb < 11.3]
     assert min(before) > -0.05
