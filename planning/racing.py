@@ -317,16 +317,43 @@ class _RecedingHorizon:
         v_corner = math.sqrt(c.max_lateral_accel_mps2 / kappa)
         return float(min(top_speed, max(v_corner, float(x[V]) - _BOUND_DROP_MPS)))
 
-    def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None, u_all=None) -> np.ndarray:
+    def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None, u_all=None,
+                        others=()) -> np.ndarray:
         """Controls (N, T, 2) of the previous plan shifted by one control period (``u_all``: those
         controls already mapped to this plan's agents, _warm_start), the planning car's first control
         replaced by the closed-loop tracking control towards _fallback_reference. Not towards the
         previous plan: after a fallback that is the car's own rollout, so a run of fallbacks saw no
-        error and held the car's heading, off the track."""
+        error and held the car's heading, off the track. ``others``: the other cars' (s, ey) now, which a
+        fallback on the racing line does not steer towards (_clear_of_alongside)."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
         x_ref, a_ref = self._fallback_reference(x0, top_speed)
+        x_ref = np.array(x_ref, dtype=float)
+        x_ref[EY] = self._clear_of_alongside(x0, float(x_ref[EY]), others)
         u_all[0, 0] = self.tracking_control(x0, x_ref, a_ref, ey_bound, top_speed)
         return u_all
+
+    def _clear_of_alongside(self, x0, ey_target: float, others) -> float:
+        """Following the racing line, a fallback's lateral target ey_target (m) moved so that it is no
+        closer to a car alongside than that car is now, or than the collision distance if it is farther:
+        alongside = closer along the track than the collision distance, the arc-length gap measured at the
+        local scale of the turn (1 - |kappa| |ey|, at least 0.2). Why: in a run of failed solves the
+        fallback tracks a plan of the game, which assumed the others make room, or after its horizon the
+        line's offset at the car, across the track; in the 4-car races on `full` (`race --track
+        buzzracer:full --line racing --cars rd3g,rd3g,mpc,mpc --seed 1`) both steered rd3g1 into a car
+        beside it in a tight turn (contacts at its fault). Centre line: ey_target unchanged."""
+        if self.line is None:
+            return ey_target
+        x0 = np.asarray(x0, dtype=float)
+        d = self.tm.collision_distance()
+        kappa = abs(float(self.tm.track.curvature(np.mod(x0[S], self.tm.track.length))))
+        for s_o, ey_o in others:
+            scale = max(1.0 - kappa * max(abs(float(x0[EY])), abs(float(ey_o))), 0.2)
+            gap = float(ey_o) - float(x0[EY])
+            if scale * abs(float(s_o) - float(x0[S])) >= d:
+                continue
+            clear = min(d, abs(gap))
+            ey_target = min(ey_target, float(ey_o) - clear) if gap > 0 else max(ey_target, float(ey_o) + clear)
+        return ey_target
 
     def _fallback_reference(self, x0, top_speed: float | None) -> tuple[np.ndarray, float]:
         """(reference state, reference acceleration in m/s^2) of a fallback step: the last plan the
@@ -374,7 +401,7 @@ class _RecedingHorizon:
         finite = bool(np.all(np.isfinite(x_self)))
         ey_bound = self.tm.ey_bound([x_self[S]]) if finite else math.nan
         if self._prev is not None and finite:
-            u_all = self._track_previous(x_self, ey_bound)
+            u_all = self._track_previous(x_self, ey_bound, others=[x[:2] for x in _rows(x_others) if np.all(np.isfinite(x))])
             u = u_all[0]
             x_prev = self._shifted(self._prev.x)
             x_prev[0] = np.asarray(self.tm.rollout_model(c.plan_dt_s).rollout(x_self, u))
@@ -482,7 +509,8 @@ class _RecedingHorizon:
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
-                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V], warm.u)
+                others = [a.x0[:2] for a in problem.agents[1:]] + [np.asarray(o.positions)[0] for o in problem.obstacles]
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V], warm.u, others)
         x = self._rollout(problem, u_all)
         lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.

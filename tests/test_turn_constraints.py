@@ -186,3 +186,22 @@ def test_a_car_entering_a_turn_off_the_line_slows(full, car):
     assert in_turn(bounded)[1] < min(in_turn(free)[1] - 0.05, math.sqrt(a * 0.4) + 0.05)
     before = [vb - vf for (sb, vb), (sf, vf) in zip(bounded, free) if sb < 11.3]
     assert min(before) > -0.05
+
+
+def test_a_fallback_on_the_racing_line_does_not_steer_into_a_car_alongside(full, car):
+    """On a straight (kappa = 0: arc-length gaps are Cartesian), a car at ey = -0.19 m with another 0.1 m behind
+    at ey = 0 (0.19 m to its left, inside the collision distance 0.195 m): a fallback target of +0.15 m
+    (the line's offset, across the other car) is held at the car's own offset, -0.19 m; with the other car
+    0.3 m to the left (ey = 0.11 m) it may go to 0.11 - 0.195 = -0.085 m; a car 0.3 m behind (farther than the collision
+    distance along the track) or on the right does not hold it; on the centre line the target is unchanged."""
+    p = _planner(full, car)
+    s = np.arange(0.0, full.length, 0.01)
+    straight = float(s[int(np.argmax(np.abs(full.curvature(s)) < 1e-9) + 20)])
+    x0 = np.array([straight + 0.5, -0.19, 1.0, 0.0])
+    assert p.line is None and p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.0)]) == 0.15
+    p.line = object()  # any line: the rule reads only the cars
+    assert abs(float(full.curvature(x0[0]))) < 1e-9
+    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.0)]) == pytest.approx(-0.19)
+    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.11)]) == pytest.approx(0.11 - 0.195, abs=1e-3)
+    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.3, 0.0)]) == 0.15
+    assert p._clear_of_alongside(x0, -0.1, [(x0[0], -0.4)]) == -0.1
