@@ -336,7 +336,8 @@ class _RecedingHorizon:
         """Following the racing line, a fallback's lateral target ey_target (m) moved so that it is no
         closer to a car alongside than that car is now, or than the collision distance if it is farther:
         alongside = closer along the track than the collision distance, the arc-length gap measured at the
-        local scale of the turn (1 - |kappa| |ey|, at least 0.2). Why: in a run of failed solves the
+        smaller of the two cars' local scales 1 - kappa ey (shorter on the inside of a turn, longer on the
+        outside; at least 0.2). Why: in a run of failed solves the
         fallback tracks a plan of the game, which assumed the others make room, or after its horizon the
         line's offset at the car, across the track; in the 4-car races on `full` (`race --track
         buzzracer:full --line racing --cars rd3g,rd3g,mpc,mpc --seed 1`) both steered rd3g1 into a car
@@ -345,9 +346,9 @@ class _RecedingHorizon:
             return ey_target
         x0 = np.asarray(x0, dtype=float)
         d = self.tm.collision_distance()
-        kappa = abs(float(self.tm.track.curvature(np.mod(x0[S], self.tm.track.length))))
+        kappa = float(self.tm.track.curvature(np.mod(x0[S], self.tm.track.length)))
         for s_o, ey_o in others:
-            scale = max(1.0 - kappa * max(abs(float(x0[EY])), abs(float(ey_o))), 0.2)
+            scale = max(1.0 - kappa * max(float(x0[EY]) * np.sign(kappa), float(ey_o) * np.sign(kappa)), 0.2)
             gap = float(ey_o) - float(x0[EY])
             if scale * abs(float(s_o) - float(x0[S])) >= d:
                 continue
