@@ -348,7 +348,7 @@ class _RecedingHorizon:
         d = self.tm.collision_distance()
         kappa = float(self.tm.track.curvature(np.mod(x0[S], self.tm.track.length)))
         for s_o, ey_o in others:
-            scale = max(1.0 - kappa * max(float(x0[EY]) * np.sign(kappa), float(ey_o) * np.sign(kappa)), 0.2)
+            scale = max(min(1.0 - kappa * float(x0[EY]), 1.0 - kappa * float(ey_o)), 0.2)
             gap = float(ey_o) - float(x0[EY])
             if scale * abs(float(s_o) - float(x0[S])) >= d:
                 continue
@@ -402,7 +402,8 @@ class _RecedingHorizon:
         finite = bool(np.all(np.isfinite(x_self)))
         ey_bound = self.tm.ey_bound([x_self[S]]) if finite else math.nan
         if self._prev is not None and finite:
-            u_all = self._track_previous(x_self, ey_bound, others=[x[:2] for x in _rows(x_others) if np.all(np.isfinite(x))])
+            others = [x[:2] for x in _rows(x_others) if len(x) >= 2 and np.all(np.isfinite(x))]
+            u_all = self._track_previous(x_self, ey_bound, others=others)
             u = u_all[0]
             x_prev = self._shifted(self._prev.x)
             x_prev[0] = np.asarray(self.tm.rollout_model(c.plan_dt_s).rollout(x_self, u))

@@ -205,3 +205,12 @@ def test_a_fallback_on_the_racing_line_does_not_steer_into_a_car_alongside(full,
     assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.11)]) == pytest.approx(0.11 - 0.195, abs=1e-3)
     assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.3, 0.0)]) == 0.15
     assert p._clear_of_alongside(x0, -0.1, [(x0[0], -0.4)]) == -0.1
+    # In a right turn of radius 0.3 m (kappa = -3.33/m), our car at ey = +0.05 m: a car 0.35 m behind on the
+    # inside (ey = -0.15 m, local scale 1 - kappa ey = 0.5: 0.175 m of arc there) is alongside, 0.2 m to the
+    # right, so the target stays at least 0.195 m left of it; on the outside (ey = +0.15 m, scale 1.5; ours
+    # 1.17: 0.41 m) it is not alongside.
+    right = _turn_s(full)
+    assert float(full.curvature(right)) == pytest.approx(-1.0 / 0.3)
+    xr = np.array([right, 0.05, 1.0, 0.0])
+    assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, -0.15)]) == pytest.approx(-0.15 + 0.195, abs=1e-3)
+    assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, 0.15)]) == -0.15
