@@ -13,7 +13,8 @@ other cars react to it.
 
 Both race the centre line (PlannerConfig.line "centre": the constant lateral reference raceline_ey_m,
 the cornering cap on the speed bound) or the track's racing line ("racing": its offset and speed at
-each horizon stage as the cost's stage-varying reference, planning.reference).
+each horizon stage as the cost's stage-varying reference, planning.reference, the speed bound also
+within the tyre limit on the path of the car's last plan, path_speed_cap).
 
 Both take the other cars as rows of an (M, 4) array (one (4,) state is one car); their s must be in
 the planning car's frame (the race layer unwraps laps: race.planning.RacePlanners). With a single agent the solver's lead term has no opponent, so the progress reward
