@@ -60,6 +60,10 @@ class PlannerConfig:
     # on the bound (the minimum-time lines touch it in every turn) left no room for tracking error,
     # and the cars following it left the track (docs/racing.md).
     line_margin_m: float = 0.03
+    # Following the racing line, the plan's speed bound also keeps the lateral acceleration on the path of
+    # the car's last plan (its steering) within this (m/s^2; _RecedingHorizon.path_speed_cap): the line's
+    # speed profile holds on the line's own path, and a car off the line turns tighter.
+    path_lateral_accel_mps2: float = 6.0
     track_margin_m: float = 0.03      # extra clearance to the track edge beyond the car's half-extent
     heading_allowance_rad: float = 0.15  # yaw assumed when computing the lateral half-extent of the footprint
     collision_margin_m: float = 0.02  # added to the footprints' circumscribed-circle distance
@@ -119,7 +123,7 @@ class PlannerConfig:
     fallback_speed_gain: float = 2.0
 
     def __post_init__(self) -> None:
-        positive = {"plan_dt_s", "top_speed_mps", "reference_speed_mps", "max_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "steering_margin"}
+        positive = {"plan_dt_s", "top_speed_mps", "reference_speed_mps", "max_lateral_accel_mps2", "path_lateral_accel_mps2", "max_brake_mps2", "curvature_table_ds_m", "steering_margin"}
         ints = {"horizon": 1, "game_players": 0, "max_iter_per_extra_player": 0}
         for name in ("solver", "cold_start_solver"):
             try:

@@ -13,7 +13,8 @@ other cars react to it.
 
 Both race the centre line (PlannerConfig.line "centre": the constant lateral reference raceline_ey_m,
 the cornering cap on the speed bound) or the track's racing line ("racing": its offset and speed at
-each horizon stage as the cost's stage-varying reference, planning.reference).
+each horizon stage as the cost's stage-varying reference, planning.reference, the speed bound also
+within the tyre limit on the path of the car's last plan, path_speed_cap).
 
 Both take the other cars as rows of an (M, 4) array (one (4,) state is one car); their s must be in
 the planning car's frame (the race layer unwraps laps: race.planning.RacePlanners). With a single agent the solver's lead term has no opponent, so the progress reward
@@ -34,7 +35,7 @@ from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, Pair
 from .commands import CommandMapper
 from .config import PlannerConfig, solver_settings
 from .frenet import EPSI, EY, S, V, FrenetTrackModel, frenet_separation, min_turn_radius
-from .reference import planner_racing_line, stage_reference
+from .reference import path_curvature, path_speed_bounds, planner_racing_line, stage_reference
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
 # Smallest collision distance a relaxed problem gets (m). The solver rejects d_min <= 0, which the
@@ -112,36 +113,57 @@ class _RecedingHorizon:
         c = self.config
         return c.top_speed_mps if c.reference_speed_mps is None else c.reference_speed_mps
 
-    def _cost(self, top_speed: float, reference: float | None = None, x0=None) -> QuadraticCost:
+    def _cost(self, top_speed: float, reference: float | None = None, x0=None, stages=None) -> QuadraticCost:
         """The racing cost at speed reference min(reference, top_speed) (reference None: top_speed).
         Following the racing line (self.line) from state x0: the stage-varying reference (x_ref_steps)
-        of the line's offset and speed at each stage (planning.reference), the speed at most that
-        constant reference."""
+        of the line's offset and speed at each stage (``stages``: _stages(x0) if already computed), the
+        speed at most that constant reference."""
         c = self.config
         v_ref = top_speed if reference is None else min(float(reference), top_speed)
         cost = QuadraticCost(x_ref=[0.0, c.raceline_ey_m, v_ref, 0.0], Q_ref=[0.0, c.q_lateral, c.q_speed, c.q_heading],
                              R=[c.r_accel, c.r_steer])
         if self.line is not None and x0 is not None:
-            stages = self._stages(x0)
+            stages = self._stages(x0) if stages is None else stages
             steps = np.tile(np.asarray(cost.x_ref, dtype=float), (c.horizon, 1))
             steps[:, EY], steps[:, V] = stages.ey, np.minimum(stages.v, v_ref)
             cost.x_ref, cost.x_ref_steps = list(steps[-1]), steps
         return cost
 
     def _stages(self, x0):
-        """The racing line's references at this plan's stages from state x0 (planning.reference)."""
+        """The racing line's references at this plan's stages from state x0 (planning.reference); None on
+        the centre line."""
+        if self.line is None:
+            return None
         c, limits = self.config, self.line.limits
         return stage_reference(self.line, self.tm.track.curvature, float(x0[S]), float(x0[V]), c.horizon,
                                c.plan_dt_s, limits.accel_mps2, limits.brake_mps2)
 
-    def speed_cap(self, x, top_speed: float) -> float:
+    def speed_cap(self, x, top_speed: float, stages=None) -> float:
         """Speed bound (m/s) of a plan from state x: corner_speed_cap on the centre line; following
-        the racing line, the line's speed at the first stage (its profile already brakes for the turns
-        ahead), asking for at most 0.2 m/s below the current speed per plan."""
+        the racing line, the line's speed at the first stage (``stages``: _stages(x) if already computed;
+        its profile already brakes for the turns ahead), asking for at most 0.2 m/s below the current speed
+        per plan."""
         if self.line is None:
             return self.corner_speed_cap(x, top_speed)
-        v_line = float(self._stages(x).v[0])
+        v_line = float((self._stages(x) if stages is None else stages).v[0])
         return float(min(top_speed, max(v_line, float(x[V]) - _BOUND_DROP_MPS)))
+
+    def path_speed_cap(self, x, top_speed: float) -> float:
+        """Speed bound (m/s) of this car's plan from state x following the racing line: the tyre limit along
+        the path of its last plan (shifted to now; planning.reference.path_speed_bounds at
+        path_lateral_accel_mps2 and max_brake_mps2, the path's curvature from the plan's steering) at the
+        first planned stage, asking for at most 0.2 m/s below the current speed per plan; top_speed on the
+        centre line or before the first plan. Why: the line's speed profile holds on the line's path, and
+        the kinematic planning model has no tyre limit, so a car off the line (e.g. 0.16 m outside it
+        entering a 0.3 m turn) planned the line's speed on a tighter path and slid off the track."""
+        if self.line is None or self._prev is None:
+            return float(top_speed)
+        c, g = self.config, self.tm.car.geometry
+        x_prev, u_prev = self._shifted(np.asarray(self._prev.x)[:1])[0], self._shifted(np.asarray(self._prev.u)[:1])[0]
+        bounds = path_speed_bounds(x_prev[:-1, V], path_curvature(u_prev[:, 1], g.lf_m, g.lr_m), c.plan_dt_s,
+                                   c.path_lateral_accel_mps2, c.max_brake_mps2)
+        v_path = float(np.min(bounds[:2]))  # stage 1 ends segment 0 and starts segment 1
+        return float(min(top_speed, max(v_path, float(x[V]) - _BOUND_DROP_MPS)))
 
     @staticmethod
     def _set_reference(cost: QuadraticCost, index: int, value: float, weight: float | None = None) -> None:
@@ -296,16 +318,44 @@ class _RecedingHorizon:
         v_corner = math.sqrt(c.max_lateral_accel_mps2 / kappa)
         return float(min(top_speed, max(v_corner, float(x[V]) - _BOUND_DROP_MPS)))
 
-    def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None, u_all=None) -> np.ndarray:
+    def _track_previous(self, x0, ey_bound: float, top_speed: float | None = None, u_all=None,
+                        others=()) -> np.ndarray:
         """Controls (N, T, 2) of the previous plan shifted by one control period (``u_all``: those
         controls already mapped to this plan's agents, _warm_start), the planning car's first control
         replaced by the closed-loop tracking control towards _fallback_reference. Not towards the
         previous plan: after a fallback that is the car's own rollout, so a run of fallbacks saw no
-        error and held the car's heading, off the track."""
+        error and held the car's heading, off the track. ``others``: the other cars' (s, ey) now, which a
+        fallback on the racing line does not steer towards (_clear_of_alongside)."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
         x_ref, a_ref = self._fallback_reference(x0, top_speed)
+        x_ref = np.array(x_ref, dtype=float)
+        x_ref[EY] = self._clear_of_alongside(x0, float(x_ref[EY]), others)
         u_all[0, 0] = self.tracking_control(x0, x_ref, a_ref, ey_bound, top_speed)
         return u_all
+
+    def _clear_of_alongside(self, x0, ey_target: float, others) -> float:
+        """Following the racing line, a fallback's lateral target ey_target (m) moved so that it is no
+        closer to a car alongside than that car is now, or than the collision distance if it is farther:
+        alongside = closer along the track than the collision distance, the arc-length gap measured at the
+        smaller of the two cars' local scales 1 - kappa ey (shorter on the inside of a turn, longer on the
+        outside; at least 0.2). Why: in a run of failed solves the
+        fallback tracks a plan of the game, which assumed the others make room, or after its horizon the
+        line's offset at the car, across the track; in the 4-car races on `full` (`race --track
+        buzzracer:full --line racing --cars rd3g,rd3g,mpc,mpc --seed 1`) both steered rd3g1 into a car
+        beside it in a tight turn (contacts at its fault). Centre line: ey_target unchanged."""
+        if self.line is None:
+            return ey_target
+        x0 = np.asarray(x0, dtype=float)
+        d = self.tm.collision_distance()
+        kappa = float(self.tm.track.curvature(np.mod(x0[S], self.tm.track.length)))
+        for s_o, ey_o in others:
+            scale = max(min(1.0 - kappa * float(x0[EY]), 1.0 - kappa * float(ey_o)), 0.2)
+            gap = float(ey_o) - float(x0[EY])
+            if scale * abs(float(s_o) - float(x0[S])) >= d:
+                continue
+            clear = min(d, abs(gap))
+            ey_target = min(ey_target, float(ey_o) - clear) if gap > 0 else max(ey_target, float(ey_o) + clear)
+        return ey_target
 
     def _fallback_reference(self, x0, top_speed: float | None) -> tuple[np.ndarray, float]:
         """(reference state, reference acceleration in m/s^2) of a fallback step: the last plan the
@@ -322,8 +372,9 @@ class _RecedingHorizon:
             ref = self._reference
             return ref[0], float(ref[1, V] - ref[0, V]) / c.plan_dt_s
         x0 = np.asarray(x0, dtype=float)
-        top = self.speed_cap(x0, c.top_speed_mps if top_speed is None else float(top_speed))
-        cost = self._cost(top, c.reference_speed_mps, x0)
+        stages = self._stages(x0)
+        top = self.speed_cap(x0, c.top_speed_mps if top_speed is None else float(top_speed), stages)
+        cost = self._cost(top, c.reference_speed_mps, x0, stages)
         stage = cost.x_ref if cost.x_ref_steps is None else cost.x_ref_steps[0]
         x_ref = np.array([x0[S], float(stage[EY]), min(float(stage[V]), top), 0.0])
         return x_ref, 0.0
@@ -352,7 +403,8 @@ class _RecedingHorizon:
         finite = bool(np.all(np.isfinite(x_self)))
         ey_bound = self.tm.ey_bound([x_self[S]]) if finite else math.nan
         if self._prev is not None and finite:
-            u_all = self._track_previous(x_self, ey_bound)
+            others = [x[:2] for x in _rows(x_others) if len(x) >= 2 and np.all(np.isfinite(x))]
+            u_all = self._track_previous(x_self, ey_bound, others=others)
             u = u_all[0]
             x_prev = self._shifted(self._prev.x)
             x_prev[0] = np.asarray(self.tm.rollout_model(c.plan_dt_s).rollout(x_self, u))
@@ -460,7 +512,8 @@ class _RecedingHorizon:
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
-                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V], warm.u)
+                others = [a.x0[:2] for a in problem.agents[1:]] + [np.asarray(o.positions)[0] for o in problem.obstacles]
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V], warm.u, others)
         x = self._rollout(problem, u_all)
         lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
@@ -589,9 +642,10 @@ class RacingPlanner(_RecedingHorizon):
         limits = self.ey_limits(s_now)
         scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows), *(x[EY] for x in far)])
         d_min = self.tm.collision_distance()
-        own_top = self.speed_cap(x_self, c.top_speed_mps)
-        other_top = [self.speed_cap(x, top) for x, top in zip(rows, tops)]
-        own_cost = self._cost(own_top, c.reference_speed_mps, x_self)
+        own_stages, other_stages = self._stages(x_self), [self._stages(x) for x in rows]
+        own_top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps, own_stages))
+        other_top = [self.speed_cap(x, top, st) for x, top, st in zip(rows, tops, other_stages)]
+        own_cost = self._cost(own_top, c.reference_speed_mps, x_self, own_stages)
         defend_ey = self.defend_reference(x_self, rows, ey_bound, refs)
         if defend_ey is not None:  # on the inside of the turn, within the turn's radius limit
             defend_ey = min(max(defend_ey, limits[0] + c.defend_margin_m), limits[1] - c.defend_margin_m)
@@ -602,8 +656,8 @@ class RacingPlanner(_RecedingHorizon):
         ey_bound = max(-limits[0], limits[1])
         top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
         agents = [self._agent(x_self, top, limits, own_cost, c.lead_weight),
-                  *(self._agent(x, t, limits, self._cost(t, r, x), c.lead_weight)
-                    for x, t, r in zip(rows, other_top, refs))]
+                  *(self._agent(x, t, limits, self._cost(t, r, x, st), c.lead_weight)
+                    for x, t, r, st in zip(rows, other_top, refs, other_stages))]
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
         n = len(agents)
@@ -635,8 +689,9 @@ class MPCOpponent(_RecedingHorizon):
         limits = self.ey_limits(s_now)
         scale = self.tm.along_track_scale(s_now, [x_self[EY], *(x[EY] for x in rows)])
         d_min = self.tm.collision_distance()
-        top = self.speed_cap(x_self, c.top_speed_mps)
-        cost = self._cost(top, c.reference_speed_mps, x_self)
+        stages = self._stages(x_self)
+        top = self.path_speed_cap(x_self, self.speed_cap(x_self, c.top_speed_mps, stages))
+        cost = self._cost(top, c.reference_speed_mps, x_self, stages)
         if c.lead_weight > 0:  # progress reward as a far-away quadratic anchor (module doc)
             self._set_reference(cost, S, float(x_self[S]) + _PROGRESS_ANCHOR_M, c.lead_weight / (2.0 * _PROGRESS_ANCHOR_M))
         others = [self.predict_other(x) for x in rows]

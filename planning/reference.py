@@ -9,6 +9,7 @@ planning step dt.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,3 +55,30 @@ def stage_reference(line: RacingLine, curvature, s0: float, v0: float, horizon: 
         v[k + 1] = float(np.clip(target, v[k] - brake_mps2 * dt, v[k] + accel_mps2 * dt))
     return StageReference(s=s[1:], ey=np.asarray(line.lateral_offset(s[1:]), dtype=float),
                           v=np.asarray(line.speed(s[1:]), dtype=float))
+
+
+def path_curvature(delta, lf: float, lr: float):
+    """Curvature (1/m, left positive) of the kinematic bicycle's CG path at wheel angle ``delta`` (rad,
+    |delta| < pi/2): sin(beta) / lr, beta = atan(lr tan(delta) / (lf + lr)) the slip angle (the model's
+    heading rate over its speed; planning.frenet.min_turn_radius is its inverse at the steering limit)."""
+    beta = np.arctan(lr * np.tan(np.asarray(delta, dtype=float)) / (lf + lr))
+    return np.sin(beta) / lr
+
+
+def path_speed_bounds(v, curvature, dt: float, lateral_accel_mps2: float, brake_mps2: float) -> np.ndarray:
+    """Tyre-aware speed bounds (m/s) along a planned path: segment k (k = 0..T-1, from stage k to k+1,
+    at speed ``v[k]`` m/s for ``dt`` s on a path of curvature ``curvature[k]`` 1/m) may be driven at
+    sqrt(lateral_accel / |curvature|) at most, and from stage k the car must be able to brake to every
+    later segment's bound at ``brake_mps2``: bound_k = min over j >= k of
+    sqrt(corner_j^2 + 2 brake d_kj), d_kj the path length from stage k to stage j (the plan's own
+    speeds times dt). Returns (T,) bounds, +inf where no turn limits the speed."""
+    v = np.maximum(np.asarray(v, dtype=float), 0.0)
+    kappa = np.abs(np.asarray(curvature, dtype=float))
+    with np.errstate(divide="ignore"):
+        corner = np.where(kappa > 0, np.sqrt(lateral_accel_mps2 / np.where(kappa > 0, kappa, 1.0)), np.inf)
+    bound = np.empty(len(corner))
+    reach = math.inf
+    for k in range(len(corner) - 1, -1, -1):  # backward pass: brake from stage k to every later segment's bound
+        reach = min(float(corner[k]), math.sqrt(reach * reach + 2.0 * brake_mps2 * float(v[k]) * dt))
+        bound[k] = reach
+    return bound

@@ -1,6 +1,8 @@
 """The planners' constraints in tight turns (BuzzRacer tile track `full`, 0.3 m quarter turns) against
 independent geometry: the collision separation on (s, ey) against the Cartesian distance of the same
 points, and the track-limit bound on the inside of a turn against the radius the car turns at full lock."""
+import math
+
 import numpy as np
 import pytest
 
@@ -124,3 +126,91 @@ def test_a_racing_line_keeps_its_apex_within_the_limits(full, car):
     bound = p.tm.ey_bound([s0])
     assert low_line == pytest.approx(max(-0.17 - p.config.line_margin_m, -bound))
     assert high_line <= bound
+
+
+def test_path_curvature_is_the_inverse_of_the_cg_turn_radius():
+    """Hand-worked: lf = lr = 0.05 m, tan(delta) = 0.2: beta = atan(0.05 * 0.2 / 0.1) = atan(0.1), sin(beta) / lr =
+    (0.1 / sqrt(1.01)) / 0.05 = 1.990074 1/m, i.e. radius sqrt(0.05^2 + (0.1 / 0.2)^2) = 0.502494 m; signed with delta."""
+    from planning.reference import path_curvature
+
+    delta = math.atan(0.2)
+    assert path_curvature(delta, 0.05, 0.05) == pytest.approx(1.990074, abs=1e-6)
+    assert path_curvature(-delta, 0.05, 0.05) == pytest.approx(-1.990074, abs=1e-6)
+    assert 1.0 / path_curvature(delta, 0.05, 0.05) == pytest.approx(min_turn_radius(0.05, 0.05, delta), rel=1e-12)
+    assert path_curvature(0.0, 0.05, 0.05) == 0.0
+
+
+def test_path_speed_bound_on_a_path_of_known_curvature():
+    """Hand-worked: three segments at 2 m/s for 0.1 s each (0.2 m), the last a turn of curvature -4/m; lateral
+    limit 4 m/s^2, braking 5 m/s^2. The turn allows sqrt(4 / 4) = 1 m/s; 0.2 m before it the car may be at
+    sqrt(1 + 2 * 5 * 0.2) = sqrt(3) m/s, 0.4 m before it at sqrt(5) m/s. A straight path is not bounded, a
+    constant curvature of 1/m gives sqrt(4) = 2 m/s everywhere."""
+    from planning.reference import path_speed_bounds
+
+    bounds = path_speed_bounds([2.0, 2.0, 2.0], [0.0, 0.0, -4.0], 0.1, 4.0, 5.0)
+    np.testing.assert_allclose(bounds, [math.sqrt(5.0), math.sqrt(3.0), 1.0], rtol=1e-12)
+    assert np.all(np.isinf(path_speed_bounds([2.0, 2.0], [0.0, 0.0], 0.1, 4.0, 5.0)))
+    np.testing.assert_allclose(path_speed_bounds([1.0] * 4, [1.0] * 4, 0.1, 4.0, 5.0), 2.0)
+
+
+def _entry_speeds(full, car, ey0: float, path_lateral_accel: float) -> list[tuple[float, float]]:
+    """(s, v) of a car following the racing line alone (MPC planner, another car far ahead) in closed loop on
+    the planning model, from 0.6 m before the right turn at s = 11.47 m of `full` at 1.95 m/s and offset ey0."""
+    from planning import MPCOpponent
+
+    cfg = PlannerConfig(line="racing", path_lateral_accel_mps2=path_lateral_accel)
+    p = MPCOpponent(FrenetTrackModel(full, car, cfg), CommandMapper(car, PERIOD, cfg.max_brake_mps2, cfg.steering_margin),
+                    cfg, PERIOD)
+    model = p.tm.rollout_model(PERIOD)
+    x, other = np.array([10.9, ey0, 1.95, 0.0]), np.array([16.9, 0.0, 0.5, 0.0])
+    out = []
+    for _ in range(30):
+        x = np.asarray(model.rollout(x, np.asarray(p.plan(x, other).u[:1])))[1]
+        other[0] += 0.5 * PERIOD
+        out.append((float(x[0]), float(x[2])))
+    return out
+
+
+def test_a_car_entering_a_turn_off_the_line_slows(full, car):
+    """The racing line takes this 0.3 m quarter turn at 1.9 m/s on a wide radius (0.8 m); a car 0.15 m outside
+    the line turns on a tighter path, which the kinematic planning model drives at any speed. With the tyre-aware
+    bound (path_lateral_accel_mps2 a, default 6 m/s^2) it slows in the turn to about the speed of its path, 0.1 m
+    outside the centre line (radius 0.4 m: sqrt(a x 0.4) = 1.55 m/s, within 0.05 m/s: the bound acts one plan
+    late), at least 0.05 m/s below the run without it (1e6 m/s^2: no bound), and not below that run before the
+    turn."""
+    def in_turn(run):
+        return max(v for s, v in run if 11.6 <= s <= 11.95), min(v for s, v in run if 11.6 <= s <= 11.95)
+
+    a = PlannerConfig().path_lateral_accel_mps2
+    bounded, free = _entry_speeds(full, car, 0.15, a), _entry_speeds(full, car, 0.15, 1e6)
+    assert in_turn(bounded)[1] < min(in_turn(free)[1] - 0.05, math.sqrt(a * 0.4) + 0.05)
+    before = [vb - vf for (sb, vb), (sf, vf) in zip(bounded, free) if sb < 11.3]
+    assert min(before) > -0.05
+
+
+def test_a_fallback_on_the_racing_line_does_not_steer_into_a_car_alongside(full, car):
+    """On a straight (kappa = 0: arc-length gaps are Cartesian), a car at ey = -0.19 m with another 0.1 m behind
+    at ey = 0 (0.19 m to its left, inside the collision distance 0.195 m): a fallback target of +0.15 m
+    (the line's offset, across the other car) is held at the car's own offset, -0.19 m; with the other car
+    0.3 m to the left (ey = 0.11 m) it may go to 0.11 - 0.195 = -0.085 m; a car 0.3 m behind (farther than the collision
+    distance along the track) or on the right does not hold it; on the centre line the target is unchanged."""
+    p = _planner(full, car)
+    s = np.arange(0.0, full.length, 0.01)
+    straight = float(s[int(np.argmax(np.abs(full.curvature(s)) < 1e-9) + 20)])
+    x0 = np.array([straight + 0.5, -0.19, 1.0, 0.0])
+    assert p.line is None and p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.0)]) == 0.15
+    p.line = object()  # any line: the rule reads only the cars
+    assert abs(float(full.curvature(x0[0]))) < 1e-9
+    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.0)]) == pytest.approx(-0.19)
+    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.11)]) == pytest.approx(0.11 - 0.195, abs=1e-3)
+    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.3, 0.0)]) == 0.15
+    assert p._clear_of_alongside(x0, -0.1, [(x0[0], -0.4)]) == -0.1
+    # In a right turn of radius 0.3 m (kappa = -3.33/m), our car at ey = +0.05 m: a car 0.35 m behind on the
+    # inside (ey = -0.15 m, local scale 1 - kappa ey = 0.5: 0.175 m of arc there) is alongside, 0.2 m to the
+    # right, so the target stays at least 0.195 m left of it; on the outside (ey = +0.15 m, scale 1.5; ours
+    # 1.17: 0.41 m) it is not alongside.
+    right = _turn_s(full)
+    assert float(full.curvature(right)) == pytest.approx(-1.0 / 0.3)
+    xr = np.array([right, 0.05, 1.0, 0.0])
+    assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, -0.15)]) == pytest.approx(-0.15 + 0.195, abs=1e-3)
+    assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, 0.15)]) == -0.15
