@@ -38,6 +38,9 @@ def register(sub) -> None:
                    help="training windows per fit (default 300; fewer is faster and less precise)")
     p.add_argument("--block-length", type=float, default=None,
                    help="time blocks of the train/held-out split of one run, s (default duration/9 in [3, 10] s)")
+    p.add_argument("--calibration-block", type=float, default=20.0, metavar="S",
+                   help="with several runs: the run-level parameters of a held-out run are also calibrated on its "
+                        "first S s and scored on the windows after them (default 20 s; docs/sysid.md)")
     p.add_argument("--heldout-run", action="append", default=None, metavar="LOG",
                    help="with several runs: a run (as given) to hold out whole; repeatable (default: every 3rd run "
                         "in content order, at least one)")
@@ -105,7 +108,8 @@ def run(args) -> int:
         raise UserError(f"--horizon must be > 0, got {args.horizon}")
     if args.fit_windows < 20:
         raise UserError(f"--fit-windows must be >= 20, got {args.fit_windows}")
-    for flag, value in (("--block-length", args.block_length), ("--frame-period", args.frame_period)):
+    for flag, value in (("--block-length", args.block_length), ("--frame-period", args.frame_period),
+                        ("--calibration-block", args.calibration_block)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
     started = time.perf_counter()
@@ -156,7 +160,7 @@ def run(args) -> int:
         traj = build_runs(logs, frame_period=args.frame_period)
         result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed,
                                                    fit_max_starts=args.fit_windows, block_s=args.block_length,
-                                                   heldout_runs=held))
+                                                   heldout_runs=held, calibration_s=args.calibration_block))
     except LogFormatError:
         raise  # names its file and row
     except ValueError as exc:  # the logs loaded but do not support the fit (too short, too few moving samples)
