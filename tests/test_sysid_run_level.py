@@ -24,14 +24,14 @@ DURATION_S = 30.0
 SETTINGS = SysidSettings(fit_max_starts=80, heldout_max_starts=800, n_bootstrap=200)
 
 
-def simulate_runs(scales, seed: int) -> list[DriveLog]:
+def simulate_runs(scales, seed: int, duration_s: float = DURATION_S, cmd_dt: float = 0.025) -> list[DriveLog]:
     """Drives on open ground, one per scale (simulated side by side): set-points redrawn in 1-3 m/s every 1.5-3 s,
     sine steering; RK4 at 5 ms (the speed loop's and the tyres' time constants are >= 30 ms)."""
     rng = np.random.default_rng(seed)
     cars = [with_corrections(F110, {"speed_response_scale": sc}) for sc in scales]
     m = len(scales)
-    h, cmd_dt = 0.005, 0.025
-    n_cmd, per = int(round(DURATION_S / cmd_dt)), int(round(cmd_dt / h))
+    h = 0.005
+    n_cmd, per = int(round(duration_s / cmd_dt)), int(round(cmd_dt / h))
     t_cmd = np.arange(n_cmd) * cmd_dt
     setpoint = np.empty((m, n_cmd))
     for j in range(m):
