@@ -400,7 +400,7 @@ def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetu
         starts = starts[~np.isin(traj.run[starts], excluded)]
 
     def setup_for(theta: np.ndarray) -> ModelSetup:
-        return ModelSetup(with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic)
+        return dataclasses.replace(base, car=with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic=dynamic)
 
     def resid_many(thetas: list[np.ndarray]) -> np.ndarray:
         """Residuals of several parameter vectors, predicted in one batch: shape (len(thetas), M)."""
@@ -625,12 +625,10 @@ def _calibrate(traj: Trajectory, split: Split, horizon: int, current: Fit, pop_f
                        f.heldout)
 
 
-def fit_run_level(traj: Trajectory, split: Split, horizon: int, current: Fit, cand: Candidate, car: CarParams,
-                  s: SysidSettings) -> tuple[RunLevelParam | None, Fit]:
-    """A run-level parameter (sysid.run_level): fitted alone on top of the shared model ``current`` on each training
-    run that excites it, pooled as a population; the population value judged by the keep test on the held-out runs
-    (the model returned: with it if it passes, ``current`` otherwise) and each held-out run also calibrated on its
-    own first block. None when fewer than two training runs give an estimate."""
+def per_run_values(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, cand: Candidate, car: CarParams,
+                   s: SysidSettings) -> tuple[tuple[RunValue, ...], tuple[tuple[int, str], ...]]:
+    """A run-level parameter fitted alone on top of ``base`` on each training run that has enough fit windows and
+    excites it; and the training runs left without an estimate, with the reason."""
     (param,) = cand.params
     jobs, not_excited = [], []
     for r in np.unique(traj.run[split.train]).tolist():
@@ -643,11 +641,31 @@ def fit_run_level(traj: Trajectory, split: Split, horizon: int, current: Fit, ca
             not_excited.append((r, exc.reason))
             continue
         jobs.append((r, Split(train=fit_r, heldout=fit_r, fit=fit_r)))
-    if len(jobs) < 2:
+    fits = side_by_side([lambda sp=sp: fit_candidates(traj, sp, horizon, base, [cand], s) for _, sp in jobs])
+    return (tuple(RunValue(r, f.values[param], f.std[param], sp.fit.size) for (r, sp), f in zip(jobs, fits)),
+            tuple(not_excited))
+
+
+def with_run_values(traj: Trajectory, setup: ModelSetup, param: str, values: tuple[RunValue, ...]) -> ModelSetup:
+    """``setup`` with each run's own value of ``param``; runs without one (held out, not excited) keep the car's."""
+    per_run = [getattr(setup.car.corrections, param)] * traj.n_runs
+    for v in values:
+        per_run[v.run] = v.value
+    return dataclasses.replace(setup, run_values=((param, tuple(per_run)),))
+
+
+def fit_run_level(traj: Trajectory, split: Split, horizon: int, current: Fit, cand: Candidate, car: CarParams,
+                  s: SysidSettings) -> tuple[RunLevelParam | None, Fit]:
+    """A run-level parameter (sysid.run_level): fitted alone on top of the shared model ``current`` (its run-level
+    values removed) on each training run that excites it, pooled as a population; the population value judged by
+    the keep test on the held-out runs (the model returned: with it if it passes, the shared model otherwise) and
+    each held-out run also calibrated on its own first block. None when fewer than two training runs give an
+    estimate. The held-out runs use the car's value in ``current``, so its held-out errors are the shared model's."""
+    (param,) = cand.params
+    current = dataclasses.replace(current, setup=dataclasses.replace(current.setup, run_values=()))
+    values, not_excited = per_run_values(traj, split, horizon, current.setup, cand, car, s)
+    if len(values) < 2:
         return None, current
-    fits = side_by_side([lambda sp=sp: fit_candidates(traj, sp, horizon, current.setup, [cand], s, current.effects)
-                         for _, sp in jobs])
-    values = tuple(RunValue(r, f.values[param], f.std[param], sp.fit.size) for (r, sp), f in zip(jobs, fits))
     pop = population(list(values))
     pop_setup = dataclasses.replace(current.setup, car=with_corrections(current.setup.car, {param: pop.value}))
     pop_fit = evaluate(traj, split, horizon, pop_setup, current.effects + (cand.effect,),
@@ -662,7 +680,7 @@ def fit_run_level(traj: Trajectory, split: Split, horizon: int, current: Fit, ca
         heldout.append(HeldoutRun(r, int(keep.sum()), summarize(_subset(current.heldout_errors, keep)),
                                   summarize(_subset(pop_fit.heldout_errors, keep)), c))
     result = RunLevelParam(cand.effect, param, float(getattr(current.setup.car.corrections, param)), values,
-                           tuple(not_excited), pop, verdict, tuple(heldout))
+                           not_excited, pop, verdict, tuple(heldout))
     return result, (pop_fit if result.written else current)
 
 
@@ -778,7 +796,7 @@ def _score_test(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, 
         for p, lo, hi, size in zip(c.params, c.lower, c.upper, c.scale):
             v = getattr(corr, p)
             h = size if v + size <= hi else -size
-            setups.append(ModelSetup(with_corrections(base.car, {p: v + h}), base.dynamic, base.substeps))
+            setups.append(dataclasses.replace(base, car=with_corrections(base.car, {p: v + h})))
             cols.append((c.effect, v, h, lo, hi))
     preds = predict(traj, split.fit, horizon, setups)
     r0 = _residual(traj, split.fit, preds[0], steps)
@@ -958,8 +976,15 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     if np.unique(traj.run[split.train]).size >= 2:
         run_level_cands = tuple(c for c in cands if c.effect in RUN_LEVEL_EFFECTS)
         cands = tuple(c for c in cands if c.effect not in RUN_LEVEL_EFFECTS)
+    # The shared parameters are fitted with each training run's own run-level values (fitted alone on top of the
+    # nominal dynamic model first); the held-out runs keep the car's values until the population is judged.
+    for c in run_level_cands:
+        first, _ = per_run_values(traj, split, horizon, dynamic_nominal.setup, c, car, s)
+        if len(first) >= 2:
+            references = tuple(evaluate(traj, split, horizon, with_run_values(traj, r.setup, c.params[0], first))
+                               for r in references)
     # Several training runs: they must agree on an effect before it is fitted on them jointly.
-    cands, agreements = run_agreement(traj, split, horizon, dynamic_nominal.setup, cands, car, s)
+    cands, agreements = run_agreement(traj, split, horizon, references[0].setup, cands, car, s)
     # Several training runs: a claim must survive leaving out any one of them; the least stable failing one is
     # taken out of the candidates and the selection repeated.
     stability: dict[str, list[RunStability]] = {}
@@ -1056,8 +1081,9 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         if rl is not None:
             run_level.append(rl)
         if rl is not None and rl.written:  # the population value passed the keep test held out: claimed
-            selected, effect_steps, current = selected + [rl.verdict], effect_steps + [(current, with_rl)], with_rl
+            selected, effect_steps = selected + [rl.verdict], effect_steps + [(current, with_rl)]
             by_name[c.effect] = c
+        current = with_rl  # the shared model without the training runs' own values, or with the population value
 
     # Reported parameters of each claimed physical effect come from the final joint fit; with several runs their
     # standard deviation is at least that of the agreeing runs' random-effects pool (spread between runs included).
