@@ -1,8 +1,9 @@
 """Run-level parameters (docs/sysid.md, "Run-level parameters").
 
 Some parameters belong to a session, not to the car: the VESC's speed loop of the F1/10 runs responds at a
-different rate in each run. Such a parameter is fitted per training run (on top of the shared model), and the runs'
-values are pooled as a random-effects population (DerSimonian-Laird, ``sysid.agreement.pool``) in the logarithm of
+different rate in each run. Such a parameter is fitted per training run: first on the nominal model, so that the
+shared parameters are fitted with each run's own value (``sysid.model.ModelSetup.run_values``), then again on top of
+the final shared model. The runs' values are pooled as a random-effects population (DerSimonian-Laird, ``sysid.agreement.pool``) in the logarithm of
 the parameter (a rate scale is positive and its spread multiplicative). The population's uncertainty includes the
 spread between runs (tau), so a new run is predicted with the population value and an honest +-.
 
