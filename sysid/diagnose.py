@@ -26,6 +26,8 @@ from sysid.agreement import Agreement, agreement, jackknife_std
 from sysid.data import Trajectory
 from sysid.excitation import Excitation, excitation
 from sysid.lockstep import predict, side_by_side
+from sysid.run_level import (RUN_LEVEL_EFFECTS, Calibration, HeldoutRun, RunLevelParam, RunValue,
+                              calibration_masks, population)
 from sysid.model import WARMUP_S, ModelSetup, PredictionErrors, actuation, prediction_errors, substeps
 from sysid.sparse import coefficient_std, stlsq
 from vehicles.extra_terms import LIBRARY, terms_from_coefficients
@@ -135,6 +137,9 @@ class SysidSettings:
     max_effects: int = 3
     sparse_threshold: float = 0.2  # STLSQ threshold, fraction of the target's standard deviation
     seed: int = 0
+    # Run-level parameters: a held-out run is also calibrated on its own first block of this length (its own time)
+    # and scored on the windows after it (sysid.run_level).
+    calibration_s: float = 20.0
 
 
 @dataclass(frozen=True)
@@ -228,11 +233,12 @@ def split_starts(traj: Trajectory, horizon: int, s: SysidSettings) -> Split:
             f"too little data for identification: {train.size} training and {heldout.size} held-out windows of "
             f"{horizon} steps (need >= 20 each; {where})"
         )
-
-    def thin(a: np.ndarray, n: int) -> np.ndarray:
-        return a if a.size <= n else a[np.round(np.linspace(0, a.size - 1, n)).astype(int)]
-
     return Split(train=train, heldout=thin(heldout, s.heldout_max_starts), fit=thin(train, s.fit_max_starts))
+
+
+def thin(a: np.ndarray, n: int) -> np.ndarray:
+    """At most ``n`` evenly spaced elements of ``a``."""
+    return a if a.size <= n else a[np.round(np.linspace(0, a.size - 1, n)).astype(int)]
 
 
 def with_corrections(car: CarParams, values: dict[str, float]) -> CarParams:
@@ -289,6 +295,7 @@ class SysidResult:
     not_identifiable: list[NotIdentifiable] = field(default_factory=list)  # not excited by the logs: not fitted
     run_agreement: list[RunAgreement] = field(default_factory=list)  # per parameter: do the training runs agree
     claim_stability: list[RunStability] = field(default_factory=list)  # each claim refitted without each training run
+    run_level: list[RunLevelParam] = field(default_factory=list)  # per-run parameters, their population, held-out use
     numeric_warnings: int = 0  # numpy RuntimeWarnings of trial predictions, counted instead of printed
 
     @property
@@ -393,7 +400,7 @@ def fit_candidates(traj: Trajectory, split: Split, horizon: int, base: ModelSetu
         starts = starts[~np.isin(traj.run[starts], excluded)]
 
     def setup_for(theta: np.ndarray) -> ModelSetup:
-        return ModelSetup(with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic)
+        return dataclasses.replace(base, car=with_corrections(base.car, dict(zip(names, theta.tolist()))), dynamic=dynamic)
 
     def resid_many(thetas: list[np.ndarray]) -> np.ndarray:
         """Residuals of several parameter vectors, predicted in one batch: shape (len(thetas), M)."""
@@ -594,6 +601,89 @@ def claim_stability(traj: Trajectory, split: Split, horizon: int, chosen: list[C
     return [k for per_run in side_by_side([lambda r=r: checks(r) for r in runs]) for k in per_run]
 
 
+# ----------------------------------------------------------------------------- run-level parameters
+def _calibrate(traj: Trajectory, split: Split, horizon: int, current: Fit, pop_fit: Fit, cand: Candidate,
+               car: CarParams, r: int, s: SysidSettings) -> Calibration:
+    """Held-out run ``r`` calibrated on its own first block: the parameter fitted on the windows that end inside
+    it, scored (with the shared and the population model) on the windows that start after it."""
+    (param,) = cand.params
+    in_run = traj.run[split.heldout] == r
+    idx = split.heldout[in_run]
+    cal, later = calibration_masks(traj.elapsed[idx], traj.elapsed[idx + horizon], s.calibration_s)
+    n_later = int(np.count_nonzero(later))
+    if np.count_nonzero(cal) < MIN_RUN_WINDOWS or n_later < MIN_RUN_WINDOWS:
+        return Calibration(s.calibration_s, n_later, reason=f"{np.count_nonzero(cal)} windows in the first block, "
+                           f"{n_later} after it (need >= {MIN_RUN_WINDOWS} each)")
+    exc = excitation(traj, idx[cal], horizon, car)[param]
+    if not exc.identifiable:
+        return Calibration(s.calibration_s, n_later, reason=f"not excited in the first block: {exc.reason}")
+    sp = Split(train=idx[cal], heldout=idx[later], fit=thin(idx[cal], s.fit_max_starts))
+    f = fit_candidates(traj, sp, horizon, current.setup, [cand], s, current.effects)
+    pos = np.flatnonzero(in_run)[later]  # positions in split.heldout, as the held-out errors are stored
+    return Calibration(s.calibration_s, n_later, f.values[param], f.std[param], None,
+                       summarize(_subset(current.heldout_errors, pos)), summarize(_subset(pop_fit.heldout_errors, pos)),
+                       f.heldout)
+
+
+def per_run_values(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, cand: Candidate, car: CarParams,
+                   s: SysidSettings) -> tuple[tuple[RunValue, ...], tuple[tuple[int, str], ...]]:
+    """A run-level parameter fitted alone on top of ``base`` on each training run that has enough fit windows and
+    excites it; and the training runs left without an estimate, with the reason."""
+    (param,) = cand.params
+    jobs, not_excited = [], []
+    for r in np.unique(traj.run[split.train]).tolist():
+        fit_r = split.fit[traj.run[split.fit] == r]
+        if fit_r.size < MIN_RUN_WINDOWS:
+            not_excited.append((r, f"{fit_r.size} fit windows (need >= {MIN_RUN_WINDOWS})"))
+            continue
+        exc = excitation(traj, split.train[traj.run[split.train] == r], horizon, car)[param]
+        if not exc.identifiable:
+            not_excited.append((r, exc.reason))
+            continue
+        jobs.append((r, Split(train=fit_r, heldout=fit_r, fit=fit_r)))
+    fits = side_by_side([lambda sp=sp: fit_candidates(traj, sp, horizon, base, [cand], s) for _, sp in jobs])
+    return (tuple(RunValue(r, f.values[param], f.std[param], sp.fit.size) for (r, sp), f in zip(jobs, fits)),
+            tuple(not_excited))
+
+
+def with_run_values(traj: Trajectory, setup: ModelSetup, param: str, values: tuple[RunValue, ...]) -> ModelSetup:
+    """``setup`` with each run's own value of ``param``; runs without one (held out, not excited) keep the car's."""
+    per_run = [getattr(setup.car.corrections, param)] * traj.n_runs
+    for v in values:
+        per_run[v.run] = v.value
+    return dataclasses.replace(setup, run_values=((param, tuple(per_run)),))
+
+
+def fit_run_level(traj: Trajectory, split: Split, horizon: int, current: Fit, cand: Candidate, car: CarParams,
+                  s: SysidSettings) -> tuple[RunLevelParam | None, Fit]:
+    """A run-level parameter (sysid.run_level): fitted alone on top of the shared model ``current`` (its run-level
+    values removed) on each training run that excites it, pooled as a population; the population value judged by
+    the keep test on the held-out runs (the model returned: with it if it passes, the shared model otherwise) and
+    each held-out run also calibrated on its own first block. None when fewer than two training runs give an
+    estimate. The held-out runs use the car's value in ``current``, so its held-out errors are the shared model's."""
+    (param,) = cand.params
+    current = dataclasses.replace(current, setup=dataclasses.replace(current.setup, run_values=()))
+    values, not_excited = per_run_values(traj, split, horizon, current.setup, cand, car, s)
+    if len(values) < 2:
+        return None, current
+    pop = population(list(values))
+    pop_setup = dataclasses.replace(current.setup, car=with_corrections(current.setup.car, {param: pop.value}))
+    pop_fit = evaluate(traj, split, horizon, pop_setup, current.effects + (cand.effect,),
+                       {**current.values, param: pop.value}, {**current.std, param: pop.std})
+    verdict = _judge(traj, split, current, pop_fit, cand.effect, s, {param: pop.value}, {param: pop.std},
+                     channels=True)
+    held = np.unique(traj.run[split.heldout]).tolist()
+    cals = side_by_side([lambda r=r: _calibrate(traj, split, horizon, current, pop_fit, cand, car, r, s) for r in held])
+    heldout = []
+    for r, c in zip(held, cals):
+        keep = traj.run[split.heldout] == r
+        heldout.append(HeldoutRun(r, int(keep.sum()), summarize(_subset(current.heldout_errors, keep)),
+                                  summarize(_subset(pop_fit.heldout_errors, keep)), c))
+    result = RunLevelParam(cand.effect, param, float(getattr(current.setup.car.corrections, param)), values,
+                           not_excited, pop, verdict, tuple(heldout))
+    return result, (pop_fit if result.written else current)
+
+
 # ----------------------------------------------------------------------------- sparse fallback
 def without_other_terms(setup: ModelSetup) -> ModelSetup:
     return dataclasses.replace(setup, car=dataclasses.replace(setup.car, other_terms=OtherTermsParams()))
@@ -706,7 +796,7 @@ def _score_test(traj: Trajectory, split: Split, horizon: int, base: ModelSetup, 
         for p, lo, hi, size in zip(c.params, c.lower, c.upper, c.scale):
             v = getattr(corr, p)
             h = size if v + size <= hi else -size
-            setups.append(ModelSetup(with_corrections(base.car, {p: v + h}), base.dynamic, base.substeps))
+            setups.append(dataclasses.replace(base, car=with_corrections(base.car, {p: v + h})))
             cols.append((c.effect, v, h, lo, hi))
     preds = predict(traj, split.fit, horizon, setups)
     r0 = _residual(traj, split.fit, preds[0], steps)
@@ -880,8 +970,21 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     # Identifiability before a claim: only parameters the training windows excite are fitted.
     exc = excitation(traj, split.train, horizon, car)
     cands, not_identifiable = restrict(candidates_for(car), exc)
+    # Several training runs: run-level parameters are not shared; each run gets its own, fitted on top of the shared
+    # model once that is selected, and pooled as a population (sysid.run_level).
+    run_level_cands: tuple[Candidate, ...] = ()
+    if np.unique(traj.run[split.train]).size >= 2:
+        run_level_cands = tuple(c for c in cands if c.effect in RUN_LEVEL_EFFECTS)
+        cands = tuple(c for c in cands if c.effect not in RUN_LEVEL_EFFECTS)
+    # The shared parameters are fitted with each training run's own run-level values (fitted alone on top of the
+    # nominal dynamic model first); the held-out runs keep the car's values until the population is judged.
+    for c in run_level_cands:
+        first, _ = per_run_values(traj, split, horizon, dynamic_nominal.setup, c, car, s)
+        if len(first) >= 2:
+            references = tuple(evaluate(traj, split, horizon, with_run_values(traj, r.setup, c.params[0], first))
+                               for r in references)
     # Several training runs: they must agree on an effect before it is fitted on them jointly.
-    cands, agreements = run_agreement(traj, split, horizon, dynamic_nominal.setup, cands, car, s)
+    cands, agreements = run_agreement(traj, split, horizon, references[0].setup, cands, car, s)
     # Several training runs: a claim must survive leaving out any one of them; the least stable failing one is
     # taken out of the candidates and the selection repeated.
     stability: dict[str, list[RunStability]] = {}
@@ -972,6 +1075,15 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         effect_steps = effect_steps + [(named, other_fit)]
         current = other_fit
     unnamed_remains = any(e.effect == "other" for e in selected)
+    run_level: list[RunLevelParam] = []
+    for c in run_level_cands:
+        rl, with_rl = fit_run_level(traj, split, horizon, current, c, car, s)
+        if rl is not None:
+            run_level.append(rl)
+        if rl is not None and rl.written:  # the population value passed the keep test held out: claimed
+            selected, effect_steps = selected + [rl.verdict], effect_steps + [(current, with_rl)]
+            by_name[c.effect] = c
+        current = with_rl  # the shared model without the training runs' own values, or with the population value
 
     # Reported parameters of each claimed physical effect come from the final joint fit; with several runs their
     # standard deviation is at least that of the agreeing runs' random-effects pool (spread between runs included).
@@ -1014,6 +1126,6 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         selected=selected, final=current, planner_after=planner_after, effect_steps=effect_steps,
         switched_after=switched_after, families_compared=len(references) == 2,
         unnamed_effect_remains=unnamed_remains, dropped_after_other=dropped_after_other,
-        not_identifiable=not_identifiable, run_agreement=agreements,
+        not_identifiable=not_identifiable, run_agreement=agreements, run_level=run_level,
         claim_stability=[k for checks in stability.values() for k in checks],
     )

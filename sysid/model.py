@@ -42,6 +42,9 @@ class ModelSetup:
     car: CarParams
     dynamic: bool = False
     substeps: int = field(default=0)  # RK4 steps per sample; 0: sub-steps of <= MAX_SUBSTEP_S (2 at 30 Hz, 1 at 60 Hz)
+    # Run-level values (sysid.run_level): a [corrections] field's value per run (index into Trajectory.runs), used
+    # for the windows of that run instead of the car's. Supported: speed_response_scale.
+    run_values: tuple[tuple[str, tuple[float, ...]], ...] = ()
 
 
 def _piece_weights(delay_s, dt: float, pieces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -290,6 +293,9 @@ def _stack(setups: Sequence[ModelSetup], traj: Trajectory, first: np.ndarray, st
     k = ModelCoefficients(**{f.name: float(v[0]) if np.all(v == v[0]) else np.repeat(v, n)
                              for f in dataclasses.fields(k) for v in (getattr(k, f.name),)})
 
+    if any(s.run_values for s in setups):
+        k = dataclasses.replace(k, speed_gain=np.concatenate([_speed_gain(s, traj.run[first]) for s in setups]))
+
     def inputs(a: list[np.ndarray]) -> np.ndarray:
         return np.ascontiguousarray((a[0] if len(a) == 1 else np.concatenate(a)).transpose(1, 2, 0))
 
@@ -298,6 +304,16 @@ def _stack(setups: Sequence[ModelSetup], traj: Trajectory, first: np.ndarray, st
         scale = np.concatenate([np.ones((n, steps)) if a.motor_scale is None else a.motor_scale for a in acts]).T
         scale = np.ascontiguousarray(scale)
     return k, inputs([a.throttle for a in acts]), inputs([a.steering for a in acts]), scale, tuple(extra)
+
+
+def _speed_gain(setup: ModelSetup, runs: np.ndarray) -> np.ndarray:
+    """The speed loop's gain per window (of runs ``runs``), with the setup's run-level values."""
+    scale = np.full(runs.size, setup.car.corrections.speed_response_scale)
+    for name, values in setup.run_values:
+        if name != "speed_response_scale":
+            raise ValueError(f"predict: run-level values of {name} are not supported")
+        scale = np.asarray(values, dtype=float)[runs]
+    return setup.car.speed_control.gain_per_s * scale
 
 
 def _with_motor_scale(k: ModelCoefficients, scale: np.ndarray | None) -> ModelCoefficients:

@@ -13,6 +13,7 @@ import fileio
 
 from sysid.diagnose import (EFFECT_NAMES, ErrorSummary, Fit, SysidResult, block_length, heldout_runs,
                              per_run_summaries)
+from sysid.run_level import RunLevelParam
 
 # Per effect: (label of the explaining variable, label of the residual it drives).
 EXPLAINING_VARIABLES = {
@@ -158,10 +159,40 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
              "confidence": float(k.verdict.confidence)}
             for k in result.claim_stability
         ],
+        "run_level": [run_level_json(result, p) for p in result.run_level],
         "heldout_runs": [
             {"run": i + 1, "source": result.traj.runs[i].source, "windows": n,
              "dynamic_nominal": nominal.json_dict(), "planner": planner.json_dict(), "after": after.json_dict()}
             for i, n, nominal, planner, after in per_run_summaries(result)
+        ],
+    }
+
+
+def run_level_json(result: SysidResult, p: RunLevelParam) -> dict[str, Any]:
+    """A run-level parameter (docs/sysid.md, "Run-level parameters")."""
+    src = lambda r: result.traj.runs[r].source  # noqa: E731
+    opt = lambda e: None if e is None else e.json_dict()  # noqa: E731
+    pop, v = p.population, p.verdict
+    return {
+        "effect": p.effect, "param": p.param, "nominal": p.nominal,
+        "runs": [{"run": r.run + 1, "source": src(r.run), "value": r.value, "std": r.std, "windows": r.windows}
+                 for r in p.runs],
+        "not_excited": [{"run": r + 1, "source": src(r), "reason": why} for r, why in p.not_excited],
+        "population": pop.value, "population_std": pop.std, "log_spread": pop.log_pool.tau,
+        "spread_factor": pop.spread_factor, "run_std": pop.run_std, "q": pop.log_pool.q,
+        "p_value": pop.log_pool.p_value,
+        "keep_test": {"significant": v.significant, "heldout_error_reduction_vs_without": v.heldout_error_reduction,
+                      "heading_reduction": v.heading_reduction, "speed_reduction": v.speed_reduction,
+                      "confidence": v.confidence},
+        "written": p.written,
+        "heldout_runs": [
+            {"run": h.run + 1, "source": src(h.run), "windows": h.windows, "shared": h.shared.json_dict(),
+             "population": h.population.json_dict(),
+             "calibration": {"block_s": h.calibration.block_s, "windows": h.calibration.windows,
+                             "value": h.calibration.value, "std": h.calibration.std, "reason": h.calibration.reason,
+                             "shared": opt(h.calibration.shared), "population": opt(h.calibration.population),
+                             "calibrated": opt(h.calibration.calibrated)}}
+            for h in p.heldout
         ],
     }
 
@@ -200,9 +231,53 @@ def instability_notes(result: SysidResult) -> list[str]:
     return notes
 
 
+def run_level_notes(result: SysidResult) -> list[str]:
+    """One sentence per run-level parameter: per-run values, population, and whether it is written."""
+    notes = []
+    for p in result.run_level:
+        per = ", ".join(f"{Path(result.traj.runs[r.run].source).name} {r.value:.3g}" for r in p.runs)
+        notes.append(f"{p.effect} is run-level (`{p.param}` per run: {per}); population {p.population.value:.3g} ± "
+                     f"{p.population.std:.2g}, spread between runs x{p.population.spread_factor:.2f}; "
+                     + ("written (passes the keep test held out)." if p.written else
+                        "not written (fails the keep test held out)."))
+    return notes
+
+
 def write_json(result: SysidResult, path: Path, car_params_out: str) -> Path:
     fileio.atomic_write_text(path, json.dumps(result_json(result, car_params_out), indent=2) + "\n", stream=True)
     return path
+
+
+def run_level_lines(result: SysidResult, p: RunLevelParam) -> list[str]:
+    """The report's section on a run-level parameter."""
+    name = lambda r: Path(result.traj.runs[r].source).name  # noqa: E731
+    pop, v = p.population, p.verdict
+    per = ", ".join(f"{name(r.run)} {r.value:.3g} ± {r.std:.2g}" for r in p.runs)
+    lines = ["", f"## Run-level parameter: {p.effect} (`{p.param}`)", "",
+             "Fitted on each training run on top of the shared model; the population is the random-effects pool of "
+             "the runs' values on the log scale, its ± includes the spread between runs (docs/sysid.md, \"Run-level "
+             "parameters\").", "",
+             f"* Per run: {per}" + "".join(f"; {name(r)}: not fitted ({why})" for r, why in p.not_excited) + ".",
+             f"* Population {pop.value:.3g} ± {pop.std:.2g}; spread between runs: a factor {pop.spread_factor:.2f} "
+             f"(a new run: {pop.value:.3g} ± {pop.run_std:.2g}); Q p-value {pop.log_pool.p_value:.2g}.",
+             f"* Held out, the population value against the car file's {p.nominal:g}: "
+             f"{100 * v.heldout_error_reduction:+.1f} % position, {100 * v.heading_reduction:+.1f} % heading, "
+             f"{100 * v.speed_reduction:+.1f} % speed (confidence {v.confidence:.2f}): "
+             + ("passes the keep test, written to the car file." if p.written else
+                "fails the keep test, nothing written (the car file keeps its value)."),
+             "", "Held-out runs, horizon RMSE position cm / heading rad / speed m/s. All windows: shared model → "
+             "population value. After the run's own first block: shared → population → calibrated on that block.", "",
+             "| run | windows | shared → population | after block: windows | shared → population → calibrated | "
+             "calibrated value |", "|---|---|---|---|---|---|"]
+    fmt = lambda e: (f"{100 * e.horizon_pos_rmse_m:.1f} / {e.horizon_heading_rmse_rad:.3f} / "  # noqa: E731
+                     f"{e.horizon_speed_rmse_mps:.3f}")
+    for h in p.heldout:
+        c = h.calibration
+        cal = (f"{fmt(c.shared)} → {fmt(c.population)} → {fmt(c.calibrated)} | {c.value:.3g} ± {c.std:.2g}"
+               if c.value is not None else f"— | not calibrated: {c.reason}")
+        lines.append(f"| {name(h.run)} | {h.windows} | {fmt(h.shared)} → {fmt(h.population)} | first "
+                     f"{c.block_s:g} s: {c.windows} | {cal} |")
+    return lines
 
 
 def _row(name: str, s: ErrorSummary) -> str:
@@ -376,6 +451,8 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                          f"{'yes' if k.significant else 'no'} |")
         for note in instability_notes(result):
             lines += ["", note]
+    for p in result.run_level:
+        lines += run_level_lines(result, p)
     lines += ["", "## Identified effects", ""]
     if result.selected:
         lines += ["Best first. Held-out reduction against the nominal dynamic model: (RMSE of the final model "

@@ -98,8 +98,9 @@ def test_two_effects_through_the_command_line(tmp_dir, tmp_path):
                          "dynamic_nominal", "planner_new_corrections", "heldout_error_reduction",
                          "unnamed_effect_remains", "dropped_after_other",
                          "not_identifiable", "heldout_runs", "geometry_diagnosis", "run_agreement",  # issue 32
-                         "claim_stability"}
+                         "claim_stability", "run_level"}  # issue 32: run-level parameters
     assert data["claim_stability"] == []  # one run: no run to leave out
+    assert data["run_level"] == []  # one run: nothing is run-level
     assert data["significant"] is True and data["unnamed_effect_remains"] is False
     assert {e["effect"] for e in data["effects"]} == {"steering_offset", "actuation_delay"}
     for e in data["effects"]:

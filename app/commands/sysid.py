@@ -38,6 +38,9 @@ def register(sub) -> None:
                    help="training windows per fit (default 300; fewer is faster and less precise)")
     p.add_argument("--block-length", type=float, default=None,
                    help="time blocks of the train/held-out split of one run, s (default duration/9 in [3, 10] s)")
+    p.add_argument("--calibration-block", type=float, default=20.0, metavar="S",
+                   help="with several runs: the run-level parameters of a held-out run are also calibrated on its "
+                        "first S s and scored on the windows after them (default 20 s; docs/sysid.md)")
     p.add_argument("--heldout-run", action="append", default=None, metavar="LOG",
                    help="with several runs: a run (as given) to hold out whole; repeatable (default: every 3rd run "
                         "in content order, at least one)")
@@ -99,13 +102,14 @@ def run(args) -> int:
     from sysid.conventions import to_physical
     from sysid.data import build_runs, canonical_order
     from sysid.diagnose import SysidSettings, identify
-    from sysid.report import disagreement_notes, instability_notes, make_plots, markdown_report, write_json
+    from sysid.report import disagreement_notes, instability_notes, make_plots, run_level_notes, markdown_report, write_json
 
     if not args.horizon > 0:
         raise UserError(f"--horizon must be > 0, got {args.horizon}")
     if args.fit_windows < 20:
         raise UserError(f"--fit-windows must be >= 20, got {args.fit_windows}")
-    for flag, value in (("--block-length", args.block_length), ("--frame-period", args.frame_period)):
+    for flag, value in (("--block-length", args.block_length), ("--frame-period", args.frame_period),
+                        ("--calibration-block", args.calibration_block)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
     started = time.perf_counter()
@@ -156,7 +160,7 @@ def run(args) -> int:
         traj = build_runs(logs, frame_period=args.frame_period)
         result = identify(traj, car, SysidSettings(horizon_s=args.horizon, seed=args.seed,
                                                    fit_max_starts=args.fit_windows, block_s=args.block_length,
-                                                   heldout_runs=held))
+                                                   heldout_runs=held, calibration_s=args.calibration_block))
     except LogFormatError:
         raise  # names its file and row
     except ValueError as exc:  # the logs loaded but do not support the fit (too short, too few moving samples)
@@ -177,7 +181,7 @@ def run(args) -> int:
                                               str(json_path) if json_path else None, plots, report.parent, command,
                                               log_note))
     elapsed = time.perf_counter() - started
-    for note in disagreement_notes(result) + instability_notes(result):
+    for note in disagreement_notes(result) + instability_notes(result) + run_level_notes(result):
         print(note)
     if result.selected:
         summary = ", ".join(f"{e.effect} ({100 * e.reduction_vs_nominal:.0f} %)" for e in result.selected)
