@@ -63,12 +63,13 @@ class FrenetTrackModel:
       a turn of curvature kappa has radius 1/|kappa| - |ey| on the inside, so ey <= 1/kappa - r_min
       (kappa > 0, left turn; mirrored for right turns), r_min the car's tightest radius.
     * collision distance: the cars are discs of the footprint's circumscribed radius, so in
-      Cartesian coordinates d_min = r_a + r_b + collision_margin_m. The constraint is evaluated
-      on (s, ey): a lateral gap is exact, but an arc-length gap ds at lateral offset ey is only
-      (1 - kappa ey) ds long on the inside of a curve; so the solver measures the separation as
-      |(a ds, dey)| with the along-track scale a = 1 - |kappa|max ey_max over the window
-      (along_track_scale, the collision's pos_x_scale), which never over-states the Cartesian
-      distance and leaves the lateral one exact.
+      Cartesian coordinates they touch at d_fp = 2 r + collision_margin_m (footprint_distance). The
+      constraint is evaluated on (s, ey): a lateral gap is exact, but an arc-length gap ds at lateral
+      offset ey is only (1 - kappa ey) ds long on the inside of a curve. The solver measures the
+      separation as |(a ds, dey)| >= D with D = max(d_fp, lateral_clearance_m) (collision_distance)
+      and the along-track scale a = (D / d_fp) (1 - |kappa|max ey_max) over the window
+      (along_track_scale, the collision's pos_x_scale): along the track it keeps d_fp, never
+      over-stating the Cartesian distance, and sideways D.
     """
 
     def __init__(self, track, car: CarParams, config: PlannerConfig) -> None:
@@ -142,19 +143,23 @@ class FrenetTrackModel:
     def along_track_scale(self, s_values, ey_values=None) -> float:
         """The along-track scale a (see class doc) over the window of the given progress values: with
         ey_values (the cars' current lateral offsets) ey_max is the largest of them plus lateral_reach_m
-        (capped at the track-limit bound), else the bound. Never below 0.2."""
+        (capped at the track-limit bound), else the bound. The curvature factor is never below 0.2."""
         _, k_max, k_min = self._limits(s_values)
         kappa_max = max(k_max, -k_min)
         ey_max = self.ey_bound(s_values)
         if ey_values is not None:
             ey_max = min(ey_max, float(np.max(np.abs(ey_values))) + self.config.lateral_reach_m)
-        return max(1.0 - kappa_max * ey_max, 0.2)
+        return self.collision_distance() / self.footprint_distance() * max(1.0 - kappa_max * ey_max, 0.2)
 
-    def collision_distance(self, other_radius: float | None = None) -> float:
-        """Cartesian d_min (m) between this car and another (see class doc): the sum of the footprint
-        radii plus collision_margin_m; the Frenet separation it bounds is frenet_separation."""
-        r_other = self.footprint_radius if other_radius is None else other_radius
-        return self.footprint_radius + r_other + self.config.collision_margin_m
+    def footprint_distance(self) -> float:
+        """Cartesian distance (m) at which two cars' footprints (discs of footprint_radius) come within
+        collision_margin_m: 2 footprint_radius + collision_margin_m; along the track the constraint keeps it."""
+        return 2.0 * self.footprint_radius + self.config.collision_margin_m
+
+    def collision_distance(self) -> float:
+        """The collision constraint's d_min (m, see class doc): the separation it keeps, sideways in metres;
+        the footprint distance or lateral_clearance_m, whichever is larger."""
+        return max(self.footprint_distance(), self.config.lateral_clearance_m)
 
 
 def frenet_separation(d_s, d_ey, along_track_scale: float):
@@ -163,7 +168,15 @@ def frenet_separation(d_s, d_ey, along_track_scale: float):
     return np.hypot(along_track_scale * np.asarray(d_s, dtype=float), np.asarray(d_ey, dtype=float))
 
 
+def path_curvature(delta, lf: float, lr: float):
+    """Curvature (1/m, left positive) of the kinematic bicycle's CG path at wheel angle ``delta`` (rad,
+    |delta| < pi/2): sin(beta) / lr, beta = atan(lr tan(delta) / (lf + lr)) the slip angle (the model's
+    heading rate over its speed)."""
+    beta = np.arctan(lr * np.tan(np.asarray(delta, dtype=float)) / (lf + lr))
+    return np.sin(beta) / lr
+
+
 def min_turn_radius(lf: float, lr: float, delta: float) -> float:
-    """Radius (m) of the kinematic bicycle's CG path at wheel angle ``delta`` (rad, nonzero):
-    sqrt(lr^2 + ((lf + lr) / tan(delta))^2), the rear-axle radius wheelbase / tan(delta) seen from the CG."""
-    return math.hypot(lr, (lf + lr) / math.tan(abs(delta)))
+    """Radius (m) of the kinematic bicycle's CG path at wheel angle ``delta`` (rad, nonzero): the
+    inverse of path_curvature, lr / |sin(beta)| = sqrt(lr^2 + ((lf + lr) / tan(delta))^2)."""
+    return 1.0 / abs(float(path_curvature(delta, lf, lr)))

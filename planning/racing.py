@@ -34,8 +34,8 @@ from solver_cpp import Agent, Collision, GameProblem, GameResult, Obstacle, Pair
 
 from .commands import CommandMapper
 from .config import PlannerConfig, solver_settings
-from .frenet import EPSI, EY, S, V, FrenetTrackModel, frenet_separation, min_turn_radius
-from .reference import path_curvature, path_speed_bounds, planner_racing_line, stage_reference
+from .frenet import EPSI, EY, S, V, FrenetTrackModel, frenet_separation, min_turn_radius, path_curvature
+from .reference import path_speed_bounds, planner_racing_line, stage_reference
 
 _PROGRESS_ANCHOR_M = 100.0  # D above
 # Smallest collision distance a relaxed problem gets (m). The solver rejects d_min <= 0, which the
@@ -334,24 +334,22 @@ class _RecedingHorizon:
         return u_all
 
     def _clear_of_alongside(self, x0, ey_target: float, others) -> float:
-        """Following the racing line, a fallback's lateral target ey_target (m) moved so that it is no
-        closer to a car alongside than that car is now, or than the collision distance if it is farther:
-        alongside = closer along the track than the collision distance, the arc-length gap measured at the
-        smaller of the two cars' local scales 1 - kappa ey (shorter on the inside of a turn, longer on the
-        outside; at least 0.2). Why: in a run of failed solves the
-        fallback tracks a plan of the game, which assumed the others make room, or after its horizon the
-        line's offset at the car, across the track; in the 4-car races on `full` (`race --track
-        buzzracer:full --line racing --cars rd3g,rd3g,mpc,mpc --seed 1`) both steered rd3g1 into a car
-        beside it in a tight turn (contacts at its fault). Centre line: ey_target unchanged."""
-        if self.line is None:
-            return ey_target
+        """A fallback's lateral target ey_target (m) moved so that it is no closer to a car alongside than
+        that car is now, or than the collision distance if it is farther: alongside = closer along the
+        track than the footprint distance, the arc-length gap measured at the smaller of the two cars'
+        local scales 1 - kappa ey (shorter on the inside of a turn, longer on the outside; at least 0.2).
+        Why: in a run of failed solves the fallback tracks a plan of the game, which assumed the others
+        make room, or after its horizon the reference line's offset at the car, across the track; both
+        steered an RD3G car into a car beside it (4-car races on `full` with the racing line,
+        `race --track buzzracer:full --line racing --cars rd3g,rd3g,mpc,mpc --seed 1`; 1-vs-3 on the
+        oval, `race --cars rd3g,mpc,mpc,mpc --seed 13`)."""
         x0 = np.asarray(x0, dtype=float)
-        d = self.tm.collision_distance()
+        d, along = self.tm.collision_distance(), self.tm.footprint_distance()
         kappa = float(self.tm.track.curvature(np.mod(x0[S], self.tm.track.length)))
         for s_o, ey_o in others:
             scale = max(min(1.0 - kappa * float(x0[EY]), 1.0 - kappa * float(ey_o)), 0.2)
             gap = float(ey_o) - float(x0[EY])
-            if scale * abs(float(s_o) - float(x0[S])) >= d:
+            if scale * abs(float(s_o) - float(x0[S])) >= along:
                 continue
             clear = min(d, abs(gap))
             ey_target = min(ey_target, float(ey_o) - clear) if gap > 0 else max(ey_target, float(ey_o) + clear)

@@ -57,14 +57,6 @@ def stage_reference(line: RacingLine, curvature, s0: float, v0: float, horizon: 
                           v=np.asarray(line.speed(s[1:]), dtype=float))
 
 
-def path_curvature(delta, lf: float, lr: float):
-    """Curvature (1/m, left positive) of the kinematic bicycle's CG path at wheel angle ``delta`` (rad,
-    |delta| < pi/2): sin(beta) / lr, beta = atan(lr tan(delta) / (lf + lr)) the slip angle (the model's
-    heading rate over its speed; planning.frenet.min_turn_radius is its inverse at the steering limit)."""
-    beta = np.arctan(lr * np.tan(np.asarray(delta, dtype=float)) / (lf + lr))
-    return np.sin(beta) / lr
-
-
 def path_speed_bounds(v, curvature, dt: float, lateral_accel_mps2: float, brake_mps2: float) -> np.ndarray:
     """Tyre-aware speed bounds (m/s) along a planned path: segment k (k = 0..T-1, from stage k to k+1,
     at speed ``v[k]`` m/s for ``dt`` s on a path of curvature ``curvature[k]`` 1/m) may be driven at

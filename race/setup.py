@@ -178,6 +178,7 @@ class RaceSpec:
     speed_model: str = "limits"         # SPEED_MODELS; the faster car is the one with the higher top speed given
     planner_threads: int = RaceSetup.planner_threads
     line: str = PlannerConfig.line      # the planners' reference: planning.config.LINES
+    lateral_clearance_m: float = PlannerConfig.lateral_clearance_m  # side-by-side distance of the collision constraint
 
     def load(self) -> RaceSetup:
         """Read the files and build the RaceSetup; RaceSetupError names the field at fault."""
@@ -196,7 +197,8 @@ class RaceSpec:
             raise RaceSetupError("raceline_ey_m", f"must be a finite offset inside the track "
                                                   f"(|M| < {track.min_width / 2:g} m), got {raceline}")
         try:
-            planner = PlannerConfig(raceline_ey_m=raceline, game_players=self.game_players, line=self.line)
+            planner = PlannerConfig(raceline_ey_m=raceline, game_players=self.game_players, line=self.line,
+                                    lateral_clearance_m=self.lateral_clearance_m)
         except PlannerConfigError as exc:
             name = str(exc).split(":")[0].removeprefix("planner.")
             raise RaceSetupError(name, str(exc).removeprefix(f"planner.{name}: ")) from None

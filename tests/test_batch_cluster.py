@@ -45,10 +45,11 @@ def test_cluster_records_equal_local_records(cluster, tmp_path):
     remote = run_batch(tmp_path, "cluster", "--cluster", cluster.scheduler_address)
     # One race per cell, in the grid's order (not completion order), with the seed asked for.
     assert [(r["start"], r["speed"], r["seed"]) for r in remote["races"]] == [(s, v, SEED) for s, v in CELLS]
-    # Each cell's race is different (its own start and speeds), so a record swapped between cells would show.
+    # The cells' races differ (their own starts and speeds), so a record swapped between cells would show; in
+    # 1 s the two front cells can end alike (the gap only grows from the start: the same minimum gap).
     outcomes = {json.dumps({k: v for k, v in r.items() if k not in ("start", "speed")}, sort_keys=True)
                 for r in local["races"]}
-    assert len(outcomes) == len(CELLS)
+    assert len(outcomes) >= len(CELLS) - 1
     assert remote["races"] == local["races"]
     strip = [{k: v for k, v in c.items() if k not in TIMING_KEYS} for c in local["cells"]]
     assert [{k: v for k, v in c.items() if k not in TIMING_KEYS} for c in remote["cells"]] == strip

@@ -69,21 +69,22 @@ def test_a_run_of_fallbacks_past_the_plans_horizon_returns_to_the_track():
 
 
 # ---------------------------------------------------------------- who plays in an RD3G car's game
-@pytest.mark.parametrize("ey2, players, obstacles", [(0.12, [1, 2], [3]), (0.18, [1], [2, 3])])
+@pytest.mark.parametrize("ey2, players, obstacles", [(0.12, [1, 2], [3]), (0.22, [1], [2, 3])])
 def test_an_obstacle_inside_a_players_collision_distance_becomes_a_player(ey2, players, obstacles):
     """On the oval's straight: rd3g1 at s = 4.5 m; car 1 (nearest, its game's player) 0.3 m ahead at
     ey = -0.06; car 2 0.36 m ahead beside car 1; car 3 1.4 m ahead (in reach: an obstacle). The
-    collision distance is 0.195 m (2 cm more for the first step: 0.215 m), measured with the along-track
-    gap scaled by 1 - 1/m x 0.223 m (the window reaches the 1 m turn; ey_max is the track-limit bound)
-    = 0.777. Car 2 at ey 0.12 is hypot(0.777 x 0.06, 0.18) = 0.186 m from car 1: inside, so it plays; at
-    ey 0.18 it is hypot(0.047, 0.24) = 0.245 m away (a lateral gap counts in full) and stays an obstacle.
-    Car 3 is 1 m or more from both."""
+    collision distance is 0.25 m sideways (the lateral clearance; 2 cm more for the first step: 0.27 m),
+    measured with the along-track gap scaled by (0.25 / 0.195) x (1 - 1/m x 0.223 m) (the window reaches
+    the 1 m turn; ey_max is the track-limit bound) = 0.996. Car 2 at ey 0.12 is hypot(0.996 x 0.06, 0.18)
+    = 0.190 m from car 1: inside, so it plays; at ey 0.22 it is hypot(0.060, 0.28) = 0.286 m away (a
+    lateral gap counts in full) and stays an obstacle. Car 3 is 1 m or more from both."""
     setup = RaceSpec(roster=parse_cars("rd3g,mpc,mpc,mpc"), seed=0).load()
     planners = RacePlanners(dataclasses.replace(setup, planner_threads=1))
     planner = planners.models["rd3g1"]
     at_plan = np.array([[4.5, -0.1, 1.9, 0.0], [4.8, -0.06, 1.8, 0.0], [4.86, ey2, 1.8, 0.0], [5.9, 0.15, 1.8, 0.0]])
-    assert planner.tm.collision_distance() == pytest.approx(0.195, abs=1e-3)
-    assert planner.tm.along_track_scale(at_plan[:, S], at_plan[:, EY]) == pytest.approx(1.0 - 0.2234, abs=1e-3)
+    assert planner.tm.collision_distance() == 0.25 and planner.tm.footprint_distance() == pytest.approx(0.195, abs=1e-3)
+    assert planner.tm.along_track_scale(at_plan[:, S], at_plan[:, EY]) == pytest.approx(
+        0.25 / planner.tm.footprint_distance() * (1.0 - 0.2234), abs=1e-3)
     assert planners._others(0, planner, at_plan) == (players, obstacles)
 
 

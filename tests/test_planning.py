@@ -145,15 +145,18 @@ def test_rd3g_plan_respects_track_limits_and_control_bounds(track, car):
 
 
 def test_mpc_avoids_constant_speed_obstacle(track, car):
-    """A slow car straight ahead on the straight: the MPC plan keeps d_min from its constant-speed path."""
+    """A slow car ahead on the straight, 8 cm right of our path: the MPC plan keeps d_min from its
+    constant-speed path (measured as the constraint does). Directly ahead on the centre line the slow car
+    would leave no room to pass on the oval (0.25 m lateral clearance, bound 0.223 m either side)."""
     p = _planner(MPCOpponent, track, car, config={"top_speed_mps": 2.0})
     x_self = np.array([4.5, 0.0, 2.0, 0.0])  # the top straight is s in [1 + pi, 3 + pi]
-    x_other = np.array([5.1, 0.0, 1.0, 0.0])
+    x_other = np.array([5.1, -0.08, 1.0, 0.0])
     plan = p.plan(x_self, x_other)
     t = np.arange(p.config.horizon + 1) * p.config.plan_dt_s
-    other = np.column_stack([5.1 + 1.0 * t, np.zeros_like(t)])  # independent constant-speed prediction
+    other = np.column_stack([5.1 + 1.0 * t, np.full_like(t, -0.08)])  # independent constant-speed prediction
     assert plan.x[1, :, :2] == pytest.approx(other)
-    gap = np.hypot(*(plan.x[0, 1:, :2] - other[1:]).T)
+    scale = p.tm.along_track_scale([x_self[0], x_other[0]], [x_self[1], x_other[1]])
+    gap = frenet_separation(*(plan.x[0, 1:, :2] - other[1:]).T, scale)
     assert plan.used in ("converged", "accepted")
     assert np.all(gap >= plan.d_min - 1e-3)
     # Without the obstacle constraint the car would have driven through it (sanity of the scenario).
@@ -345,14 +348,16 @@ def test_defending_plan_moves_to_the_inside_before_the_turn(track, car):
     turn, where the other car cannot fit between us and the track limit), and further left than the plan
     from the same state without the rule. Each plan is a nonconvex game's local solution (without the
     rule some of these solutions close the door too), so the claims are for most of the five states,
-    not for each."""
+    not for each. With the footprint distance sideways (lateral_clearance_m 0): with the default 0.25 m a
+    car on the 0.45 m wide drivable oval leaves room beside it only 3 cm off the centre line, and the game
+    blocks without the rule."""
     x_self = np.array([0.4, 0.0, 1.6, 0.0])
     others = [np.array([s, ey, 1.9, 0.0]) for s, ey in ((0.0, -0.05), (0.0, -0.03), (0.0, -0.08), (0.05, -0.05),
                                                          (-0.05, -0.05))]
     ends = {}
     for distance in (1.0, 0.0):
         p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=2.0,
-                     config={"top_speed_mps": 1.6, "defend_distance_m": distance})
+                     config={"top_speed_mps": 1.6, "defend_distance_m": distance, "lateral_clearance_m": 0.0})
         ends[distance] = []
         for x_other in others:
             p.reset()

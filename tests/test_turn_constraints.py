@@ -37,31 +37,34 @@ def _turn_s(track) -> float:
 
 def test_separation_never_overstates_the_cartesian_distance_and_is_exact_across(full, car):
     """Pairs of points in and around a 0.3 m turn, both within the planner's ey limits: whenever the
-    constraint's separation |(a ds, dey)| says the cars are at least d_min apart, so are the points in the
-    plane (track.to_cartesian); side by side (same s) the separation is the lateral gap, as in the plane,
-    where the isotropic disc d_min / a asked for 1/a times more room."""
+    constraint's separation |(a ds, dey)| says the cars are at least d_min apart (the lateral clearance,
+    0.25 m), the points in the plane (track.to_cartesian) are at least the footprint distance (0.195 m) apart;
+    side by side (same s) the separation is the lateral gap, as in the plane, where the isotropic disc
+    d_min / a asked for 1/a times more room."""
     p = _planner(full, car)
     s_turn = _turn_s(full)
-    d_min = p.tm.collision_distance()
+    d_min, d_fp = p.tm.collision_distance(), p.tm.footprint_distance()
+    assert d_min == 0.25 and d_fp == pytest.approx(0.195, abs=1e-3)
     rng = np.random.default_rng(0)
     checked = 0
     for s0 in s_turn + np.array([-0.4, -0.2, 0.0, 0.2]):
         low, high = p.ey_limits([s0])
         scale = p.tm.along_track_scale([s0])
-        assert 0.2 <= scale < 0.5  # a real stretch: kappa ~ 3.3/m over the window
-        s = s0 + rng.uniform(-0.3, 0.3, (5000, 2))
-        ey = rng.uniform(low, high, (5000, 2))
+        factor = scale * d_fp / d_min  # the curvature factor 1 - |kappa| ey_max
+        assert 0.2 <= factor < 0.5  # a real stretch: kappa ~ 3.3/m over the window
+        s = s0 + rng.uniform(-0.3, 0.3, (20000, 2))
+        ey = rng.uniform(low, high, (20000, 2))
         sep = frenet_separation(s[:, 0] - s[:, 1], ey[:, 0] - ey[:, 1], scale)
         x, y = full.to_cartesian(s, ey)
         cart = np.hypot(x[:, 0] - x[:, 1], y[:, 0] - y[:, 1])
         safe = sep >= d_min
-        assert np.all(cart[safe] >= d_min - 1e-3), float(np.min(cart[safe]))
+        assert np.all(cart[safe] >= d_fp - 1e-3), float(np.min(cart[safe]))
         checked += int(np.sum(safe))
         # Side by side: the separation is the lateral gap, which is the Cartesian distance.
         xs, ys = full.to_cartesian(np.full(2, s0), np.array([low, low + d_min]))
         assert float(frenet_separation(0.0, d_min, scale)) == pytest.approx(d_min)
         assert float(np.hypot(xs[1] - xs[0], ys[1] - ys[0])) == pytest.approx(d_min, abs=1e-6)
-        assert d_min / scale > 2.0 * d_min  # what the isotropic disc asked for here
+        assert d_fp / factor > 2.0 * d_fp  # what the isotropic footprint disc asked for here
     assert checked > 500
 
 
@@ -131,12 +134,12 @@ def test_a_racing_line_keeps_its_apex_within_the_limits(full, car):
 def test_path_curvature_is_the_inverse_of_the_cg_turn_radius():
     """Hand-worked: lf = lr = 0.05 m, tan(delta) = 0.2: beta = atan(0.05 * 0.2 / 0.1) = atan(0.1), sin(beta) / lr =
     (0.1 / sqrt(1.01)) / 0.05 = 1.990074 1/m, i.e. radius sqrt(0.05^2 + (0.1 / 0.2)^2) = 0.502494 m; signed with delta."""
-    from planning.reference import path_curvature
+    from planning.frenet import path_curvature
 
     delta = math.atan(0.2)
     assert path_curvature(delta, 0.05, 0.05) == pytest.approx(1.990074, abs=1e-6)
     assert path_curvature(-delta, 0.05, 0.05) == pytest.approx(-1.990074, abs=1e-6)
-    assert 1.0 / path_curvature(delta, 0.05, 0.05) == pytest.approx(min_turn_radius(0.05, 0.05, delta), rel=1e-12)
+    assert min_turn_radius(0.05, 0.05, delta) == pytest.approx(math.hypot(0.05, 0.1 / 0.2), rel=1e-12)  # 0.502494
     assert path_curvature(0.0, 0.05, 0.05) == 0.0
 
 
@@ -188,29 +191,51 @@ def test_a_car_entering_a_turn_off_the_line_slows(full, car):
     assert min(before) > -0.05
 
 
-def test_a_fallback_on_the_racing_line_does_not_steer_into_a_car_alongside(full, car):
-    """On a straight (kappa = 0: arc-length gaps are Cartesian), a car at ey = -0.19 m with another 0.1 m behind
-    at ey = 0 (0.19 m to its left, inside the collision distance 0.195 m): a fallback target of +0.15 m
-    (the line's offset, across the other car) is held at the car's own offset, -0.19 m; with the other car
-    0.3 m to the left (ey = 0.11 m) it may go to 0.11 - 0.195 = -0.085 m; a car 0.3 m behind (farther than the collision
-    distance along the track) or on the right does not hold it; on the centre line the target is unchanged."""
+def test_a_fallback_does_not_steer_into_a_car_alongside(full, car):
+    """Default car: footprint distance 0.195 m (along the track), lateral clearance 0.25 m (sideways). On a
+    straight (kappa = 0: arc-length gaps are Cartesian), a car at ey = -0.19 m with another 0.1 m behind at
+    ey = 0 (0.19 m to its left, inside 0.25 m): a fallback target of +0.15 m (across the other car) is held at
+    the car's own offset, -0.19 m; with the other car 0.3 m to the left (ey = 0.11 m) it may go to
+    0.11 - 0.25 = -0.14 m; a car 0.3 m behind (farther than 0.195 m along the track) or on the right does not
+    hold it."""
     p = _planner(full, car)
+    assert p.tm.footprint_distance() == pytest.approx(0.195, abs=1e-3) and p.tm.collision_distance() == 0.25
     s = np.arange(0.0, full.length, 0.01)
     straight = float(s[int(np.argmax(np.abs(full.curvature(s)) < 1e-9) + 20)])
     x0 = np.array([straight + 0.5, -0.19, 1.0, 0.0])
-    assert p.line is None and p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.0)]) == 0.15
-    p.line = object()  # any line: the rule reads only the cars
     assert abs(float(full.curvature(x0[0]))) < 1e-9
     assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.0)]) == pytest.approx(-0.19)
-    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.11)]) == pytest.approx(0.11 - 0.195, abs=1e-3)
+    assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.1, 0.11)]) == pytest.approx(0.11 - 0.25)
     assert p._clear_of_alongside(x0, 0.15, [(x0[0] - 0.3, 0.0)]) == 0.15
     assert p._clear_of_alongside(x0, -0.1, [(x0[0], -0.4)]) == -0.1
     # In a right turn of radius 0.3 m (kappa = -3.33/m), our car at ey = +0.05 m: a car 0.35 m behind on the
     # inside (ey = -0.15 m, local scale 1 - kappa ey = 0.5: 0.175 m of arc there) is alongside, 0.2 m to the
-    # right, so the target stays at least 0.195 m left of it; on the outside (ey = +0.15 m, scale 1.5; ours
-    # 1.17: 0.41 m) it is not alongside.
+    # right (closer than 0.25 m), so a target right of our offset is held there; on the outside (ey = +0.15 m,
+    # scale 1.5; ours 1.17: 0.41 m) it is not alongside.
     right = _turn_s(full)
     assert float(full.curvature(right)) == pytest.approx(-1.0 / 0.3)
     xr = np.array([right, 0.05, 1.0, 0.0])
-    assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, -0.15)]) == pytest.approx(-0.15 + 0.195, abs=1e-3)
+    assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, -0.15)]) == pytest.approx(0.05)
     assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, 0.15)]) == -0.15
+
+
+def test_lateral_clearance_widens_the_constraint_sideways_only(full, car):
+    """Hand-worked from the car file: footprint radius hypot(L/2 + |offset|, W/2), footprint distance twice that
+    plus collision_margin_m. With lateral_clearance_m = 0.25 the constraint's d_min is 0.25 m and the
+    along-track scale grows by 0.25 / d_fp, so a gap purely along the track is safe from d_fp / (1 - |kappa|
+    ey_max) on, as without it; lateral_clearance_m below d_fp (0 included) leaves the footprint distance."""
+    g = car.geometry
+    d_fp = 2.0 * math.hypot(0.5 * g.footprint_length_m + abs(g.footprint_offset_m), 0.5 * g.footprint_width_m) + 0.02
+    s0 = _turn_s(full)
+    scales = {}
+    for lat in (0.0, 0.1, 0.25):
+        cfg = PlannerConfig(lateral_clearance_m=lat)
+        tm = FrenetTrackModel(full, car, cfg)
+        assert tm.footprint_distance() == pytest.approx(d_fp, rel=1e-12)
+        assert tm.collision_distance() == pytest.approx(max(d_fp, lat), rel=1e-12)
+        scales[lat] = tm.along_track_scale([s0])
+        # Along the track the boundary of |(a ds, 0)| >= d_min lies at the same ds for every clearance.
+        ds = tm.collision_distance() / scales[lat]
+        assert float(frenet_separation(ds, 0.0, scales[lat])) == pytest.approx(tm.collision_distance())
+    assert scales[0.1] == scales[0.0]
+    assert scales[0.25] == pytest.approx(scales[0.0] * 0.25 / d_fp, rel=1e-12)

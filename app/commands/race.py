@@ -27,7 +27,8 @@ FLAGS = {"track": "--track", "car_params": "--car-params", "seed": "--seed", "la
          "control_hz": "--control-hz", "control_period_s": "--control-hz", "raceline_ey_m": "--raceline-ey",
          "max_time_s": "--max-time", "sim_car_params": "--sim-car-params", "sim_effects": "--sim-effects",
          "roster": "--cars/--roster", "grid": "--grid", "game_players": "--game-players",
-         "speed_model": "--speed-model", "planner_threads": "--planner-threads", "line": "--line"}
+         "speed_model": "--speed-model", "planner_threads": "--planner-threads", "line": "--line",
+         "lateral_clearance_m": "--lateral-clearance"}
 
 
 def add_race_arguments(p) -> None:
@@ -53,6 +54,11 @@ def add_race_arguments(p) -> None:
                    help="the reference both model planners race (default: centre): centre = the constant "
                         "--raceline-ey and top speed with a cornering cap; racing = the track's racing line, its "
                         "offset and speed profile at every horizon stage (docs/racing.md)")
+    p.add_argument("--lateral-clearance", type=float, default=RaceSpec.lateral_clearance_m, metavar="M",
+                   help="side by side, the planners keep the cars' centres at least this far apart (m) when it is "
+                        "more than the footprint distance (2 radii + 2 cm, 0.195 m for buzzracer), which they keep "
+                        f"along the track; 0 = the footprint distance (default {RaceSpec.lateral_clearance_m:g}; "
+                        "docs/racing.md)")
 
 
 def add_fleet_arguments(p, roster_file: bool = True,
@@ -131,7 +137,8 @@ def race_spec(args, seed: int, start: str, rd3g_speed: float, opponent_speed: fl
                     sim_effects=getattr(args, "sim_effects", "") or "",
                     speed_model=getattr(args, "speed_model", RaceSpec.speed_model),
                     planner_threads=getattr(args, "planner_threads", RaceSpec.planner_threads),
-                    line=getattr(args, "line", RaceSpec.line))
+                    line=getattr(args, "line", RaceSpec.line),
+                    lateral_clearance_m=getattr(args, "lateral_clearance", RaceSpec.lateral_clearance_m))
 
 
 def make_setup(args, seed: int, start: str, rd3g_speed: float, opponent_speed: float, laps: int = 1, max_time=None):
