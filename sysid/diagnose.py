@@ -296,6 +296,7 @@ class SysidResult:
     run_agreement: list[RunAgreement] = field(default_factory=list)  # per parameter: do the training runs agree
     claim_stability: list[RunStability] = field(default_factory=list)  # each claim refitted without each training run
     run_level: list[RunLevelParam] = field(default_factory=list)  # per-run parameters, their population, held-out use
+    other_cross_run: list[OtherCrossRun] = field(default_factory=list)  # `other` without each training run, on it
     numeric_warnings: int = 0  # numpy RuntimeWarnings of trial predictions, counted instead of printed
 
     @property
@@ -768,6 +769,41 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     return fit, params, stds
 
 
+@dataclass(frozen=True)
+class OtherCrossRun:
+    """`other` fitted without one training run and judged on that run (its own run-level values in place)."""
+
+    run: int  # run index (Trajectory.runs)
+    params: dict[str, float]  # the terms fitted without the run
+    verdict: CandidateResult  # on the run's windows, against the model without the terms
+
+    @property
+    def significant(self) -> bool:
+        return self.verdict.significant
+
+
+def other_cross_run(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidSettings) -> list[OtherCrossRun]:
+    """`other` is one set of terms for every run, so with several training runs it must predict each training run it
+    was not fitted on: refitted on top of ``base`` without run r, judged by the keep test on run r's training windows,
+    where each run has its own run-level values. A held-out run is predicted with the population's (or the car file's)
+    run-level value; terms that only make up for a held-out run's own session (a VESC that does not follow its
+    set-point) help there and nowhere else. Runs with fewer than MIN_RUN_WINDOWS fit windows are not left out."""
+    runs = [r for r in np.unique(traj.run[split.train]).tolist()
+            if np.count_nonzero(traj.run[split.fit] == r) >= MIN_RUN_WINDOWS]
+    if len(runs) < 2:
+        return []
+
+    def check(r: int) -> OtherCrossRun:
+        own = split.train[traj.run[split.train] == r]
+        sp = Split(train=split.train[traj.run[split.train] != r], heldout=thin(own, s.heldout_max_starts),
+                   fit=split.fit[traj.run[split.fit] != r])
+        without = evaluate(traj, sp, horizon, base.setup, base.effects, base.values, base.std)
+        fit, params, std = fit_other(traj, sp, horizon, without, s)
+        return OtherCrossRun(r, params, _judge(traj, sp, without, fit, "other", s, params, std, channels=True))
+
+    return side_by_side([lambda r=r: check(r) for r in runs])
+
+
 # ----------------------------------------------------------------------------- driver
 @dataclass
 class _Selection:
@@ -1014,6 +1050,22 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
     by_name = {c.effect: c for c in cands}
 
+    # Run-level parameters are named effects too: fitted per training run on top of the shared named model, before
+    # `other`, and not refitted after it, so `other` cannot take their share (docs/sysid.md, "Run-level parameters").
+    run_level: list[RunLevelParam] = []
+    rl_selected: list[CandidateResult] = []
+    rl_steps: list[tuple[Fit, Fit]] = []
+    for c in run_level_cands:
+        rl, with_rl = fit_run_level(traj, split, horizon, current, c, car, s)
+        if rl is not None:
+            run_level.append(rl)
+        if rl is not None and rl.written:  # the population value passed the keep test held out: claimed
+            rl_selected, rl_steps = rl_selected + [rl.verdict], rl_steps + [(current, with_rl)]
+            by_name[c.effect] = c
+        current = with_rl  # the shared model without the training runs' own values, or with the population value
+        if rl is not None:  # `other` is fitted with each training run's own value in place
+            current = evaluate(traj, split, horizon, with_run_values(traj, current.setup, c.params[0], rl.runs),
+                               current.effects, current.values, current.std)
     # `other` on top of the named effects. When it earns its place, every named effect is re-tested with
     # it in the model (the terms can take over part of what a named effect explained, or show that the
     # named effect was a stand-in for something the library cannot name): leave-one-out against the
@@ -1022,6 +1074,7 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     named, named_selected, named_steps = current, selected, effect_steps
     other_fit, other_params, other_std = fit_other(traj, split, horizon, named, s)
     other_verdict = _judge(traj, split, named, other_fit, "other", s, other_params, other_std, channels=True)
+    other_base = named
     dropped_after_other: list[str] = []
     if not other_verdict.significant and chosen:
         # A named effect can stand in for one the library cannot name (torque steer, a heading rate
@@ -1039,6 +1092,12 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
             joint_verdict = _judge(traj, split, named, joint, "other", s, alone_params, alone_std, channels=True)
             if joint_verdict.significant:
                 other_fit, other_params, other_std, other_verdict = joint, alone_params, alone_std, joint_verdict
+                other_base = bare
+    cross_run: list[OtherCrossRun] = []
+    if other_verdict.significant:
+        cross_run = other_cross_run(traj, split, horizon, other_base, s)
+        if not all(k.significant for k in cross_run):
+            other_verdict = dataclasses.replace(other_verdict, significant=False)
     if other_verdict.significant:
         while chosen:
             loo = _leave_one_out(traj, split, horizon, chosen, named, other_fit, reference, s, with_other=True)
@@ -1063,7 +1122,7 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         else:
             named_selected, named_steps = [], []
     candidates.append(other_verdict)
-    selected, effect_steps, current = named_selected, named_steps, named
+    selected, effect_steps, current = named_selected + rl_selected, named_steps + rl_steps, named
     if other_verdict.significant:
         if chosen:
             # One more pass over the named parameters with the terms in place (they were fitted without).
@@ -1075,15 +1134,8 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         effect_steps = effect_steps + [(named, other_fit)]
         current = other_fit
     unnamed_remains = any(e.effect == "other" for e in selected)
-    run_level: list[RunLevelParam] = []
-    for c in run_level_cands:
-        rl, with_rl = fit_run_level(traj, split, horizon, current, c, car, s)
-        if rl is not None:
-            run_level.append(rl)
-        if rl is not None and rl.written:  # the population value passed the keep test held out: claimed
-            selected, effect_steps = selected + [rl.verdict], effect_steps + [(current, with_rl)]
-            by_name[c.effect] = c
-        current = with_rl  # the shared model without the training runs' own values, or with the population value
+    # The final model holds no training run's own values (held-out runs never used them).
+    current = dataclasses.replace(current, setup=dataclasses.replace(current.setup, run_values=()))
 
     # Reported parameters of each claimed physical effect come from the final joint fit; with several runs their
     # standard deviation is at least that of the agreeing runs' random-effects pool (spread between runs included).
@@ -1127,5 +1179,5 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
         switched_after=switched_after, families_compared=len(references) == 2,
         unnamed_effect_remains=unnamed_remains, dropped_after_other=dropped_after_other,
         not_identifiable=not_identifiable, run_agreement=agreements, run_level=run_level,
-        claim_stability=[k for checks in stability.values() for k in checks],
+        claim_stability=[k for checks in stability.values() for k in checks], other_cross_run=cross_run,
     )

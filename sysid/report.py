@@ -160,6 +160,13 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
             for k in result.claim_stability
         ],
         "run_level": [run_level_json(result, p) for p in result.run_level],
+        "other_cross_run": [
+            {"run": k.run + 1, "source": result.traj.runs[k.run].source, "params": dict(k.params),
+             "significant": k.significant, "heldout_error_reduction_vs_without": float(k.verdict.heldout_error_reduction),
+             "heading_reduction": float(k.verdict.heading_reduction), "speed_reduction": float(k.verdict.speed_reduction),
+             "confidence": float(k.verdict.confidence)}
+            for k in result.other_cross_run
+        ],
         "heldout_runs": [
             {"run": i + 1, "source": result.traj.runs[i].source, "windows": n,
              "dynamic_nominal": nominal.json_dict(), "planner": planner.json_dict(), "after": after.json_dict()}
@@ -229,6 +236,17 @@ def instability_notes(result: SysidResult) -> list[str]:
         notes.append(f"{effect} is not stable across runs: without {runs} it fails the keep test on the held-out "
                      "data; not claimed.")
     return notes
+
+
+def other_cross_run_notes(result: SysidResult) -> list[str]:
+    """One sentence when `other` was not claimed because it does not predict the training runs it was not fitted on."""
+    failing = [k for k in result.other_cross_run if not k.significant]
+    if not failing:
+        return []
+    runs = ", ".join(f"{Path(result.traj.runs[k.run].source).name} ({100 * k.verdict.heldout_error_reduction:.0f} % "
+                     f"position, {100 * k.verdict.heading_reduction:+.0f} % heading, "
+                     f"{100 * k.verdict.speed_reduction:+.0f} % speed)" for k in failing)
+    return [f"other does not hold across runs: fitted without {runs} it fails the keep test on that run; not claimed."]
 
 
 def run_level_notes(result: SysidResult) -> list[str]:
@@ -450,6 +468,19 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
                          f"{100 * k.verdict.heading_reduction:+.1f} / {100 * k.verdict.speed_reduction:+.1f} % | "
                          f"{'yes' if k.significant else 'no'} |")
         for note in instability_notes(result):
+            lines += ["", note]
+    if result.other_cross_run:
+        lines += ["", "## `other` across runs", "",
+                  "`other` refitted without each training run and judged by the keep test on that run's windows, "
+                  "each run with its own run-level values (docs/sysid.md, \"Fallback `other`\").", "",
+                  "| run left out and predicted | terms | position / heading / speed vs without them | keep |",
+                  "|---|---|---|---|"]
+        for k in result.other_cross_run:
+            terms = "; ".join(f"`{n}` {v:.4g}" for n, v in k.params.items()) or "none"
+            lines.append(f"| {Path(result.traj.runs[k.run].source).name} | {terms} | "
+                         f"{100 * k.verdict.heldout_error_reduction:.1f} / {100 * k.verdict.heading_reduction:+.1f} / "
+                         f"{100 * k.verdict.speed_reduction:+.1f} % | {'yes' if k.significant else 'no'} |")
+        for note in other_cross_run_notes(result):
             lines += ["", note]
     for p in result.run_level:
         lines += run_level_lines(result, p)

@@ -102,7 +102,8 @@ def run(args) -> int:
     from sysid.conventions import to_physical
     from sysid.data import build_runs, canonical_order
     from sysid.diagnose import SysidSettings, identify
-    from sysid.report import disagreement_notes, instability_notes, make_plots, run_level_notes, markdown_report, write_json
+    from sysid.report import (disagreement_notes, instability_notes, make_plots, markdown_report, other_cross_run_notes,
+                              run_level_notes, write_json)
 
     if not args.horizon > 0:
         raise UserError(f"--horizon must be > 0, got {args.horizon}")
@@ -181,7 +182,8 @@ def run(args) -> int:
                                               str(json_path) if json_path else None, plots, report.parent, command,
                                               log_note))
     elapsed = time.perf_counter() - started
-    for note in disagreement_notes(result) + instability_notes(result) + run_level_notes(result):
+    for note in (disagreement_notes(result) + instability_notes(result) + other_cross_run_notes(result)
+                 + run_level_notes(result)):
         print(note)
     if result.selected:
         summary = ", ".join(f"{e.effect} ({100 * e.reduction_vs_nominal:.0f} %)" for e in result.selected)
