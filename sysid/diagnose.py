@@ -690,6 +690,38 @@ def without_other_terms(setup: ModelSetup) -> ModelSetup:
     return dataclasses.replace(setup, car=dataclasses.replace(setup.car, other_terms=OtherTermsParams()))
 
 
+_RUN_LEVEL_STEP = 0.05  # relative change of a run-level value for its regressor in `other`'s regression
+
+
+def _run_level_regressors(traj: Trajectory, starts: np.ndarray, lag: int, setup: ModelSetup, pred: np.ndarray
+                          ) -> tuple[np.ndarray, list[int]]:
+    """Per run in ``starts`` with a run-level value in ``setup`` (at most one run-level parameter): the change of the
+    predicted speed rate over ``lag`` steps when the run's value grows by _RUN_LEVEL_STEP (relative), zero outside
+    the run; and the runs of the columns. No run-level values: no column."""
+    cols, runs = [], []
+    for name, values in setup.run_values:
+        bumped = dataclasses.replace(setup, run_values=((name, tuple(v * (1 + _RUN_LEVEL_STEP) for v in values)),))
+        rate = (predict(traj, starts, lag, bumped)[:, -1, 3] - pred[:, -1, 3]) / (lag * traj.dt)
+        for r in np.unique(traj.run[starts]).tolist():
+            col = np.where(traj.run[starts] == r, rate, 0.0)
+            if np.any(col != 0.0):
+                cols.append(col)
+                runs.append(r)
+    return (np.stack(cols, axis=1) if cols else np.zeros((starts.size, 0))), runs
+
+
+def _shift_run_values(setup: ModelSetup, nuisance: np.ndarray, runs: list[int], rest: np.ndarray) -> ModelSetup:
+    """``setup`` with each run's run-level value moved by the least-squares share of ``rest`` (minus the terms' speed
+    rate) along its regressor, as in the joint fit: a relative step, kept at >= 10 % of the value."""
+    if not runs:
+        return setup
+    share = np.linalg.lstsq(nuisance, rest, rcond=None)[0] * _RUN_LEVEL_STEP
+    ((name, values),) = setup.run_values
+    factors = np.ones(len(values))
+    factors[runs] = np.maximum(1.0 + share, 0.1)
+    return dataclasses.replace(setup, run_values=((name, tuple(v * f for v, f in zip(values, factors))),))
+
+
 def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidSettings) -> tuple[Fit, dict, dict]:
     """STLSQ on the short-term rate residuals of speed and heading against the library terms
     (vehicles.extra_terms.LIBRARY); the terms go into the car's ``[other_terms]``."""
@@ -707,10 +739,19 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     delta = car.corrections.steering_gain * acts.steering.mean(axis=(1, 2)) + car.corrections.steering_offset_rad
     v = traj.speed[starts[:, None] + np.arange(lag + 1)[None, :]].mean(axis=1)
     names = tuple(LIBRARY)
-    theta = np.stack([LIBRARY[n][1](v, throttle, delta) for n in names], axis=1)
+    theta_all = np.stack([LIBRARY[n][1](v, throttle, delta) for n in names], axis=1)
     clusters = traj.blocks(starts, s.bootstrap_block_s)
+    # Each training run's own run-level value is a named effect fitted beside the terms, not under them: the speed
+    # terms are fitted jointly with one regressor per run (the speed rate's change per relative change of that run's
+    # value), by projecting those regressors out (Frisch-Waugh-Lovell: the terms' coefficients and standard
+    # deviations are those of the joint fit). The runs' values then move by the joint fit's share.
+    nuisance, nuisance_runs = _run_level_regressors(traj, starts, lag, plain, pred)
+    basis = np.linalg.qr(nuisance)[0]
 
-    def sparse_fit(target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def project(a: np.ndarray) -> np.ndarray:
+        return a - basis @ (basis.T @ a)
+
+    def sparse_fit(target: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         coef = stlsq(theta, target, s.sparse_threshold * float(np.std(target)))
         # Also drop terms that are not distinguishable from zero (|c| < 3 std), then refit the rest.
         for _ in range(len(names)):
@@ -724,8 +765,9 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
                 coef[keep] = np.linalg.lstsq(theta[:, keep], target, rcond=None)[0]
         return coef, coefficient_std(theta, target, coef, clusters)
 
-    ca, sa = sparse_fit(r_v)
-    cy, sy = sparse_fit(r_th)
+    ca, sa = sparse_fit(project(r_v), project(theta_all))
+    cy, sy = sparse_fit(r_th, theta_all)
+    theta = theta_all
     # Bounded terms: a coefficient whose term reaches more than a physical rate anywhere in the data is dropped.
     reach = np.max(np.abs(theta), axis=0)
     ca[np.abs(ca) * reach > OTHER_MAX_ACCEL_MPS2] = 0.0
@@ -735,7 +777,8 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     def with_terms(a: np.ndarray, y: np.ndarray) -> ModelSetup:
         terms = terms_from_coefficients({n: c for n, c in zip(names, a) if c != 0.0},
                                         {n: c for n, c in zip(names, y) if c != 0.0})
-        return dataclasses.replace(plain, car=dataclasses.replace(car, other_terms=terms))
+        shifted = _shift_run_values(plain, nuisance, nuisance_runs, -(theta @ a))
+        return dataclasses.replace(shifted, car=dataclasses.replace(car, other_terms=terms))
 
     def training_costs(setups: list[ModelSetup]) -> list[float]:
         """Multi-step costs on the training windows, all setups predicted in one batch."""
@@ -782,7 +825,8 @@ class OtherCrossRun:
         return self.verdict.significant
 
 
-def other_cross_run(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidSettings) -> list[OtherCrossRun]:
+def other_cross_run(traj: Trajectory, split: Split, horizon: int, base: Fit, run_level_cands: tuple[Candidate, ...],
+                    s: SysidSettings) -> list[OtherCrossRun]:
     """`other` is one set of terms for every run, so with several training runs it must predict each training run it
     was not fitted on: refitted on top of ``base`` without run r, judged by the keep test on run r's training windows,
     where each run has its own run-level values. A held-out run is predicted with the population's (or the car file's)
@@ -799,6 +843,14 @@ def other_cross_run(traj: Trajectory, split: Split, horizon: int, base: Fit, s: 
                    fit=split.fit[traj.run[split.fit] != r])
         without = evaluate(traj, sp, horizon, base.setup, base.effects, base.values, base.std)
         fit, params, std = fit_other(traj, sp, horizon, without, s)
+        for cand in run_level_cands:  # run r's own value refitted on its windows with the speed terms in place
+            (param,) = cand.params
+            runs_values = dict(fit.setup.run_values)
+            if param in runs_values and any(p.startswith("accel[") for p in params):  # speed terms share with it
+                setup = dataclasses.replace(fit.setup, run_values=(),
+                                            car=with_corrections(fit.setup.car, {param: runs_values[param][r]}))
+                fit = fit_candidates(traj, Split(train=own, heldout=sp.heldout, fit=thin(own, s.fit_max_starts)),
+                                     horizon, setup, [cand], s, fit.effects)
         return OtherCrossRun(r, params, _judge(traj, sp, without, fit, "other", s, params, std, channels=True))
 
     return side_by_side([lambda r=r: check(r) for r in runs])
@@ -1050,22 +1102,33 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
     selected, effect_steps = [selected[i] for i in order], [effect_steps[i] for i in order]
     by_name = {c.effect: c for c in cands}
 
-    # Run-level parameters are named effects too: fitted per training run on top of the shared named model, before
-    # `other`, and not refitted after it, so `other` cannot take their share (docs/sysid.md, "Run-level parameters").
-    run_level: list[RunLevelParam] = []
-    rl_selected: list[CandidateResult] = []
-    rl_steps: list[tuple[Fit, Fit]] = []
-    for c in run_level_cands:
-        rl, with_rl = fit_run_level(traj, split, horizon, current, c, car, s)
-        if rl is not None:
-            run_level.append(rl)
-        if rl is not None and rl.written:  # the population value passed the keep test held out: claimed
-            rl_selected, rl_steps = rl_selected + [rl.verdict], rl_steps + [(current, with_rl)]
+    def run_level_on(base: Fit) -> tuple[list[RunLevelParam], list[CandidateResult], list[tuple[Fit, Fit]], Fit]:
+        """The run-level parameters on top of ``base``: their results, the claimed ones (population written) and
+        their steps, and ``base`` with the population where written and each training run's own value."""
+        params, claims, steps = [], [], []
+        for c in run_level_cands:
+            (param,) = c.params
+            file_value = getattr(car.corrections, param)
+            if getattr(base.setup.car.corrections, param) != file_value:  # a second pass: judged from the file's value
+                setup = dataclasses.replace(base.setup, car=with_corrections(base.setup.car, {param: file_value}))
+                base = evaluate(traj, split, horizon, setup, tuple(e for e in base.effects if e != c.effect),
+                                {k: v for k, v in base.values.items() if k != param},
+                                {k: v for k, v in base.std.items() if k != param})
+            rl, with_rl = fit_run_level(traj, split, horizon, base, c, car, s)
             by_name[c.effect] = c
-        current = with_rl  # the shared model without the training runs' own values, or with the population value
-        if rl is not None:  # `other` is fitted with each training run's own value in place
-            current = evaluate(traj, split, horizon, with_run_values(traj, current.setup, c.params[0], rl.runs),
-                               current.effects, current.values, current.std)
+            if rl is not None:
+                params.append(rl)
+                if rl.written:  # the population value passed the keep test held out: claimed
+                    claims.append(rl.verdict)
+                    steps.append((base, with_rl))
+                with_rl = evaluate(traj, split, horizon, with_run_values(traj, with_rl.setup, param, rl.runs),
+                                   with_rl.effects, with_rl.values, with_rl.std)
+            base = with_rl
+        return params, claims, steps, base
+
+    # Run-level parameters are named effects too: fitted per training run on top of the shared named model before
+    # `other`, so `other` is fitted with each training run's own value and judged with the population's.
+    run_level, rl_selected, rl_steps, current = run_level_on(current)
     # `other` on top of the named effects. When it earns its place, every named effect is re-tested with
     # it in the model (the terms can take over part of what a named effect explained, or show that the
     # named effect was a stand-in for something the library cannot name): leave-one-out against the
@@ -1095,7 +1158,7 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
                 other_base = bare
     cross_run: list[OtherCrossRun] = []
     if other_verdict.significant:
-        cross_run = other_cross_run(traj, split, horizon, other_base, s)
+        cross_run = other_cross_run(traj, split, horizon, other_base, run_level_cands, s)
         if not all(k.significant for k in cross_run):
             other_verdict = dataclasses.replace(other_verdict, significant=False)
     if other_verdict.significant:
@@ -1130,9 +1193,14 @@ def _identify(traj: Trajectory, car: CarParams, settings: SysidSettings) -> Sysi
             if (_training_mse(traj, split, horizon, refit.setup) < _training_mse(traj, split, horizon, other_fit.setup)
                     and refit.heldout.horizon_pos_rmse_m <= other_fit.heldout.horizon_pos_rmse_m):
                 other_fit = dataclasses.replace(refit, effects=other_fit.effects)
-        selected = selected + [other_verdict]
-        effect_steps = effect_steps + [(named, other_fit)]
+        selected = named_selected + [other_verdict]
+        effect_steps = named_steps + [(named, other_fit)]
         current = other_fit
+        if run_level_cands:
+            # `other` holds on every training run (other_cross_run): it belongs to the car, so the run-level
+            # parameters are fitted again on top of it, like the named parameters above.
+            run_level, rl_selected, rl_steps, current = run_level_on(current)
+            selected, effect_steps = selected + rl_selected, effect_steps + rl_steps
     unnamed_remains = any(e.effect == "other" for e in selected)
     # The final model holds no training run's own values (held-out runs never used them).
     current = dataclasses.replace(current, setup=dataclasses.replace(current.setup, run_values=()))
