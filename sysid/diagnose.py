@@ -710,12 +710,12 @@ def _run_level_regressors(traj: Trajectory, starts: np.ndarray, lag: int, setup:
     return (np.stack(cols, axis=1) if cols else np.zeros((starts.size, 0))), runs
 
 
-def _shift_run_values(setup: ModelSetup, nuisance: np.ndarray, runs: list[int], rest: np.ndarray) -> ModelSetup:
-    """``setup`` with each run's run-level value moved by the least-squares share of ``rest`` (minus the terms' speed
-    rate) along its regressor, as in the joint fit: a relative step, kept at >= 10 % of the value."""
+def _shift_run_values(setup: ModelSetup, nuisance: np.ndarray, runs: list[int], terms_rate: np.ndarray) -> ModelSetup:
+    """``setup`` with each run's run-level value moved as in the joint fit: by minus the least-squares share of the
+    terms' speed rate along the run's regressor (a relative step), kept at >= 10 % of the value."""
     if not runs:
         return setup
-    share = np.linalg.lstsq(nuisance, rest, rcond=None)[0] * _RUN_LEVEL_STEP
+    share = -np.linalg.lstsq(nuisance, terms_rate, rcond=None)[0] * _RUN_LEVEL_STEP
     ((name, values),) = setup.run_values
     factors = np.ones(len(values))
     factors[runs] = np.maximum(1.0 + share, 0.1)
@@ -777,7 +777,7 @@ def fit_other(traj: Trajectory, split: Split, horizon: int, base: Fit, s: SysidS
     def with_terms(a: np.ndarray, y: np.ndarray) -> ModelSetup:
         terms = terms_from_coefficients({n: c for n, c in zip(names, a) if c != 0.0},
                                         {n: c for n, c in zip(names, y) if c != 0.0})
-        shifted = _shift_run_values(plain, nuisance, nuisance_runs, -(theta @ a))
+        shifted = _shift_run_values(plain, nuisance, nuisance_runs, theta @ a)
         return dataclasses.replace(shifted, car=dataclasses.replace(car, other_terms=terms))
 
     def training_costs(setups: list[ModelSetup]) -> list[float]:

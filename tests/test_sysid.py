@@ -98,9 +98,10 @@ def test_two_effects_through_the_command_line(tmp_dir, tmp_path):
                          "dynamic_nominal", "planner_new_corrections", "heldout_error_reduction",
                          "unnamed_effect_remains", "dropped_after_other",
                          "not_identifiable", "heldout_runs", "geometry_diagnosis", "run_agreement",  # issue 32
-                         "claim_stability", "run_level"}  # issue 32: run-level parameters
+                         "claim_stability", "run_level", "other_cross_run"}  # issue 32: run-level parameters
     assert data["claim_stability"] == []  # one run: no run to leave out
     assert data["run_level"] == []  # one run: nothing is run-level
+    assert data["other_cross_run"] == []  # one run: `other` is not checked across runs
     assert data["significant"] is True and data["unnamed_effect_remains"] is False
     assert {e["effect"] for e in data["effects"]} == {"steering_offset", "actuation_delay"}
     for e in data["effects"]:
