@@ -563,16 +563,18 @@ class RunStability:
     dropped_run: int  # run index (Trajectory.runs)
     values: dict[str, float]  # the effect's parameters without that run
     verdict: CandidateResult  # against the model without the effect, fitted without that run
+    on_run: CandidateResult | None = None  # the same two models on the dropped run's windows (None: run excluded)
 
     @property
     def significant(self) -> bool:
-        return self.verdict.significant
+        return self.verdict.significant and (self.on_run is None or self.on_run.significant)
 
 
 def claim_stability(traj: Trajectory, split: Split, horizon: int, chosen: list[Candidate],
                     effect_steps: list[tuple[Fit, Fit]], current: Fit, s: SysidSettings) -> list[RunStability]:
     """Each claimed effect of the final named model ``current`` refitted with each training run left out (the
-    other effects refitted too), judged by the keep test against the model without it fitted on the same runs.
+    other effects refitted too), judged by the keep test against the model without it fitted on the same runs, on the
+    held-out data and on the left-out run's own windows (unless the agreement test excluded that run from the effect).
     A claim that needs one particular run is not a property of the car (docs/sysid.md, "Stable under leaving
     out a run"). Runs with fewer than MIN_RUN_WINDOWS fit windows, or excluded from every chosen effect, are
     not left out (their absence changes nothing)."""
@@ -595,7 +597,13 @@ def claim_stability(traj: Trajectory, split: Split, horizon: int, chosen: list[C
             if rest:  # the model without the effect, its other effects fitted without run r too
                 before = fit_candidates(traj, sp, horizon, before.setup, rest, s, before.effects)
             verdict = _judge(traj, sp, before, full, chosen[i].effect, s, channels=True)
-            return RunStability(chosen[i].effect, r, {p: full.values[p] for p in chosen[i].params}, verdict)
+            on_run = None
+            if r not in chosen[i].excluded_runs:  # a claim of the car also predicts a run it was not fitted on
+                own = Split(train=sp.train, heldout=thin(split.train[traj.run[split.train] == r], s.heldout_max_starts),
+                            fit=sp.fit)
+                on_run = _judge(traj, own, evaluate(traj, own, horizon, before.setup),
+                                evaluate(traj, own, horizon, full.setup), chosen[i].effect, s, channels=True)
+            return RunStability(chosen[i].effect, r, {p: full.values[p] for p in chosen[i].params}, verdict, on_run)
 
         return side_by_side([lambda i=i: check(i) for i in range(len(chosen))])
 

@@ -156,7 +156,12 @@ def result_json(result: SysidResult, car_params_out: str) -> dict[str, Any]:
              "params": {p: float(v) for p, v in k.values.items()}, "significant": k.significant,
              "heldout_error_reduction_vs_without": float(k.verdict.heldout_error_reduction),
              "heading_reduction": float(k.verdict.heading_reduction), "speed_reduction": float(k.verdict.speed_reduction),
-             "confidence": float(k.verdict.confidence)}
+             "confidence": float(k.verdict.confidence),
+             "on_run": None if k.on_run is None else {
+                 "significant": k.on_run.significant,
+                 "heldout_error_reduction_vs_without": float(k.on_run.heldout_error_reduction),
+                 "heading_reduction": float(k.on_run.heading_reduction),
+                 "speed_reduction": float(k.on_run.speed_reduction), "confidence": float(k.on_run.confidence)}}
             for k in result.claim_stability
         ],
         "run_level": [run_level_json(result, p) for p in result.run_level],
@@ -229,12 +234,14 @@ def instability_notes(result: SysidResult) -> list[str]:
     notes = []
     for effect in dict.fromkeys(k.effect for k in result.claim_stability if not k.significant):
         failing = [k for k in result.claim_stability if k.effect == effect and not k.significant]
-        runs = ", ".join(f"{Path(result.traj.runs[k.dropped_run].source).name} "
-                         f"({100 * k.verdict.heldout_error_reduction:.0f} % position, "
-                         f"{100 * k.verdict.heading_reduction:+.0f} % heading, {100 * k.verdict.speed_reduction:+.0f} % "
-                         f"speed)" for k in failing)
-        notes.append(f"{effect} is not stable across runs: without {runs} it fails the keep test on the held-out "
-                     "data; not claimed.")
+
+        def where(k) -> str:
+            v, on = (k.verdict, "held-out data") if not k.verdict.significant else (k.on_run, "run itself")
+            return (f"{Path(result.traj.runs[k.dropped_run].source).name} ({on}: {100 * v.heldout_error_reduction:.0f} % "
+                    f"position, {100 * v.heading_reduction:+.0f} % heading, {100 * v.speed_reduction:+.0f} % speed)")
+
+        notes.append(f"{effect} is not stable across runs: without {', '.join(where(k) for k in failing)} it fails the "
+                     "keep test; not claimed.")
     return notes
 
 
@@ -458,15 +465,20 @@ def markdown_report(result: SysidResult, log_path: str, car_in: str, car_out: st
     if result.claim_stability:
         lines += ["", "## Stable under leaving out a run", "",
                   "Each claim refitted with each training run left out and judged by the keep test on the same "
-                  "held-out data (docs/sysid.md, \"Stable under leaving out a run\"); the reported ± includes the "
-                  "jackknife's standard deviation of these values.", "",
-                  "| effect | run left out | parameters | held-out position / heading / speed vs without it | keep |",
-                  "|---|---|---|---|---|"]
+                  "held-out data and on the left-out run's own windows (docs/sysid.md, \"Stable under leaving out a "
+                  "run\"); the reported ± includes the jackknife's standard deviation of these values.", "",
+                  "| effect | run left out | parameters | held-out position / heading / speed vs without it | "
+                  "on the run left out | keep |",
+                  "|---|---|---|---|---|---|"]
+
+        def changes(v) -> str:
+            return (f"{100 * v.heldout_error_reduction:.1f} / {100 * v.heading_reduction:+.1f} / "
+                    f"{100 * v.speed_reduction:+.1f} %")
+
         for k in result.claim_stability:
             pars = "; ".join(f"`{p}` {v:.4g}" for p, v in k.values.items())
-            lines.append(f"| {k.effect} | {k.dropped_run + 1} | {pars} | {100 * k.verdict.heldout_error_reduction:.1f} / "
-                         f"{100 * k.verdict.heading_reduction:+.1f} / {100 * k.verdict.speed_reduction:+.1f} % | "
-                         f"{'yes' if k.significant else 'no'} |")
+            lines.append(f"| {k.effect} | {k.dropped_run + 1} | {pars} | {changes(k.verdict)} | "
+                         f"{'excluded' if k.on_run is None else changes(k.on_run)} | {'yes' if k.significant else 'no'} |")
         for note in instability_notes(result):
             lines += ["", note]
     if result.other_cross_run:
