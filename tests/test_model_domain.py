@@ -8,7 +8,9 @@ domain"), against independent references:
 - a merge-long instance (without its steering bound) that the solver without the setting and without the best-response restart does not solve
   (7 cars, seed 4: `stalled` after 730 iterations with
   `max_iter` 1000) converges with the setting, checked by bench.verify's common test (dynamics, collisions,
-  per-player stationarity) and the solver's second-order test."""
+  per-player stationarity) and the solver's second-order test;
+- a one-car game started with every steering angle at the box edge converges to its optimum (checked by SLSQP), so a
+  control at the edge does not end an attempt by itself."""
 import json
 import math
 from dataclasses import replace
@@ -20,7 +22,7 @@ from app.cli import main
 from bench import verify
 from bench.families import FAMILIES, family_problem
 from bench.merge_bench import COLLISION_TOL_M, DYNAMICS_TOL, STATIONARITY_REL_TOL
-from solver_cpp import _core, solve
+from solver_cpp import Agent, GameProblem, KinematicBicycle, QuadraticCost, WarmStart, _core, solve
 
 HALF_PI = 0.5 * np.pi
 # The family bounds steering at 0.6 rad; these games need the unbounded model to reach its domain's edge.
@@ -71,6 +73,27 @@ def test_merge_long_failure_converges_in_the_domain():
     assert np.abs(r.u[..., 1]).max() <= 0.99 * HALF_PI + 1e-12
     assert verify.dynamics_defect(problem, r.x, r.u) <= DYNAMICS_TOL
     assert verify.max_collision_violation_m(problem, r.x) <= COLLISION_TOL_M
+    assert np.all(verify.stationarity_residual(problem, r.x, r.u, relative=True) <= STATIONARITY_REL_TOL)
+
+
+@pytest.mark.parametrize("y_ref", [0.3, -0.3])
+@pytest.mark.parametrize("side", [1, -1])
+def test_a_start_at_the_domain_edge_recovers(y_ref, side):
+    """One car (no other player: its best response is its optimal control) whose optimum steers gently towards
+    y_ref, started with every steering angle at the edge of the domain box (domain_fraction 0.99), on either side;
+    one attempt, no order search. The edge must not end the solve: it converges to the optimum, which SLSQP from
+    the result cannot improve (bench.verify, independent of the solver), with every angle well inside the box."""
+    cost = QuadraticCost(x_ref=(0.0, y_ref, 2.0, 0.0), Q_ref=(0.0, 1.0, 0.1, 1.0), R=(0.1, 1.0), Q=(0.0,) * 4)
+    problem = GameProblem(dt=0.1, horizon=10, agents=[Agent(KinematicBicycle(lf=1.0, lr=1.0), (0.0, 0.0, 2.0, 0.0),
+                                                             cost)])
+    u0 = np.zeros((1, 10, 2))
+    u0[0, :, 1] = side * 0.5 * 0.99 * np.pi  # the box edge as the solver computes it
+    r = solve(problem, warm_start=WarmStart(u=u0), time_limit=0, max_iter=200,
+              restart=dict(count=0), order=dict(candidates=0))
+    assert r.status == "converged"
+    assert np.abs(r.u[..., 1]).max() < 0.5  # well inside the box
+    assert np.all(np.sign(r.u[0, :, 1][np.abs(r.u[0, :, 1]) > 1e-3]) == np.sign(y_ref))  # steers towards y_ref
+    assert verify.best_response_gap(problem, r.x, r.u, 0, starts=2) <= 1e-6
     assert np.all(verify.stationarity_residual(problem, r.x, r.u, relative=True) <= STATIONARITY_REL_TOL)
 
 
