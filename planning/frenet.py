@@ -3,8 +3,6 @@ table, track limits as bounds on ey, the collision distance, continuous (unwrapp
 from __future__ import annotations
 
 import math
-from functools import lru_cache
-
 import numpy as np
 
 from solver_cpp import KinematicBicycleFrenet
@@ -89,11 +87,17 @@ class FrenetTrackModel:
                                            0.5 * g.footprint_width_m)
         self._window_key: tuple[float, float] | None = None  # the last window's (min, max) progress
         self._window_limits = (math.nan, math.nan, math.nan)
+        self._rollout_models: dict[float, object] = {}  # dt -> this model's own C++ model (rollout_model)
 
-    @lru_cache(maxsize=8)
     def rollout_model(self, dt: float):
-        """C++ model with time step dt (for predicting the state over the actuation delay)."""
-        return self.model.build(dt)
+        """C++ model with time step dt (for predicting the state over the actuation delay), built at the
+        first call with that dt and kept by this track model. Why not a functools.lru_cache on the method:
+        that is one cache of the class, shared by every car's track model, which the planners of one control
+        step (race.planning.RacePlanners) would fill and evict concurrently, and it kept every model alive."""
+        model = self._rollout_models.get(dt)
+        if model is None:
+            model = self._rollout_models[dt] = self.model.build(dt)
+        return model
 
     def window(self, s_values) -> np.ndarray:
         """Arc lengths covering the planning window from the given progress values (1 cm spacing)."""

@@ -23,7 +23,7 @@ pursuit, or none for a human-driven car).
   loop applies the latest plan. The C++ solver releases the GIL, so a solve does not stall the loop.
 * Several cars on several cores: :class:`RacePlanners` gives every car's plan of one step to a pool
   of ``RaceSetup.planner_threads`` threads (1: in turn, in the calling thread). Each car's inputs are
-  fixed before the step's plans start and each planner (solver, warm start) belongs to one car, so a
+  fixed before the step's plans start and each planner (solver, warm start, rollout models) belongs to one car, so a
   car's plan does not depend on which thread ran it or when; the C++ solves run in parallel.
 """
 from __future__ import annotations

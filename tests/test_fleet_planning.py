@@ -123,6 +123,76 @@ def test_planners_in_two_threads_give_the_plans_made_in_turn():
             np.testing.assert_array_equal(a.plan.x, b.plan.x)
 
 
+def test_planners_in_two_threads_give_the_plans_made_in_turn_with_a_car_off_the_track():
+    """As above with mpc3 0.5 m outside the track's edge, heading away from it (buzzracer:full seed 19:
+    an MPC car leaves the track at the start and circles outside it): after the cold plan it falls back,
+    the other cars plan around it; every plan is the same with 2 threads as in turn."""
+    setup = RaceSpec(roster=parse_cars("rd3g,rd3g,mpc,mpc"), seed=3).load()
+    jobs = _jobs(setup, 6)
+    for job in jobs:
+        x = job.states["mpc3"]
+        s, ey, _ = setup.track.to_frenet(x[0], x[1])
+        out = 0.5 * float(setup.track.width(s)) + 0.5  # 0.5 m beyond the edge on the car's side
+        heading = float(setup.track.heading(s))
+        side = 1.0 if float(ey) >= 0 else -1.0
+        x[0] -= side * out * np.sin(heading)
+        x[1] += side * out * np.cos(heading)
+        x[2] = heading + side * 0.8
+        assert not setup.track.is_inside(x[0], x[1])
+    results = {}
+    for threads in (1, 2):
+        planners = RacePlanners(dataclasses.replace(setup, planner_threads=threads))
+        try:
+            results[threads] = [planners.plan(job) for job in jobs]
+        finally:
+            planners.close()
+    for one, two in zip(results[1], results[2]):
+        for name in setup.names:
+            a, b = one.cars[name], two.cars[name]
+            assert (a.throttle, a.steering_rad, a.plan.used, a.plan.error) == (b.throttle, b.steering_rad, b.plan.used, b.plan.error)
+            np.testing.assert_array_equal(a.plan.x, b.plan.x)
+
+
+def test_each_cars_rollout_models_are_its_own_and_agree_when_used_concurrently():
+    """Every car's track model keeps its own C++ rollout models (one per time step; a cache shared by the
+    class would be filled and evicted by the planners of one step at once), and rolling out from several
+    threads at the same time gives the rollouts computed in turn, which match an explicit Euler step of the
+    Frenet kinematic bicycle (the model's equations, computed here) on a straight."""
+    setup = RaceSpec(roster=parse_cars("mpc,mpc,mpc,mpc"), seed=0).load()
+    planners = RacePlanners(dataclasses.replace(setup, planner_threads=1))
+    models = [planners.models[name].tm for name in setup.names]
+    dts = (0.1, setup.control_period_s, 0.05, 0.02, 0.04)
+    assert len({id(tm.rollout_model(dt)) for tm in models for dt in dts}) == len(models) * len(dts)
+    assert all(tm.rollout_model(dt) is tm.rollout_model(dt) for tm in models for dt in dts)
+    x0 = np.array([4.2, 0.02, 1.0, 0.01])  # on the oval's straight (curvature 0)
+    u = np.tile([0.5, 0.05], (20, 1))
+    in_turn = {(i, dt): np.asarray(tm.rollout_model(dt).rollout(x0, u)) for i, tm in enumerate(models) for dt in dts}
+    barrier, concurrent = threading.Barrier(len(models), timeout=20.0), {}
+
+    def roll(i):
+        barrier.wait()
+        for _ in range(50):
+            for dt in dts:
+                concurrent[i, dt] = np.asarray(models[i].rollout_model(dt).rollout(x0, u))
+
+    workers = [threading.Thread(target=roll, args=(i,)) for i in range(len(models))]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    assert concurrent.keys() == in_turn.keys()
+    for key, x in in_turn.items():
+        np.testing.assert_array_equal(concurrent[key], x)
+    g = setup.car.geometry
+    for dt in dts:  # the reference: explicit Euler on the straight (kappa 0)
+        x = x0.copy()
+        for a, delta in u:
+            beta = np.arctan(g.lr_m * np.tan(delta) / (g.lf_m + g.lr_m))
+            x = x + dt * np.array([x[2] * np.cos(x[3] + beta), x[2] * np.sin(x[3] + beta), a, x[2] * np.sin(beta) / g.lr_m])
+        assert setup.track.curvature(x[0]) == 0
+        np.testing.assert_allclose(in_turn[0, dt][-1], x, rtol=1e-12, atol=1e-12)
+
+
 def test_the_plans_of_one_step_run_at_the_same_time(monkeypatch):
     """Two cars' plans meet at a two-party barrier: with the pool both wait there together; in turn the
     first would wait alone (BrokenBarrierError after the timeout)."""
