@@ -71,7 +71,7 @@ class PlannerConfig:
     # is more than the footprint distance (2 radii + collision_margin_m, 0.195 m for the default car);
     # along the track it keeps the footprint distance (FrenetTrackModel). 0 = the footprint distance in
     # every direction. With the footprint distance sideways one car could not cover both sides of the
-    # oval's 0.5 m track and the paper's front/slow defence won 7 of 40 races (seeds 0-39), with 0.25 m
+    # oval's 0.45 m of drivable width and the paper's front/slow defence won 7 of 40 races (seeds 0-39), with 0.25 m
     # 32 of 40, neither with a contact (docs/racing.md).
     lateral_clearance_m: float = 0.25
     # When the cars are already closer than the collision distance, the plan's d_min starts at what is

@@ -325,7 +325,7 @@ class _RecedingHorizon:
         replaced by the closed-loop tracking control towards _fallback_reference. Not towards the
         previous plan: after a fallback that is the car's own rollout, so a run of fallbacks saw no
         error and held the car's heading, off the track. ``others``: the other cars' (s, ey) now, which a
-        fallback on the racing line does not steer towards (_clear_of_alongside)."""
+        fallback does not steer towards (_clear_of_alongside)."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
         x_ref, a_ref = self._fallback_reference(x0, top_speed)
         x_ref = np.array(x_ref, dtype=float)
