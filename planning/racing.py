@@ -256,9 +256,11 @@ class _RecedingHorizon:
         of a plan moves with the racing line's speed, below the last plan's speeds. Following the racing
         line (3 cm inside the bound), most warm starts were infeasible so, and an infeasible warm start is
         where the solves fell back (oval, `batch --line racing --races 1 --seed 3`: 69 of 71 fallbacks,
-        16 % of such starts against 1 % of feasible ones; docs/racing.md)."""
-        if warm is None:
-            return None
+        16 % of such starts against 1 % of feasible ones; docs/racing.md). Following the racing line only:
+        the centre line's plans stay clear of the bounds and fell back in 1.7 % of the steps; its measured
+        races stay as they are."""
+        if warm is None or self.line is None:
+            return warm
         c = self.config
         model = self.tm.rollout_model(c.plan_dt_s)
         u = np.array(warm.u, dtype=float)
