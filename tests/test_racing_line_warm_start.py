@@ -1,0 +1,101 @@
+"""Following the racing line: the warm start made feasible before a solve (_RecedingHorizon._inside_bounds),
+checked against accelerations worked by hand and against the plan's own bounds on a circle track, and the
+other cars of RD3G's game on their own line (RacingPlanner.line_for)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planning import CommandMapper, FrenetTrackModel, MPCOpponent, PlannerConfig, RacingPlanner
+from planning.frenet import EY, V
+from planning.reference import planner_racing_line
+from solver_cpp import GameProblem, WarmStart
+from tracks.io import load_track
+from vehicles.params import load_car_params
+
+from test_stage_reference import constant_line, ring
+
+DT = 0.1
+
+
+def _mpc_on_the_ring(line_ey=0.0, line_speed=1.2):
+    track, car = ring(), load_car_params("buzzracer")
+    config = PlannerConfig(top_speed_mps=2.0, line="racing")
+    planner = MPCOpponent(FrenetTrackModel(track, car, config), CommandMapper(car, 1 / 30, config.max_brake_mps2),
+                          config, 1 / 30)
+    planner.line = constant_line(track, line_ey, line_speed)
+    return planner
+
+
+def _problem(planner, x0, top):
+    limits = planner.ey_limits([x0[0]])
+    agent = planner._agent(x0, top, limits, planner._cost(top, None, x0), 0.0)
+    return GameProblem(dt=DT, horizon=planner.config.horizon, agents=[agent]), limits
+
+
+def _rollout(planner, x0, u):
+    return np.asarray(planner.tm.rollout_model(DT).rollout(np.asarray(x0, dtype=float), u))
+
+
+def _steer_along(planner, radius):
+    """Wheel angle whose kinematic-bicycle CG path has curvature 1/radius: sin(beta)/lr = 1/radius,
+    tan(delta) = (lf + lr) tan(beta) / lr."""
+    g = planner.tm.car.geometry
+    beta = np.arcsin(g.lr_m / radius)
+    return float(np.arctan((g.lf_m + g.lr_m) * np.tan(beta) / g.lr_m))
+
+
+def test_speed_over_the_bound_lowers_only_the_accelerations():
+    # From 1.0 m/s on the centre line at 3 m/s^2 against a 1.2 m/s bound: by hand the first step may
+    # accelerate (1.2 - 1.0) / 0.1 = 2 m/s^2, every later one 0; the steering (along the circle) is kept.
+    planner = _mpc_on_the_ring()
+    x0 = np.array([1.0, 0.0, 1.0, 0.0])
+    problem, _ = _problem(planner, x0, top=1.2)
+    steer = _steer_along(planner, 1.0)
+    u = np.tile([3.0, steer], (planner.config.horizon, 1))
+    warm = planner._inside_bounds(problem, WarmStart(u=u[None]))
+    repaired = np.asarray(warm.u)[0]
+    assert repaired[:, 1] == pytest.approx(u[:, 1], abs=0)
+    assert repaired[:, 0] == pytest.approx([2.0] + [0.0] * (planner.config.horizon - 1), abs=1e-9)
+
+
+def test_a_plan_running_off_the_track_is_steered_back_inside():
+    # Straight wheels on the unit circle leave it to the outside (ey < 0): 1.5 m/s for 1 s is 1.5 m of a
+    # tangent, which ends sqrt(1 + 1.5^2) - 1 = 0.80 m outside the circle, far beyond the bound.
+    planner = _mpc_on_the_ring()
+    x0 = np.array([1.0, 0.0, 1.5, 0.0])
+    problem, (low, high) = _problem(planner, x0, top=2.0)
+    u = np.zeros((planner.config.horizon, 2))
+    assert np.min(_rollout(planner, x0, u)[1:, EY]) < low            # the warm start leaves the bound
+    warm = planner._inside_bounds(problem, WarmStart(u=u[None]))
+    x = _rollout(planner, x0, np.asarray(warm.u)[0])
+    assert np.all(x[1:, EY] >= low) and np.all(x[1:, EY] <= high)
+    assert np.all(x[1:, V] <= 2.0 + 1e-9)
+
+
+def test_a_feasible_warm_start_is_kept():
+    planner = _mpc_on_the_ring()
+    x0 = np.array([1.0, 0.0, 1.0, 0.0])
+    problem, _ = _problem(planner, x0, top=1.2)
+    u = np.tile([0.5, _steer_along(planner, 1.0)], (planner.config.horizon, 1))
+    u[2:, 0] = 0.0                                                                 # 1.0, 1.05, 1.1 m/s, then constant: below 1.2
+    warm = planner._inside_bounds(problem, WarmStart(u=u[None]))
+    assert np.asarray(warm.u)[0] == pytest.approx(u, abs=0)
+
+
+def test_other_cars_of_the_game_race_their_own_line():
+    # A slow RD3G car (1.6 m/s) and a 2 m/s opponent on the oval: the opponent's line is the one a 2 m/s car
+    # races, whose speed reaches 2 m/s on the straights; on the slow car's line (at most 1.6 m/s) the
+    # opponent at 2 m/s would be bound to slow down by 0.2 m/s in every plan.
+    track, car = load_track("oval"), load_car_params("buzzracer")
+    config = PlannerConfig(top_speed_mps=1.6, line="racing")
+    planner = RacingPlanner(FrenetTrackModel(track, car, config), CommandMapper(car, 1 / 30, config.max_brake_mps2),
+                            config, 1 / 30, opponent_top_speed_mps=2.0)
+    fast = planner.line_for(2.0)
+    assert float(np.max(planner.line.speed_mps)) <= 1.6 + 1e-9
+    assert float(np.max(fast.speed_mps)) == pytest.approx(2.0)
+    assert planner.line_for(1.6) is planner.line
+    assert fast.speed_mps == pytest.approx(planner_racing_line(track, car, 2.0, config).speed_mps)
+    s_top = float(fast.s[int(np.argmax(fast.speed_mps))])                 # where the 2 m/s line is at its top speed
+    x_other = np.array([s_top, float(fast.lateral_offset(s_top)), 2.0, 0.0])
+    assert planner.speed_cap(x_other, 2.0, planner._stages(x_other, fast)) > 1.8
