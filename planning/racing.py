@@ -246,44 +246,35 @@ class _RecedingHorizon:
         return WarmStart(u=u_new, lam=lam_new)
 
     def _inside_bounds(self, problem: GameProblem, warm: WarmStart | None) -> WarmStart | None:
-        """The warm start made feasible for each agent's track-limit bounds and top speed, changing as little
-        as it can: every acceleration lowered to what keeps the speed at most the top speed (the steering
-        kept), and if a planned state still leaves the track-limit bounds, the steering from two steps
-        before it (the heading acts on ey from two steps on) replaced by closed-loop tracking
-        (tracking_control) of the agent's cost's lateral reference at each stage, held inside the bounds.
-        Why: a plan often ends on a bound (nothing beyond the horizon pulls it back), and shifted by one
-        control period its held last control carries the last stage over the bound; and the speed bound
-        of a plan moves with the racing line's speed, below the last plan's speeds. Following the racing
-        line (3 cm inside the bound), most warm starts were infeasible so, and an infeasible warm start is
-        where the solves fell back (oval, `batch --line racing --races 1 --seed 3`: 69 of 71 fallbacks,
-        16 % of such starts against 1 % of feasible ones; docs/racing.md). Following the racing line only:
-        the centre line's plans stay clear of the bounds and fell back in 1.7 % of the steps; its measured
-        races stay as they are."""
+        """Following the racing line: the warm start with each agent's steering, from two steps before the
+        first planned state that leaves its track-limit bounds (the heading acts on ey from two steps on),
+        replaced by closed-loop tracking (tracking_control) of the agent's cost's lateral reference at each
+        stage, held inside the bounds; accelerations kept. Why: a plan often ends on a bound (nothing beyond
+        the horizon pulls it back), and shifted by one control period its held last control carries the
+        last stage over the bound. Following the racing line, 3 cm inside the bound, most warm starts were
+        infeasible so, and an infeasible warm start is where the solves fell back (oval, `batch --line
+        racing --races 1 --seed 3`: 69 of 71 fallbacks; 16 % of such starts fell back, 1 % of feasible ones;
+        docs/racing.md). Lowering the accelerations of warm starts above the speed bound as well made the
+        solo laps slower (buzzracer:full 10.74 s against 9.71 s) for no fewer fallbacks. On the centre line
+        the plans stay clear of the bounds (1.7 % fallbacks), and its measured races stay as they are."""
         if warm is None or self.line is None:
             return warm
         c = self.config
         model = self.tm.rollout_model(c.plan_dt_s)
         u = np.array(warm.u, dtype=float)
         for i, agent in enumerate(problem.agents):
-            lo, hi, top = float(agent.x_min[EY]), float(agent.x_max[EY]), float(agent.x_max[V])
+            lo, hi = float(agent.x_min[EY]), float(agent.x_max[EY])
+            x = np.asarray(model.rollout(np.asarray(agent.x0, dtype=float), u[i]))
+            out = np.flatnonzero((x[1:, EY] > hi) | (x[1:, EY] < lo))
+            if len(out) == 0:
+                continue
             refs = (np.tile(agent.cost.x_ref, (c.horizon, 1)) if agent.cost.x_ref_steps is None
                     else np.asarray(agent.cost.x_ref_steps, dtype=float))
-            steer_from = c.horizon
-            for attempt in range(2):  # speed only; then the steering too, from steer_from on
-                x = np.empty((c.horizon + 1, 4))
-                x[0] = np.asarray(agent.x0, dtype=float)
-                for j in range(c.horizon):
-                    a = min(float(u[i, j, 0]), (top - float(x[j, V])) / c.plan_dt_s)
-                    u[i, j, 0] = max(a, float(agent.u_min[0]))
-                    if j >= steer_from:
-                        x_ref = np.array([x[j, S], float(np.clip(refs[j, EY], lo, hi)), x[j, V], 0.0])
-                        u[i, j, 1] = np.clip(self.tracking_control(x[j], x_ref, 0.0, max(-lo, hi), top)[1],
-                                             agent.u_min[1], agent.u_max[1])
-                    x[j + 1] = np.asarray(model.rollout(x[j], u[i, j][None]))[-1]
-                out = np.flatnonzero((x[1:, EY] > hi) | (x[1:, EY] < lo))
-                if attempt or len(out) == 0:
-                    break
-                steer_from = max(int(out[0]) - 1, 0)
+            for j in range(max(int(out[0]) - 1, 0), c.horizon):
+                x_ref = np.array([x[j, S], float(np.clip(refs[j, EY], lo, hi)), x[j, V], 0.0])
+                u[i, j, 1] = np.clip(self.tracking_control(x[j], x_ref, 0.0, max(-lo, hi))[1],
+                                     agent.u_min[1], agent.u_max[1])
+                x[j + 1] = np.asarray(model.rollout(x[j], u[i, j][None]))[-1]
         return WarmStart(u=u, lam=warm.lam, mu=warm.mu)
 
     def tracking_control(self, x0, x_ref, a_ref: float, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
