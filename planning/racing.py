@@ -277,6 +277,27 @@ class _RecedingHorizon:
                 x[j + 1] = np.asarray(model.rollout(x[j], u[i, j][None]))[-1]
         return WarmStart(u=u, lam=warm.lam, mu=warm.mu)
 
+    def _tracking_guess(self, problem: GameProblem, warm: WarmStart) -> WarmStart | None:
+        """Following the racing line, the retry's initial guess: every agent's controls by closed-loop tracking
+        (tracking_control) of its cost's stage references (lateral offset inside its track-limit bounds,
+        speed at most its top speed), the multipliers of the warm start; None (the solver's own guess, zero
+        controls) on the centre line."""
+        if self.line is None:
+            return None
+        c = self.config
+        model = self.tm.rollout_model(c.plan_dt_s)
+        u = np.zeros_like(np.asarray(warm.u, dtype=float))
+        for i, agent in enumerate(problem.agents):
+            lo, hi, top = float(agent.x_min[EY]), float(agent.x_max[EY]), float(agent.x_max[V])
+            refs = (np.tile(agent.cost.x_ref, (c.horizon, 1)) if agent.cost.x_ref_steps is None
+                    else np.asarray(agent.cost.x_ref_steps, dtype=float))
+            x = np.asarray(agent.x0, dtype=float)
+            for j in range(c.horizon):
+                x_ref = np.array([x[S], float(np.clip(refs[j, EY], lo, hi)), min(float(refs[j, V]), top), 0.0])
+                u[i, j] = np.clip(self.tracking_control(x, x_ref, 0.0, max(-lo, hi), top), agent.u_min, agent.u_max)
+                x = np.asarray(model.rollout(x, u[i, j][None]))[-1]
+        return WarmStart(u=u, lam=warm.lam, mu=warm.mu)
+
     def tracking_control(self, x0, x_ref, a_ref: float, ey_bound: float, top_speed: float | None = None) -> np.ndarray:
         """Closed-loop fallback control [a, delta] when no usable plan exists: the Stanley lateral
         law on the Frenet errors to the reference state x_ref (the last used plan's state for now,
@@ -543,7 +564,7 @@ class _RecedingHorizon:
             # plan that now violates a constraint): without a retry every later step starts from the
             # same stale plan and falls back too. One retry from the solver's own initial guess.
             solver.update_settings(self._retry_settings)
-            result = solver.solve(None)
+            result = solver.solve(self._tracking_guess(problem, warm))
         finite = bool(np.all(np.isfinite(result.u)))
         if result.converged and finite and np.all(np.isfinite(result.x)):
             used, u_all = "converged", result.u

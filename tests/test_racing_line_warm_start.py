@@ -90,3 +90,17 @@ def test_other_cars_of_the_game_race_their_own_line():
     s_top = float(fast.s[int(np.argmax(fast.speed_mps))])                 # where the 2 m/s line is at its top speed
     x_other = np.array([s_top, float(fast.lateral_offset(s_top)), 2.0, 0.0])
     assert planner.speed_cap(x_other, 2.0, planner._stages(x_other, fast)) > 1.8
+
+
+def test_the_retry_guess_tracks_the_line_inside_the_bounds():
+    # From 0.1 m inside the ring's centre line, heading 0.3 rad outwards at 1.8 m/s against a 1.2 m/s bound:
+    # the guess turns back towards the line (ey 0) and slows to the bound, inside the track-limit bounds.
+    planner = _mpc_on_the_ring()
+    x0 = np.array([1.0, 0.1, 1.8, 0.3])
+    problem, (low, high) = _problem(planner, x0, top=1.2)
+    guess = planner._tracking_guess(problem, WarmStart(u=np.zeros((1, planner.config.horizon, 2))))
+    x = _rollout(planner, x0, np.asarray(guess.u)[0])
+    assert np.all(x[1:, EY] >= low) and np.all(x[1:, EY] <= high)
+    assert abs(x[-1, EY]) < 0.1 and x[-1, V] <= 1.2 + 1e-9 and x[-1, V] > 1.0
+    planner.line = None                                                 # the centre line: the solver's own guess
+    assert planner._tracking_guess(problem, guess) is None
