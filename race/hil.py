@@ -711,6 +711,7 @@ class HilWorld:
             packet.box_corrupt = max(packet.box_corrupt, info["box_corrupt"])
             packet.box_failsafe_events = info["box_failsafe_events"]
             packet.dropped = info["dropped"]
+            packet.truths.append((info["index"], info["truth"], info["t_race"]))
             newest = info
         if newest is not None:
             if newest["slot"] is not None:  # None: HIL on mocap, the poses went out over NatNet
