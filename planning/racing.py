@@ -200,7 +200,10 @@ class _RecedingHorizon:
         a_min, a_max = self.mapper.acceleration_bounds(float(x0[V]))
         return Agent(self.tm.model, x0=list(map(float, x0)), cost=cost,
                      u_min=[a_min, self.mapper.delta_min], u_max=[a_max, self.mapper.delta_max],
-                     x_min=[-np.inf, ey_limits[0], -np.inf, -np.inf], x_max=[np.inf, ey_limits[1], top_speed, np.inf],
+                     # Racing plans never reverse (a car rolling backwards may keep its speed, not grow it);
+                     # 1 mm/s below a top speed of 0 (a car held behind a standing one) keeps the bounds apart.
+                     x_min=[-np.inf, ey_limits[0], min(0.0, float(x0[V]), top_speed - 1e-3), -np.inf],
+                     x_max=[np.inf, ey_limits[1], top_speed, np.inf],
                      lead_weight=lead, lead_index=S)
 
     def _shifted(self, a: np.ndarray) -> np.ndarray:

@@ -48,8 +48,7 @@ def test_behind_a_standing_car_the_recovery_asks_only_for_the_room_there_is(lane
     than hypot(a 0.17, ey_max) (a the constraint's along-track scale, ey_max the track-limit bound), below
     the 0.25 m the old ramp asked for from the seventh step on. The only plans meeting that reversed (seed
     19 of the four-car race on buzzracer:full left the track so). The recovery now asks for what standing
-    still keeps (checked on the problem the solver got) and the plan is used. The planning model itself
-    allows v < 0, so the test reads the requirement, not whether the optimum backs up for a run-up."""
+    still keeps (checked on the problem the solver got) and the plan is used; it never reverses."""
     p = _planner(cls, lane, car) if cls is MPCOpponent else _planner(cls, lane, car, opponent_top_speed_mps=1.8)
     g = car.geometry
     ey_max = (0.5 * WIDTH - (0.5 * g.footprint_width_m * math.cos(p.config.heading_allowance_rad)
@@ -71,6 +70,7 @@ def test_behind_a_standing_car_the_recovery_asks_only_for_the_room_there_is(lane
     assert required[0] == pytest.approx(plan.d_min) and plan.d_min < nominal
     gap = frenet_separation(*(plan.x[0, 1:, :2] - np.asarray(obstacle.positions)[1:]).T, scale)
     assert np.all(gap >= required - p.config.accept_violation_m)
+    assert np.all(plan.x[0, :, 2] >= -1e-6) and np.all(np.diff(plan.x[0, :, 0]) >= -1e-6)  # no speed, no step back
 
 
 @pytest.mark.parametrize("cls", [MPCOpponent, RacingPlanner])
@@ -89,3 +89,19 @@ def test_a_pair_not_too_close_keeps_the_nominal_distance(lane, car, cls):
     other = np.column_stack([x_other[0] + 1.0 * t, np.zeros_like(t)])  # independent constant-speed prediction
     gap = frenet_separation(*(plan.x[0, 1:, :2] - other).T, scale)
     assert np.all(gap >= nominal - p.config.accept_violation_m)
+
+
+@pytest.mark.parametrize("cls", [MPCOpponent, RacingPlanner])
+def test_a_car_rolling_back_is_seen_rolling_back_and_not_sped_up_backwards(lane, car, cls):
+    """The planner's state of a car rolling backwards (body vx < 0) has a negative speed (planning.frenet_state:
+    a reversing car read as moving forward was braked further back); its plan never reverses faster."""
+    from planning import frenet_state
+
+    p = _planner(cls, lane, car) if cls is MPCOpponent else _planner(cls, lane, car, opponent_top_speed_mps=1.8)
+    x, y, heading = lane.to_cartesian(np.array([S0]), np.array([0.0]), np.array([0.0]))
+    state = np.array([x[0], y[0], heading[0], -0.3, 0.0, 0.0])  # on the centre line, rolling back at 0.3 m/s
+    x_self = frenet_state(lane, state)
+    assert x_self[0] == pytest.approx(S0, abs=1e-6) and x_self[2] == pytest.approx(-0.3)
+    x_other = np.array([S0 + 1.5, 0.0, 0.0, 0.0])
+    plan = _plan(p, x_self, x_other)
+    assert np.all(plan.x[0, :, 2] >= -0.3 - 1e-6)
