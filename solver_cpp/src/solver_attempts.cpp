@@ -1,5 +1,5 @@
 // The solve's attempt schedule: initial guess, restarts (barrier variants, perturbed controls, best response,
-// escapes from saddles), the passing-order rescue after them, the globalisation rules of an attempt, stall handling
+// escapes from saddles), the passing-order rescue among them, the globalisation rules of an attempt, stall handling
 // and the result.
 #include "rd3g/solver.hpp"
 
