@@ -166,11 +166,11 @@ def test_the_rescue_turns_a_failed_schedule_into_a_verified_equilibrium():
 
 def test_the_search_before_the_seeded_restarts_reaches_a_merge_the_restarts_miss():
     """Table I's 7 cars seed 70 fails through one pair: main-lane car 2 (x 11.4 m, 2.36 m/s) and merging car 4
-    (1.1 m behind it, 2.59 m/s). Alone, the two are the same game: the barrier variants, the best-response attempt and
-    the seeded restarts all end where car 2 stays ahead (a stall, no equilibrium there) or side by side (a saddle), and
-    only the passing-order search's guess with car 4 first reaches the equilibrium. It runs after restart attempt 3,
-    so the equilibrium comes within max_iter (run only after the 19 restarts, the search needed its own budget on
-    top: 1072 iterations)."""
+    (1.1 m behind it, 2.59 m/s). Alone, the two are the same game: most of the barrier variants, the best-response
+    attempt and the seeded restarts stall where car 2 stays ahead (not an equilibrium) or converge side by side (a
+    saddle), and the passing-order search's guess with car 4 first reaches the equilibrium. It runs after restart
+    attempt 3, so the equilibrium comes within max_iter (run only after the 19 restarts, the search needed its own
+    budget on top: over 1000 iterations in all)."""
     import dataclasses
 
     from bench.merging import merging_problem
