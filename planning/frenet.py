@@ -15,10 +15,11 @@ S, EY, V, EPSI = range(4)
 
 def frenet_state(track, state) -> np.ndarray:
     """Simulator/estimator state [x, y, heading, vx, vy, yaw_rate] -> planner state [s, ey, v, epsi]
-    with s wrapped to [0, length) and v the speed of the CG (the kinematic model's v)."""
+    with s wrapped to [0, length) and v the speed of the CG (the kinematic model's v), negative when the
+    car rolls backwards (vx < 0): a reversing car seen as moving forward would be braked further back."""
     x, y, heading, vx, vy = (float(c) for c in np.asarray(state, dtype=float)[:5])
     s, ey, epsi = track.to_frenet(np.array([x]), np.array([y]), np.array([heading]))
-    return np.array([float(s[0]), float(ey[0]), math.hypot(vx, vy), float(epsi[0])])
+    return np.array([float(s[0]), float(ey[0]), math.copysign(math.hypot(vx, vy), vx), float(epsi[0])])
 
 
 class ProgressUnwrapper:

@@ -1,6 +1,7 @@
 """A world without its own simulator (real hardware: the camera feed, app.realtime.hardware.CameraFeed)
 behind the loop's World interface (race.world): laps, contacts and the winner are judged by the one
-referee (race.referee.Referee) from the loop's perceived states, and those states are the world's
+referee (race.referee.Referee) from the loop's perceived states (off-track excursions too, with the
+simulator's rule that progress made off the track does not count), and those states are the world's
 best knowledge of where the cars are (recorded as their positions)."""
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Callable
 
 import numpy as np
 
-from race.referee import Referee, event_text
+from race.referee import Referee
 from race.world import Feed, WorldPacket, WorldSummary
 
 
@@ -20,7 +21,8 @@ class FeedWorld:
     def __init__(self, feed: Feed, setup, names, states_at: Callable[[float], dict]) -> None:
         self.feed, self.setup, self.names = feed, setup, list(names)
         self.states_at = states_at
-        self.referee = Referee(setup.track, setup.car, self.names, setup.laps)
+        self.referee = Referee(setup.track, setup.car, self.names, setup.laps,
+                               off_track_allowance_car_lengths=setup.off_track_allowance_car_lengths)
         self.t_go: float | None = None
         self._t_race = 0.0
 
@@ -41,7 +43,9 @@ class FeedWorld:
         answer = WorldPacket(truth=truth, t_race=t_race)
         if len(states) == len(self.names):
             for ev in self.referee.observe(t_race, truth):
-                answer.events.append((t_race, ev.kind, event_text(ev, self.names)))
+                entry = self.referee.log_entry(ev)
+                if entry is not None:
+                    answer.events.append((t_race, *entry))
             ref = self.referee
             if ref.winner is not None and (self.setup.finish == "first" or ref.all_finished):
                 answer.winner = ref.winner
@@ -56,4 +60,5 @@ class FeedWorld:
         return WorldSummary(winner=ref.winner if decided else None, lap_times_s=ref.lap_times_s,
                             min_gap_m=ref.min_gap_m if math.isfinite(ref.min_gap_m) else None,
                             collisions=list(ref.collisions), race_time_s=self._t_race, finish_order=order,
-                            results=ref.results(order, ref.lap_times_s, self.setup.laps))
+                            results=ref.results(order, ref.lap_times_s, self.setup.laps),
+                            off_track=dict(ref.off_track))

@@ -44,6 +44,7 @@ from sim import Simulator
 from sim.camera import CarAppearance, CarPose, SyntheticCamera, TrackDrawing, overhead_camera
 from sim.camera_profile import CameraProfile, DelayedDelivery
 from sim.natnet_emulator import MotiveEmulator
+from sim.race import OFF_TRACK_ALLOWANCE_CAR_LENGTHS
 from tracking.calibration import aruco_dictionary_id, load_fixed_markers
 from tracking.camera import Frame
 from tracking.mocap import MocapTransform, mocap_body
@@ -92,6 +93,7 @@ class WorldSpec:
     # Lap/collision/track-limit checks every 10 ms instead of the simulator's 5 ms: the checks cost as
     # much as the physics in real time; at racing closing speeds (< 1 m/s) a car moves 1 cm between checks.
     check_dt_s: float = 0.01
+    off_track_allowance_car_lengths: float = OFF_TRACK_ALLOWANCE_CAR_LENGTHS  # race.setup.RaceSetup's
     corrupt_byte_rate: float = 0.5    # serial_corrupt: fraction of bytes with one flipped bit
     slots: int = 8
     link_protocol: str = "rd3g"       # what the virtual box decodes (vehicles.link_protocols.PROTOCOLS)
@@ -359,7 +361,8 @@ class _World:
         w, h = spec.image_size
         self.frames = np.ndarray((spec.slots, h, w), dtype=np.uint8, buffer=shm.buf)
         self.sim = Simulator(spec.track, [spec.car] * n, seed=spec.seed, physics_dt=spec.physics_dt_s,
-                             laps_to_win=spec.laps, check_dt=spec.check_dt_s)
+                             laps_to_win=spec.laps, check_dt=spec.check_dt_s,
+                             off_track_allowance_car_lengths=spec.off_track_allowance_car_lengths)
         self.sim.reset(np.asarray(spec.start_states, dtype=float))
         self.box = BoxMirror(box_conn, spec.failsafe_timeout_s)
         while self.box.path is None:
@@ -711,6 +714,7 @@ class HilWorld:
             packet.box_corrupt = max(packet.box_corrupt, info["box_corrupt"])
             packet.box_failsafe_events = info["box_failsafe_events"]
             packet.dropped = info["dropped"]
+            packet.truths.append((info["index"], info["truth"], info["t_race"]))
             newest = info
         if newest is not None:
             if newest["slot"] is not None:  # None: HIL on mocap, the poses went out over NatNet

@@ -696,6 +696,7 @@ def setup_document(setup, config: LoopConfig, mode: str, cars: list[CarBinding],
            "start": setup.start, "opponent": opponent, "rd3g_top_speed_mps": setup.rd3g_top_speed_mps,
            "opponent_top_speed_mps": setup.opponent_top_speed_mps, "max_time_s": setup.max_time_s,
            "planning_period_s": setup.control_period_s,
+           "off_track_allowance_car_lengths": setup.off_track_allowance_car_lengths,
            "loop": {**dataclasses.asdict(config), "lost_after_s": estimator.lost_after_s},
            "cars": [dataclasses.asdict(c) for c in cars], "faults": [dataclasses.asdict(f) for f in faults],
            "planners": planners or {c.name: c.planner for c in setup.cars}}

@@ -2,9 +2,10 @@
 (tracking.mocap.MocapFrame, where a camera frame would be) and the source's fault events (kind ``mocap``).
 
 On hardware the feed is the mocap source alone. In HIL (``race --hil --mocap``) it also passes on the
-simulated world's packets (events, winner, serial reports) and the simulator's truth at the mocap frame's
-time, matched by clock time (the world streams each snapshot over NatNet and sends its truth through its
-pipe): a frame whose truth has not arrived is passed on without one (no tracking-error sample).
+simulated world's packets (events, winner, serial reports) and the simulator's truth of the mocap frame's
+own snapshot, matched by frame number (the world streams snapshot k over NatNet as frame k and sends its
+truth through its pipe). Matching by number holds whatever the network and scheduling delays; a frame
+whose truth has not arrived is passed on without one (no tracking-error sample).
 """
 from __future__ import annotations
 
@@ -13,9 +14,9 @@ import time
 
 from race.world import WorldPacket
 
-# A frame's mapped time is its snapshot's time plus the smallest network delay seen (well under 1 ms on
-# one machine); snapshots are a mocap period (>= 4 ms) apart.
-TRUTH_MATCH_S = 0.002
+# Truths kept for frames still on their way (snapshots arrive at the mocap rate, at most a few hundred per
+# second; the loop reads a frame within a tick of its arrival).
+TRUTHS_KEPT = 256
 
 
 class MocapFeed:
@@ -25,7 +26,7 @@ class MocapFeed:
 
     def __init__(self, source, world=None, wait_step_s: float = 0.001) -> None:
         self.source, self.world, self.wait_step_s = source, world, wait_step_s
-        self._truths: collections.deque = collections.deque(maxlen=64)  # (t_truth, truth, t_race)
+        self._truths: collections.OrderedDict = collections.OrderedDict()  # frame number -> (truth, t_race)
         self.truth_matched = 0
         self.truth_missing = 0
 
@@ -40,13 +41,15 @@ class MocapFeed:
         if self.world is None:
             packet.frame = frame
             return packet
-        if packet.truth is not None:
-            self._truths.append((packet.t_truth, packet.truth, packet.t_race))
-        packet.frame, packet.truth, packet.t_race = frame, None, None
+        for index, truth, t_race in packet.truths:
+            self._truths[index] = (truth, t_race)
+            while len(self._truths) > TRUTHS_KEPT:
+                self._truths.popitem(last=False)
+        packet.frame, packet.truth, packet.t_race, packet.truths = frame, None, None, []
         if frame is not None:
-            match = min(self._truths, key=lambda e: abs(e[0] - frame.t_capture_s), default=None)
-            if match is not None and abs(match[0] - frame.t_capture_s) < TRUTH_MATCH_S:
-                _, packet.truth, packet.t_race = match
+            match = self._truths.get(frame.index)
+            if match is not None:
+                packet.truth, packet.t_race = match
                 self.truth_matched += 1
             else:
                 self.truth_missing += 1

@@ -1,9 +1,11 @@
 """Review of a race recording (simulated race or real-time loop): summary numbers and PNG plots.
 
 Everything is recomputed from the recording (race.recording.load_recording), independently of the
-code that ran the race: laps from the logged car positions (sim.race.LapBookkeeper on the track
-named in race/setup), the minimum gap from the logged footprint rectangles, loop and solver
-statistics from the logged timings, deadline misses and collisions from race/events.
+running race's state: laps from the logged car positions and footprints by the race's own bookkeeping
+(sim.race.LapBookkeeper on the track named in race/setup: line crossings, and progress made off the
+track does not count beyond the set-up's allowance), the minimum gap from the logged footprint
+rectangles, loop and solver statistics from the logged timings, deadline misses and collisions from
+race/events.
 """
 from __future__ import annotations
 
@@ -17,13 +19,14 @@ from fileio import atomic_write_with, check_output_dir
 from race.recording import EVENTS_ENTITY, RecordingData, car_colors
 from race.summary import percentile
 from sim.collision import rectangle_gap
-from sim.race import LapBookkeeper
+from sim.race import OFF_TRACK_ALLOWANCE_CAR_LENGTHS, LapBookkeeper, footprint_excess_m
 from tracks import draw_track, load_track
 
 SUMMARY_KEYS = ("laps", "lap_times_s", "min_gap_m", "collisions", "loop_hz_median", "loop_period_p99_ms",
                 "deadline_misses", "frames", "solve_ms_p50", "solve_ms_p99", "tracking_error_mm_median",
                 "tracking_error_mm_p95", "events")
 _SKIPPED = re.compile(r"(\d+) tick\(s\) skipped")
+_LAP = re.compile(r"(\S+) lap (\d+) in ")  # race.referee.event_text of a lap
 
 
 def car_names(data: RecordingData) -> list[str]:
@@ -56,12 +59,30 @@ def load_track_of(data: RecordingData):
         return None
 
 
+def _track_limits(data: RecordingData, car: str, t: np.ndarray, track):
+    """The car's footprint excess (sim.race.footprint_excess_m) at the logged times ``t`` and its
+    footprint length (m), from its logged footprint rectangles; None where ``t`` has no footprint."""
+    tf, strips = data.strips(f"world/cars/{car}/footprint")
+    by_time = {int(k): i for i, k in enumerate(np.round(tf * 1e6).astype(np.int64))
+               if strips[i] and len(strips[i][0]) >= 4}
+    rows = [by_time.get(int(k)) for k in np.round(t * 1e6).astype(np.int64)]
+    if not by_time or any(r is None for r in rows):
+        return None, None
+    corners = np.array([strips[r][0][:4] for r in rows], dtype=float)
+    excess = footprint_excess_m(track, corners)
+    length = float(np.median(np.hypot(*(corners[:, 0] - corners[:, 3]).T)))  # front-left to rear-left
+    return excess, length
+
+
 def lap_times(data: RecordingData, track, laps_to_win: int) -> dict[str, list[float]]:
-    """Per car: lap times from its logged positions (crossings of s = 0, interpolated, with the
-    simulator's grid rule: a car starting in the second half of the lap is behind the line).
-    Crossings after the last logged position (the simulated race stops logging in the step that
-    decides it) are taken from the recording's `lap` events."""
+    """Per car: lap times by the race's bookkeeping (sim.race.LapBookkeeper) fed its logged positions
+    and footprints (crossings of s = 0, interpolated; the grid rule; progress made off the track does
+    not count beyond the race/setup's off_track_allowance_car_lengths). A recording without footprints
+    counts every position as on the track. A lap the race completed after the last logged position
+    (the simulated race stops logging in the step that decides it) is taken from its `lap` event and
+    crossed at the event's time."""
     lap_events = [e for e in events(data) if e["kind"] == "lap"]
+    allowance = float(data.setup().get("off_track_allowance_car_lengths", OFF_TRACK_ALLOWANCE_CAR_LENGTHS))
     out = {}
     for car in car_names(data):
         t, pts = data.points(f"world/cars/{car}/position")
@@ -69,25 +90,17 @@ def lap_times(data: RecordingData, track, laps_to_win: int) -> dict[str, list[fl
             out[car] = []
             continue
         xy = np.array([p[0] for p in pts])
-        s, _, _ = track.to_frenet(xy[:, 0], xy[:, 1])
-        s = np.asarray(s, dtype=float)
-        book = LapBookkeeper(float(track.length), max(int(laps_to_win), 1), np.array([s[0]]), start_time=float(t[0]))
-        first_start = float(t[0]) if book.laps[0] == 0 else None
-        completions = []
-        for ti, si in zip(t[1:], s[1:]):
-            for ev in book.update(float(ti), np.array([si])):
-                if ev.kind == "lap":
-                    completions.append(ev.time)
-            if first_start is None and book.laps[0] >= 0:
-                first_start = book.lap_start[0]
+        s = np.asarray(track.to_frenet(xy[:, 0], xy[:, 1])[0], dtype=float)
+        excess, length = _track_limits(data, car, t, track)
+        book = LapBookkeeper(float(track.length), max(int(laps_to_win), 1), s[:1], start_time=float(t[0]),
+                             allowance_m=allowance * (length or 0.0))
+        for k in range(len(t)):  # the first sample is the grid (only the track limits are judged on it)
+            book.update(float(t[k]), s[k:k + 1], None if excess is None else excess[k:k + 1])
         for e in lap_events:
-            if e["text"].split()[0] == car and e["time_s"] > t[-1] and all(abs(e["time_s"] - c) > 0.05 for c in completions):
-                completions.append(e["time_s"])
-        if first_start is None:
-            out[car] = []
-            continue
-        marks = [first_start] + sorted(completions)
-        out[car] = [round(float(b - a), 4) for a, b in zip(marks[:-1], marks[1:])]
+            m = _LAP.match(e["text"])
+            if m and m.group(1) == car and e["time_s"] > t[-1] and int(m.group(2)) > book.laps[0]:
+                book.cross_line(0, e["time_s"])
+        out[car] = [round(float(v), 4) for v in book.lap_times[0]]
     return out
 
 
@@ -262,6 +275,7 @@ def format_summary(s: dict, data: RecordingData) -> str:
         kinds[e["kind"]] = kinds.get(e["kind"], 0) + 1
     lines.append("events: " + ", ".join(f"{k} {v}" for k, v in kinds.items()))
     for e in s["events"]:
-        if e["kind"] in ("fault", "recovered", "serial_fault", "fault_injected", "box_failsafe", "collision", "finished"):
+        if e["kind"] in ("fault", "recovered", "serial_fault", "fault_injected", "box_failsafe", "collision", "finished",
+                         "not_counted"):
             lines.append(f"  {e['time_s']:8.3f} s  {e['kind']}: {e['text']}")
     return "\n".join(lines)

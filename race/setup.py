@@ -20,6 +20,7 @@ from planning.reference import planner_racing_line
 from planning.frenet import lateral_half_extent
 from race.roster import MAX_SPEED_MPS, RosterCar, RosterError, make_roster, two_car_roster
 from sim.effects import SimEffects, SimEffectsError, parse_effects, sim_effects
+from sim.race import OFF_TRACK_ALLOWANCE_CAR_LENGTHS
 from tracks import TrackFormatError, load_track
 from tracks.io import UnknownTrackError
 from vehicles.params import CarParams, CarParamsError, load_car_params
@@ -92,6 +93,9 @@ class RaceSetup:
     grid_lane_ey_m: float = 0.15        # a row's two cars at ey = +-grid_lane_ey_m ...
     grid_jitter_m: float = 0.01         # ... each jittered uniformly by up to this along and across the track
     planner_threads: int = 2            # threads planning the cars of one step (race.planning.RacePlanners)
+    # Progress made off the track does not count (sim.race, docs/racing.md "Off track"): of what a car
+    # gains between leaving and rejoining the track, this much (in its footprint lengths) still counts.
+    off_track_allowance_car_lengths: float = OFF_TRACK_ALLOWANCE_CAR_LENGTHS
 
     def __post_init__(self) -> None:
         if self.grid not in GRIDS:
@@ -110,6 +114,10 @@ class RaceSetup:
             raise RaceSetupError("planner_threads", f"must be an integer >= 1, got {self.planner_threads!r}")
         if self.max_time_s is None:
             object.__setattr__(self, "max_time_s", default_max_time_s(self.laps))
+        allowance = self.off_track_allowance_car_lengths
+        if isinstance(allowance, bool) or not (isinstance(allowance, (int, float)) and math.isfinite(allowance)
+                                               and allowance >= 0):
+            raise RaceSetupError("off_track_allowance_car_lengths", f"must be a number >= 0, got {allowance!r}")
         for name in ("rd3g_top_speed_mps", "opponent_top_speed_mps", "control_period_s", "max_time_s"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):

@@ -261,7 +261,8 @@ def run_race(setup: RaceSetup, telemetry_path=None, progress=None, simulator_cls
     track, car = setup.track, setup.car
     cars = sim_cars(setup)
     sim = simulator_cls(track, [setup.sim_car_file(i) for i in range(len(setup.cars))], effects=setup.sim_effects,
-                        seed=setup.seed, physics_dt=setup.physics_dt_s, laps_to_win=setup.laps)
+                        seed=setup.seed, physics_dt=setup.physics_dt_s, laps_to_win=setup.laps,
+                        off_track_allowance_car_lengths=setup.off_track_allowance_car_lengths)
     x0 = start_states(setup)
     sim.reset(x0)
     clock = SimulatedClock(0.0)

@@ -29,6 +29,9 @@ class WorldPacket:
     truth: np.ndarray | None = None
     t_race: float | None = None              # race time of ``truth``
     t_truth: float | None = None             # clock time of ``truth`` (simulation: race.perception.TruthPerception)
+    # HIL: (snapshot index, true states, race time) of every snapshot delivered since the last poll, oldest
+    # first (race.mocap_feed pairs each mocap frame with its own snapshot by frame number)
+    truths: list[tuple] = field(default_factory=list)
     render_ms: list[float] = field(default_factory=list)
     events: list[tuple] = field(default_factory=list)   # (race time s, kind, text)
     winner: str | None = None                # the world's own referee decided the race

@@ -17,7 +17,7 @@ import numpy as np
 
 from sim.collision import rectangles_overlap
 from sim.effects import SimEffects
-from sim.race import LapBookkeeper, RaceStatus, SimEvent
+from sim.race import OFF_TRACK_ALLOWANCE_CAR_LENGTHS, LapBookkeeper, RaceStatus, SimEvent
 from tracks.geometry import wrap_angle
 from vehicles.dynamic_bicycle import STATE_DIM, ModelCoefficients, derivative, derivative_one
 from vehicles.extra_terms import car_extra_terms, extra_rates
@@ -40,12 +40,15 @@ class Simulator:
     """Simulate several cars on one track.
 
     track: object with ``length``, ``to_frenet(x, y, heading=None) -> (s, ey, epsi)`` (epsi None
-    without a heading) and ``is_inside_frenet(s, ey, margin) -> bool`` (numpy-vectorised), as in tracks/.
+    without a heading) and ``limit_excess_frenet(s, ey)`` (m outside the drivable area, numpy-vectorised),
+    as in tracks/.
     cars: one CarParams per car (corrections included). effects: one SimEffects for all cars
     or one per car. physics_dt: integration step; every control interval passed to step()
     must be a whole number of physics steps. check_dt: period of the lap, track-limit and
     collision checks (a whole number of physics steps). Below ``batch_threshold`` cars the
     physics runs per car in float math, above it on numpy batches (same equations).
+    off_track_allowance_car_lengths: the gain an excursion may make before it is taken off the car's
+    counted progress (sim.race.LapBookkeeper), in each car's footprint lengths.
     """
 
     def __init__(
@@ -58,6 +61,7 @@ class Simulator:
         laps_to_win: int = 1,
         check_dt: float = 0.005,
         batch_threshold: int = 8,
+        off_track_allowance_car_lengths: float = OFF_TRACK_ALLOWANCE_CAR_LENGTHS,
     ) -> None:
         cars = list(cars)
         if not cars or not all(isinstance(c, CarParams) for c in cars):
@@ -82,6 +86,11 @@ class Simulator:
         self.laps_to_win = laps_to_win
         self.seed = seed
         self._check_every = self._whole_steps(check_dt, "check_dt")
+        allowance = off_track_allowance_car_lengths
+        if isinstance(allowance, bool) or not (isinstance(allowance, (int, float)) and math.isfinite(allowance)
+                                               and allowance >= 0):
+            raise ValueError(f"off_track_allowance_car_lengths: must be a number >= 0, got {allowance!r}")
+        self._off_track_allowance_m = np.array([allowance * c.geometry.footprint_length_m for c in cars])
         self._batch = n > batch_threshold
 
         hidden = dict(
@@ -160,11 +169,10 @@ class Simulator:
         self._events: list[SimEvent] = []
         self._rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(self.n_cars)]
         s0 = self._arc_lengths()
-        self._laps = LapBookkeeper(float(self.track.length), self.laps_to_win, s0, start_time=0.0)
+        self._laps = LapBookkeeper(float(self.track.length), self.laps_to_win, s0, start_time=0.0,
+                                   allowance_m=self._off_track_allowance_m)
         self._colliding: set[tuple[int, int]] = set()
         self._collision_count = 0
-        self._off_track = [False] * self.n_cars
-        self._off_track_count = [0] * self.n_cars
         self._min_distance = math.inf
         self._ready = True
         self._apply_drift()
@@ -313,17 +321,11 @@ class Simulator:
         s, ey, _ = self.track.to_frenet(np.concatenate([x[:, 0], corner_x.ravel()]),
                                         np.concatenate([x[:, 1], corner_y.ravel()]))
         s, ey = np.asarray(s, dtype=float), np.asarray(ey, dtype=float)
-        if self._steps > 0:
-            self._events.extend(self._laps.update(t, s[:n]))
-        # Track limits: a car is off track while any footprint corner is outside the drivable area.
-        inside = np.asarray(self.track.is_inside_frenet(s[n:], ey[n:], 0.0), dtype=bool)
-        outside = (~inside.reshape(self.n_cars, 4).all(axis=1)).tolist()
-        for i in range(self.n_cars):
-            if outside[i] != self._off_track[i]:
-                if outside[i]:
-                    self._off_track_count[i] += 1
-                self._events.append(SimEvent(time=t, kind="off_track" if outside[i] else "on_track", car=i))
-                self._off_track[i] = outside[i]
+        # Track limits: a car is off track while any footprint corner is outside the drivable area (the
+        # bookkeeper's off-track and on-track events; what it counts of the laps, sim.race).
+        excess = np.asarray(self.track.limit_excess_frenet(s[n:], ey[n:]), dtype=float).reshape(n, 4).max(axis=1)
+        # The reset's check: the grid positions (no step yet), only the track limits.
+        self._events.extend(self._laps.update(t, s[:n] if self._steps > 0 else self._laps.last_s, excess))
 
         # Car-to-car: bounding circles first, the exact rectangle test only for close pairs.
         if self.n_cars < 2:
@@ -399,9 +401,10 @@ class Simulator:
             finish_order=tuple(laps.finish_order),
             winner=laps.winner,
             collisions=self._collision_count,
-            off_track=tuple(self._off_track),
-            off_track_count=tuple(self._off_track_count),
+            off_track=tuple(bool(v) for v in laps.off_track),
+            off_track_count=tuple(int(v) for v in laps.off_track_count),
             min_center_distance_m=self._min_distance,
+            not_counted_m=tuple(float(v) for v in laps.not_counted),
         )
 
     def _car_index(self, i: int) -> int:

@@ -51,9 +51,9 @@ class ReversedTrack:
     def is_inside(self, x, y, margin=0.0):
         return self.base.is_inside(x, y, margin)
 
-    def is_inside_frenet(self, s, ey, margin=0.0):
+    def limit_excess_frenet(self, s, ey):
         """Same surface as the base track: s and ey are mirrored back to the base's coordinates."""
-        return self.base.is_inside_frenet(np.mod(self.length - np.asarray(s), self.length), -np.asarray(ey), margin)
+        return self.base.limit_excess_frenet(np.mod(self.length - np.asarray(s), self.length), -np.asarray(ey))
 
 
 class StanleyDriver(PurePursuitController):

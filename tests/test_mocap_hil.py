@@ -29,10 +29,6 @@ def test_race_on_mocap_finishes_with_sub_2mm_tracking(tmp_path):
                     "--rt-priority", "0", "--out", str(out), "--json", str(js)])
     s = load_json(js)
     snapshots = s["frames"] + s["frames_dropped"]
-    if s["tracking_error_mm_median"] is None and s["end_reason"] == "finished":
-        # The loop pairs a mocap frame with the world's truth only when both arrive in the same tick; at some phases
-        # of the world and the loop none do (seen once in a quiet fresh clone: race finished, no error measured).
-        pytest.skip(f"no tick had both a mocap frame and the world's truth ({s['frames']} frames): nothing to measure")
     assert s["tracking_error_mm_median"] is not None and s["tracking_error_mm_median"] < 2.0
     if s["end_reason"] != "finished" and (s["frames_dropped"] > 0.2 * snapshots or s["end_reason"] == "serial_fault"):
         # A starved host: the world process could not stream (the loop held the cars on the stalls, as it must)

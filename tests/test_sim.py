@@ -42,8 +42,8 @@ class RingTrack:
     def is_inside(self, x, y, margin=0.0):
         return np.abs(np.hypot(x, y) - self.radius) <= self.half_width - margin
 
-    def is_inside_frenet(self, s, ey, margin=0.0):
-        return np.abs(ey) <= self.half_width - margin
+    def limit_excess_frenet(self, s, ey):
+        return np.abs(ey) - self.half_width
 
 
 class StraightTrack:
@@ -58,8 +58,8 @@ class StraightTrack:
     def is_inside(self, x, y, margin=0.0):
         return np.abs(y) <= self.half_width - margin
 
-    def is_inside_frenet(self, s, ey, margin=0.0):
-        return np.abs(ey) <= self.half_width - margin
+    def limit_excess_frenet(self, s, ey):
+        return np.abs(ey) - self.half_width
 
 
 P = CarParams()

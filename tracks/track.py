@@ -299,11 +299,17 @@ class Track:
     def is_inside_frenet(self, s, ey, margin: float = 0.0):
         """``is_inside`` for points already in Frenet coordinates (s, ey from ``to_frenet``), for
         callers that project the points anyway (the simulator's checks: one projection per check)."""
+        return self.limit_excess_frenet(s, ey) <= -margin
+
+    def limit_excess_frenet(self, s, ey):
+        """How far (m) points in Frenet coordinates are outside the drivable surface: > 0 outside, and
+        inside minus the distance to the nearer edge (open tracks: to the nearer edge or end). A
+        continuous measure, so callers can interpolate where a path crosses the track limit."""
         s, ey = np.asarray(s, dtype=float), np.asarray(ey, dtype=float)
-        inside = np.abs(ey) <= 0.5 * self.width(s) - margin
+        excess = np.abs(ey) - 0.5 * self.width(s)
         if not self.closed:
-            inside &= (s >= -1e-12) & (s <= self._length + 1e-12)
-        return inside
+            excess = np.maximum(excess, np.maximum(-s, s - self._length) - 1e-12)
+        return excess
 
     def curvature_table(self, ds: float):
         """Uniformly sampled curvature for table look-up: ``(s_grid, kappa)``, both (N+1,).

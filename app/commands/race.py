@@ -225,7 +225,9 @@ def run(args) -> int:
         print(f"planners: car {setup.car.name}; simulator: car {(setup.sim_car or setup.car).name}, hidden effects {hidden or 'none'}")
     print(f"winner: {s['winner'] or 'none (time limit)'}"
           + (" (NOT a clean win: it left the track)" if s["winner"] and not s["clean_winner"] else ""))
-    print("off-track excursions: " + ", ".join(f"{name} {n}" for name, n in s["off_track"].items()))
+    lost = {r.name: r.not_counted_m for r in o.results}  # progress made off the track, not counted (sim.race)
+    print("off-track excursions: " + ", ".join(f"{name} {n}" + (f" ({lost[name]:.2f} m not counted)" if lost.get(name) else "")
+                                               for name, n in s["off_track"].items()))
     for car in s["cars"]:
         place = f"P{car['finish_position']}" if car["finish_position"] else "unfinished"
         print(f"  {car['name']:9s} {place:10s} lap times: {', '.join(f'{t:.3f} s' for t in car['lap_times_s']) or '-'}")

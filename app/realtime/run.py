@@ -381,7 +381,8 @@ def _open_hil(args, setup, cars, config, faults, link_plan, **world_options):
     fields = dict(track=setup.track, car=setup.car, start_states=start_states(setup),
                   marker_ids=tuple(c.marker_id for c in cars), radio_ids=tuple(c.radio_id for c in cars),
                   names=tuple(c.name for c in cars), finish=setup.finish,
-                  laps=setup.laps, seed=setup.seed, fps=args.fps, faults=faults, link_protocol=link_plan.protocol,
+                  laps=setup.laps, off_track_allowance_car_lengths=setup.off_track_allowance_car_lengths,
+                  seed=setup.seed, fps=args.fps, faults=faults, link_protocol=link_plan.protocol,
                   receivers=link_plan.calibrations if link_plan.protocol == "buzzracer-fhss" else None,
                   camera_profile=camera_profile(getattr(args, "camera_profile", "ideal")))
     fields.update(world_options)  # `check --hil --hil-fault`: a world that differs from the host's set-up

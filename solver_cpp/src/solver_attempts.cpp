@@ -1,5 +1,5 @@
 // The solve's attempt schedule: initial guess, restarts (barrier variants, perturbed controls, best response,
-// escapes from saddles), the passing-order rescue after them, the globalisation rules of an attempt, stall handling
+// escapes from saddles), the passing-order rescue among them, the globalisation rules of an attempt, stall handling
 // and the result.
 #include "rd3g/solver.hpp"
 
@@ -19,6 +19,11 @@ namespace rd3g {
 namespace {
 // The best-response attempt is inserted before restart attempt 1 (attempt 0 keeps the initial guess).
 constexpr int kBestResponseAttempt = 1;
+// The passing-order search (the rescue) runs after this restart attempt if no equilibrium was found yet: after the
+// four barrier variants from the initial guess and the best-response attempt, before the seeded offsets, which
+// change the passing order only by chance (merging_problem(7, 70): none of 21 attempts finds the equilibrium, five
+// stall at the same non-equilibrium of one pair; the search's ordered guess reaches it).
+constexpr int kOrderSearchAfterAttempt = 3;
 // Std of the seeded constant control offsets of restart attempts 4.. (control units).
 constexpr double kRestartOffsetStd = 0.2;
 }  // namespace
@@ -36,9 +41,10 @@ Result Solver::solve(const WarmStart* warm) {
     if (search_orders(found, info, sc.total_iter)) return found;
   }
   if (run_schedule(res, sc, warm)) return res;
-  // No attempt of the schedule found an equilibrium: the passing-order search as its last stage (the rescue).
+  // No attempt of the schedule found an equilibrium: the passing-order search as its last stage (the rescue), unless
+  // it already ran between the restarts.
   Info searched = info;
-  if (rescue_wanted(info) && rescue(found, searched, sc.total_iter)) return found;
+  if (!sc.searched && rescue_wanted(info) && rescue(found, searched, sc.total_iter)) return found;
   take_counters(info, searched);
   if (sc.have_saddle && info.status != Status::Converged) return saddle_result(sc, info);
   return res;
@@ -69,9 +75,26 @@ bool Solver::run_schedule(Result& res, Schedule& sc, const WarmStart* warm) {
     }
     ++sc.total_iter;
     if (repeat) --attempt;
+    else if (attempt == kOrderSearchAfterAttempt && attempt < settings_.restart.count && search_between_restarts(res, sc))
+      return true;
   }
   write_result(res, info);
   return info.status == Status::Converged;
+}
+
+bool Solver::search_between_restarts(Result& res, Schedule& sc) {
+  if (!rescue_wanted(res.info)) return false;
+  sc.searched = true;
+  Info searched = res.info;
+  Result found;
+  const int limit = iter_limit_, start = sc.total_iter;
+  if (rescue(found, searched, sc.total_iter)) {
+    res = std::move(found);
+    return true;
+  }
+  take_counters(res.info, searched);
+  iter_limit_ = limit + (sc.total_iter - start);  // the search had its own budget: the restarts keep theirs
+  return false;
 }
 
 bool Solver::rescue_wanted(const Info& info) const {

@@ -173,14 +173,18 @@ class Solver {
     int br_attempts = 0;       // attempts from the best-response guess (inserted, as the escapes)
     bool from_saddle = false;  // the next attempt starts where leave_saddle left y_
     bool have_saddle = false;
+    bool searched = false;     // the passing-order search ran between the restarts (search_between_restarts)
     Result saddle;             // the first converged attempt the second-order test rejected (restart_on_saddle)
   };
   /// The restart schedule's attempts; true if res holds an equilibrium (converged, second-order test passed),
   /// otherwise res holds the last attempt's point and sc the first saddle, if any.
   bool run_schedule(Result& res, Schedule& sc, const WarmStart* warm);
-  /// The passing-order search runs as the schedule's last stage (Settings::order, not before_newton), given the
-  /// schedule's result.
+  /// The passing-order search runs as a stage of the schedule (Settings::order, not before_newton): after restart
+  /// attempt 3 (search_between_restarts) or, with fewer restarts, after the last one, given the result so far.
   bool rescue_wanted(const Info& info) const;
+  /// The search after restart attempt 3 when no attempt found an equilibrium: true if it found one (then in res);
+  /// otherwise the restarts go on with their own iteration budget.
+  bool search_between_restarts(Result& res, Schedule& sc);
   /// The search as the rescue, with its own iteration budget; true if `found` holds an equilibrium.
   bool rescue(Result& found, Info& info, int& total_iter);
   /// The counters and timings of the whole solve (from) onto a result kept from part of it (to).
