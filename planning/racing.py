@@ -43,9 +43,6 @@ _PROGRESS_ANCHOR_M = 100.0  # D above
 # simulator after a contact); below the floor the k = 1 constraint may be infeasible, and then the
 # usual fallback applies.
 _MIN_COLLISION_DISTANCE_M = 0.01
-# A relaxed collision distance stays this far (m) below the separation the cars have (_feasible_limits)
-# or can reach (_opened_separation).
-_RELAX_MARGIN_M = 0.01
 # Largest speed drop (m/s) below the current speed that one plan's speed bound asks for
 # (follow_speed_cap, corner_speed_cap): reachable with 2 m/s^2 over the first planning step.
 _BOUND_DROP_MPS = 0.2
@@ -371,8 +368,8 @@ class _RecedingHorizon:
             for j in range(i + 1, len(positions)):
                 gap = positions[i] - positions[j]
                 d = float(np.min(frenet_separation(gap[:, 0], gap[:, 1], along_track_scale)))
-                pair[i, j] = pair[j, i] = max(min(nominal, d - _RELAX_MARGIN_M), _MIN_COLLISION_DISTANCE_M)
-                d_min = min(d_min, d - _RELAX_MARGIN_M)
+                pair[i, j] = pair[j, i] = max(min(nominal, d - 0.01), _MIN_COLLISION_DISTANCE_M)
+                d_min = min(d_min, d - 0.01)
         return (low, high), max(d_min, _MIN_COLLISION_DISTANCE_M), pair
 
     def corner_speed_cap(self, x, top_speed: float) -> float:
@@ -522,78 +519,17 @@ class _RecedingHorizon:
         return np.stack([np.asarray(model.rollout(np.asarray(a.x0, dtype=float), u[i]))
                          for i, a in enumerate(problem.agents)])
 
-    def _distance_steps(self, d_min: float, nominal: float, reachable=None):
+    def _distance_steps(self, d_min: float, nominal: float):
         """The collision distance for k = 1..T: d_min (relaxed so that k = 1 is feasible) if it equals
         the nominal one or separation_recovery_mps is 0; otherwise d_min at k = 1 and 2, then growing
-        at separation_recovery_mps per second back to the nominal distance (per-step array); with
-        ``reachable`` (the separation the pair can have at k = 1..T, _opened_separation) never above it
-        (nor below _MIN_COLLISION_DISTANCE_M): a car closing in cannot stop at once, and one behind a
-        standing car cannot open the gap. The positions at k = 1 and 2 hardly depend on the controls
-        (the first control acts on the speed and heading used from k = 1 on), so a ramp from k = 2 made
-        a car closing at 0.4 m/s infeasible."""
+        at separation_recovery_mps per second back to the nominal distance (per-step array). The
+        positions at k = 1 and 2 hardly depend on the controls (the first control acts on the speed and
+        heading used from k = 1 on), so a ramp from k = 2 made a car closing at 0.4 m/s infeasible."""
         rate = self.config.separation_recovery_mps
         if rate <= 0 or d_min >= nominal:
             return d_min
         k = np.arange(1, self.config.horizon + 1)
-        ramp = np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
-        return ramp if reachable is None else np.minimum(ramp, np.maximum(reachable, _MIN_COLLISION_DISTANCE_M))
-
-    def _recovery_distances(self, agents, obstacles, pair: np.ndarray, nominal: float,
-                            along_track_scale: float) -> dict[tuple[int, int], np.ndarray]:
-        """Per-step collision distance (_distance_steps) of every pair of this plan that starts too close
-        (pair[i, j] below nominal; i an agent, j an agent or an obstacle, indexed as _feasible_limits:
-        agents then obstacles), its ramp capped by _opened_separation. Obstacles: (T+1, 2) predicted
-        positions. Why the cap: the ramp alone asked for room the cars cannot make; at a standing start
-        on buzzracer:full (`race --track buzzracer:full --line racing --cars rd3g,rd3g,mpc,mpc --seed 19`)
-        an MPC 0.33 m behind a car in its lane (0.13 m as the constraint measures it, the first turn in
-        the window) had to open the gap at 0.3 m/s from a car predicted standing still, with the track
-        edge on one side and a car on the other: the only plan was to reverse, and it reversed off the
-        track."""
-        n, found = len(agents), {}
-        for i in range(n):
-            for j in range(i + 1, len(pair)):
-                if pair[i, j] >= nominal:
-                    continue
-                other = agents[j].x0[S] if j < n else np.asarray(obstacles[j - n])[0, 0]
-                ahead = float(agents[i].x0[S]) >= float(other)
-                reachable = self._opened_separation(agents[i], agents[j] if j < n else obstacles[j - n], ahead,
-                                                    along_track_scale)
-                found[(i, j)] = self._distance_steps(float(pair[i, j]), nominal, reachable)
-        return found
-
-    def _opened_separation(self, agent: Agent, other, ahead: bool, along_track_scale: float) -> np.ndarray:
-        """(T,) the pair's separation at k = 1..T (as the constraint measures it, less 1 cm) when it opens
-        the gap along the track as far as the cars' limits allow: the agent (ahead: accelerating at its
-        limit up to its speed bound; behind: braking at its limit to a stop, never reversing) and the
-        other car (an Agent: the opposite move; else its (T+1, 2) predicted positions), each holding its
-        lateral offset. A plan that does so keeps this separation at every step, so the ramp capped by
-        it is feasible whatever the track and the cars beside leave sideways."""
-        own = self._opening_positions(agent, ahead)
-        theirs = (self._opening_positions(other, not ahead) if isinstance(other, Agent)
-                  else np.asarray(other, dtype=float)[:, :2])
-        gap = own[1:] - theirs[1:]
-        return frenet_separation(gap[:, 0], gap[:, 1], along_track_scale) - _RELAX_MARGIN_M
-
-    def _opening_positions(self, agent: Agent, ahead: bool) -> np.ndarray:
-        """(T+1, 2) positions (s, ey) of the agent holding its lateral offset, heading along the track,
-        accelerating at its limit up to its speed bound (ahead) or braking at its limit to a stop (behind;
-        the planning model allows v < 0, the car would drive backwards): the acceleration bounds at each
-        step's speed (CommandMapper.acceleration_bounds) and the planning model's explicit Euler step
-        s' = v / (1 - kappa ey)."""
-        c = self.config
-        x0 = np.asarray(agent.x0, dtype=float)
-        s, ey, v = float(x0[S]), float(x0[EY]), max(float(x0[V]), 0.0)
-        top = max(float(agent.x_max[V]), 0.0)
-        out = np.empty((c.horizon + 1, 2))
-        out[:, 1], out[0, 0] = ey, s
-        for k in range(c.horizon):
-            kappa = float(self.tm.track.curvature(np.mod(s, self.tm.track.length)))
-            s += c.plan_dt_s * v / max(1.0 - kappa * ey, 0.2)
-            a_min, a_max = self.mapper.acceleration_bounds(v)
-            v = (min(v + a_max * c.plan_dt_s, max(top, v + a_min * c.plan_dt_s)) if ahead
-                 else max(v + a_min * c.plan_dt_s, 0.0))
-            out[k + 1, 0] = s
-        return out
+        return np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
 
     def _violation(self, problem: GameProblem, x: np.ndarray) -> float:
         """Largest violation (m or m/s) of the agents' track-limit bounds and top speeds and of separation
@@ -795,7 +731,8 @@ class RacingPlanner(_RecedingHorizon):
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
         n = len(agents)
-        steps = self._recovery_distances(agents, predicted, pair, nominal_d_min, scale)
+        steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min)
+                 for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
         collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,
                               pos_x_scale=[scale] * c.horizon,
                               pair_distances=[PairDistance(agents=ij, min_distance=d) for ij, d in steps.items()
@@ -803,7 +740,7 @@ class RacingPlanner(_RecedingHorizon):
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents, collision=collision,
                               obstacles=[Obstacle(positions=o, min_distance=steps.get((0, n + k), nominal_d_min))
                                          for k, o in enumerate(predicted)])
-        plan = self._finish(problem, d_min, ey_bound, ids)
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound, ids)
         if far:
             plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in far)], axis=0)
         return plan
@@ -832,14 +769,13 @@ class MPCOpponent(_RecedingHorizon):
         # Each obstacle has its own distance: relaxing one car that is too close leaves the others at
         # the nominal distance.
         limits, d_min, pair = self._feasible_limits([x_self], limits, d_min, scale, others)
-        agent = self._agent(x_self, top, limits, cost, 0.0)
-        recovery = self._recovery_distances([agent], others, pair, nominal_d_min, scale)
-        steps = [recovery.get((0, k + 1), nominal_d_min) for k in range(len(others))]
-        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=[agent],
+        steps = [self._distance_steps(float(pair[0, k + 1]), nominal_d_min) for k in range(len(others))]
+        problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon,
+                              agents=[self._agent(x_self, top, limits, cost, 0.0)],
                               collision=Collision(min_distance=d_min, form="distance", pos_x=S, pos_y=EY,
                                                   pos_x_scale=[scale] * c.horizon),
                               obstacles=[Obstacle(positions=o, min_distance=d) for o, d in zip(others, steps)])
-        plan = self._finish(problem, d_min, max(-limits[0], limits[1]))
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), max(-limits[0], limits[1]))
         plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in rows)], axis=0)
         return plan
 
