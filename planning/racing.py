@@ -248,6 +248,12 @@ class _RecedingHorizon:
                 u_new[k], lam_new[k] = u[r], lam[r]
         return WarmStart(u=u_new, lam=lam_new)
 
+    def _stage_refs(self, agent: Agent) -> np.ndarray:
+        """(T, n) the agent's cost reference at each stage (its per-step references, or the one held)."""
+        if agent.cost.x_ref_steps is None:
+            return np.tile(agent.cost.x_ref, (self.config.horizon, 1))
+        return np.asarray(agent.cost.x_ref_steps, dtype=float)
+
     def _inside_bounds(self, problem: GameProblem, warm: WarmStart | None) -> WarmStart | None:
         """Following the racing line: the warm start with each agent's steering, from two steps before the
         first planned state that leaves its track-limit bounds (the heading acts on ey from two steps on),
@@ -271,8 +277,7 @@ class _RecedingHorizon:
             out = np.flatnonzero((x[1:, EY] > hi) | (x[1:, EY] < lo))
             if len(out) == 0:
                 continue
-            refs = (np.tile(agent.cost.x_ref, (c.horizon, 1)) if agent.cost.x_ref_steps is None
-                    else np.asarray(agent.cost.x_ref_steps, dtype=float))
+            refs = self._stage_refs(agent)
             for j in range(max(int(out[0]) - 1, 0), c.horizon):
                 x_ref = np.array([x[j, S], float(np.clip(refs[j, EY], lo, hi)), x[j, V], 0.0])
                 u[i, j, 1] = np.clip(self.tracking_control(x[j], x_ref, 0.0, max(-lo, hi))[1],
@@ -292,8 +297,7 @@ class _RecedingHorizon:
         u = np.zeros_like(np.asarray(warm.u, dtype=float))
         for i, agent in enumerate(problem.agents):
             lo, hi, top = float(agent.x_min[EY]), float(agent.x_max[EY]), float(agent.x_max[V])
-            refs = (np.tile(agent.cost.x_ref, (c.horizon, 1)) if agent.cost.x_ref_steps is None
-                    else np.asarray(agent.cost.x_ref_steps, dtype=float))
+            refs = self._stage_refs(agent)
             x = np.asarray(agent.x0, dtype=float)
             for j in range(c.horizon):
                 x_ref = np.array([x[S], float(np.clip(refs[j, EY], lo, hi)), min(float(refs[j, V]), top), 0.0])
