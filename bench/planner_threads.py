@@ -17,6 +17,7 @@ import os
 import numpy as np
 
 from fileio import atomic_write_text, check_output_path
+from planning.config import LINES
 
 from race.planning import RacePlanners
 from race.roster import parse_cars
@@ -63,6 +64,8 @@ def measure(setup) -> dict:
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--cars", default="rd3g,rd3g,rd3g,mpc,mpc,mpc")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds")
+    ap.add_argument("--line", choices=LINES, default=RaceSpec.line,
+                    help=f"the planners' reference (race --line; default {RaceSpec.line})")
     ap.add_argument("--threads", type=int, default=2, help="the pool's threads (compared with 1)")
     ap.add_argument("--json", help="write the measurements here")
 
@@ -72,7 +75,7 @@ def run(args) -> int:
         check_output_path(args.json, stream=True)
     rows = []
     for seed in (int(v) for v in args.seeds.split(",")):
-        base = RaceSpec(roster=parse_cars(args.cars), seed=seed).load()
+        base = RaceSpec(roster=parse_cars(args.cars), seed=seed, line=args.line).load()
         runs = {n: measure(dataclasses.replace(base, planner_threads=n)) for n in (1, args.threads)}
         for n, r in runs.items():
             print(f"seed {seed}, {n} thread(s), load {r['load']:.1f}: per car p50/p99 ms "

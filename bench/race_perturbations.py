@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from fileio import OutputFileError, atomic_write_text, check_output_path
+from planning.config import LINES
 
 from race.setup import OPPONENTS, STARTS, RaceSetupError, RaceSpec
 from race.simulation import run_race
@@ -69,6 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rd3g-speed", type=float, default=RaceSpec.rd3g_top_speed_mps, help="RD3G car's top speed (m/s)")
     parser.add_argument("--opponent-speed", type=float, default=RaceSpec.opponent_top_speed_mps, help="opponent's top speed (m/s)")
     parser.add_argument("--control-hz", type=float, default=RaceSpec.control_hz, help="control rate (Hz)")
+    parser.add_argument("--line", choices=LINES, default=RaceSpec.line,
+                        help=f"the planners' reference (race --line; default {RaceSpec.line})")
     parser.add_argument("--raceline-ey", type=float, default=RaceSpec.raceline_ey_m, metavar="M",
                         help="lateral reference of both cars' racing cost (m, left positive)")
     parser.add_argument("--seeds", type=int, default=20)
@@ -100,7 +103,7 @@ def run(args) -> int:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         spec = RaceSpec(track=args.track, car_params=args.car_params, seed=seed, opponent=args.opponent,
                         start=args.start, rd3g_top_speed_mps=args.rd3g_speed, opponent_top_speed_mps=args.opponent_speed,
-                        control_hz=args.control_hz, raceline_ey_m=args.raceline_ey)
+                        control_hz=args.control_hz, raceline_ey_m=args.raceline_ey, line=args.line)
         try:
             setup = spec.load()
         except RaceSetupError as exc:

@@ -55,7 +55,7 @@ class PlannerConfig:
     # The reference the cars race: "centre" = the constant raceline_ey_m and top speed, with the cornering
     # cap on the speed bound; "racing" = the track's racing line (tracks.racing_line) as a stage-varying
     # reference, its offset and speed profile at each horizon stage (planning.reference).
-    line: str = "centre"
+    line: str = "racing"
     # The racing line keeps this much more room to the track-limit bound than the planner's (m): a line
     # on the bound (the minimum-time lines touch it in every turn) left no room for tracking error,
     # and the cars following it left the track (docs/racing.md).

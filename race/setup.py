@@ -204,6 +204,9 @@ class RaceSpec:
         if not math.isfinite(raceline) or abs(raceline) >= track.min_width / 2:
             raise RaceSetupError("raceline_ey_m", f"must be a finite offset inside the track "
                                                   f"(|M| < {track.min_width / 2:g} m), got {raceline}")
+        if raceline != 0.0 and self.line != "centre":
+            raise RaceSetupError("raceline_ey_m", f"a constant lateral reference ({raceline:g} m) applies to line "
+                                                  f"'centre' only, the planners race line {self.line!r} (--line centre)")
         try:
             planner = PlannerConfig(raceline_ey_m=raceline, game_players=self.game_players, line=self.line,
                                     lateral_clearance_m=self.lateral_clearance_m)

@@ -21,7 +21,7 @@ def test_a_run_of_fallbacks_steers_back_to_the_last_plan_used():
     every step falls back for 1 s from a state 3 cm left of it heading 0.15 rad further left. Tracking
     that plan brings the car back to the centre line. Re-anchoring the reference at the car each step
     (the earlier fallback) left the car heading off the line: it drifted on to 0.13 m in that second."""
-    setup = RaceSpec().load()
+    setup = RaceSpec(line="centre").load()  # the constant reference: the centre line
     planner = make_planner(MPCOpponent, setup, 1.8)
     assert np.all(setup.track.curvature(np.linspace(4.2, 6.0, 50)) == 0)
     nobody = np.zeros((0, 4))
@@ -45,7 +45,7 @@ def test_a_run_of_fallbacks_past_the_plans_horizon_returns_to_the_track():
     track's own reference (centre line, heading along the track, at most the top speed). Holding the
     plan's last state instead kept the car heading 0.33 rad off the track, across the track limit within the
     next half second."""
-    setup = RaceSpec().load()
+    setup = RaceSpec(line="centre").load()  # the constant reference: the centre line
     planner = make_planner(MPCOpponent, setup, 1.8)
     c = planner.config
     nobody = np.zeros((0, 4))

@@ -348,7 +348,8 @@ def test_defending_plan_moves_to_the_inside_before_the_turn(track, car):
     turn, where the other car cannot fit between us and the track limit), and further left than the plan
     from the same state without the rule. Each plan is a nonconvex game's local solution (without the
     rule some of these solutions close the door too), so the claims are for most of the five states,
-    not for each. With the footprint distance sideways (lateral_clearance_m 0): with the default 0.25 m a
+    not for each. On the centre line: the racing line itself comes to the inside before the turn, so
+    without the rule the plans would end inside as well. With the footprint distance sideways (lateral_clearance_m 0): with the default 0.25 m a
     car on the 0.45 m wide drivable oval leaves room beside it only 3 cm off the centre line, and the game
     blocks without the rule."""
     x_self = np.array([0.4, 0.0, 1.6, 0.0])
@@ -357,7 +358,8 @@ def test_defending_plan_moves_to_the_inside_before_the_turn(track, car):
     ends = {}
     for distance in (1.0, 0.0):
         p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=2.0,
-                     config={"top_speed_mps": 1.6, "defend_distance_m": distance, "lateral_clearance_m": 0.0})
+                     config={"top_speed_mps": 1.6, "defend_distance_m": distance, "lateral_clearance_m": 0.0,
+                             "line": "centre"})
         ends[distance] = []
         for x_other in others:
             p.reset()

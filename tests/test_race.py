@@ -166,13 +166,18 @@ def test_raceline_option_reaches_both_planners_and_is_validated():
 
     parser = argparse.ArgumentParser()
     race_cmd.register(parser.add_subparsers())
-    args = parser.parse_args(["race", "--raceline-ey", "0.05"])
+    args = parser.parse_args(["race", "--line", "centre", "--raceline-ey", "0.05"])
     setup = race_cmd.make_setup(args, 0, "front", 2.0, 1.8)
     assert setup.planner.raceline_ey_m == 0.05
     assert race_cmd.make_setup(parser.parse_args(["race"]), 0, "front", 2.0, 1.8).planner.raceline_ey_m == 0.0
     for bad in ("0.3", "nan"):  # the oval is 0.6 m wide: 0.3 m is on its edge
         with pytest.raises(UserError, match="--raceline-ey"):
-            race_cmd.make_setup(parser.parse_args(["race", "--raceline-ey", bad]), 0, "front", 2.0, 1.8)
+            race_cmd.make_setup(parser.parse_args(["race", "--line", "centre", "--raceline-ey", bad]), 0, "front",
+                                2.0, 1.8)
+    # A constant offset means nothing on the racing line: refused rather than ignored.
+    with pytest.raises(UserError, match="--raceline-ey.*'centre' only"):
+        race_cmd.make_setup(parser.parse_args(["race", "--line", "racing", "--raceline-ey", "0.05"]), 0, "front",
+                            2.0, 1.8)
 
 
 def test_simulated_race_does_not_depend_on_solve_time(track, car, monkeypatch):

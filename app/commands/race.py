@@ -47,13 +47,13 @@ def add_race_arguments(p) -> None:
     p.add_argument("--control-hz", type=float, default=RaceSpec.control_hz,
                    help=f"control rate (default {RaceSpec.control_hz:g} Hz)")
     p.add_argument("--raceline-ey", type=float, default=RaceSpec.raceline_ey_m, metavar="M",
-                   help="lateral reference of both cars' racing cost (m, left positive; default 0, the centre line); "
+                   help="with --line centre, lateral reference of both cars' racing cost (m, left positive; default 0, the centre line); "
                         "on the oval 0.05 (inside) won more slow-car races but had one RD3G-at-fault contact in "
                         "400 batch races (docs/racing.md)")
     p.add_argument("--line", choices=LINES, default=RaceSpec.line,
-                   help="the reference both model planners race (default: centre): centre = the constant "
-                        "--raceline-ey and top speed with a cornering cap; racing = the track's racing line, its "
-                        "offset and speed profile at every horizon stage (docs/racing.md)")
+                   help=f"the reference both model planners race (default: {RaceSpec.line}): racing = the track's "
+                        "racing line, its offset and speed profile at every horizon stage; centre = the constant "
+                        "--raceline-ey and top speed with a cornering cap (docs/racing.md)")
     p.add_argument("--lateral-clearance", type=float, default=RaceSpec.lateral_clearance_m, metavar="M",
                    help="side by side, the planners keep the cars' centres at least this far apart (m) when it is "
                         "more than the footprint distance (2 radii + 2 cm, 0.195 m for buzzracer), which they keep "

@@ -3,7 +3,7 @@ two-car race, or ``--cars`` as `race --cars`); finishing orders and each car's p
 tracking error, loop rate, deadline misses and the stage breakdown. Writes the loop-bench section of
 docs/benchmarks.md.
 
-    .venv/bin/python -m app bench loop --seeds 6 [--cars rd3g,rd3g,mpc,mpc] [--rt-priority 20] [--json runs/loop_bench.json]
+    .venv/bin/python -m app bench loop --seeds 6 [--cars rd3g,rd3g,mpc,mpc] [--line centre|racing] [--rt-priority 20] [--json runs/loop_bench.json]
 
 The comparison reads each race's `race --json` record by its roster keys (``cars``: name, planner,
 finish_position; ``finishing_order``); records written before those keys are two-car races whose RD3G
@@ -24,17 +24,20 @@ from app import cli
 from app.commands import race
 from bench.report import machine_description, write_section
 from fileio import OutputFileError, atomic_write_text, atomic_write_with, check_output_path
+from planning.config import LINES
 
 
 def _race_args(seed: int, out: str, json_path: str, rt: int, hil: bool, sim_effects: str = "",
                link_protocol: str | None = None, link_capture: str | None = None, camera_profile: str = "realistic",
-               cars: str | None = None):
+               cars: str | None = None, line: str | None = None):
     p = argparse.ArgumentParser()
     sub = p.add_subparsers()
     race.register(sub)
     argv = ["race", "--seed", str(seed), "--out", out, "--json", json_path]
     if cars:
         argv += ["--cars", cars]
+    if line:
+        argv += ["--line", line]
     if hil:
         argv += ["--hil", "--rt-priority", str(rt), "--camera-profile", camera_profile]  # rt 0 = normal scheduling
         if link_protocol:
@@ -52,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cars", default=None, metavar="PLANNERS",
                         help="the roster of both races (race --cars, e.g. rd3g,rd3g,mpc,mpc; default: the two-car race)")
     parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--line", choices=LINES, default=None,
+                        help="the planners' reference in both races (race --line; default: race's)")
     parser.add_argument("--rt-priority", type=int, default=20,
                         help="the HIL races' --rt-priority (default 20, as `race --hil` when permitted; 0 = normal)")
     parser.add_argument("--sim-effects", default="", metavar="TEXT",
@@ -100,7 +105,7 @@ def run(args) -> int:
             out, js = runs / f"{mode}-seed{seed}.rrd", runs / f"{mode}-seed{seed}.json"
             capture = str(runs / f"hil-seed{seed}-link.txt") if args.link_capture and mode == "hil" else None
             a = _race_args(seed, str(out), str(js), args.rt_priority, mode == "hil", args.sim_effects,
-                           args.link_protocol, capture, args.camera_profile, args.cars)
+                           args.link_protocol, capture, args.camera_profile, args.cars, args.line)
             load0 = os.getloadavg()[0]
             steal0 = steal_seconds()
             t0 = time.monotonic()
@@ -216,6 +221,7 @@ def report(rows, args, machine: str) -> str:
     lines = [
         f"Command: `.venv/bin/python -m app bench loop --seeds {args.seeds} --first-seed {args.first_seed}"
         + (f" --cars {args.cars}" if getattr(args, "cars", None) else "")
+        + (f" --line {args.line}" if getattr(args, "line", None) else "")
         + f" --rt-priority {args.rt_priority} --camera-profile {args.camera_profile}"
         + (f" --sim-effects {args.sim_effects}" if args.sim_effects else "")
         + (f" --link-protocol {args.link_protocol}" if args.link_protocol else "") + "`"
