@@ -94,7 +94,7 @@ class _RecedingHorizon:
         self._warm_settings = solver_settings(config.solver)
         self._game_settings: dict[int, object] = {}  # warm settings of games of more than two players
         self._cold_settings = solver_settings(config.solver, config.cold_start_solver)
-        # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
+        # The retry after a failed warm start (from _tracking_guess): the warm settings at the default barrier weight.
         self._retry_settings = solver_settings(config.solver, {"barrier": {"rho_init": None}})
         self._shift_weights: dict[int, tuple] = {}  # _shifted's interpolation per series length
         # config.line "racing": the line this car follows (its own limits and top speed; cached per track).
