@@ -94,7 +94,7 @@ class _RecedingHorizon:
         self._warm_settings = solver_settings(config.solver)
         self._game_settings: dict[int, object] = {}  # warm settings of games of more than two players
         self._cold_settings = solver_settings(config.solver, config.cold_start_solver)
-        # Retry from the solver's own initial guess: the warm settings at the default barrier weight.
+        # The retry after a failed warm start (from _tracking_guess): the warm settings at the default barrier weight.
         self._retry_settings = solver_settings(config.solver, {"barrier": {"rho_init": None}})
         self._shift_weights: dict[int, tuple] = {}  # _shifted's interpolation per series length
         # config.line "racing": the line this car follows (its own limits and top speed; cached per track).
@@ -285,13 +285,16 @@ class _RecedingHorizon:
                 x[j + 1] = np.asarray(model.rollout(x[j], u[i, j][None]))[-1]
         return WarmStart(u=u, lam=warm.lam, mu=warm.mu)
 
-    def _tracking_guess(self, problem: GameProblem, warm: WarmStart) -> WarmStart | None:
-        """Following the racing line, the retry's initial guess: every agent's controls by closed-loop tracking
+    def _tracking_guess(self, problem: GameProblem, warm: WarmStart) -> WarmStart:
+        """The retry's initial guess, on either line: every agent's controls by closed-loop tracking
         (tracking_control) of its cost's stage references (lateral offset inside its track-limit bounds,
-        speed at most its top speed), the multipliers of the warm start; None (the solver's own guess, zero
-        controls) on the centre line."""
-        if self.line is None:
-            return None
+        speed at most its top speed), the multipliers of the warm start. Why not the solver's own guess, zero
+        controls: straight wheels in a turn run to its outside, and the retry's plan with them. On the oval's
+        centre line (`race --track oval --line centre --laps 2`, solo against a slow car) a retry in the 1 m
+        turn from ey 0.0-0.18 m planned onto the outer bound; the car followed, the kinematic plan's sideslip
+        under-stated its drift there, it crossed the bound, every solve from beyond it failed, and the
+        fallbacks held it outside until it left the track (RD3G in 3 and MPC in 6 of 8 runs with its speed
+        perturbed by 1-30 um/s; none with this guess; docs/racing.md)."""
         c = self.config
         model = self.tm.rollout_model(c.plan_dt_s)
         u = np.zeros_like(np.asarray(warm.u, dtype=float))
@@ -569,7 +572,7 @@ class _RecedingHorizon:
         if warm is not None and not result.converged and result.iterations == 0:
             # The warm start itself was unusable (line search failed at once, e.g. a stale fallback
             # plan that now violates a constraint): without a retry every later step starts from the
-            # same stale plan and falls back too. One retry from the solver's own initial guess.
+            # same stale plan and falls back too. One retry, from tracking the references.
             solver.update_settings(self._retry_settings)
             result = solver.solve(self._tracking_guess(problem, warm))
         finite = bool(np.all(np.isfinite(result.u)))

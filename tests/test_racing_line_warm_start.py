@@ -1,6 +1,7 @@
 """Following the racing line: the warm start brought inside the track-limit bounds before a solve
 (_RecedingHorizon._inside_bounds), checked against the plan's own bounds on a circle track, and the
-other cars of RD3G's game on their own line (RacingPlanner.line_for)."""
+other cars of RD3G's game on their own line (RacingPlanner.line_for); the retry's guess after a failed warm
+start, on either line (_RecedingHorizon._tracking_guess)."""
 from __future__ import annotations
 
 import numpy as np
@@ -102,5 +103,24 @@ def test_the_retry_guess_tracks_the_line_inside_the_bounds():
     x = _rollout(planner, x0, np.asarray(guess.u)[0])
     assert np.all(x[1:, EY] >= low) and np.all(x[1:, EY] <= high)
     assert abs(x[-1, EY]) < 0.1 and x[-1, V] <= 1.2 + 1e-9 and x[-1, V] > 1.0
-    planner.line = None                                                 # the centre line: the solver's own guess
-    assert planner._tracking_guess(problem, guess) is None
+
+
+def test_on_the_centre_line_the_retry_guess_stays_in_the_turn_where_zero_controls_leave_it():
+    # The retry after a warm start that failed at once, on the centre line (the cost's constant reference ey 0):
+    # from 0.12 m inside the unit ring's centre line at 1.9 m/s, heading along it. The solver's own guess, zero
+    # controls, drives the tangent: after 1 s at 1.9 m/s (no acceleration) the CG is
+    # sqrt((1 - 0.12)^2 + 1.9^2) - 1 = 1.09 m outside the circle, far beyond the track-limit bound. The tracking
+    # guess stays inside the bounds and ends near the centre line. (The planning model integrates in 0.1 s steps:
+    # 3 % off the exact tangent.)
+    planner = _mpc_on_the_ring()
+    planner.line = None
+    x0 = np.array([1.0, 0.12, 1.9, 0.0])
+    problem, (low, high) = _problem(planner, x0, top=2.0)
+    u = np.zeros((planner.config.horizon, 2))
+    straight = _rollout(planner, x0, u)
+    assert straight[-1, EY] == pytest.approx(-(np.hypot(1.0 - 0.12, 1.9) - 1.0), rel=0.05)  # discrete steps
+    assert straight[-1, EY] < low
+    guess = planner._tracking_guess(problem, WarmStart(u=u[None]))
+    x = _rollout(planner, x0, np.asarray(guess.u)[0])
+    assert np.all(x[1:, EY] >= low) and np.all(x[1:, EY] <= high)
+    assert abs(x[-1, EY]) < 0.06 and np.all(x[1:, V] <= 2.0 + 1e-9)
