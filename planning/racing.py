@@ -523,36 +523,58 @@ class _RecedingHorizon:
         return np.stack([np.asarray(model.rollout(np.asarray(a.x0, dtype=float), u[i]))
                          for i, a in enumerate(problem.agents)])
 
-    def _distance_steps(self, d_min: float, nominal: float):
+    def _distance_steps(self, d_min: float, nominal: float, rate_factor: float = 1.0):
         """The collision distance for k = 1..T: d_min (relaxed so that k = 1 is feasible) if it equals
         the nominal one or separation_recovery_mps is 0; otherwise d_min at k = 1 and 2, then growing
-        at separation_recovery_mps per second back to the nominal distance (per-step array). The
-        positions at k = 1 and 2 hardly depend on the controls (the first control acts on the speed and
-        heading used from k = 1 on), so a ramp from k = 2 made a car closing at 0.4 m/s infeasible."""
-        rate = self.config.separation_recovery_mps
+        at separation_recovery_mps x rate_factor (recovery_rate_factor) per second back to the nominal
+        distance (per-step array). The positions at k = 1 and 2 hardly depend on the controls (the first
+        control acts on the speed and heading used from k = 1 on), so a ramp from k = 2 made a car closing
+        at 0.4 m/s infeasible."""
+        rate = self.config.separation_recovery_mps * rate_factor
         if rate <= 0 or d_min >= nominal:
             return d_min
         k = np.arange(1, self.config.horizon + 1)
         return np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
 
+    @staticmethod
+    def recovery_rate_factor(gap_s: float, gap_ey: float, along_track_scale: float) -> float:
+        """The rate (per m/s of recovery) at which the collision constraint's separation |(a ds, dey)|
+        grows when a pair's Frenet gap (gap_s, gap_ey) opens along its own direction: the separation over
+        the Frenet distance |(ds, dey)|, between a (in line) and 1 (side by side), at most 1. Why: the
+        separation ramp (_distance_steps) grows the constraint's measure, in which an along-track gap counts
+        a times its length; in the tile turns a is 0.41 (the window's 0.3 m turn), so 0.3 m/s of measure
+        asked a pair in line to open the gap at 0.73 m/s, while follow_speed_cap drops the rear car back
+        at 0.3 m/s: the ramp's plans were out of reach and RD3G's 4-car solves on `full` fell back in 85 %
+        of the plans with such a pair (16 % without). Side by side (and wherever a >= 1, the oval's
+        straights) the ramp stays as it was."""
+        distance = math.hypot(float(gap_s), float(gap_ey))
+        if distance <= 0.0:
+            return 1.0
+        return min(float(frenet_separation(gap_s, gap_ey, along_track_scale)) / distance, 1.0)
+
     def _violation(self, problem: GameProblem, x: np.ndarray) -> float:
-        """Largest violation (m or m/s) of the agents' track-limit bounds and top speeds and of separation
-        (each pair at its own distance, measured as the constraint does) along trajectories x."""
+        """Largest violation (m or m/s) along trajectories x of the agents' track-limit bounds and top speeds
+        and of our car's (agent 0's) separation from every other agent and obstacle (each pair at its own
+        distance, measured as the constraint does). The separations among the other cars are their own
+        affair: the game predicts them avoiding each other, but our car's plan keeps its own distance from
+        each of their predicted paths whether or not those paths keep theirs. Counting them stopped RD3G
+        from using plans that were sound for it: in the 4-car races on `full`, a leading car drove on its
+        fallback for 84 plans in a row because the three cars 1-2 m behind it, all in its game, could not
+        be planned apart in 15 iterations."""
         worst = 0.0
         for i, a in enumerate(problem.agents):
             worst = max(worst, float(np.max(x[i, 1:, EY] - a.x_max[EY])), float(np.max(a.x_min[EY] - x[i, 1:, EY])),
                         float(np.max(x[i, 1:, V]) - a.x_max[V]))
         n = len(problem.agents)
         scale = 1.0 if problem.collision.pos_x_scale is None else np.asarray(problem.collision.pos_x_scale, dtype=float)
-        positions = [x[i, 1:, :2] for i in range(n)]
+        own = x[0, 1:, :2]
         d_pair = problem.collision.pair_min_distances(n, problem.horizon) if n > 1 else None
-        for i in range(n):
-            for j in range(i + 1, n):
-                gap = positions[i] - positions[j]
-                worst = max(worst, float(np.max(d_pair[i, j] - frenet_separation(gap[:, 0], gap[:, 1], scale))))
-            for o in problem.obstacles:  # each obstacle at its own distance
-                gap = positions[i] - np.asarray(o.positions)[1:]
-                worst = max(worst, float(np.max(o.min_distance - frenet_separation(gap[:, 0], gap[:, 1], scale))))
+        for j in range(1, n):
+            gap = own - x[j, 1:, :2]
+            worst = max(worst, float(np.max(d_pair[0, j] - frenet_separation(gap[:, 0], gap[:, 1], scale))))
+        for o in problem.obstacles:  # each obstacle at its own distance
+            gap = own - np.asarray(o.positions)[1:]
+            worst = max(worst, float(np.max(o.min_distance - frenet_separation(gap[:, 0], gap[:, 1], scale))))
         return max(worst, 0.0)
 
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = ()) -> Plan:
@@ -586,9 +608,10 @@ class _RecedingHorizon:
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
                 others = [a.x0[:2] for a in problem.agents[1:]] + [np.asarray(o.positions)[0] for o in problem.obstacles]
-                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V], warm.u, others)
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V],
+                                             result.u if finite else warm.u, others)
         x = self._rollout(problem, u_all)
-        lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
+        lam = result.lam if used != "fallback" or finite else (warm.lam if warm is not None and warm.lam is not None else result.lam)
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
         self._prev, self._prev_ids = result, tuple(ids)
@@ -735,7 +758,9 @@ class RacingPlanner(_RecedingHorizon):
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
         n = len(agents)
-        steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min)
+        where = [np.asarray(x[:2], dtype=float) for x in (x_self, *rows, *far)]
+        steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min,
+                                              self.recovery_rate_factor(*(where[i] - where[j]), scale))
                  for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
         collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,
                               pos_x_scale=[scale] * c.horizon,
