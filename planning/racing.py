@@ -577,41 +577,57 @@ class _RecedingHorizon:
             worst = max(worst, float(np.max(o.min_distance - frenet_separation(gap[:, 0], gap[:, 1], scale))))
         return max(worst, 0.0)
 
+    def _usable(self, problem: GameProblem, result: GameResult) -> str:
+        """"converged", "accepted" (not converged, but its controls re-simulated with the planning model keep
+        the constraints _violation checks within accept_violation_m) or "fallback"."""
+        if not np.all(np.isfinite(result.u)):
+            return "fallback"
+        if result.converged and np.all(np.isfinite(result.x)):
+            return "converged"
+        x = self._rollout(problem, result.u)
+        if np.all(np.isfinite(x)) and self._violation(problem, x) <= self.config.accept_violation_m:
+            return "accepted"
+        return "fallback"
+
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = ()) -> Plan:
         """Solve; a converged solve is used as is. A non-converged one is used only if its controls,
-        re-simulated with the planning model (removing any dynamics defect), keep every constraint
-        within accept_violation_m; otherwise ("fallback") the car tracks the last plan it used in closed
-        loop (tracking_control) for this step."""
+        re-simulated with the planning model (removing any dynamics defect), keep the constraints
+        _violation checks within accept_violation_m; otherwise ("fallback") the car tracks the last plan it
+        used in closed loop (tracking_control) for this step."""
         warm = self._inside_bounds(problem, self._warm_start(ids))
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
         # its full globalisation (config.cold_start_solver).
         solver = self._solver_for(problem, self._warm_settings_for(len(problem.agents)) if warm is not None
                                   else self._cold_settings)
         result = solver.solve(warm)
-        if warm is not None and not result.converged and result.iterations == 0:
-            # The warm start itself was unusable (line search failed at once, e.g. a stale fallback
-            # plan that now violates a constraint): without a retry every later step starts from the
-            # same stale plan and falls back too. One retry from the solver's own initial guess.
+        used = self._usable(problem, result)
+        # One retry when the warm start was no usable start. From a warm start that fails at once (line
+        # search failed at iteration 0, e.g. a stale fallback plan that now violates a constraint) every
+        # later step would start from the same stale plan and fall back too. Following the racing line, also
+        # when the solve from it ends unusable (a run of fallbacks starts every solve from the iterate of the
+        # last failed one; in the 4-car races on `full` three in four such solves failed again), from
+        # closed-loop tracking of the stage references; the better of the two is kept.
+        if warm is not None and used == "fallback" and (result.iterations == 0 or self.line is not None):
             solver.update_settings(self._retry_settings)
-            result = solver.solve(self._tracking_guess(problem, warm))
+            retry = solver.solve(self._tracking_guess(problem, warm))
+            if result.iterations == 0 or self._usable(problem, retry) != "fallback":
+                result = retry
+                used = self._usable(problem, result)
         finite = bool(np.all(np.isfinite(result.u)))
-        if result.converged and finite and np.all(np.isfinite(result.x)):
-            used, u_all = "converged", result.u
-        else:
-            used = "fallback"
-            if finite:
-                x = self._rollout(problem, result.u)
-                if np.all(np.isfinite(x)) and self._violation(problem, x) <= self.config.accept_violation_m:
-                    used, u_all = "accepted", result.u
+        u_all = result.u
         if used == "fallback":
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
                 others = [a.x0[:2] for a in problem.agents[1:]] + [np.asarray(o.positions)[0] for o in problem.obstacles]
+                # Following the racing line the next warm start continues from this solve's iterate (the
+                # shifted stale plan, held over a run of fallbacks, was no start the solver recovered from).
+                iterate = finite and self.line is not None
                 u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V],
-                                             result.u if finite else warm.u, others)
+                                             result.u if iterate else warm.u, others)
         x = self._rollout(problem, u_all)
-        lam = result.lam if used != "fallback" or finite else (warm.lam if warm is not None and warm.lam is not None else result.lam)
+        iterate = used != "fallback" or (finite and warm is not None and self.line is not None) or warm is None
+        lam = result.lam if iterate or warm.lam is None else warm.lam
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
         self._prev, self._prev_ids = result, tuple(ids)
