@@ -546,7 +546,7 @@ class _RecedingHorizon:
         asked a pair in line to open the gap at 0.73 m/s, while follow_speed_cap drops the rear car back
         at 0.3 m/s: the ramp's plans were out of reach and RD3G's 4-car solves on `full` fell back in 85 %
         of the plans with such a pair (16 % without). Side by side (and wherever a >= 1, the oval's
-        straights) the ramp stays as it was."""
+        straights) the ramp stays as it was. Used following the racing line; the centre line keeps 1."""
         distance = math.hypot(float(gap_s), float(gap_ey))
         if distance <= 0.0:
             return 1.0
@@ -554,8 +554,9 @@ class _RecedingHorizon:
 
     def _violation(self, problem: GameProblem, x: np.ndarray) -> float:
         """Largest violation (m or m/s) along trajectories x of the agents' track-limit bounds and top speeds
-        and of our car's (agent 0's) separation from every other agent and obstacle (each pair at its own
-        distance, measured as the constraint does). The separations among the other cars are their own
+        and of separation (each pair at its own distance, measured as the constraint does): following the
+        racing line only our car's (agent 0's) from every other agent and obstacle, on the centre line every
+        pair's (its measured races stay as they were). The separations among the other cars are their own
         affair: the game predicts them avoiding each other, but our car's plan keeps its own distance from
         each of their predicted paths whether or not those paths keep theirs. Counting them stopped RD3G
         from using plans that were sound for it: in the 4-car races on `full`, a leading car drove on its
@@ -567,14 +568,15 @@ class _RecedingHorizon:
                         float(np.max(x[i, 1:, V]) - a.x_max[V]))
         n = len(problem.agents)
         scale = 1.0 if problem.collision.pos_x_scale is None else np.asarray(problem.collision.pos_x_scale, dtype=float)
-        own = x[0, 1:, :2]
+        positions = [x[i, 1:, :2] for i in range(n)]
         d_pair = problem.collision.pair_min_distances(n, problem.horizon) if n > 1 else None
-        for j in range(1, n):
-            gap = own - x[j, 1:, :2]
-            worst = max(worst, float(np.max(d_pair[0, j] - frenet_separation(gap[:, 0], gap[:, 1], scale))))
-        for o in problem.obstacles:  # each obstacle at its own distance
-            gap = own - np.asarray(o.positions)[1:]
-            worst = max(worst, float(np.max(o.min_distance - frenet_separation(gap[:, 0], gap[:, 1], scale))))
+        for i in range(1 if self.line is not None else n):  # the centre line keeps checking every pair
+            for j in range(i + 1, n):
+                gap = positions[i] - positions[j]
+                worst = max(worst, float(np.max(d_pair[i, j] - frenet_separation(gap[:, 0], gap[:, 1], scale))))
+            for o in problem.obstacles:  # each obstacle at its own distance
+                gap = positions[i] - np.asarray(o.positions)[1:]
+                worst = max(worst, float(np.max(o.min_distance - frenet_separation(gap[:, 0], gap[:, 1], scale))))
         return max(worst, 0.0)
 
     def _usable(self, problem: GameProblem, result: GameResult) -> str:
@@ -776,6 +778,7 @@ class RacingPlanner(_RecedingHorizon):
         n = len(agents)
         where = [np.asarray(x[:2], dtype=float) for x in (x_self, *rows, *far)]
         steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min,
+                                              1.0 if self.line is None else
                                               self.recovery_rate_factor(*(where[i] - where[j]), scale))
                  for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
         collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,

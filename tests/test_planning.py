@@ -391,7 +391,7 @@ def test_corner_speed_cap_from_the_curvature_within_reach(track, car):
 
 
 def test_a_plan_is_judged_on_our_cars_separations_and_every_cars_bounds(track, car):
-    """Acceptance of a non-converged plan (_violation): three cars on the oval's top straight (s in [1 + pi,
+    """Acceptance of a non-converged plan (_violation) following the racing line: three cars on the oval's top straight (s in [1 + pi,
     3 + pi], kappa = 0), trajectories written by hand at 1 m/s along the track, along-track scale 1 so the
     separation is the Euclidean Frenet distance. Cars 1 and 2 overlapping each other, 0.25 - hypot(0.05, 0.02)
     = 0.196 m inside the collision distance, far from ours (0.5 m ahead, 0.25 m aside): nothing violated for our
@@ -399,7 +399,7 @@ def test_a_plan_is_judged_on_our_cars_separations_and_every_cars_bounds(track, c
     its top speed by 0.05 m/s: 0.05 m/s, a bound of another car still counts."""
     from solver_cpp import Collision, GameProblem
 
-    p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.8)
+    p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.8, config={"line": "racing"})
     T, dt = p.config.horizon, p.config.plan_dt_s
     d = p.tm.collision_distance()
     assert d == 0.25
@@ -422,3 +422,7 @@ def test_a_plan_is_judged_on_our_cars_separations_and_every_cars_bounds(track, c
     assert p._violation(problem, x) == pytest.approx(d - math.hypot(0.05, 0.05), abs=1e-12)
     problem, x = problem_and_x(apart, tops=(2.0, 0.95, 2.0))
     assert p._violation(problem, x) == pytest.approx(0.05, abs=1e-12)
+    # On the centre line every pair still counts (its measured races stay as they were).
+    centre = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.8, config={"line": "centre"})
+    problem, x = problem_and_x(apart)
+    assert centre._violation(problem, x) == pytest.approx(d - math.hypot(0.05, 0.02), abs=1e-12)
