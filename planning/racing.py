@@ -609,7 +609,8 @@ class _RecedingHorizon:
         # when the solve from it ends unusable (a run of fallbacks starts every solve from the iterate of the
         # last failed one; in the 4-car races on `full` three in four such solves failed again), from
         # closed-loop tracking of the stage references; the better of the two is kept.
-        if warm is not None and used == "fallback" and (result.iterations == 0 or self.line is not None):
+        if warm is not None and not result.converged and (used == "fallback" if self.line is not None
+                                                          else result.iterations == 0):
             solver.update_settings(self._retry_settings)
             retry = solver.solve(self._tracking_guess(problem, warm))
             if result.iterations == 0 or self._usable(problem, retry) != "fallback":
