@@ -526,21 +526,45 @@ class _RecedingHorizon:
         return np.stack([np.asarray(model.rollout(np.asarray(a.x0, dtype=float), u[i]))
                          for i, a in enumerate(problem.agents)])
 
-    def _distance_steps(self, d_min: float, nominal: float):
+    def _distance_steps(self, d_min: float, nominal: float, rate_factor: float = 1.0):
         """The collision distance for k = 1..T: d_min (relaxed so that k = 1 is feasible) if it equals
         the nominal one or separation_recovery_mps is 0; otherwise d_min at k = 1 and 2, then growing
-        at separation_recovery_mps per second back to the nominal distance (per-step array). The
-        positions at k = 1 and 2 hardly depend on the controls (the first control acts on the speed and
-        heading used from k = 1 on), so a ramp from k = 2 made a car closing at 0.4 m/s infeasible."""
-        rate = self.config.separation_recovery_mps
+        at separation_recovery_mps x rate_factor (recovery_rate_factor) per second back to the nominal
+        distance (per-step array). The positions at k = 1 and 2 hardly depend on the controls (the first
+        control acts on the speed and heading used from k = 1 on), so a ramp from k = 2 made a car closing
+        at 0.4 m/s infeasible."""
+        rate = self.config.separation_recovery_mps * rate_factor
         if rate <= 0 or d_min >= nominal:
             return d_min
         k = np.arange(1, self.config.horizon + 1)
         return np.minimum(nominal, d_min + rate * self.config.plan_dt_s * np.maximum(k - 2, 0))
 
+    @staticmethod
+    def recovery_rate_factor(gap_s: float, gap_ey: float, along_track_scale: float) -> float:
+        """The rate (per m/s of recovery) at which the collision constraint's separation |(a ds, dey)|
+        grows when a pair's Frenet gap (gap_s, gap_ey) opens along its own direction: the separation over
+        the Frenet distance |(ds, dey)|, between a (in line) and 1 (side by side), at most 1. Why: the
+        separation ramp (_distance_steps) grows the constraint's measure, in which an along-track gap counts
+        a times its length; in the tile turns a is 0.41 (the window's 0.3 m turn), so 0.3 m/s of measure
+        asked a pair in line to open the gap at 0.73 m/s, while follow_speed_cap drops the rear car back
+        at 0.3 m/s: the ramp's plans were out of reach and RD3G's 4-car solves on `full` fell back in 85 %
+        of the plans with such a pair (16 % without). Side by side (and wherever a >= 1, the oval's
+        straights) the ramp stays as it was. Used following the racing line; the centre line keeps 1."""
+        distance = math.hypot(float(gap_s), float(gap_ey))
+        if distance <= 0.0:
+            return 1.0
+        return min(float(frenet_separation(gap_s, gap_ey, along_track_scale)) / distance, 1.0)
+
     def _violation(self, problem: GameProblem, x: np.ndarray) -> float:
-        """Largest violation (m or m/s) of the agents' track-limit bounds and top speeds and of separation
-        (each pair at its own distance, measured as the constraint does) along trajectories x."""
+        """Largest violation (m or m/s) along trajectories x of the agents' track-limit bounds and top speeds
+        and of separation (each pair at its own distance, measured as the constraint does): following the
+        racing line only our car's (agent 0's) from every other agent and obstacle, on the centre line every
+        pair's (its measured races stay as they were). The separations among the other cars are their own
+        affair: the game predicts them avoiding each other, but our car's plan keeps its own distance from
+        each of their predicted paths whether or not those paths keep theirs. Counting them stopped RD3G
+        from using plans that were sound for it: in the 4-car races on `full`, a leading car drove on its
+        fallback for 84 plans in a row because the three cars 1-2 m behind it, all in its game, could not
+        be planned apart in 15 iterations."""
         worst = 0.0
         for i, a in enumerate(problem.agents):
             worst = max(worst, float(np.max(x[i, 1:, EY] - a.x_max[EY])), float(np.max(a.x_min[EY] - x[i, 1:, EY])),
@@ -549,7 +573,7 @@ class _RecedingHorizon:
         scale = 1.0 if problem.collision.pos_x_scale is None else np.asarray(problem.collision.pos_x_scale, dtype=float)
         positions = [x[i, 1:, :2] for i in range(n)]
         d_pair = problem.collision.pair_min_distances(n, problem.horizon) if n > 1 else None
-        for i in range(n):
+        for i in range(1 if self.line is not None else n):  # the centre line keeps checking every pair
             for j in range(i + 1, n):
                 gap = positions[i] - positions[j]
                 worst = max(worst, float(np.max(d_pair[i, j] - frenet_separation(gap[:, 0], gap[:, 1], scale))))
@@ -558,40 +582,58 @@ class _RecedingHorizon:
                 worst = max(worst, float(np.max(o.min_distance - frenet_separation(gap[:, 0], gap[:, 1], scale))))
         return max(worst, 0.0)
 
+    def _usable(self, problem: GameProblem, result: GameResult) -> str:
+        """"converged", "accepted" (not converged, but its controls re-simulated with the planning model keep
+        the constraints _violation checks within accept_violation_m) or "fallback"."""
+        if not np.all(np.isfinite(result.u)):
+            return "fallback"
+        if result.converged and np.all(np.isfinite(result.x)):
+            return "converged"
+        x = self._rollout(problem, result.u)
+        if np.all(np.isfinite(x)) and self._violation(problem, x) <= self.config.accept_violation_m:
+            return "accepted"
+        return "fallback"
+
     def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = ()) -> Plan:
         """Solve; a converged solve is used as is. A non-converged one is used only if its controls,
-        re-simulated with the planning model (removing any dynamics defect), keep every constraint
-        within accept_violation_m; otherwise ("fallback") the car tracks the last plan it used in closed
-        loop (tracking_control) for this step."""
+        re-simulated with the planning model (removing any dynamics defect), keep the constraints
+        _violation checks within accept_violation_m; otherwise ("fallback") the car tracks the last plan it
+        used in closed loop (tracking_control) for this step."""
         warm = self._inside_bounds(problem, self._warm_start(ids))
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
         # its full globalisation (config.cold_start_solver).
         solver = self._solver_for(problem, self._warm_settings_for(len(problem.agents)) if warm is not None
                                   else self._cold_settings)
         result = solver.solve(warm)
-        if warm is not None and not result.converged and result.iterations == 0:
-            # The warm start itself was unusable (line search failed at once, e.g. a stale fallback
-            # plan that now violates a constraint): without a retry every later step starts from the
-            # same stale plan and falls back too. One retry, from tracking the references.
+        used = self._usable(problem, result)
+        # One retry when the warm start was no usable start. From a warm start that fails at once (line
+        # search failed at iteration 0, e.g. a stale fallback plan that now violates a constraint) every
+        # later step would start from the same stale plan and fall back too. Following the racing line, also
+        # when the solve from it ends unusable (a run of fallbacks starts every solve from the iterate of the
+        # last failed one; in the 4-car races on `full` three in four such solves failed again), from
+        # closed-loop tracking of the stage references; the better of the two is kept.
+        if warm is not None and not result.converged and (used == "fallback" if self.line is not None
+                                                          else result.iterations == 0):
             solver.update_settings(self._retry_settings)
-            result = solver.solve(self._tracking_guess(problem, warm))
+            retry = solver.solve(self._tracking_guess(problem, warm))
+            if result.iterations == 0 or self._usable(problem, retry) != "fallback":
+                result = retry
+                used = self._usable(problem, result)
         finite = bool(np.all(np.isfinite(result.u)))
-        if result.converged and finite and np.all(np.isfinite(result.x)):
-            used, u_all = "converged", result.u
-        else:
-            used = "fallback"
-            if finite:
-                x = self._rollout(problem, result.u)
-                if np.all(np.isfinite(x)) and self._violation(problem, x) <= self.config.accept_violation_m:
-                    used, u_all = "accepted", result.u
+        u_all = result.u
         if used == "fallback":
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
                 others = [a.x0[:2] for a in problem.agents[1:]] + [np.asarray(o.positions)[0] for o in problem.obstacles]
-                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V], warm.u, others)
+                # Following the racing line the next warm start continues from this solve's iterate (the
+                # shifted stale plan, held over a run of fallbacks, was no start the solver recovered from).
+                iterate = finite and self.line is not None
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V],
+                                             result.u if iterate else warm.u, others)
         x = self._rollout(problem, u_all)
-        lam = result.lam if used != "fallback" else (warm.lam if warm is not None and warm.lam is not None else result.lam)
+        iterate = used != "fallback" or (finite and warm is not None and self.line is not None) or warm is None
+        lam = result.lam if iterate or warm.lam is None else warm.lam
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
         self._prev, self._prev_ids = result, tuple(ids)
@@ -738,7 +780,10 @@ class RacingPlanner(_RecedingHorizon):
         # Each pair at its own distance: a pair that starts too close is relaxed (and recovers along the
         # plan), the others keep the nominal one; so does each obstacle.
         n = len(agents)
-        steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min)
+        where = [np.asarray(x[:2], dtype=float) for x in (x_self, *rows, *far)]
+        steps = {(i, j): self._distance_steps(float(pair[i, j]), nominal_d_min,
+                                              1.0 if self.line is None else
+                                              self.recovery_rate_factor(*(where[i] - where[j]), scale))
                  for i in range(len(pair)) for j in range(i + 1, len(pair)) if pair[i, j] < nominal_d_min}
         collision = Collision(min_distance=nominal_d_min, form="distance", pos_x=S, pos_y=EY,
                               pos_x_scale=[scale] * c.horizon,

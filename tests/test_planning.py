@@ -390,3 +390,41 @@ def test_corner_speed_cap_from_the_curvature_within_reach(track, car):
     q = _planner(MPCOpponent, twisty, car)
     a_lat = q.config.max_lateral_accel_mps2
     assert q.corner_speed_cap(np.array([s_hairpin - 0.3, 0.0, 1.3, 0.0]), 2.0) == pytest.approx(math.sqrt(a_lat / 2.5), abs=1e-3)
+
+
+def test_a_plan_is_judged_on_our_cars_separations_and_every_cars_bounds(track, car):
+    """Acceptance of a non-converged plan (_violation) following the racing line: three cars on the oval's top straight (s in [1 + pi,
+    3 + pi], kappa = 0), trajectories written by hand at 1 m/s along the track, along-track scale 1 so the
+    separation is the Euclidean Frenet distance. Cars 1 and 2 overlapping each other, 0.25 - hypot(0.05, 0.02)
+    = 0.196 m inside the collision distance, far from ours (0.5 m ahead, 0.25 m aside): nothing violated for our
+    plan. Car 2 beside ours instead, 5 cm behind and 5 cm aside: 0.25 - hypot(0.05, 0.05) = 0.179 m. Car 1 above
+    its top speed by 0.05 m/s: 0.05 m/s, a bound of another car still counts."""
+    from solver_cpp import Collision, GameProblem
+
+    p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.8, config={"line": "racing"})
+    T, dt = p.config.horizon, p.config.plan_dt_s
+    d = p.tm.collision_distance()
+    assert d == 0.25
+    limits = (-0.2, 0.2)
+    t = np.arange(T + 1) * dt
+
+    def problem_and_x(starts, tops=(2.0, 2.0, 2.0)):
+        x = np.zeros((3, T + 1, 4))
+        for i, (s0, ey0) in enumerate(starts):
+            x[i, :, 0], x[i, :, 1], x[i, :, 2] = s0 + t, ey0, 1.0
+        agents = [p._agent(x[i, 0], tops[i], limits, p._cost(tops[i]), p.config.lead_weight) for i in range(3)]
+        collision = Collision(min_distance=d, form="distance", pos_x=0, pos_y=1, pos_x_scale=[1.0] * T)
+        return GameProblem(dt=dt, horizon=T, agents=agents, collision=collision), x
+
+    apart = [(4.5, -0.15), (5.0, 0.10), (5.05, 0.12)]
+    problem, x = problem_and_x(apart)
+    assert float(np.min(np.hypot(*(x[1, 1:, :2] - x[2, 1:, :2]).T))) == pytest.approx(math.hypot(0.05, 0.02))
+    assert p._violation(problem, x) == 0.0
+    problem, x = problem_and_x([(4.5, -0.15), (5.0, 0.10), (4.45, -0.10)])
+    assert p._violation(problem, x) == pytest.approx(d - math.hypot(0.05, 0.05), abs=1e-12)
+    problem, x = problem_and_x(apart, tops=(2.0, 0.95, 2.0))
+    assert p._violation(problem, x) == pytest.approx(0.05, abs=1e-12)
+    # On the centre line every pair still counts (its measured races stay as they were).
+    centre = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.8, config={"line": "centre"})
+    problem, x = problem_and_x(apart)
+    assert centre._violation(problem, x) == pytest.approx(d - math.hypot(0.05, 0.02), abs=1e-12)

@@ -239,3 +239,33 @@ def test_lateral_clearance_widens_the_constraint_sideways_only(full, car):
         assert float(frenet_separation(ds, 0.0, scales[lat])) == pytest.approx(tm.collision_distance())
     assert scales[0.1] == scales[0.0]
     assert scales[0.25] == pytest.approx(scales[0.0] * 0.25 / d_fp, rel=1e-12)
+
+
+def test_separation_ramp_opens_the_gap_at_the_recovery_rate_in_metres(full, car):
+    """The ramp's rate in the constraint's measure |(a ds, dey)|, per m/s of recovery, is the measure over the
+    Frenet distance |(ds, dey)|, at most 1. Hand-worked with the tile turn's scale: in line (dey = 0) it is a
+    (0.3 m/s of measure would ask the rear car to drop back at 0.3 / a m/s); side by side (ds = 0) it is 1; at
+    ds = 0.3 m, dey = 0.4 m and a = 0.5 it is hypot(0.15, 0.4) / 0.5 = 0.8544. Independent check: a gap that
+    opens along its own direction at r m/s grows the measure at r times that rate (a finite difference)."""
+    p = _planner(full, car)
+    s0 = _turn_s(full)
+    a = p.tm.along_track_scale([s0, s0 - 0.3], [0.15, 0.15])
+    assert 0.3 < a < 0.5  # the tile turn stretches the along-track gap
+    assert p.recovery_rate_factor(0.3, 0.0, a) == pytest.approx(a)
+    assert p.recovery_rate_factor(-0.3, 0.0, a) == pytest.approx(a)
+    assert p.recovery_rate_factor(0.0, 0.12, a) == pytest.approx(1.0)
+    assert p.recovery_rate_factor(0.3, 0.4, 0.5) == pytest.approx(math.hypot(0.15, 0.4) / 0.5, rel=1e-12)
+    assert p.recovery_rate_factor(0.3, 0.0, 1.2) == 1.0  # never faster than separation_recovery_mps
+    assert p.recovery_rate_factor(0.0, 0.0, a) == 1.0
+    r, dt = p.config.separation_recovery_mps, 1e-6
+    for gap in ((0.3, 0.0), (0.2, 0.1), (0.05, 0.15), (-0.25, -0.05)):
+        g = np.array(gap)
+        opened = g + r * dt * g / np.linalg.norm(g)
+        rate = (float(frenet_separation(*opened, a)) - float(frenet_separation(*g, a))) / dt
+        assert rate == pytest.approx(r * p.recovery_rate_factor(*g, a), rel=1e-4)
+    # In a plan: a pair 0.3 m apart in line in the turn is relaxed, and its distance grows at
+    # separation_recovery_mps x a per second of measure (0.3 m/s of gap along the track) from k = 2 on.
+    nominal = p.tm.collision_distance()
+    steps = p._distance_steps(0.1, nominal, p.recovery_rate_factor(0.3, 0.0, a))
+    k = np.arange(1, p.config.horizon + 1)
+    assert np.allclose(steps, np.minimum(nominal, 0.1 + r * a * p.config.plan_dt_s * np.maximum(k - 2, 0)))
