@@ -140,3 +140,48 @@ def test_common_test_rejects_controls_outside_the_domain():
             assert not rec.success and "outside its model's domain" in rec.failure
     with pytest.raises(ValueError, match="u must have shape"):
         verify.control_domain_margin(problem, np.zeros((2, problem.horizon, 2)))
+
+
+def _turn_around(u_bound: float | None = None) -> GameProblem:
+    """One car at 2 m/s asked to face backwards (heading pi) within 1 s. Its yaw rate v sin(beta) / lr, with the slip
+    angle beta = atan(lr tan(delta) / (lf + lr)), grows with |delta| all the way to pi/2, where beta -> pi/2: a
+    turn of pi is out of reach (at most 2 rad in 1 s), so every extra bit of steering lowers the heading cost and the
+    car's optimum over the open domain |delta| < pi/2 does not exist (its infimum is at the singular point)."""
+    cost = QuadraticCost(x_ref=(0.0, 0.0, 2.0, np.pi), Q_ref=(0.0, 0.0, 0.0, 10.0), R=(1.0, 1e-3), Q=(0.0,) * 4)
+    bounds = {} if u_bound is None else dict(u_min=(-np.inf, -u_bound), u_max=(np.inf, u_bound))
+    return GameProblem(dt=0.1, horizon=10, agents=[Agent(KinematicBicycle(lf=1.0, lr=1.0), (0.0, 0.0, 2.0, 0.0),
+                                                         cost, **bounds)])
+
+
+def test_a_game_without_an_equilibrium_inside_the_domain_ends_domain_edge():
+    """The turn-around game has no optimum inside the bicycle's domain: every attempt is pushed against the domain
+    box's edge (domain_fraction 0.99), and the solve says so (`domain_edge`, not `line_search_failed`). The edge is
+    where the point really is: some steering angle sits on it, and moving every edge angle further out (still inside
+    the domain) lowers the car's cost (bench.verify.player_cost on the model's rollout), so the point is not an
+    optimum of the game as posed. Bounded at 1.2 rad inside the domain, the same game converges with the bound
+    holding, which SLSQP from the result cannot improve."""
+    problem = _turn_around()
+    r = solve(problem, time_limit=0, max_iter=1000)
+    assert r.status == "domain_edge" and not r.converged
+    edge = 0.99 * HALF_PI
+    steer = r.u[0, :, 1]
+    at_edge = np.abs(np.abs(steer) - edge) < 1e-9
+    assert at_edge.any()
+    further = r.u.copy()
+    further[0, at_edge, 1] = np.sign(steer[at_edge]) * (edge + 0.5 * (HALF_PI - edge))  # still inside |delta| < pi/2
+    # (rolled out: like any stopped attempt, the point may not satisfy the dynamics yet)
+    cost = lambda u: verify.player_cost(problem, problem.rollout(u), u, 0)  # noqa: E731
+    assert cost(further) < cost(r.u)
+
+    bounded = _turn_around(1.2)
+    b = solve(bounded, time_limit=0, max_iter=1000)
+    assert b.status == "converged"
+    assert np.isclose(np.abs(b.u[0, :, 1]).max(), 1.2, atol=1e-6)  # the bound holds
+    assert verify.best_response_gap(bounded, b.x, b.u, 0, starts=2) <= 1e-6
+
+
+def test_domain_edge_needs_the_box():
+    """With domain_fraction 0 no box is held, so the same game is never reported `domain_edge` (its steps may then
+    cross pi/2 into the wrapped model, docs/solver.md "Staying in the model's domain")."""
+    r = solve(_turn_around(), time_limit=0, max_iter=200, domain_fraction=0.0, restart=dict(count=0))
+    assert r.status != "domain_edge"

@@ -6,7 +6,8 @@ from bench.merging import merging_problem
 from bench.verify import dynamics_defect, max_collision_violation_m
 from solver_cpp import WarmStart, _core, solve
 
-ALL_STATUSES = {"converged", "max_iterations", "line_search_failed", "numerical_error", "time_limit", "stalled", "saddle"}
+ALL_STATUSES = {"converged", "max_iterations", "line_search_failed", "numerical_error", "time_limit", "stalled", "saddle",
+                "domain_edge"}
 
 
 def test_status_list_is_the_tested_one():

@@ -17,7 +17,8 @@ void bind_solver(py::module_& m) {
       .value("numerical_error", Status::NumericalError)
       .value("time_limit", Status::TimeLimit)
       .value("stalled", Status::Stalled)
-      .value("saddle", Status::Saddle);
+      .value("saddle", Status::Saddle)
+      .value("domain_edge", Status::DomainEdge);
   m.def("status_name", &status_name);
   m.def("validate_problem", &validate_problem, py::arg("problem"),
         "Checks every field of a problem (the validation Solver.setup and the baselines run); ValueError names the field.");

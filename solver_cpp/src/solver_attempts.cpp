@@ -314,6 +314,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
   merits_.clear();
   violations_.clear();
   bool first = true, stalled = false, polished = false;
+  newton_at_edge_ = false;
   info.status = Status::MaxIterations;
   for (;; ++total_iter) {
     const bool ok = assemble(first, info);
@@ -341,6 +342,8 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     return AttemptEnd::Finished;
   if (polished && info.status == Status::LineSearchFailed) stalled = true;  // the polish was the stall's last resort
   if (stalled) info.status = Status::Stalled;  // reported if no attempt is left
+  // Stopped because Newton's direction leaves the model's domain at a control on the edge: say so.
+  if (newton_at_edge_) info.status = Status::DomainEdge;
   if (settings_.verbose)
     std::printf("attempt ended (%s), restarting\n", stalled ? "stalled" : status_name(info.status).c_str());
   return AttemptEnd::Restart;

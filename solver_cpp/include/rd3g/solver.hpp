@@ -311,6 +311,8 @@ class Solver {
   std::vector<double> merits_;          // merit per iteration of the current attempt
   std::vector<double> violations_;      // total violation per iteration of the current attempt
   bool timed_out_ = false;              // the deadline passed inside a step
+  bool domain_blocked_ = false;         // the last line search: a control at its domain box's edge, the step out
+  bool newton_at_edge_ = false;         // this iteration's Newton step was blocked so (domain_edge if it ends here)
   double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
   double ldlt_flop_rate_ = 0;           // measured speed of its last regularised LDLT factorisation (flop/s)
   Clock::time_point iteration_start_;   // with a time limit: when the current iteration began
