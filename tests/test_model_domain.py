@@ -155,27 +155,40 @@ def _turn_around(u_bound: float | None = None) -> GameProblem:
 
 def test_a_game_without_an_equilibrium_inside_the_domain_ends_domain_edge():
     """The turn-around game has no optimum inside the bicycle's domain: every attempt is pushed against the domain
-    box's edge (domain_fraction 0.99), and the solve says so (`domain_edge`, not `line_search_failed`). The edge is
-    where the point really is: some steering angle sits on it, and moving every edge angle further out (still inside
-    the domain) lowers the car's cost (bench.verify.player_cost on the model's rollout), so the point is not an
-    optimum of the game as posed. Bounded at 1.2 rad inside the domain, the same game converges with the bound
-    holding, which SLSQP from the result cannot improve."""
+    box's edge (domain_fraction 0.99), and the solve says so (`domain_edge`, not `line_search_failed`). The domain
+    rescue then solves the game with the box as bounds and returns its equilibrium: a real trajectory (the dynamics
+    hold), some steering angle on the box edge, and SLSQP best responses (bench.verify, independent of the solver)
+    confirm it is the car's optimum with the box as a bound. Without the bound it is not: moving every edge angle
+    further out (still inside |delta| < pi/2) lowers the car's cost (bench.verify.player_cost on the rollout)."""
     problem = _turn_around()
     r = solve(problem, time_limit=0, max_iter=1000)
     assert r.status == "domain_edge" and not r.converged
+    assert r.domain_iterations > 0
     edge = 0.99 * HALF_PI
+    assert verify.dynamics_defect(problem, r.x, r.u) <= DYNAMICS_TOL
     steer = r.u[0, :, 1]
-    at_edge = np.abs(np.abs(steer) - edge) < 1e-9
+    assert np.abs(steer).max() <= edge + 1e-9
+    at_edge = np.abs(np.abs(steer) - edge) < 1e-3
     assert at_edge.any()
+    assert verify.best_response_gap(_turn_around(edge), r.x, r.u, 0, starts=2) <= 1e-6
     further = r.u.copy()
-    further[0, at_edge, 1] = np.sign(steer[at_edge]) * (edge + 0.5 * (HALF_PI - edge))  # still inside |delta| < pi/2
-    # (rolled out: like any stopped attempt, the point may not satisfy the dynamics yet)
-    cost = lambda u: verify.player_cost(problem, problem.rollout(u), u, 0)  # noqa: E731
-    assert cost(further) < cost(r.u)
+    further[0, at_edge, 1] = np.sign(steer[at_edge]) * (edge + 0.5 * (HALF_PI - edge))
+    assert verify.player_cost(problem, problem.rollout(further), further, 0) < verify.player_cost(problem, r.x, r.u, 0)
 
+
+def test_the_domain_rescue_is_off_without_restarts():
+    """A receding-horizon solve (restart.count 0, as the racing planner's plans) gets no rescue: the attempt's own
+    status and point."""
+    r = solve(_turn_around(), time_limit=0, max_iter=200, restart=dict(count=0))
+    assert r.status == "domain_edge" and r.domain_iterations == 0
+
+
+def test_a_bound_inside_the_domain_converges():
+    """Bounded at 1.2 rad inside the domain, the turn-around game converges with the bound holding, which SLSQP from
+    the result cannot improve: the remedy `domain_edge` points to."""
     bounded = _turn_around(1.2)
     b = solve(bounded, time_limit=0, max_iter=1000)
-    assert b.status == "converged"
+    assert b.status == "converged" and b.domain_iterations == 0
     assert np.isclose(np.abs(b.u[0, :, 1]).max(), 1.2, atol=1e-6)  # the bound holds
     assert verify.best_response_gap(bounded, b.x, b.u, 0, starts=2) <= 1e-6
 

@@ -358,6 +358,8 @@ struct Info {
   std::vector<OrderCandidate> orders;  ///< the passing-order search's candidates (empty if it did not run)
   int order_attempts = 0;              ///< polish attempts of the passing-order search
   int order_iterations = 0;            ///< Newton iterations of its ordered guesses' sub-solves, unscaled
+  /// Newton iterations of the domain rescue's bounded game (0 if it did not run; iterations includes them)
+  int domain_iterations = 0;
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
   std::vector<double> step_history;      ///< accepted line-search step t per iteration
   Timings timings;
