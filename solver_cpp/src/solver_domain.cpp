@@ -59,7 +59,9 @@ bool Solver::domain_rescue(Result& found, Info& info, int& total_iter) {
   total_iter += b.info.iterations;
   info.domain_iterations += b.info.iterations;
   info.attempts += b.info.attempts;
-  if (b.info.status != Status::Converged) return false;
+  info.iterations = total_iter;
+  info.timings.total = seconds_since(t_start_);
+  if (b.info.status != Status::Converged) return false;  // the schedule's result stays, with these counters
   // In this game, from the bounded equilibrium with its multipliers and partition: an equilibrium here converges at
   // once; one that a domain bound holds is pushed back to the edge.
   load_bounded_point(b, bounded.cons_);
