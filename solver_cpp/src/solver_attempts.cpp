@@ -110,7 +110,7 @@ bool Solver::rescue_wanted(const Info& info) const {
 
 bool Solver::rescue(Result& found, Info& info, int& total_iter) {
   // Its own budget beyond max_iter: order.max_iter game iterations for the solo plans and per guess,
-  // order.polish_iter per polish, and never more than max_iter (a solve stops within twice max_iter).
+  // order.polish_iter per polish, and never more than max_iter (within twice max_iter; the domain rescue, if it follows, has its own).
   const PassingOrderSettings& po = settings_.order;
   const int own = (po.candidates + 1) * po.max_iter + po.polish * (po.polish_iter + 1);
   iter_limit_ = total_iter + std::min(own, settings_.max_iter);
