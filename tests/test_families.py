@@ -150,10 +150,12 @@ def test_best_response_sub_solvers_follow_updates():
 
 def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     """merge-dense 8 cars seed 15 (with every other default, domain_fraction included): attempt 0 fails; without the
-    best-response restart the rest of the schedule does not converge within 300 iterations (nor within 1000: its line
-    search fails after 19 restarts), with it the attempt from the best-response guess converges (155 iterations).
-    Both results are judged by the benchmark's common test (dynamics, controls in the model's domain, collisions,
-    per-player stationarity, bench/verify.py) and the second-order test, not by the solver's status."""
+    best-response restart neither the rest of the schedule nor the domain rescue after it (whose bounded game is solved
+    by the same settings) converges within its 300 iterations; with it the solve converges (by the attempt from the
+    best-response guess, or by the domain rescue's bounded game, which has its own: which one is the path of a
+    nonconvex solve whose sub-solves may themselves meet the domain edge). Both results are judged by the benchmark's
+    common test (dynamics, controls in the model's domain, collisions, per-player stationarity, bench/verify.py) and
+    the second-order test, not by the solver's status."""
     from bench import merge_bench
     from solver_cpp import solve
 
@@ -166,7 +168,6 @@ def test_best_response_restart_solves_an_instance_the_schedule_alone_does_not():
     assert not old[1].success and old[0].best_response_attempts == 0
     assert new[1].success and new[1].second_order_ok, new[1].failure
     assert new[0].best_response_attempts == 1 and new[0].best_response_iterations > 0
-    assert new[0].attempts == 2  # attempt 0 (as without), then the attempt from the guess
 
 
 def test_best_response_guess_keeps_every_pair_beyond_the_margin():
@@ -190,16 +191,18 @@ def test_best_response_guess_keeps_every_pair_beyond_the_margin():
 
 def test_best_response_margin_rescues_an_attempt_stuck_at_a_contact():
     """merge-narrow 4 cars seed 34: without the margin the guess has cars exactly at d_min, the attempt from it stalls
-    within five iterations and no attempt of the schedule converges (1000 iterations); with the default margin the
-    attempt from the guess converges to a point that the benchmark's common test and the second-order test accept
-    (bench/verify.py, not the solver's status)."""
+    within five iterations and no attempt of the schedule converges (1000 iterations; the domain rescue may follow);
+    with the default margin the attempt from the guess converges to a point that the benchmark's common test and the
+    second-order test accept (bench/verify.py, not the solver's status)."""
     from bench import merge_bench
     from solver_cpp import solve
 
     problem = family_problem("merge-narrow", 4, 34)
     stuck = solve(problem, time_limit=0, max_iter=1000, best_response=dict(margin=0.0), order=dict(candidates=0))
     freed = solve(problem, time_limit=0, max_iter=1000)
-    assert stuck.status == "max_iterations"
+    # No attempt of the schedule converges: the solve fails, or the domain rescue ran (it runs only after a schedule
+    # that found no equilibrium, and can solve it through the bounded game).
+    assert stuck.status != "converged" or stuck.domain_iterations > 0
     assert freed.status == "converged" and freed.attempts == 2
     record = merge_bench.record("rd3g", problem, freed, 0.0, 4, 34, "merge-narrow")
     assert record.success and record.second_order_ok, record.failure

@@ -172,7 +172,9 @@ def test_deeply_overlapping_start_converges_with_the_central_path_rules(cars, se
     # last 4 iterates'), converges. The answer is checked independently of the solver.
     problem = family_problem("crossing", cars, seed)
     paper = solve(problem, max_iter=150, **PAPER_RULES)
-    assert not paper.converged
+    # No attempt converges: the solve fails, or the domain rescue ran (only after attempts that found no equilibrium,
+    # one of them stopped at the steering domain's edge; its bounded game can converge: 5 cars seed 3 does).
+    assert not paper.converged or paper.domain_iterations > 0
     result = solve(problem, max_iter=150)
     assert result.converged and result.attempts == 1
     assert np.all(result.second_order > 0)

@@ -140,3 +140,61 @@ def test_common_test_rejects_controls_outside_the_domain():
             assert not rec.success and "outside its model's domain" in rec.failure
     with pytest.raises(ValueError, match="u must have shape"):
         verify.control_domain_margin(problem, np.zeros((2, problem.horizon, 2)))
+
+
+def _turn_around(u_bound: float | None = None) -> GameProblem:
+    """One car at 2 m/s asked to face backwards (heading pi) within 1 s. Its yaw rate v sin(beta) / lr, with the slip
+    angle beta = atan(lr tan(delta) / (lf + lr)), grows with |delta| all the way to pi/2, where beta -> pi/2: a
+    turn of pi is out of reach (at most 2 rad in 1 s), so every extra bit of steering lowers the heading cost and the
+    car's optimum over the open domain |delta| < pi/2 does not exist (its infimum is at the singular point)."""
+    cost = QuadraticCost(x_ref=(0.0, 0.0, 2.0, np.pi), Q_ref=(0.0, 0.0, 0.0, 10.0), R=(1.0, 1e-3), Q=(0.0,) * 4)
+    bounds = {} if u_bound is None else dict(u_min=(-np.inf, -u_bound), u_max=(np.inf, u_bound))
+    return GameProblem(dt=0.1, horizon=10, agents=[Agent(KinematicBicycle(lf=1.0, lr=1.0), (0.0, 0.0, 2.0, 0.0),
+                                                         cost, **bounds)])
+
+
+def test_a_game_without_an_equilibrium_inside_the_domain_ends_domain_edge():
+    """The turn-around game has no optimum inside the bicycle's domain: every attempt is pushed against the domain
+    box's edge (domain_fraction 0.99), and the solve says so (`domain_edge`, not `line_search_failed`). The domain
+    rescue then solves the game with the box as bounds and returns its equilibrium: a real trajectory (the dynamics
+    hold), some steering angle on the box edge, and SLSQP best responses (bench.verify, independent of the solver)
+    confirm it is the car's optimum with the box as a bound. Without the bound it is not: moving every edge angle
+    further out (still inside |delta| < pi/2) lowers the car's cost (bench.verify.player_cost on the rollout)."""
+    problem = _turn_around()
+    r = solve(problem, time_limit=0, max_iter=1000)
+    assert r.status == "domain_edge" and not r.converged
+    assert r.domain_iterations > 0
+    edge = 0.99 * HALF_PI
+    assert verify.dynamics_defect(problem, r.x, r.u) <= DYNAMICS_TOL
+    steer = r.u[0, :, 1]
+    assert np.abs(steer).max() <= edge + 1e-9
+    at_edge = np.abs(np.abs(steer) - edge) < 1e-3
+    assert at_edge.any()
+    assert verify.best_response_gap(_turn_around(edge), r.x, r.u, 0, starts=2) <= 1e-6
+    further = r.u.copy()
+    further[0, at_edge, 1] = np.sign(steer[at_edge]) * (edge + 0.5 * (HALF_PI - edge))
+    assert verify.player_cost(problem, problem.rollout(further), further, 0) < verify.player_cost(problem, r.x, r.u, 0)
+
+
+def test_the_domain_rescue_is_off_without_restarts():
+    """A receding-horizon solve (restart.count 0, as the racing planner's plans) gets no rescue: the attempt's own
+    status and point."""
+    r = solve(_turn_around(), time_limit=0, max_iter=200, restart=dict(count=0))
+    assert r.status == "domain_edge" and r.domain_iterations == 0
+
+
+def test_a_bound_inside_the_domain_converges():
+    """Bounded at 1.2 rad inside the domain, the turn-around game converges with the bound holding, which SLSQP from
+    the result cannot improve: the remedy `domain_edge` points to."""
+    bounded = _turn_around(1.2)
+    b = solve(bounded, time_limit=0, max_iter=1000)
+    assert b.status == "converged" and b.domain_iterations == 0
+    assert np.isclose(np.abs(b.u[0, :, 1]).max(), 1.2, atol=1e-6)  # the bound holds
+    assert verify.best_response_gap(bounded, b.x, b.u, 0, starts=2) <= 1e-6
+
+
+def test_domain_edge_needs_the_box():
+    """With domain_fraction 0 no box is held, so the same game is never reported `domain_edge` (its steps may then
+    cross pi/2 into the wrapped model, docs/solver.md "Staying in the model's domain")."""
+    r = solve(_turn_around(), time_limit=0, max_iter=200, domain_fraction=0.0, restart=dict(count=0))
+    assert r.status != "domain_edge"

@@ -156,9 +156,10 @@ def test_the_rescue_turns_a_failed_schedule_into_a_verified_equilibrium():
     assert failed.status != "converged" and failed.order_attempts == 0
     rescued = solve(problem, tol=TOL, time_limit=0, **SHORT_SCHEDULE)
     assert rescued.status == "converged" and rescued.order_attempts >= 1
-    assert rescued.attempts == failed.attempts + rescued.order_attempts  # the schedule ran in full before it
+    # The schedule (attempt 0 and restart 1: no best-response attempt, no escape) ran in full before it. (Without the
+    # search the failed schedule is followed by the domain rescue, whose attempts `failed.attempts` also counts.)
+    assert rescued.attempts == 2 + rescued.order_attempts
     assert sum(c["returned"] for c in rescued.orders) == 1
-    assert rescued.iterations > failed.iterations  # the rescue's own budget comes after the schedule's
     assert all(so >= 0 for so in rescued.second_order)  # the solver's second-order test
     report = verify_equilibrium(problem, np.asarray(rescued.x), np.asarray(rescued.u), best_response_starts=2)
     assert report.passed, report.failures  # stationarity and each player's SLSQP best response, independent

@@ -6,7 +6,8 @@ from bench.merging import merging_problem
 from bench.verify import dynamics_defect, max_collision_violation_m
 from solver_cpp import WarmStart, _core, solve
 
-ALL_STATUSES = {"converged", "max_iterations", "line_search_failed", "numerical_error", "time_limit", "stalled", "saddle"}
+ALL_STATUSES = {"converged", "max_iterations", "line_search_failed", "numerical_error", "time_limit", "stalled", "saddle",
+                "domain_edge"}
 
 
 def test_status_list_is_the_tested_one():
@@ -151,12 +152,14 @@ def test_more_restarts_change_only_solves_that_used_every_restart():
     from bench.families import family_problem
 
     problem = family_problem("crossing", 2, 21)
-    off = dict(candidates=0)  # the schedule alone: the passing-order rescue would follow a schedule that fails
+    # The schedule alone: the passing-order rescue and the domain rescue (no domain box: domain_fraction 0) would
+    # follow a schedule that fails.
+    off = dict(order=dict(candidates=0), domain_fraction=0.0)
     needed = next((r for r in range(20)
-                   if solve(problem, time_limit=0, restart=dict(count=r), order=off).status == "converged"), None)
+                   if solve(problem, time_limit=0, restart=dict(count=r), **off).status == "converged"), None)
     assert needed is not None, "crossing 2 cars seed 21 does not converge within 19 restarts"
-    enough = solve(problem, time_limit=0, restart=dict(count=needed), order=off)
+    enough = solve(problem, time_limit=0, restart=dict(count=needed), **off)
     for restarts in (needed + 1, 19, 40):
-        more = solve(problem, time_limit=0, restart=dict(count=max(restarts, needed)), order=off)
+        more = solve(problem, time_limit=0, restart=dict(count=max(restarts, needed)), **off)
         assert (more.status, more.iterations, more.attempts) == (enough.status, enough.iterations, enough.attempts)
         assert np.array_equal(more.u, enough.u)

@@ -17,7 +17,8 @@ void bind_solver(py::module_& m) {
       .value("numerical_error", Status::NumericalError)
       .value("time_limit", Status::TimeLimit)
       .value("stalled", Status::Stalled)
-      .value("saddle", Status::Saddle);
+      .value("saddle", Status::Saddle)
+      .value("domain_edge", Status::DomainEdge);
   m.def("status_name", &status_name);
   m.def("validate_problem", &validate_problem, py::arg("problem"),
         "Checks every field of a problem (the validation Solver.setup and the baselines run); ValueError names the field.");
@@ -95,6 +96,7 @@ void bind_solver(py::module_& m) {
       .def_readonly("orders", &Info::orders)
       .def_readonly("order_attempts", &Info::order_attempts)
       .def_readonly("order_iterations", &Info::order_iterations)
+      .def_readonly("domain_iterations", &Info::domain_iterations)
       .def_readonly("second_order", &Info::second_order)
       .def_readonly("residual_history", &Info::residual_history)
       .def_readonly("step_history", &Info::step_history)

@@ -21,6 +21,7 @@ std::string status_name(Status s) {
     case Status::TimeLimit: return "time_limit";
     case Status::Stalled: return "stalled";
     case Status::Saddle: return "saddle";
+    case Status::DomainEdge: return "domain_edge";
   }
   return "unknown";
 }

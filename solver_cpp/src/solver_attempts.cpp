@@ -46,7 +46,12 @@ Result Solver::solve(const WarmStart* warm) {
   Info searched = info;
   if (!sc.searched && rescue_wanted(info) && rescue(found, searched, sc.total_iter)) return found;
   take_counters(info, searched);
+  // Some attempt was stopped at a model's domain edge: the same game with the domain box as bounds (domain rescue).
+  Result bounded;
+  const bool edge_point = domain_rescue_wanted(info) && domain_rescue(bounded, info, sc.total_iter);
+  if (edge_point && bounded.info.status == Status::Converged) return bounded;
   if (sc.have_saddle && info.status != Status::Converged) return saddle_result(sc, info);
+  if (edge_point) return bounded;
   return res;
 }
 
@@ -105,7 +110,7 @@ bool Solver::rescue_wanted(const Info& info) const {
 
 bool Solver::rescue(Result& found, Info& info, int& total_iter) {
   // Its own budget beyond max_iter: order.max_iter game iterations for the solo plans and per guess,
-  // order.polish_iter per polish, and never more than max_iter (a solve stops within twice max_iter).
+  // order.polish_iter per polish, and never more than max_iter (within twice max_iter; the domain rescue, if it follows, has its own).
   const PassingOrderSettings& po = settings_.order;
   const int own = (po.candidates + 1) * po.max_iter + po.polish * (po.polish_iter + 1);
   iter_limit_ = total_iter + std::min(own, settings_.max_iter);
@@ -130,6 +135,7 @@ void Solver::take_counters(Info& to, const Info& from) const {
   to.orders = from.orders;
   to.order_attempts = from.order_attempts;
   to.order_iterations = from.order_iterations;
+  to.domain_iterations = from.domain_iterations;
   to.residual_history = from.residual_history;
   to.step_history = from.step_history;
   to.timings = from.timings;
@@ -157,6 +163,7 @@ void Solver::begin_solve(Info& info, const WarmStart* warm) {
   // reports them then, and Solver::passing_order computes them for any other result when asked.
   conflicts_.clear();
   conflicts_known_ = false;
+  edge_attempts_ = 0;
 }
 
 void Solver::start_scheduled_attempt(int attempt, bool best_response, const WarmStart* warm, Schedule& sc,
@@ -313,7 +320,9 @@ bool Solver::at_rho_floor() const { return rho_ <= rho_floor() * (1 + 1e-9); }
 Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
   merits_.clear();
   violations_.clear();
-  bool first = true, stalled = false, polished = false;
+  bool first = !keep_partition_, stalled = false, polished = false;
+  keep_partition_ = false;
+  newton_at_edge_ = false;
   info.status = Status::MaxIterations;
   for (;; ++total_iter) {
     const bool ok = assemble(first, info);
@@ -341,6 +350,11 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     return AttemptEnd::Finished;
   if (polished && info.status == Status::LineSearchFailed) stalled = true;  // the polish was the stall's last resort
   if (stalled) info.status = Status::Stalled;  // reported if no attempt is left
+  // Stopped because Newton's direction leaves the model's domain at a control on the edge: say so.
+  if (newton_at_edge_) {
+    info.status = Status::DomainEdge;
+    ++edge_attempts_;
+  }
   if (settings_.verbose)
     std::printf("attempt ended (%s), restarting\n", stalled ? "stalled" : status_name(info.status).c_str());
   return AttemptEnd::Restart;

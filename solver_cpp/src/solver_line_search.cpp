@@ -59,9 +59,11 @@ double Solver::line_search(double merit0) {
   } else {
     dz_.setZero();
   }
+  domain_blocked_ = false;
   if (settings_.domain_fraction > 0) {
     t = domain_step(t);
-    if (t <= 0) return 0.0;  // a held control is at its box and the step points out of it
+    domain_blocked_ = t <= 0;
+    if (domain_blocked_) return 0.0;  // a held control is at its box and the step points out of it
   }
   for (int ls = 0; ls < settings_.line_search.max_steps; ++ls, t *= settings_.line_search.beta) {
     apply_step(y_, dy_, t, trial_);
@@ -120,6 +122,7 @@ double Solver::take_step(double rnorm, Info& info) {
 
   t0 = Clock::now();
   double t = line_search(rnorm);
+  newton_at_edge_ = domain_blocked_;
   if (t > 0 && t < kLmBelowStep) {
     // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
     // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it: from the

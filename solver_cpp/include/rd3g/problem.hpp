@@ -292,7 +292,12 @@ struct Settings {
 /// stalled: every attempt (see restarts) stopped making progress before max_iter.
 /// saddle: the first-order conditions hold but some agent's own problem is not at a local minimum there
 /// (Info::second_order), i.e. the point is not a local equilibrium.
-enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit, Stalled, Saddle };
+/// domain_edge: the last attempt stopped (its line search failed, or it stalled) because its Newton step pointed out
+/// of a model's control domain (Dynamics::control_domain, held by domain_fraction) at a control already at the
+/// domain box's edge: the iterates are pushed against the model's singular point (the bicycles' |delta| = pi/2), so
+/// the game as posed has no equilibrium there that the solver can reach inside the domain; bound that control
+/// (u_min/u_max) inside the domain to pose one whose equilibrium may hold the bound.
+enum class Status { Converged, MaxIterations, LineSearchFailed, NumericalError, TimeLimit, Stalled, Saddle, DomainEdge };
 std::string status_name(Status s);
 
 /// Timings in seconds. total, assembly, linear_solve and line_search are accumulated over the whole solve
@@ -353,6 +358,8 @@ struct Info {
   std::vector<OrderCandidate> orders;  ///< the passing-order search's candidates (empty if it did not run)
   int order_attempts = 0;              ///< polish attempts of the passing-order search
   int order_iterations = 0;            ///< Newton iterations of its ordered guesses' sub-solves, unscaled
+  /// Newton iterations of the domain rescue's bounded game (0 if it did not run; iterations includes them)
+  int domain_iterations = 0;
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
   std::vector<double> step_history;      ///< accepted line-search step t per iteration
   Timings timings;

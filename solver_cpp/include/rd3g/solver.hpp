@@ -189,6 +189,19 @@ class Solver {
   bool rescue(Result& found, Info& info, int& total_iter);
   /// The counters and timings of the whole solve (from) onto a result kept from part of it (to).
   void take_counters(Info& to, const Info& from) const;
+  /// Some attempt ended at a model's domain edge and none found an equilibrium: the domain rescue is worth running.
+  bool domain_rescue_wanted(const Info& info) const;
+  /// The domain rescue (solver_domain.cpp): the same game with every control whose model has a two-sided domain bounded
+  /// to the domain box, solved by a nested solver from the initial guess (its own iteration budget, at most max_iter),
+  /// then checked in this game from the bounded equilibrium and its multipliers (at most order.polish_iter
+  /// iterations). `found` is converged if that point is an equilibrium of this game, otherwise `domain_edge` with the
+  /// bounded game's equilibrium (feasible, some domain bound holding it). False if the bounded game has none.
+  bool domain_rescue(Result& found, Info& info, int& total_iter);
+  /// The bounded game of domain_rescue (false: no control has a two-sided domain box).
+  bool domain_bounded_problem(Problem& p);
+  /// y_, the partition and the multipliers of this game's constraints from a result of the bounded game (whose
+  /// constraint list holds this one's plus the domain bounds).
+  void load_bounded_point(const Result& b, const std::vector<Constraint>& bounded_cons);
   /// Timings, counters, initial guess and the restart offsets' random sequence at the start of a solve.
   void begin_solve(Info& info, const WarmStart* warm);
   /// y_, rho_ and the rules of the next attempt: from the best-response guess, the schedule's start or a saddle.
@@ -311,6 +324,10 @@ class Solver {
   std::vector<double> merits_;          // merit per iteration of the current attempt
   std::vector<double> violations_;      // total violation per iteration of the current attempt
   bool timed_out_ = false;              // the deadline passed inside a step
+  int edge_attempts_ = 0;               // attempts of this solve that ended domain_edge
+  bool keep_partition_ = false;         // the next attempt starts with the partition as set (domain rescue)
+  bool domain_blocked_ = false;         // the last line search: a control at its domain box's edge, the step out
+  bool newton_at_edge_ = false;         // this iteration's Newton step was blocked so (domain_edge if it ends here)
   double last_qr_seconds_ = 0;          // duration of this solver's last SparseQR factorisation (s)
   double ldlt_flop_rate_ = 0;           // measured speed of its last regularised LDLT factorisation (flop/s)
   Clock::time_point iteration_start_;   // with a time limit: when the current iteration began
