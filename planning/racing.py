@@ -374,9 +374,9 @@ class _RecedingHorizon:
         for i in range(len(first)):  # obstacles constrain the agents only, not each other
             for j in range(i + 1, len(positions)):
                 gap = positions[i] - positions[j]
-                d = float(np.min(frenet_separation(gap[:, 0], gap[:, 1], along_track_scale)))
-                pair[i, j] = pair[j, i] = max(min(nominal, d - 0.01), _MIN_COLLISION_DISTANCE_M)
-                d_min = min(d_min, d - 0.01)
+                within_gap = float(np.min(frenet_separation(gap[:, 0], gap[:, 1], along_track_scale))) - 0.01
+                pair[i, j] = pair[j, i] = max(min(nominal, within_gap), _MIN_COLLISION_DISTANCE_M)
+                d_min = min(d_min, within_gap)
         return (low, high), max(d_min, _MIN_COLLISION_DISTANCE_M), pair
 
     def corner_speed_cap(self, x, top_speed: float) -> float:
@@ -616,24 +616,24 @@ class _RecedingHorizon:
                                                           else result.iterations == 0):
             solver.update_settings(self._retry_settings)
             retry = solver.solve(self._tracking_guess(problem, warm))
-            if result.iterations == 0 or self._usable(problem, retry) != "fallback":
-                result = retry
-                used = self._usable(problem, result)
+            retry_used = self._usable(problem, retry)
+            if result.iterations == 0 or retry_used != "fallback":
+                result, used = retry, retry_used
         finite = bool(np.all(np.isfinite(result.u)))
+        # Following the racing line a fallback's next warm start continues from this solve's iterate (the
+        # shifted stale plan, held over a run of fallbacks, was no start the solver recovered from).
+        from_iterate = finite and self.line is not None
         u_all = result.u
         if used == "fallback":
             if warm is None:  # nothing to track yet: the best the solver found
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
                 others = [a.x0[:2] for a in problem.agents[1:]] + [np.asarray(o.positions)[0] for o in problem.obstacles]
-                # Following the racing line the next warm start continues from this solve's iterate (the
-                # shifted stale plan, held over a run of fallbacks, was no start the solver recovered from).
-                iterate = finite and self.line is not None
                 u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V],
-                                             result.u if iterate else warm.u, others)
+                                             result.u if from_iterate else warm.u, others)
         x = self._rollout(problem, u_all)
-        iterate = used != "fallback" or (finite and warm is not None and self.line is not None) or warm is None
-        lam = result.lam if iterate or warm.lam is None else warm.lam
+        keep_result_lam = used != "fallback" or warm is None or from_iterate or warm.lam is None
+        lam = result.lam if keep_result_lam else warm.lam
         # This solve's result is the planner's own (nothing else holds it): keep it as the previous plan.
         result.u, result.x, result.lam = np.asarray(u_all), np.asarray(x), np.asarray(lam)
         self._prev, self._prev_ids = result, tuple(ids)
