@@ -228,8 +228,11 @@ def box_main(conn, failsafe_timeout_s: float, seed: int, byte_error_rate: float,
             if conn.poll(0.02):  # injections and the line-error count (for the loop's serial hold) are not urgent
                 msg = conn.recv()
                 if msg[0] == "corrupt":
+                    # Stamped before the switch: the relay thread may damage a read, and the box engage
+                    # its failsafe on it, before this thread runs again.
+                    t = time.monotonic()
                     relay.corrupt = msg[1]
-                    send(("injected", "corrupt_on" if msg[1] else "corrupt_off", time.monotonic()))
+                    send(("injected", "corrupt_on" if msg[1] else "corrupt_off", t))
                 elif msg[0] == "vanish":
                     t = time.monotonic()
                     relay.close()

@@ -97,6 +97,11 @@ def test_solver_failure(fault_race):
 
 def _box_neutral_on(events, reason, injected):
     """The box's first failsafe after the injection: for `reason`, in time, and applied by the simulator."""
+    last = [e for e in events if e["time_s"] < injected["time_s"] and e["kind"] in ("box_failsafe", "cars_driving")]
+    if last and last[-1]["kind"] == "box_failsafe":
+        # A failsafe before the injection that no valid frame released (a host stall): the box is neutral
+        # already, and a failsafe engages only on commands in effect, so it cannot react to this fault.
+        pytest.skip(f"box already neutral at the injection ({last[-1]['text']!r}, {last[-1]['time_s']:.3f} s)")
     failsafe = _first(events, "box_failsafe", "", injected["time_s"])
     # The simulated cars follow the box's output from that instant (1 ms physics grid).
     assert neutral_within(events, injected["time_s"], failsafe["time_s"] + 2 * PHYSICS_DT)
