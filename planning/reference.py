@@ -52,7 +52,7 @@ def stage_reference(line: RacingLine, curvature, s0: float, v0: float, horizon: 
         stretch = max(1.0 - float(curvature(np.mod(s[k], line.track_length_m))) * ey, 0.2)
         s[k + 1] = s[k] + dt * v[k] / stretch
         target = float(line.speed(s[k + 1]))
-        v[k + 1] = float(np.clip(target, v[k] - brake_mps2 * dt, v[k] + accel_mps2 * dt))
+        v[k + 1] = min(max(target, v[k] - brake_mps2 * dt), v[k] + accel_mps2 * dt)
     return StageReference(s=s[1:], ey=np.asarray(line.lateral_offset(s[1:]), dtype=float),
                           v=np.asarray(line.speed(s[1:]), dtype=float))
 

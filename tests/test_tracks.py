@@ -121,6 +121,17 @@ def test_oval_curvature_is_inverse_radius_on_arcs_and_zero_on_straights(oval):
     np.testing.assert_allclose(dtheta, oval.curvature(inner), atol=1e-6)
 
 
+def test_oval_curvature_of_one_arc_length_matches_the_analytic_oval(oval):
+    """The one-value look-up (the planners' per-stage path) against the analytic oval, over two laps,
+    negative arc lengths, and at each joint and on either side of it."""
+    eps = 1e-9
+    s = np.concatenate([np.linspace(-OVAL_L, 2 * OVAL_L, 301), [b + d for b in OVAL_BREAKS for d in (-eps, eps)]])
+    expected = oval_reference(s)[3]
+    assert [float(oval.curvature(float(v))) for v in s] == pytest.approx(expected.tolist(), abs=1e-12)
+    # At a joint the segment starting there holds (the documented convention), as for arrays.
+    assert [float(oval.curvature(b)) for b in OVAL_BREAKS] == oval.curvature(np.array(OVAL_BREAKS)).tolist()
+
+
 def test_oval_fits_arena_with_its_width(oval):
     assert oval.min_width == oval.max_width == 0.6
     left, right = oval.boundaries(0.005)

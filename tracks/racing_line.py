@@ -35,6 +35,7 @@ import json
 import math
 import os
 from dataclasses import asdict, dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -286,22 +287,29 @@ class RacingLine:
         """Tightest turn radius of the line (m)."""
         return float(1.0 / max(np.max(np.abs(self.curvature)), 1e-12))
 
-    def _lookup(self, values: np.ndarray, s):
-        s = np.asarray(s, dtype=float)
-        return np.interp(np.mod(s, self.track_length_m), np.append(self.s, self.track_length_m),
-                         np.append(values, values[0]))
+    @cached_property
+    def _closed_tables(self) -> dict[str, np.ndarray]:
+        """The samples closed by a repeat at s = length (look-ups at every plan stage reuse them)."""
+        tables = {name: np.append(values, values[0])
+                  for name, values in (("ey", self.ey), ("speed", self.speed_mps), ("curvature", self.curvature))}
+        tables["s"] = np.append(self.s, self.track_length_m)
+        return tables
+
+    def _lookup(self, name: str, s):
+        tables = self._closed_tables
+        return np.interp(np.mod(s, self.track_length_m), tables["s"], tables[name])
 
     def lateral_offset(self, s):
         """Lateral offset ey (m, left of the centre line) of the line at centre-line arc length ``s`` (m)."""
-        return self._lookup(self.ey, s)
+        return self._lookup("ey", s)
 
     def speed(self, s):
         """Speed (m/s) of the profile at centre-line arc length ``s`` (m)."""
-        return self._lookup(self.speed_mps, s)
+        return self._lookup("speed", s)
 
     def line_curvature(self, s):
         """Curvature (1/m, left positive) of the line at centre-line arc length ``s`` (m)."""
-        return self._lookup(self.curvature, s)
+        return self._lookup("curvature", s)
 
     def to_json(self) -> dict:
         return {"version": ALGORITHM_VERSION, "track_name": self.track_name, "track_length_m": self.track_length_m,

@@ -184,6 +184,9 @@ class Track:
 
         Segment tracks: at a joint between segments the value of the segment starting there is returned.
         """
+        if self.closed and np.ndim(s) == 0:  # wrap_s for one arc length, without numpy's per-call overhead
+            wrapped = float(s) % self._length
+            return self._centerline.curvature(0.0 if wrapped >= self._length else wrapped)
         s = np.asarray(s, dtype=float)
         if self.closed:
             return self._centerline.curvature(self.wrap_s(s))
