@@ -407,7 +407,9 @@ class _RecedingHorizon:
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
         x_ref, a_ref = self._fallback_reference(x0, top_speed)
         x_ref = np.array(x_ref, dtype=float)
-        x_ref[EY] = self._clear_of_alongside(x0, float(x_ref[EY]), others)
+        ey_clear = self._clear_of_alongside(x0, float(x_ref[EY]), others)
+        if ey_clear != x_ref[EY]:  # a car alongside: hold the offset along the track, not the plan's heading across
+            x_ref[EY], x_ref[EPSI] = ey_clear, 0.0
         u_all[0, 0] = self.tracking_control(x0, x_ref, a_ref, ey_bound, top_speed)
         return u_all
 
