@@ -403,7 +403,9 @@ class _RecedingHorizon:
         replaced by the closed-loop tracking control towards _fallback_reference. Not towards the
         previous plan: after a fallback that is the car's own rollout, so a run of fallbacks saw no
         error and held the car's heading, off the track. ``others``: the other cars' (s, ey) now, which a
-        fallback does not steer towards (_clear_of_alongside)."""
+        fallback does not steer towards (_clear_of_alongside); where that holds the target off a car alongside,
+        the reference heading is the track's, not the plan's: the plan's heading across kept turning the car
+        into the car beside it (4-car races on `full` with the racing line, seeds 13 and 16)."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
         x_ref, a_ref = self._fallback_reference(x0, top_speed)
         x_ref = np.array(x_ref, dtype=float)
