@@ -403,11 +403,15 @@ class _RecedingHorizon:
         replaced by the closed-loop tracking control towards _fallback_reference. Not towards the
         previous plan: after a fallback that is the car's own rollout, so a run of fallbacks saw no
         error and held the car's heading, off the track. ``others``: the other cars' (s, ey) now, which a
-        fallback does not steer towards (_clear_of_alongside)."""
+        fallback does not steer towards (_clear_of_alongside); where that holds the target off a car alongside,
+        the reference heading is the track's, not the plan's: the plan's heading across kept turning the car
+        into the car beside it (4-car races on `full` with the racing line, seeds 13 and 16)."""
         u_all = self._shifted(self._prev.u) if u_all is None else np.array(u_all)
         x_ref, a_ref = self._fallback_reference(x0, top_speed)
         x_ref = np.array(x_ref, dtype=float)
-        x_ref[EY] = self._clear_of_alongside(x0, float(x_ref[EY]), others)
+        ey_clear = self._clear_of_alongside(x0, float(x_ref[EY]), others)
+        if ey_clear != x_ref[EY]:  # a car alongside: hold the offset along the track, not the plan's heading across
+            x_ref[EY], x_ref[EPSI] = ey_clear, 0.0
         u_all[0, 0] = self.tracking_control(x0, x_ref, a_ref, ey_bound, top_speed)
         return u_all
 

@@ -219,6 +219,29 @@ def test_a_fallback_does_not_steer_into_a_car_alongside(full, car):
     assert p._clear_of_alongside(xr, -0.15, [(right - 0.35, 0.15)]) == -0.15
 
 
+def test_a_fallback_beside_a_car_holds_its_offset_along_the_track(full, car):
+    """The fallback's steering (Stanley law: delta = atan(L kappa) - (epsi - epsi_ref) - atan(k (ey - ey_ref) / v))
+    hand-worked on a straight (kappa = 0), k = fallback_lateral_gain = 2/s: our car at ey = -0.19 m, 1 m/s, heading
+    0.2 rad to the left, tracking a plan at ey = -0.15 m with that heading (cutting across to the left). Alone (the
+    other car 0.3 m behind, not alongside) the heading term is 0.2 - 0.2 = 0 and delta = atan(2 x 0.04 / 1) =
+    +0.080 rad: on across. With a car alongside 0.19 m to its left (ey = 0, 0.1 m behind) the target is held at
+    -0.19 m and the offset along the track (epsi_ref = 0): delta = -0.2 rad, steering away from that car."""
+    p = _planner(full, car)
+    c = p.config
+    s = np.arange(0.0, full.length, 0.01)
+    straight = float(s[int(np.argmax(np.abs(full.curvature(s)) < 1e-9) + 20)])
+    x0 = np.array([straight + 0.5, -0.19, 1.0, 0.2])
+    assert abs(float(full.curvature(x0[0]))) < 1e-9
+    assert abs(p.mapper.delta_min) > 0.2 and p.mapper.delta_max > 0.2  # the expected steering is within the bounds
+    assert c.fallback_lateral_gain == 2.0
+    for other, delta in (((x0[0] - 0.3, 0.0), math.atan(0.08)), ((x0[0] - 0.1, 0.0), -0.2)):
+        ref = np.tile([x0[0], -0.15, x0[2], x0[3]], (c.horizon + 1, 1))
+        ref[:, 0] += np.arange(c.horizon + 1) * c.plan_dt_s * x0[2]
+        p._reference, p._reference_age_s = ref, 0.0
+        u = p._track_previous(x0, 0.205, u_all=np.zeros((1, c.horizon, 2)), others=[other])
+        assert u[0, 0, 1] == pytest.approx(delta, abs=1e-9)
+
+
 def test_lateral_clearance_widens_the_constraint_sideways_only(full, car):
     """Hand-worked from the car file: footprint radius hypot(L/2 + |offset|, W/2), footprint distance twice that
     plus collision_margin_m. With lateral_clearance_m = 0.25 the constraint's d_min is 0.25 m and the
