@@ -168,3 +168,17 @@ def test_settings_update_and_reported_times():
     with pytest.raises(ValueError, match="solver.tol"):
         solver.update_settings(tol=-1.0)
     assert solver.settings.max_iter == 2
+
+
+def test_domain_rescue_after_an_update_matches_a_new_set_up():
+    # Held-out ring family, 6 cars, seed 1: its attempts stop at the bicycles' domain edge and the domain rescue runs
+    # (its bounded game's workspace is set up with the solver and updated with it, not built in the solve).
+    from bench.families import family_problem
+    solver = Solver(family_problem("ring", 6, 0), max_iter=1000)
+    solver.solve()
+    solver.update(family_problem("ring", 6, 1))
+    updated = solver.solve()
+    fresh = Solver(family_problem("ring", 6, 1), max_iter=1000).solve()
+    assert fresh.domain_iterations > 0
+    assert updated.status == fresh.status and updated.iterations == fresh.iterations
+    np.testing.assert_array_equal(updated.u, fresh.u)

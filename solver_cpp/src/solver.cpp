@@ -55,6 +55,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   second_order_->setup(N_, T_, nx_, nu_);
   list_and_allocate();
   br_stale_ = true;
+  prepare_domain_rescue();
   setups_ = 1;
   setup_time_ = seconds_since(t0);
   update_time_ = 0;
@@ -110,6 +111,7 @@ bool same_finite_pattern(const Vec& a, const Vec& b) {
 
 void Solver::finish_update(Clock::time_point t0) {
   br_stale_ = true;  // the best response's sub-solvers copy the problem and the settings
+  prepare_domain_rescue();
   update_time_ += seconds_since(t0);
 }
 

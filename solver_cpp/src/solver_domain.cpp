@@ -39,23 +39,40 @@ bool Solver::domain_bounded_problem(Problem& p) {
   return any;
 }
 
-bool Solver::domain_rescue(Result& found, Info& info, int& total_iter) {
+void Solver::prepare_domain_rescue() {
   Problem bounded_problem;
-  if (!domain_bounded_problem(bounded_problem)) return false;
-  if (settings_.verbose) std::printf("attempts stopped at a model's domain edge: the game with the domain box as bounds\n");
+  if (settings_.domain_fraction <= 0 || settings_.restart.count <= 0 || !domain_bounded_problem(bounded_problem)) {
+    domain_solver_.reset();  // the rescue cannot run (domain_rescue_wanted) or has nothing to bound
+    return;
+  }
   Settings s = settings_;
   s.verbose = false;
-  s.time_limit = settings_.time_limit > 0 ? time_left() : 0.0;
-  Solver bounded;
-  bounded.setup(bounded_problem, s);
-  WarmStart start;  // this solve's initial guess
-  start.u.resize(N_);
-  start.lambda.resize(N_);
-  for (int i = 0; i < N_; ++i) {
-    start.u[i] = u_init_[i].transpose();
-    start.lambda[i] = lam_init_[i].transpose();
+  if (!domain_solver_) {
+    domain_solver_ = std::make_unique<Solver>();
+    domain_solver_->setup(bounded_problem, s);
+  } else {
+    domain_solver_->update_settings(s);
+    domain_solver_->update(bounded_problem);
   }
-  const Result b = bounded.solve(&start);
+  domain_start_.u.assign(N_, Mat::Zero(T_, nu_));
+  domain_start_.lambda.assign(N_, Mat::Zero(T_, nx_));
+  std::map<ConstraintKey, int> index;
+  const std::vector<Constraint>& bounded_cons = domain_solver_->cons_;
+  for (int c = 0; c < static_cast<int>(bounded_cons.size()); ++c) index[key_of(bounded_cons[c])] = c;
+  domain_index_.resize(cons_.size());
+  for (size_t c = 0; c < cons_.size(); ++c) domain_index_[c] = index.at(key_of(cons_[c]));  // each is one of them
+}
+
+bool Solver::domain_rescue(Result& found, Info& info, int& total_iter) {
+  if (!domain_solver_) return false;
+  if (settings_.verbose) std::printf("attempts stopped at a model's domain edge: the game with the domain box as bounds\n");
+  Solver& bounded = *domain_solver_;
+  bounded.settings().time_limit = settings_.time_limit > 0 ? time_left() : 0.0;
+  for (int i = 0; i < N_; ++i) {  // this solve's initial guess
+    domain_start_.u[i] = u_init_[i].transpose();
+    domain_start_.lambda[i] = lam_init_[i].transpose();
+  }
+  const Result b = bounded.solve(&domain_start_);
   total_iter += b.info.iterations;
   info.domain_iterations += b.info.iterations;
   info.attempts += b.info.attempts;
@@ -64,7 +81,7 @@ bool Solver::domain_rescue(Result& found, Info& info, int& total_iter) {
   if (b.info.status != Status::Converged) return false;  // the schedule's result stays, with these counters
   // In this game, from the bounded equilibrium with its multipliers and partition: an equilibrium here converges at
   // once; one that a domain bound holds is pushed back to the edge.
-  load_bounded_point(b, bounded.cons_);
+  load_bounded_point(b);
   use_rules(false);
   inertia_on_ = false;
   keep_partition_ = true;
@@ -78,7 +95,7 @@ bool Solver::domain_rescue(Result& found, Info& info, int& total_iter) {
     return true;
   }
   // Not an equilibrium of this game: report the bounded game's equilibrium, at the edge.
-  load_bounded_point(b, bounded.cons_);
+  load_bounded_point(b);
   found.info = info;
   found.info.status = Status::DomainEdge;
   found.info.residual_norm = info.residual_history[at_point];  // this game's ||r|| at the bounded equilibrium
@@ -86,19 +103,17 @@ bool Solver::domain_rescue(Result& found, Info& info, int& total_iter) {
   return true;
 }
 
-void Solver::load_bounded_point(const Result& b, const std::vector<Constraint>& bounded_cons) {
+void Solver::load_bounded_point(const Result& b) {
   for (int i = 0; i < N_; ++i) {
     y_.x[i] = b.x[i].transpose();
     y_.u[i] = b.u[i].transpose();
     y_.lam[i] = b.lambda[i].transpose();
   }
-  std::map<ConstraintKey, int> index;
-  for (int c = 0; c < static_cast<int>(bounded_cons.size()); ++c) index[key_of(bounded_cons[c])] = c;
   rho_ = b.info.rho;
   barrier_ = settings_.barrier.mode;
   const double margin = settings_.barrier.margin;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    const int m = index.at(key_of(cons_[c]));  // every constraint of this game is one of the bounded game's
+    const int m = domain_index_[c];
     const double h = b.h[m], mu = b.mu[m];
     y_.mu[c] = y_.mu2[c] = y_.z[c] = 0;
     if (h < -margin) {

@@ -199,9 +199,12 @@ class Solver {
   bool domain_rescue(Result& found, Info& info, int& total_iter);
   /// The bounded game of domain_rescue (false: no control has a two-sided domain box).
   bool domain_bounded_problem(Problem& p);
+  /// The domain rescue's workspace (domain_solver_, domain_start_, domain_index_), set up with the solver and kept
+  /// current by every update, so that a solve allocates nothing for it; absent when the rescue cannot run.
+  void prepare_domain_rescue();
   /// y_, the partition and the multipliers of this game's constraints from a result of the bounded game (whose
   /// constraint list holds this one's plus the domain bounds).
-  void load_bounded_point(const Result& b, const std::vector<Constraint>& bounded_cons);
+  void load_bounded_point(const Result& b);
   /// Timings, counters, initial guess and the restart offsets' random sequence at the start of a solve.
   void begin_solve(Info& info, const WarmStart* warm);
   /// y_, rho_ and the rules of the next attempt: from the best-response guess, the schedule's start or a saddle.
@@ -379,6 +382,9 @@ class Solver {
   /// Single-agent sub-solvers of the best response, one per agent, built at first use after a set-up or an update
   /// (br_stale_); each has the problem's obstacles followed by the N-1 others' positions (best_response.cpp).
   std::vector<std::unique_ptr<Solver>> br_;
+  std::unique_ptr<Solver> domain_solver_;  // the domain rescue's bounded game (prepare_domain_rescue)
+  WarmStart domain_start_;                 // its initial guess: this solve's
+  std::vector<int> domain_index_;          // per constraint of this game: its index in the bounded game's list
   bool br_stale_ = true;
   Eigen::MatrixXd br_positions_;  // (T+1) x 2 buffer: one other agent's rolled-out positions
   WarmStart br_warm_;             // the sub-solve's warm start (its agent's current controls)
