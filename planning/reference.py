@@ -43,13 +43,14 @@ class StageReference:
 def stage_reference(line: RacingLine, curvature, s0: float, v0: float, horizon: int, dt: float,
                     accel_mps2: float, brake_mps2: float) -> StageReference:
     """The line's references at the stages of a plan from centre-line arc length ``s0`` (m) at
-    speed ``v0`` (m/s); ``curvature(s)``: the centre line's curvature (1/m, vectorised)."""
+    speed ``v0`` (m/s); ``curvature(s)``: the centre line's curvature (1/m) at an unwrapped arc length, as
+    Track.curvature wraps it on a closed track."""
     s = np.empty(horizon + 1)
     v = np.empty(horizon + 1)
     s[0], v[0] = float(s0), max(float(v0), 0.0)
     for k in range(horizon):
         ey = float(line.lateral_offset(s[k]))
-        stretch = max(1.0 - float(curvature(np.mod(s[k], line.track_length_m))) * ey, 0.2)
+        stretch = max(1.0 - float(curvature(s[k])) * ey, 0.2)
         s[k + 1] = s[k] + dt * v[k] / stretch
         target = float(line.speed(s[k + 1]))
         v[k + 1] = min(max(target, v[k] - brake_mps2 * dt), v[k] + accel_mps2 * dt)
