@@ -146,13 +146,19 @@ class Track:
 
     # ------------------------------------------------------------ centre line
     def wrap_s(self, s):
-        """Arc length (m) wrapped to [0, length) on closed tracks; unchanged on open tracks."""
+        """Arc length (m) wrapped to [0, length) on closed tracks; unchanged on open tracks. One arc length
+        in, one float out (the planners wrap single values every step: numpy's per-call overhead)."""
+        if np.ndim(s) == 0:
+            s = float(s)
+            if not self.closed:
+                return s
+            wrapped = s % self._length
+            return 0.0 if wrapped >= self._length else wrapped  # % gives `length` for tiny negative s
         s = np.asarray(s, dtype=float)
         if not self.closed:
             return s
         wrapped = np.mod(s, self._length)
-        # np.mod can return exactly `length` for tiny negative inputs.
-        return np.where(wrapped >= self._length, 0.0, wrapped)
+        return np.where(wrapped >= self._length, 0.0, wrapped)  # as above
 
     def _sample(self, s) -> CenterlineSample:
         s = np.asarray(s, dtype=float)
@@ -184,12 +190,9 @@ class Track:
 
         Segment tracks: at a joint between segments the value of the segment starting there is returned.
         """
-        if self.closed and np.ndim(s) == 0:  # wrap_s for one arc length, without numpy's per-call overhead
-            wrapped = float(s) % self._length
-            return self._centerline.curvature(0.0 if wrapped >= self._length else wrapped)
-        s = np.asarray(s, dtype=float)
         if self.closed:
             return self._centerline.curvature(self.wrap_s(s))
+        s = np.asarray(s, dtype=float)
         inside = np.clip(s, 0.0, self._length)
         return np.where(s - inside == 0.0, self._centerline.curvature(inside), 0.0)  # 0 on the extensions (_sample)
 
