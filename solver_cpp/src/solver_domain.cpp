@@ -18,10 +18,15 @@ using ConstraintKey = std::array<int, 5>;
 ConstraintKey key_of(const Constraint& c) { return {static_cast<int>(c.kind), c.i, c.j, c.k, c.idx}; }
 }  // namespace
 
+bool Solver::domain_rescue_enabled() const {
+  // Not in receding-horizon solves (no restarts), nor without a domain box.
+  return settings_.domain_fraction > 0 && settings_.restart.count > 0;
+}
+
 bool Solver::domain_rescue_wanted(const Info& info) const {
-  // Not in receding-horizon solves (no restarts), nor after the clock stopped the schedule.
-  return edge_attempts_ > 0 && settings_.domain_fraction > 0 && settings_.restart.count > 0 &&
-         info.status != Status::Converged && info.status != Status::TimeLimit && !past_deadline();
+  // Nor after the clock stopped the schedule.
+  return edge_attempts_ > 0 && domain_rescue_enabled() && info.status != Status::Converged &&
+         info.status != Status::TimeLimit && !past_deadline();
 }
 
 bool Solver::domain_bounded_problem(Problem& p) {
@@ -41,7 +46,7 @@ bool Solver::domain_bounded_problem(Problem& p) {
 
 void Solver::prepare_domain_rescue() {
   Problem bounded_problem;
-  if (settings_.domain_fraction <= 0 || settings_.restart.count <= 0 || !domain_bounded_problem(bounded_problem)) {
+  if (!domain_rescue_enabled() || !domain_bounded_problem(bounded_problem)) {
     domain_solver_.reset();  // the rescue cannot run (domain_rescue_wanted) or has nothing to bound
     return;
   }

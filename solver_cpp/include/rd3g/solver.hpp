@@ -189,6 +189,8 @@ class Solver {
   bool rescue(Result& found, Info& info, int& total_iter);
   /// The counters and timings of the whole solve (from) onto a result kept from part of it (to).
   void take_counters(Info& to, const Info& from) const;
+  /// The settings allow the domain rescue (a domain box and a restart schedule): its workspace is set up.
+  bool domain_rescue_enabled() const;
   /// Some attempt ended at a model's domain edge and none found an equilibrium: the domain rescue is worth running.
   bool domain_rescue_wanted(const Info& info) const;
   /// The domain rescue (solver_domain.cpp): the same game with every control whose model has a two-sided domain bounded
