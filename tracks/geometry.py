@@ -58,8 +58,11 @@ class SegmentCenterline:
         # is ten times the bisection's.
         self._s_start_list = self.s_start.tolist()
 
-    def _segment(self, s: np.ndarray) -> np.ndarray:
-        """Index of the segment holding each arc length ``s`` (clamped to the chain)."""
+    def _segment(self, s):
+        """Index of the segment holding each arc length ``s``: the last start <= s, clamped to the chain
+        (one arc length: an int, by bisection)."""
+        if np.ndim(s) == 0:
+            return min(max(bisect.bisect_right(self._s_start_list, float(s)) - 1, 0), len(self._s_start_list) - 1)
         return np.clip(np.searchsorted(self.s_start, s, side="right") - 1, 0, len(self.lengths) - 1)
 
     def evaluate(self, s) -> CenterlineSample:
@@ -72,10 +75,7 @@ class SegmentCenterline:
 
     def curvature(self, s) -> np.ndarray:
         """``evaluate(s).curvature`` without the poses (the planners look curvature up every step)."""
-        if np.ndim(s) == 0:  # the segment _segment finds: the last start <= s, clamped to the chain
-            i = min(max(bisect.bisect_right(self._s_start_list, float(s)) - 1, 0), len(self._s_start_list) - 1)
-            return self.curvatures[i]
-        return self.curvatures[self._segment(np.asarray(s, dtype=float))]
+        return self.curvatures[self._segment(s)]
 
 
 def _advance(x0, y0, th0, k, sigma):
