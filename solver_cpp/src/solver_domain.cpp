@@ -24,7 +24,8 @@ bool Solver::domain_rescue_enabled() const {
 }
 
 bool Solver::domain_rescue_wanted(const Info& info) const {
-  // Nor after the clock stopped the schedule.
+  // Only after an attempt stopped at a domain edge and no equilibrium was found, and not after the clock stopped
+  // the schedule.
   return edge_attempts_ > 0 && domain_rescue_enabled() && info.status != Status::Converged &&
          info.status != Status::TimeLimit && !past_deadline();
 }
