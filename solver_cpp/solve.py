@@ -194,6 +194,7 @@ class GameResult:
     order_attempts: int = 0     # polish attempts of the passing-order search
     order_iterations: int = 0   # Newton iterations of its ordered guesses' single-agent sub-solves (1/N each)
     domain_iterations: int = 0  # Newton iterations of the domain rescue's bounded game (docs/solver.md; in iterations)
+    bounded_start_iterations: int = 0  # Newton iterations of the bounded start's bounded game (docs/solver.md; in iterations)
     constraints: list = field(repr=False, default_factory=list)
     setup_time_s: float = 0.0   # the solver's last set-up (validation, constraint list, allocation), maybe older
     update_time_s: float = 0.0  # update calls since the previous solve
@@ -321,7 +322,7 @@ class Solver:
             second_order=np.asarray(i.second_order, dtype=float),
             orders=[_order_candidate(c) for c in i.orders],
             order_attempts=i.order_attempts, order_iterations=i.order_iterations,
-            domain_iterations=i.domain_iterations,
+            domain_iterations=i.domain_iterations, bounded_start_iterations=i.bounded_start_iterations,
             passing_order_found=found, passing_order_report=None if found else self._order_report(r.x, ws))
 
     def _order_report(self, x, ws) -> Callable[[], list]:

@@ -38,10 +38,13 @@ def test_saddle():
 
 
 def test_max_iterations():
-    result = solve(merging_problem(3, 2), max_iter=1)
+    # Without restarts (a receding-horizon plan) max_iter bounds the solve; with them, the rescues after a failed
+    # schedule have their own budgets (Settings::max_iter) and the status stays the schedule's.
+    result = solve(merging_problem(3, 2), max_iter=1, restart=dict(count=0))
     assert result.status == "max_iterations" and not result.converged
     assert result.iterations == 1
     assert result.residual_norm > 5e-4
+    assert solve(merging_problem(3, 2), max_iter=1).status == "max_iterations"
 
 
 def test_time_limit():
@@ -67,10 +70,11 @@ def _first_firing(history, window: int, ratio: float) -> int | None:
 def test_stalled():
     # A hair-trigger crawl rule (||r|| must fall 1e6-fold every 2 iterations) ends every attempt, whatever path the
     # iterates take: with one restart (the attempt from the initial guess and attempt 1) the solve ends stalled.
-    # The passing-order rescue is off: it would run after the schedule with its own budget.
+    # The passing-order rescue is off, and so are the domain rescue and the bounded start (no domain box): they
+    # would run after the schedule with their own budgets.
     result = solve(merging_problem(3, 2), time_limit=0, restart=dict(count=1, rho_on_stall=False),
                    stall=dict(crawl_window=2, crawl_ratio=1e-6, polish_gap=0), best_response=dict(rounds=0),
-                   order=dict(candidates=0))
+                   order=dict(candidates=0), domain_fraction=0.0)
     assert result.status == "stalled" and not result.converged
     assert result.attempts == 2 and result.best_response_attempts == 0
     assert result.residual_norm > 5e-4

@@ -158,7 +158,7 @@ def test_settings_update_and_reported_times():
     solver = Solver(merging_problem(3, 0))
     first = solver.solve()
     assert first.setup_time_s > 0 and first.update_time_s == 0
-    solver.update_settings(max_iter=2)
+    solver.update_settings(max_iter=2, restart=dict(count=0))  # no restarts: no rescue with a budget of its own
     solver.update(merging_problem(3, 1))
     capped = solver.solve()
     assert capped.status == "max_iterations" and capped.iterations == 2

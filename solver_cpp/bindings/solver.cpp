@@ -97,6 +97,7 @@ void bind_solver(py::module_& m) {
       .def_readonly("order_attempts", &Info::order_attempts)
       .def_readonly("order_iterations", &Info::order_iterations)
       .def_readonly("domain_iterations", &Info::domain_iterations)
+      .def_readonly("bounded_start_iterations", &Info::bounded_start_iterations)
       .def_readonly("second_order", &Info::second_order)
       .def_readonly("residual_history", &Info::residual_history)
       .def_readonly("step_history", &Info::step_history)

@@ -60,7 +60,10 @@ void Solver::prepare_sub_solvers() {
           std::tie(o.min_distance, o.min_distance_steps) = sub_solve_distance(i, j);
           p.obstacles.push_back(std::move(o));
         }
-      if (!br_[i]) br_[i] = std::make_unique<Solver>();
+      if (!br_[i]) {
+        br_[i] = std::make_unique<Solver>();
+        br_[i]->role_ = Role::SubSolve;
+      }
       br_[i]->setup(p, sub);
     }
     br_warm_.u.assign(1, Mat::Zero(T_, nu_));

@@ -50,8 +50,14 @@ Result Solver::solve(const WarmStart* warm) {
   Result bounded;
   const bool edge_point = domain_rescue_wanted(info) && domain_rescue(bounded, info, sc.total_iter);
   if (edge_point && bounded.info.status == Status::Converged) return bounded;
+  // Still none: the schedule again from the equilibrium of a game with the steering bounded (bounded start).
+  Result started;
+  if (bounded_start_wanted(info) && bounded_start(started, info, sc.total_iter)) return started;
   if (sc.have_saddle && info.status != Status::Converged) return saddle_result(sc, info);
-  if (edge_point) return bounded;
+  if (edge_point) {
+    take_counters(bounded.info, info);
+    return bounded;
+  }
   return res;
 }
 
@@ -61,8 +67,8 @@ bool Solver::run_schedule(Result& res, Schedule& sc, const WarmStart* warm) {
     const bool br_now = !sc.from_saddle && sc.br_attempts == 0 && settings_.best_response.rounds > 0 &&
                         attempt == kBestResponseAttempt;
     bool repeat = br_now;  // an inserted attempt: the schedule resumes at this attempt afterwards
-    info.attempts = attempt + 1 + sc.escapes + sc.br_attempts + info.order_attempts;
-    info.saddle_escapes = sc.escapes;
+    info.attempts = sc.prior_attempts + attempt + 1 + sc.escapes + sc.br_attempts + info.order_attempts;
+    info.saddle_escapes = sc.prior_escapes + sc.escapes;
     start_scheduled_attempt(attempt, br_now, warm, sc, info);
     if (run_attempt(info, sc.total_iter) == AttemptEnd::Finished) {
       // Steer away from a saddle: keep it, and let the remaining restarts look for a local equilibrium.
@@ -136,6 +142,7 @@ void Solver::take_counters(Info& to, const Info& from) const {
   to.order_attempts = from.order_attempts;
   to.order_iterations = from.order_iterations;
   to.domain_iterations = from.domain_iterations;
+  to.bounded_start_iterations = from.bounded_start_iterations;
   to.residual_history = from.residual_history;
   to.step_history = from.step_history;
   to.timings = from.timings;
@@ -170,7 +177,7 @@ void Solver::start_scheduled_attempt(int attempt, bool best_response, const Warm
                                      Info& info) {
   if (best_response) {
     ++sc.br_attempts;
-    info.best_response_attempts = sc.br_attempts;
+    ++info.best_response_attempts;
     // A sub-solve iteration (one agent's Newton system, N times smaller) counts 1/N of a game iteration.
     const int used = start_best_response_attempt(N_ * (iter_limit_ - sc.total_iter));
     sc.total_iter += (used + N_ - 1) / N_;

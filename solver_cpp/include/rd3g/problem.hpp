@@ -264,7 +264,10 @@ struct PassingOrderSettings {
 /// Every setting of RD3G, grouped by concern (OSQP/proxsuite style); one documented default per field.
 struct Settings {
   double tol = 5e-4;   ///< stop when ||r||_2 < tol (and the other conditions hold)
-  int max_iter = 1000; ///< Newton iterations, all attempts together (the order rescue may add up to as many)
+  /// Newton iterations of the restart schedule, all attempts together. The stages after a schedule that found no
+  /// equilibrium have budgets of their own: the order rescue up to as many, the domain rescue's and the bounded
+  /// start's bounded games a nested solve each, and the bounded start's second schedule max_iter again.
+  int max_iter = 1000;
   /// (s), 0 = none. Checked every iteration, between Levenberg-Marquardt tries, inside LSCG (in chunks of 50
   /// iterations) and before a SparseQR factorisation, which is started only if this solver's previous QR
   /// took less than the time left (never before one was measured); otherwise a regularised least-squares step
@@ -360,6 +363,9 @@ struct Info {
   int order_iterations = 0;            ///< Newton iterations of its ordered guesses' sub-solves, unscaled
   /// Newton iterations of the domain rescue's bounded game (0 if it did not run; iterations includes them)
   int domain_iterations = 0;
+  /// Newton iterations of the bounded start's bounded game (0 if it did not run; iterations includes them, and the
+  /// schedule run after it counts as every attempt)
+  int bounded_start_iterations = 0;
   std::vector<double> residual_history;  ///< ||r|| at the start of every iteration (and the final one)
   std::vector<double> step_history;      ///< accepted line-search step t per iteration
   Timings timings;

@@ -174,6 +174,8 @@ class Solver {
     bool from_saddle = false;  // the next attempt starts where leave_saddle left y_
     bool have_saddle = false;
     bool searched = false;     // the passing-order search ran between the restarts (search_between_restarts)
+    int prior_attempts = 0;    // attempts of the solve before this schedule (the bounded start's), orders' aside
+    int prior_escapes = 0;     // escapes from saddles before this schedule
     Result saddle;             // the first converged attempt the second-order test rejected (restart_on_saddle)
   };
   /// The restart schedule's attempts; true if res holds an equilibrium (converged, second-order test passed),
@@ -189,7 +191,8 @@ class Solver {
   bool rescue(Result& found, Info& info, int& total_iter);
   /// The counters and timings of the whole solve (from) onto a result kept from part of it (to).
   void take_counters(Info& to, const Info& from) const;
-  /// The settings allow the domain rescue (a domain box and a restart schedule): its workspace is set up.
+  /// The settings allow the domain rescue (a domain box and a restart schedule, in a solver that is not itself a
+  /// bounded game's): its nested solver is set up; the bounded start also runs only in the caller's game (role_).
   bool domain_rescue_enabled() const;
   /// Some attempt ended at a model's domain edge and none found an equilibrium: the domain rescue is worth running.
   bool domain_rescue_wanted(const Info& info) const;
@@ -199,13 +202,23 @@ class Solver {
   /// iterations). `found` is converged if that point is an equilibrium of this game, otherwise `domain_edge` with the
   /// bounded game's equilibrium (feasible, some domain bound holding it). False if the bounded game has none.
   bool domain_rescue(Result& found, Info& info, int& total_iter);
-  /// The bounded game of domain_rescue (false: no control has a two-sided domain box).
-  bool domain_bounded_problem(Problem& p);
-  /// The domain rescue's workspace (domain_solver_, domain_start_, domain_index_), set up with the solver and kept
-  /// current by every update, so that a solve allocates nothing for it; absent when the rescue cannot run.
+  /// No stage before found an equilibrium: the bounded start is worth running.
+  bool bounded_start_wanted(const Info& info) const;
+  /// The bounded start (solver_domain.cpp): the same game with every two-sided domain control bounded to
+  /// kBoundedStartFraction of its domain box, solved by a nested solver from the initial guess (its own budget, at
+  /// most max_iter), then this game's restart schedule again from that solve's controls and dynamics multipliers
+  /// (its own budget, max_iter). True if `found` holds an equilibrium; otherwise info gets the counters.
+  bool bounded_start(Result& found, Info& info, int& total_iter);
+  /// p = this game with each control that has a two-sided domain box bounded to `fraction` of that box (shrunk about
+  /// its centre) where that is tighter than its own bounds; false if no bound changed.
+  bool bounded_problem(Problem& p, double fraction);
+  /// The bounded games (domain_problem_, start_problem_) and their nested solver, set up with this solver and kept
+  /// current by every update; the solver is absent when neither game can run.
   void prepare_domain_rescue();
-  /// y_, the partition and the multipliers of this game's constraints from a result of the bounded game (whose
-  /// constraint list holds this one's plus the domain bounds).
+  /// The nested solve of bounded game p (one of the two) from this solve's initial guess; its iterations and
+  /// attempts count in total_iter and info.
+  Result solve_bounded_game(const Problem& p, Info& info, int& total_iter);
+  /// y_, the partition and the multipliers of this game's constraints from a result of a bounded game.
   void load_bounded_point(const Result& b);
   /// Timings, counters, initial guess and the restart offsets' random sequence at the start of a solve.
   void begin_solve(Info& info, const WarmStart* warm);
@@ -384,9 +397,20 @@ class Solver {
   /// Single-agent sub-solvers of the best response, one per agent, built at first use after a set-up or an update
   /// (br_stale_); each has the problem's obstacles followed by the N-1 others' positions (best_response.cpp).
   std::vector<std::unique_ptr<Solver>> br_;
-  std::unique_ptr<Solver> domain_solver_;  // the domain rescue's bounded game (prepare_domain_rescue)
-  WarmStart domain_start_;                 // its initial guess: this solve's
-  std::vector<int> domain_index_;          // per constraint of this game: its index in the bounded game's list
+  // The bounded games: both bound the same controls (their constraint lists are the same), so one nested solver
+  // holds whichever is being solved (bounded_posed_) and is updated to the other when that one is needed.
+  Problem domain_problem_;                   // the domain rescue's: bounded to the domain box
+  Problem start_problem_;                    // the bounded start's: bounded to kBoundedStartFraction of it
+  bool domain_game_ = false;                 // the domain rescue can run (domain_problem_ bounds some control)
+  bool start_game_ = false;                  // the bounded start can run (start_problem_ bounds some control)
+  std::unique_ptr<Solver> bounded_solver_;   // absent when neither can run
+  const Problem* bounded_posed_ = nullptr;   // the bounded game bounded_solver_ holds now
+  WarmStart bounded_warm_;                   // its initial guess: this solve's
+  std::vector<int> bounded_index_;           // per constraint of this game: its index in the bounded games' list
+  /// What this solver solves for: the caller's game; a bounded game (none of its own); a best-response
+  /// sub-solve (the domain rescue, not the bounded start: a guess's sub-solve need not find an equilibrium).
+  enum class Role { Game, BoundedGame, SubSolve };
+  Role role_ = Role::Game;
   bool br_stale_ = true;
   Eigen::MatrixXd br_positions_;  // (T+1) x 2 buffer: one other agent's rolled-out positions
   WarmStart br_warm_;             // the sub-solve's warm start (its agent's current controls)
