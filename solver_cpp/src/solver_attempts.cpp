@@ -229,13 +229,22 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
   for (int i = 0; i < N_; ++i) {
     y_.x[i].col(0) = prob_.x0[i];
     y_.u[i] = u_init_[i];
-    if (attempt >= 4)
+    if (attempt >= 4) {
       // A constant offset per agent and control component (not white noise, which averages out):
       // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
+      prob_.dynamics[i]->control_domain(dom_lo_, dom_hi_);
       for (int q = 0; q < nu_; ++q) {
         const double offset = kRestartOffsetStd * noise_(rng_);
-        y_.u[i].row(q).array() += offset;
+        double lo, hi;
+        const bool held = settings_.domain_fraction > 0 && domain_box(q, lo, hi);
+        for (int k = 0; k < T_; ++k) {
+          const double u = y_.u[i](q, k);
+          // A control inside its domain box stays there (a warm start near the edge plus an offset could leave it,
+          // and the line search holds only controls inside); one outside already (a warm start) is not held.
+          y_.u[i](q, k) = held && u >= lo && u <= hi ? std::clamp(u + offset, lo, hi) : u + offset;
+        }
       }
+    }
     if (attempt == 0) y_.lam[i] = lam_init_[i];
     else y_.lam[i].setZero();
     roll_out(y_, i);
