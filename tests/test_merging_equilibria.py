@@ -153,7 +153,8 @@ def test_polish_rescues_a_stalled_merge():
     # attempt: from its guess this merge converges without the polish.)
     problem = merging_problem(7, 12)
     without = solve(problem, **merge_settings(PAPER_RULES, dict(stall=dict(polish_gap=0.0), restart=dict(count=3))))
-    assert without.status == "stalled"
+    # The schedule stalls; the bounded start, the last stage, may then find an equilibrium from its own start.
+    assert without.status == "stalled" or (without.converged and without.bounded_start_iterations > 0)
     result = solve(problem)
     assert result.converged
     assert result.attempts == 1
@@ -172,9 +173,9 @@ def test_deeply_overlapping_start_converges_with_the_central_path_rules(cars, se
     # last 4 iterates'), converges. The answer is checked independently of the solver.
     problem = family_problem("crossing", cars, seed)
     paper = solve(problem, max_iter=150, **PAPER_RULES)
-    # No attempt converges: the solve fails, or the domain rescue ran (only after attempts that found no equilibrium,
-    # one of them stopped at the steering domain's edge; its bounded game can converge: 5 cars seed 3 does).
-    assert not paper.converged or paper.domain_iterations > 0
+    # No attempt converges: the solve fails, or the domain rescue or the bounded start ran (only after attempts that
+    # found no equilibrium; their bounded games can lead to one: 5 cars seed 3 does).
+    assert not paper.converged or paper.domain_iterations > 0 or paper.bounded_start_iterations > 0
     result = solve(problem, max_iter=150)
     assert result.converged and result.attempts == 1
     assert np.all(result.second_order > 0)
