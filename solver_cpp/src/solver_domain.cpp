@@ -66,7 +66,6 @@ void Solver::prepare_domain_rescue() {
   start_game_ = enabled && role_ == Role::Game && bounded_problem(start_problem_, kBoundedStartFraction);
   if (!domain_game_ && !start_game_) {
     bounded_solver_.reset();
-    bounded_posed_ = nullptr;
     return;
   }
   // A control bounded in one game is bounded (by its own or the game's bound) in the other: one constraint list.
@@ -81,7 +80,7 @@ void Solver::prepare_domain_rescue() {
     bounded_solver_->update_settings(s);
     bounded_solver_->update(posed);
   }
-  bounded_posed_ = &posed;
+  bounded_holds_start_ = !domain_game_;
   bounded_warm_.u.assign(N_, Mat::Zero(T_, nu_));
   bounded_warm_.lambda.assign(N_, Mat::Zero(T_, nx_));
   std::map<ConstraintKey, int> index;
@@ -93,9 +92,10 @@ void Solver::prepare_domain_rescue() {
 
 Result Solver::solve_bounded_game(const Problem& p, Info& info, int& total_iter) {
   Solver& bounded = *bounded_solver_;
-  if (bounded_posed_ != &p) {  // new bounds only (a failed schedule's rare path)
+  const bool start = &p == &start_problem_;
+  if (start != bounded_holds_start_) {  // new bounds only (a failed schedule's rare path)
     bounded.update(p);
-    bounded_posed_ = &p;
+    bounded_holds_start_ = start;
   }
   bounded.settings().time_limit = settings_.time_limit > 0 ? time_left() : 0.0;
   for (int i = 0; i < N_; ++i) {  // this solve's initial guess

@@ -398,13 +398,13 @@ class Solver {
   /// (br_stale_); each has the problem's obstacles followed by the N-1 others' positions (best_response.cpp).
   std::vector<std::unique_ptr<Solver>> br_;
   // The bounded games: both bound the same controls (their constraint lists are the same), so one nested solver
-  // holds whichever is being solved (bounded_posed_) and is updated to the other when that one is needed.
+  // holds whichever is being solved (bounded_holds_start_) and is updated to the other when that one is needed.
   Problem domain_problem_;                   // the domain rescue's: bounded to the domain box
   Problem start_problem_;                    // the bounded start's: bounded to kBoundedStartFraction of it
   bool domain_game_ = false;                 // the domain rescue can run (domain_problem_ bounds some control)
   bool start_game_ = false;                  // the bounded start can run (start_problem_ bounds some control)
   std::unique_ptr<Solver> bounded_solver_;   // absent when neither can run
-  const Problem* bounded_posed_ = nullptr;   // the bounded game bounded_solver_ holds now
+  bool bounded_holds_start_ = false;         // bounded_solver_ holds start_problem_ now (else domain_problem_)
   WarmStart bounded_warm_;                   // its initial guess: this solve's
   std::vector<int> bounded_index_;           // per constraint of this game: its index in the bounded games' list
   /// What this solver solves for: the caller's game; a bounded game (none of its own); a best-response
