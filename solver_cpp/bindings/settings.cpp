@@ -42,7 +42,7 @@ void bind_settings(py::module_& m) {
   // Groups are returned by reference (settings.stall.window = 8 changes the settings).
   py::class_<Settings>(m, "Settings").def(py::init<>())
       RW(Settings, tol) RW(Settings, max_iter) RW(Settings, time_limit) RW(Settings, violation_tol)
-      RW(Settings, dynamics_tol) RW(Settings, domain_fraction) RW(Settings, verbose)
+      RW(Settings, dynamics_tol) RW(Settings, stationarity_tol) RW(Settings, domain_fraction) RW(Settings, verbose)
       RW(Settings, barrier) RW(Settings, line_search) RW(Settings, linear) RW(Settings, stall) RW(Settings, restart)
       RW(Settings, best_response) RW(Settings, second_order) RW(Settings, order);
 #undef RW

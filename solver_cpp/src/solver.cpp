@@ -84,6 +84,7 @@ void Solver::list_and_allocate() {
   const int max_vars = n_primal_ + 2 * C;
   r_ = Vec::Zero(max_vars);
   r_trial_ = Vec::Zero(max_vars);
+  stationarity_ = Vec::Zero(n_primal_);
   rhs_ = Vec::Zero(max_vars);
   dy_ = Vec::Zero(max_vars);
   neg_rhs_ = Vec::Zero(max_vars);

@@ -26,6 +26,8 @@ constexpr int kBestResponseAttempt = 1;
 constexpr int kOrderSearchAfterAttempt = 3;
 // Std of the seeded constant control offsets of restart attempts 4.. (control units).
 constexpr double kRestartOffsetStd = 0.2;
+// The stationarity test lowers rho's floor at most to this fraction of tol * barrier.rho_floor_factor.
+constexpr double kMinRhoFloorScale = 1e-3;
 }  // namespace
 
 // -------------------------------------------------------------------------------------------------
@@ -315,7 +317,7 @@ bool Solver::assemble(bool first, Info& info) {
   return ok;
 }
 
-bool Solver::converged(double rnorm) const {
+bool Solver::converged(double rnorm) {
   const int C = static_cast<int>(cons_.size());
   for (int c = 0; c < C; ++c)
     if (state_[c] == ConstraintState::Active &&
@@ -325,17 +327,74 @@ bool Solver::converged(double rnorm) const {
   double max_defect = 0;
   for (int i = 0; i < N_; ++i)
     for (int k = 0; k < T_; ++k) max_defect = std::max(max_defect, r_.segment(col_lam(i, k), nx_).cwiseAbs().maxCoeff());
-  return rnorm < settings_.tol && maxviol <= settings_.violation_tol && max_defect <= settings_.dynamics_tol &&
-         (C == 0 || at_rho_floor());
+  if (!(rnorm < settings_.tol && maxviol <= settings_.violation_tol && max_defect <= settings_.dynamics_tol &&
+        (C == 0 || at_rho_floor())))
+    return false;
+  if (settings_.stationarity_tol <= 0 || role_ == Role::SubSolve ||
+      relative_stationarity() <= settings_.stationarity_tol)
+    return true;
+  // The far constraints' barrier force is about rho / |h|: lower the floor (at most to kMinRhoFloorScale of it).
+  if (C > 0) rho_floor_scale_ = std::max(kMinRhoFloorScale, rho_floor_scale_ * settings_.barrier.rho_kappa);
+  return false;
 }
 
-double Solver::rho_floor() const { return settings_.tol * settings_.barrier.rho_floor_factor; }
+double Solver::relative_stationarity() {
+  stationarity_ = r_.head(n_primal_);
+  const double gap = settings_.second_order.gap;
+  const bool pd = barrier_ == BarrierMode::PrimalDual;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    if (state_[c] != ConstraintState::Barrier || h_[c] >= -gap) continue;
+    double hv;
+    Eigen::Vector2d g;
+    eval_constraint(y_, c, hv, &g, nullptr);
+    const double w = pd ? y_.z[c] : -rho_ / hv;
+    const ConstraintRows q = constraint_rows(c);
+    for (int a = 0; a < q.n; ++a) stationarity_[q.ci[a]] -= w * g[a];
+    if (q.pair)
+      for (int a = 0; a < q.n; ++a) stationarity_[q.cj[a]] += w * g[a];
+  }
+  double worst = 0;
+  for (int i = 0; i < N_; ++i) {
+    double sq = 0;
+    for (int k = 0; k < T_; ++k)
+      sq += stationarity_.segment(col_u(i, k), nu_).squaredNorm() + stationarity_.segment(col_x(i, k + 1), nx_).squaredNorm();
+    worst = std::max(worst, sq);
+  }
+  return std::sqrt(worst) / std::max(cost_gradient_norm(), 1e-300);
+}
+
+double Solver::cost_gradient_norm() const {
+  double sq = 0;
+  for (int i = 0; i < N_; ++i) {
+    const QuadraticCost& cost = prob_.costs[i];
+    const double lead = N_ > 1 ? prob_.lead[i].weight * (N_ - 1) : 0.0;
+    for (int k = 0; k < T_; ++k) {
+      sq += (2.0 * cost.R.cwiseProduct(y_.u[i].col(k))).squaredNorm();
+      const bool terminal = (k + 1 == T_);
+      const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
+      const Vec& q = terminal ? cost.Qf : cost.Q;
+      const auto x1 = y_.x[i].col(k + 1);
+      sq += (2.0 * (qr.cwiseProduct(x1 - cost.reference(k + 1)) + q.cwiseProduct(x1))).squaredNorm();
+      if (lead != 0.0) {  // the lead term's constant gradient on one component
+        const int l = prob_.lead[i].index;
+        const double v = 2.0 * (qr[l] * (x1[l] - cost.reference(k + 1)[l]) + q[l] * x1[l]);
+        sq += (v - lead) * (v - lead) - v * v;
+      }
+    }
+  }
+  return std::sqrt(std::max(sq, 0.0));
+}
+
+double Solver::rho_floor() const {
+  return settings_.tol * settings_.barrier.rho_floor_factor * rho_floor_scale_;
+}
 
 bool Solver::at_rho_floor() const { return rho_ <= rho_floor() * (1 + 1e-9); }
 
 Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
   merits_.clear();
   violations_.clear();
+  rho_floor_scale_ = 1;
   bool first = !keep_partition_, stalled = false, polished = false;
   keep_partition_ = false;
   newton_at_edge_ = false;

@@ -210,6 +210,7 @@ void validate_settings(const Settings& s) {
   require(s.line_search.max_steps >= 1, "solver.line_search.max_steps must be >= 1");
   require(s.violation_tol >= 0, "solver.violation_tol must be >= 0");
   require(s.dynamics_tol > 0, "solver.dynamics_tol must be positive");
+  require(s.stationarity_tol >= 0, "solver.stationarity_tol must be >= 0 (0 = off)");
   require(s.barrier.margin >= 0, "solver.barrier.margin must be >= 0");
   require(s.domain_fraction >= 0 && s.domain_fraction < 1, "solver.domain_fraction must be in [0, 1) (0 = off)");
   require(s.line_search.lm_tries >= 0, "solver.line_search.lm_tries must be >= 0 (0 = off)");

@@ -277,6 +277,12 @@ struct Settings {
   double time_limit = 0.0;
   double violation_tol = 1e-6;   ///< converged only if every h <= violation_tol (constraint units)
   double dynamics_tol = 1e-7;    ///< converged only if every dynamics defect <= dynamics_tol (state units)
+  /// Converged only if every agent's stationarity rows of the residual, without the barrier forces of constraints
+  /// farther than second_order.gap from activity, have a norm <= stationarity_tol times the norm of all agents' own
+  /// cost gradients (dimensionless; 0 = off). tol alone is absolute: a game whose cost gradients are small (0.07)
+  /// stopped at a relative stationarity of 1e-3 and above. While this test fails with rho at its floor, the floor is
+  /// lowered by barrier.rho_kappa (the far constraints' barrier force is about rho / |h|). Not in sub-solves.
+  double stationarity_tol = 5e-4;
   /// Keep the controls in their models' domains (Dynamics::control_domain; the bicycles: |delta| < pi/2): a step is
   /// shortened so that no control leaves its domain's box shrunk about the centre to domain_fraction of its
   /// half-width. Dimensionless, in [0, 1); 0 = off (docs/solver.md, "Staying in the model's domain").

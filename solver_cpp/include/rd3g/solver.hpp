@@ -243,8 +243,15 @@ class Solver {
   void use_rules(bool restart_rules);
   /// Partition, multiplier numbering, residual and Jacobian at y_; false if the residual is undefined.
   bool assemble(bool first, Info& info);
-  bool converged(double rnorm) const;
-  /// rho's floor, tol * barrier.rho_floor_factor, and whether rho has reached it (to rounding).
+  /// The stopping test: ||r|| < tol, feasibility, dynamics, rho at its floor and relative_stationarity() <=
+  /// stationarity_tol (Settings::stationarity_tol; where that alone fails, the floor is lowered).
+  bool converged(double rnorm);
+  /// The largest over agents of the norm of its stationarity rows of r_, without the barrier forces of constraints
+  /// with h < -second_order.gap, divided by cost_gradient_norm().
+  double relative_stationarity();
+  /// sqrt(sum over agents of ||dJ^i / d(x^i_1..T, u^i_0..T-1)||^2) at y_ (cost units per variable unit).
+  double cost_gradient_norm() const;
+  /// rho's floor, tol * barrier.rho_floor_factor (times rho_floor_scale_), and whether rho has reached it (to rounding).
   double rho_floor() const;
   bool at_rho_floor() const;
   /// Newton (or Levenberg-Marquardt) step from y_ into y_ with the line search; the accepted t, or 0.
@@ -361,6 +368,8 @@ class Solver {
   Mat fx_, Atmp_, Btmp_;
   Vec dom_lo_, dom_hi_;  // one agent's control domain (domain_step)
   Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_, neg_rhs_, lin_res_;
+  Vec stationarity_;  // relative_stationarity's copy of r_'s primal rows
+  double rho_floor_scale_ = 1;  // < 1 once the stationarity test has failed at the floor in this attempt
   std::vector<Triplet> trip_;
   SpMat J_;
   Eigen::SparseLU<SpMat, Eigen::COLAMDOrdering<int>> lu_;
