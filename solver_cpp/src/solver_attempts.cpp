@@ -234,11 +234,10 @@ void Solver::start_attempt(int attempt, const WarmStart* warm) {
     if (attempt >= 4) {
       // A constant offset per agent and control component (not white noise, which averages out):
       // it changes the order in which agents reach a contested region, i.e. the equilibrium's basin.
-      prob_.dynamics[i]->control_domain(dom_lo_, dom_hi_);
       for (int q = 0; q < nu_; ++q) {
         const double offset = kRestartOffsetStd * noise_(rng_);
         double lo, hi;
-        const bool held = settings_.domain_fraction > 0 && domain_box(q, lo, hi);
+        const bool held = settings_.domain_fraction > 0 && domain_box(i, q, lo, hi);
         for (int k = 0; k < T_; ++k) {
           const double u = y_.u[i](q, k);
           // A control inside its domain box stays there (a warm start near the edge plus an offset could leave it,

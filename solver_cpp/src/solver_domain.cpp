@@ -48,10 +48,9 @@ bool Solver::bounded_problem(Problem& p, double fraction) {
   p = prob_;
   bool any = false;
   for (int i = 0; i < N_; ++i) {
-    prob_.dynamics[i]->control_domain(dom_lo_, dom_hi_);
     for (int q = 0; q < nu_; ++q) {
       double lo, hi;
-      if (!domain_box(q, lo, hi)) continue;
+      if (!domain_box(i, q, lo, hi)) continue;
       const double c = 0.5 * (lo + hi), w = 0.5 * fraction * (hi - lo);
       if (c - w > p.u_min[i][q]) { p.u_min[i][q] = c - w; any = true; }
       if (c + w < p.u_max[i][q]) { p.u_max[i][q] = c + w; any = true; }

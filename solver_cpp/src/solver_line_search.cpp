@@ -88,7 +88,8 @@ double Solver::line_search(double merit0) {
 // back (merge-long, docs/solver.md "Staying in the model's domain"). Each held control stays in its domain's box
 // shrunk about the centre to domain_fraction of its half-width (a fixed margin: a fraction of the distance left
 // would let a control creep to the singular point itself).
-bool Solver::domain_box(int q, double& lo, double& hi) const {
+bool Solver::domain_box(int i, int q, double& lo, double& hi) {
+  prob_.dynamics[i]->control_domain(dom_lo_, dom_hi_);
   if (!std::isfinite(dom_lo_[q]) || !std::isfinite(dom_hi_[q])) return false;  // one-sided: not held
   const double c = 0.5 * (dom_lo_[q] + dom_hi_[q]), w = 0.5 * settings_.domain_fraction * (dom_hi_[q] - dom_lo_[q]);
   lo = c - w;
@@ -98,10 +99,9 @@ bool Solver::domain_box(int q, double& lo, double& hi) const {
 
 double Solver::domain_step(double t) {
   for (int i = 0; i < N_; ++i) {
-    prob_.dynamics[i]->control_domain(dom_lo_, dom_hi_);
     for (int q = 0; q < nu_; ++q) {
       double lo, hi;
-      if (!domain_box(q, lo, hi)) continue;
+      if (!domain_box(i, q, lo, hi)) continue;
       for (int k = 0; k < T_; ++k) {
         const double u = y_.u[i](q, k), du = dy_[col_u(i, k) + q];
         if (!(u >= lo && u <= hi)) continue;  // outside already (a warm start): not held

@@ -310,8 +310,9 @@ class Solver {
   void apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const;
   /// The largest t' <= t at which y_'s held controls stay in their models' domain boxes along dy_ (domain_fraction).
   double domain_step(double t);
-  /// Control component q's box from dom_lo_/dom_hi_ (one agent's domain); false if the domain is one-sided or free.
-  bool domain_box(int q, double& lo, double& hi) const;
+  /// Agent i's control component q's domain box (Dynamics::control_domain shrunk to domain_fraction); false if the
+  /// domain is one-sided or free.
+  bool domain_box(int i, int q, double& lo, double& hi);
   double violation_sum(const Vec& h) const;
   /// On a stall: barrier constraints with h >= -polish_gap become equalities, their multiplier the barrier's
   /// estimate. Returns false if there is none.
@@ -366,7 +367,7 @@ class Solver {
   StageLayout layout_;
   StageWorkspace stage_;
   Mat fx_, Atmp_, Btmp_;
-  Vec dom_lo_, dom_hi_;  // one agent's control domain (domain_step)
+  Vec dom_lo_, dom_hi_;  // one agent's control domain (domain_box)
   Vec h_, h_trial_, r_, r_trial_, dy_, rc_, rc_trial_, rhs_, dz_, neg_rhs_, lin_res_;
   Vec stationarity_;  // relative_stationarity's copy of r_'s primal rows
   double rho_floor_scale_ = 1;  // < 1 once the stationarity test has failed at the floor in this attempt
