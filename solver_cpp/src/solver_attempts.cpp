@@ -54,7 +54,7 @@ Result Solver::solve(const WarmStart* warm) {
   if (edge_point && bounded.info.status == Status::Converged) return bounded;
   // Still none: the schedule again from the equilibrium of a game with the steering bounded (bounded start).
   Result started;
-  if (bounded_start_wanted(info) && bounded_start(started, info, sc.total_iter)) return started;
+  if (bounded_start_wanted(info) && bounded_start(started, info, sc)) return started;
   if (sc.have_saddle && info.status != Status::Converged) return saddle_result(sc, info);
   if (edge_point) {
     take_counters(bounded.info, info);

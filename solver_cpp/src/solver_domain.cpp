@@ -141,7 +141,8 @@ bool Solver::domain_rescue(Result& found, Info& info, int& total_iter) {
 // A game whose steering may not swing beyond the bound cannot settle who passes whom by a sharp turn: its solve
 // (converged or not) is a start from which the game as posed often converges where the schedule from the initial
 // guess did not (four-way failures, docs/benchmarks.md). Its multipliers start the first attempt, as a warm start's.
-bool Solver::bounded_start(Result& found, Info& info, int& total_iter) {
+bool Solver::bounded_start(Result& found, Info& info, Schedule& outer) {
+  int& total_iter = outer.total_iter;
   if (settings_.verbose) std::printf("no equilibrium yet: the schedule again from a game with bounded steering\n");
   const Result b = solve_bounded_game(start_problem_, info, total_iter);
   info.bounded_start_iterations += b.info.iterations;
@@ -160,8 +161,15 @@ bool Solver::bounded_start(Result& found, Info& info, int& total_iter) {
   found.info = info;
   const bool converged = run_schedule(found, sc, nullptr);
   total_iter = sc.total_iter;
-  if (!converged) take_counters(info, found.info);
-  return converged;
+  if (converged) return true;
+  take_counters(info, found.info);
+  // A saddle this schedule met is still a first-order point: reported (status saddle) ahead of a failure, as one met
+  // by the first schedule is.
+  if (sc.have_saddle && !outer.have_saddle) {
+    outer.saddle = std::move(sc.saddle);
+    outer.have_saddle = true;
+  }
+  return false;
 }
 
 void Solver::load_bounded_point(const Result& b) {

@@ -207,8 +207,9 @@ class Solver {
   /// The bounded start (solver_domain.cpp): the same game with every two-sided domain control bounded to
   /// kBoundedStartFraction of its domain box, solved by a nested solver from the initial guess (its own budget, at
   /// most max_iter), then this game's restart schedule again from that solve's controls and dynamics multipliers
-  /// (its own budget, max_iter). True if `found` holds an equilibrium; otherwise info gets the counters.
-  bool bounded_start(Result& found, Info& info, int& total_iter);
+  /// (its own budget, max_iter). True if `found` holds an equilibrium; otherwise info gets the counters, and `outer`
+  /// that schedule's first saddle if it had none of its own.
+  bool bounded_start(Result& found, Info& info, Schedule& outer);
   /// p = this game with each control that has a two-sided domain box bounded to `fraction` of that box (shrunk about
   /// its centre) where that is tighter than its own bounds; false if no bound changed.
   bool bounded_problem(Problem& p, double fraction);
