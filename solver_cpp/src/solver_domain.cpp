@@ -44,16 +44,22 @@ bool Solver::bounded_start_wanted(const Info& info) const {
          !past_deadline();
 }
 
-bool Solver::bounded_problem(Problem& p, double fraction) {
-  p = prob_;
+bool Solver::bounded_problem(Problem* p, double fraction) {
+  if (p) *p = prob_;
   bool any = false;
   for (int i = 0; i < N_; ++i) {
     for (int q = 0; q < nu_; ++q) {
       double lo, hi;
       if (!domain_box(i, q, lo, hi)) continue;
       const double c = 0.5 * (lo + hi), w = 0.5 * fraction * (hi - lo);
-      if (c - w > p.u_min[i][q]) { p.u_min[i][q] = c - w; any = true; }
-      if (c + w < p.u_max[i][q]) { p.u_max[i][q] = c + w; any = true; }
+      if (c - w > prob_.u_min[i][q]) {
+        any = true;
+        if (p) p->u_min[i][q] = c - w;
+      }
+      if (c + w < prob_.u_max[i][q]) {
+        any = true;
+        if (p) p->u_max[i][q] = c + w;
+      }
     }
   }
   return any;
@@ -61,12 +67,18 @@ bool Solver::bounded_problem(Problem& p, double fraction) {
 
 void Solver::prepare_domain_rescue() {
   const bool enabled = domain_rescue_enabled();
-  domain_game_ = enabled && bounded_problem(domain_problem_, 1.0);
-  start_game_ = enabled && role_ == Role::Game && bounded_problem(start_problem_, kBoundedStartFraction);
-  if (!domain_game_ && !start_game_) {
-    bounded_solver_.reset();
-    return;
-  }
+  domain_game_ = enabled && bounded_problem(nullptr, 1.0);
+  start_game_ = enabled && role_ == Role::Game && bounded_problem(nullptr, kBoundedStartFraction);
+  bounded_stale_ = true;
+  if (!domain_game_ && !start_game_) bounded_solver_.reset();
+  // A sub-solver is itself set up only on a rescue's path, and its budget is changed between its solves: its nested
+  // solver is set up now, with this budget.
+  else if (role_ == Role::SubSolve) set_up_bounded_games();
+}
+
+void Solver::set_up_bounded_games() {
+  if (domain_game_) bounded_problem(&domain_problem_, 1.0);
+  if (start_game_) bounded_problem(&start_problem_, kBoundedStartFraction);
   // A control bounded in one game is bounded (by its own or the game's bound) in the other: one constraint list.
   const Problem& posed = domain_game_ ? domain_problem_ : start_problem_;
   Settings s = settings_;
@@ -87,9 +99,11 @@ void Solver::prepare_domain_rescue() {
   for (int c = 0; c < static_cast<int>(bounded_cons.size()); ++c) index[key_of(bounded_cons[c])] = c;
   bounded_index_.resize(cons_.size());
   for (size_t c = 0; c < cons_.size(); ++c) bounded_index_[c] = index.at(key_of(cons_[c]));  // each is one of them
+  bounded_stale_ = false;
 }
 
 Result Solver::solve_bounded_game(const Problem& p, Info& info, int& total_iter) {
+  if (bounded_stale_) set_up_bounded_games();
   Solver& bounded = *bounded_solver_;
   const bool start = &p == &start_problem_;
   if (start != bounded_holds_start_) {  // new bounds only (a failed schedule's rare path)
