@@ -17,6 +17,16 @@ void StageRiccati::setup(int N, int T, int nx, int nu) {
   kap_.assign(T, Eigen::VectorXd::Zero(U_));
   g_.resize(U_); u_.resize(U_);
   for (Eigen::VectorXd* v : {&e_, &h_, &pe_, &x_, &xn_, &lam_}) v->resize(X_);
+  const int ss = nu_ + 2 * nx_, stage = N_ * ss;
+  slots_.resize(n_primal_);
+  for (int g = 0; g < n_primal_; ++g) {
+    const int rem = g % stage, i = rem / ss, loc = rem % ss;
+    Slot& s = slots_[g];
+    s.k = g / stage;
+    if (loc < nu_) { s.kind = 0; s.pos = i * nu_ + loc; }
+    else if (loc < nu_ + nx_) { s.kind = 1; s.pos = i * nx_ + loc - nu_; }
+    else { s.kind = 2; s.pos = i * nx_ + loc - nu_ - nx_; }
+  }
 }
 
 void StageRiccati::stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind,
@@ -27,24 +37,15 @@ void StageRiccati::stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int
 }
 
 bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
-  const int ss = nu_ + 2 * nx_, stage = N_ * ss;
   for (int k = 0; k < T_; ++k) {
     Ruu_[k].setZero(); Rux_[k].setZero(); Rul_[k].setZero(); Fx_[k].setZero(); Fu_[k].setZero();
     Qxx_[k].setZero(); Qxu_[k].setZero(); Qxl_[k].setZero();
   }
-  // Decode a global index into (stage k, kind 0=u 1=lambda 2=x_{k+1}, position in the stacked block).
-  auto decode = [&](int g, int& k, int& kind, int& pos) {
-    k = g / stage;
-    const int rem = g % stage, i = rem / ss, loc = rem % ss;
-    if (loc < nu_) { kind = 0; pos = i * nu_ + loc; }
-    else if (loc < nu_ + nx_) { kind = 1; pos = i * nx_ + loc - nu_; }
-    else { kind = 2; pos = i * nx_ + loc - nu_ - nx_; }
-  };
   for (const auto& t : trip) {
     if (t.row() >= n_primal_ || t.col() >= n_primal_) continue;  // multiplier rows/columns: Schur complement
-    int kr, rk, pr, kc, ck, pc;
-    decode(t.row(), kr, rk, pr);
-    decode(t.col(), kc, ck, pc);
+    const Slot& r = slots_[t.row()];
+    const Slot& c = slots_[t.col()];
+    const int kr = r.k, rk = r.kind, pr = r.pos, kc = c.k, ck = c.kind, pc = c.pos;
     const double v = t.value();
     if (rk == 0) {  // u-stationarity rows of stage kr
       if (ck == 0 && kc == kr) Ruu_[kr](pr, pc) += v;

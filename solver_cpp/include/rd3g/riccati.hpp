@@ -28,6 +28,12 @@ class StageRiccati {
   void stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind, Eigen::VectorXd& out) const;
 
   int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0, X_ = 0, U_ = 0, n_primal_ = 0;
+  /// Where primal variable g sits: stage k, kind (0 = u, 1 = lambda, 2 = x_{k+1}) and position in the stage's
+  /// stacked block. A table, not divisions: factor decodes every triplet's row and column (most of its time).
+  struct Slot {
+    int k, kind, pos;
+  };
+  std::vector<Slot> slots_;
   // Per stage k = 0..T-1 (x-row blocks Q* belong to time k+1 and are stored at index k):
   std::vector<Eigen::MatrixXd> Ruu_, Rux_, Rul_, Fx_, Fu_, Qxx_, Qxu_, Qxl_, P_, K_, W_;
   std::vector<Eigen::PartialPivLU<Eigen::MatrixXd>> lu_;
