@@ -99,14 +99,15 @@ class Job:
     best_response_rounds: int = 0
     max_iter: int | None = None  # RD3G's iteration budget; None: its default
     settings: tuple = ()  # RD3G's setting overrides, (name, value) pairs
-    repeats: int = 1  # runs of a short solve without a time limit; the fastest one's times are kept (REPEAT_BELOW_MS)
+    repeats: int = 1  # runs of a short solve; the fastest one's times are kept (REPEAT_BELOW_MS)
     best_response_check: int = -1  # >= 0: check each success by SLSQP best responses from it and this many perturbations
 
 
-# Without a time limit a solve is deterministic, so running it again changes only its timing. On the shared machine
-# that noise is additive (other processes, CPU steal) and is largest, relative to the solve, on sub-millisecond
-# solves; the fastest of a few runs is the best estimate of a solve's own cost (as Python's timeit takes the
-# minimum). Solves slower than this are run once: the noise is a small part of them and repeats would be costly.
+# A solve that stays far from its time limit (or has none) is deterministic, so running it again changes only its
+# timing. On the shared machine that noise is additive (other processes, CPU steal) and is largest, relative to the
+# solve, on sub-millisecond solves; the fastest of a few runs is the best estimate of a solve's own cost (as Python's
+# timeit takes the minimum). Solves slower than this, or than a tenth of their time limit, are run once: the noise
+# is a small part of them, repeats would be costly, and a limit near enough to bind could change the result.
 REPEAT_BELOW_MS = 200.0
 
 
@@ -126,7 +127,7 @@ def one_run(job: Job) -> RunRecord:
 
     problem = family_problem(job.family, job.cars, job.seed)
     best = None
-    for run in range(job.repeats if job.time_limit_s <= 0 else 1):
+    for run in range(job.repeats):
         cpu0 = time.process_time()
         r, setup_s = run_solver(job.solver, problem, job.time_limit_s, job.best_response_rounds, job.max_iter,
                                 job.settings)
@@ -137,7 +138,7 @@ def one_run(job: Job) -> RunRecord:
                                f"{best[0].status} after {best[0].iterations}")
         if best is None or cpu_ms < best[2]:
             best = (r, setup_s, cpu_ms)
-        if cpu_ms >= REPEAT_BELOW_MS:
+        if cpu_ms >= REPEAT_BELOW_MS or (job.time_limit_s > 0 and cpu_ms >= 100.0 * job.time_limit_s):
             break
     r, setup_s, cpu_ms = best
     rec = record(job.solver, problem, r, setup_s, job.cars, job.seed, job.family, cpu_ms)
@@ -193,8 +194,8 @@ def run(solvers: list[str], cars: list[int], instances, workers: int, time_limit
         best_response_check: int = -1) -> list[RunRecord]:
     """instances: a count (seeds 0..instances-1) or the seeds themselves. best_response_rounds > 0: RD3G starts
     from solver_cpp.best_response.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none.
-    settings: RD3G setting overrides, (name, value) pairs. repeats: with no time limit, a solve faster than
-    REPEAT_BELOW_MS runs up to this many times and the fastest run's times are reported. best_response_check >= 0:
+    settings: RD3G setting overrides, (name, value) pairs. repeats: a solve faster than REPEAT_BELOW_MS (and than
+    a tenth of its time limit) runs up to this many times and the fastest run's times are reported. best_response_check >= 0:
     every success is also checked by SLSQP best responses (best_response_gap) from it and that many perturbations;
     its time is not counted."""
     seeds = list(range(instances)) if isinstance(instances, int) else [int(s) for s in instances]
@@ -297,7 +298,7 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
                     budget: str = "", repeats: int = 1) -> str:
     """One solver: the detailed table and every failure. Several: the side-by-side table (family_comparison) and the
     failures counted per solver and feasibility verdict (each one is in the JSON's failed_instances).
-    repeats: the runs per short solve (Job.repeats) when there was no time limit, else 1."""
+    repeats: the runs per short solve (Job.repeats)."""
     solvers = solvers_in(summary)
     guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
              if best_response_rounds else "")
@@ -318,8 +319,8 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
         "failures: infeasible = proven infeasible, unknown = neither proven infeasible nor shown feasible "
         "(docs/benchmarks.md, 'Budgets, CPU time and infeasible instances'). Wall and CPU times and iterations over "
         "all instances, failures included; CPU = time.process_time of the worker around the solve (and any "
-        "best-response guess)." + (f" Without a time limit, a solve under {REPEAT_BELOW_MS:g} ms CPU ran up to {repeats} "
-                                   "times (the same result each time) and its fastest run's times are shown."
+        "best-response guess)." + (f" A solve under {REPEAT_BELOW_MS:g} ms CPU (and under a tenth of its time limit) ran up to "
+                                   f"{repeats} times (the same result each time) and its fastest run's times are shown."
                                    if repeats > 1 else ""),
     ]
     failed = [f for r in summary for f in r["failed_instances"]]

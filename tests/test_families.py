@@ -262,7 +262,8 @@ class _FakeRuns:
 @pytest.mark.parametrize("cpu_ms, time_limit, calls, kept", [
     ((5.0, 3.0, 4.0), 0.0, 3, 3.0),      # short, deterministic: the fastest of 3 runs
     ((250.0, 1.0, 1.0), 0.0, 1, 250.0),  # over REPEAT_BELOW_MS: run once
-    ((5.0, 3.0, 4.0), 2.0, 1, 5.0),      # a time limit makes the result depend on timing: run once
+    ((5.0, 3.0, 4.0), 2.0, 3, 3.0),      # far from its time limit (under a tenth of it): deterministic too
+    ((5.0, 3.0, 4.0), 0.03, 1, 5.0),     # over a tenth of its time limit, which could bind: run once
 ])
 def test_family_bench_keeps_the_fastest_of_repeated_short_solves(monkeypatch, cpu_ms, time_limit, calls, kept):
     from bench import merge_bench

@@ -96,8 +96,9 @@ def register(sub) -> None:
                         "(bench/verify.py) from the result and STARTS seeded perturbations of it (0: from the result "
                         "only); a player lowering its cost by more than 1e-3 of it refutes the equilibrium; not timed")
     m.add_argument("--repeat", type=int, default=3,
-                   help="with --time-limit 0: run each solve faster than 200 ms CPU up to this many times and report "
-                        "its fastest run's times (the results are identical; the noise of a shared machine is not)")
+                   help="run each solve faster than 200 ms CPU (and than a tenth of --time-limit) up to this many "
+                        "times and report its fastest run's times (the results are identical; the noise of a shared "
+                        "machine is not)")
     m.add_argument("--json", help="write the per-solver, per-size figures here")
     m.add_argument("--figures", help="folder for the PNG figures (default: docs/figures, none with --no-docs)")
     m.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
@@ -239,10 +240,10 @@ def _rd3g_settings(items: list[str]) -> tuple:
 
 
 def _repeats(args) -> int:
-    """Runs per short solve: --repeat without a time limit (deterministic solves), else 1."""
+    """Runs per short solve (--repeat; bench.merge_bench.REPEAT_BELOW_MS)."""
     if args.repeat < 1:
         raise UserError("--repeat must be >= 1")
-    return args.repeat if args.time_limit <= 0 else 1
+    return args.repeat
 
 
 def run_merge(args) -> int:
