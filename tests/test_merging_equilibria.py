@@ -18,7 +18,7 @@ INSTANCES = [(3, 2), (3, 4), (3, 10), (5, 3)]  # (cars, seed)
 # restart schedule (no attempt from a best-response guess).
 # The paper's rules in every attempt, without the solver's extra attempts (best response, passing-order rescue).
 PAPER_RULES = dict(restart=dict(deep_overlap=2.0, rho_progress=0.0, violation_memory=1), best_response=dict(rounds=0),
-                   order=dict(candidates=0))
+                   order=dict(candidates=0), barrier=dict(rho_after_step=0.0))
 SOLVE_TOL = 1e-8
 _solutions = {}
 

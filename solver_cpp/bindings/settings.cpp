@@ -15,7 +15,7 @@ void bind_settings(py::module_& m) {
 #define RW(T, f) .def_readwrite(#f, &T::f)
   py::class_<BarrierSettings>(m, "BarrierSettings").def(py::init<>())
       RW(BarrierSettings, mode) RW(BarrierSettings, rho_init) RW(BarrierSettings, rho_floor_factor)
-      RW(BarrierSettings, rho_kappa) RW(BarrierSettings, rho_beta) RW(BarrierSettings, rho_progress)
+      RW(BarrierSettings, rho_kappa) RW(BarrierSettings, rho_beta) RW(BarrierSettings, rho_progress) RW(BarrierSettings, rho_after_step)
       RW(BarrierSettings, margin);
   py::class_<LineSearchSettings>(m, "LineSearchSettings").def(py::init<>())
       RW(LineSearchSettings, alpha) RW(LineSearchSettings, beta) RW(LineSearchSettings, max_steps)

@@ -417,7 +417,8 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
     if (t < 0) { info.status = Status::NumericalError; break; }
     if (t == 0.0) { info.status = Status::LineSearchFailed; break; }
     info.step_history.push_back(t);
-    if (rules_.rho_progress <= 0 || rnorm <= rules_.rho_progress * rho_) lower_rho();
+    if (rules_.rho_progress <= 0 ? t >= settings_.barrier.rho_after_step : rnorm <= rules_.rho_progress * rho_)
+      lower_rho();
   }
   if (info.status == Status::Converged || info.status == Status::TimeLimit || info.status == Status::NumericalError ||
       total_iter >= iter_limit_)

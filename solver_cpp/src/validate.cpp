@@ -204,6 +204,8 @@ void validate_settings(const Settings& s) {
   require(s.barrier.rho_kappa > 0 && s.barrier.rho_kappa < 1, "solver.barrier.rho_kappa must be in (0, 1)");
   require(s.barrier.rho_beta > 1, "solver.barrier.rho_beta must be > 1");
   require(s.barrier.rho_progress >= 0, "solver.barrier.rho_progress must be >= 0");
+  require(s.barrier.rho_after_step >= 0 && s.barrier.rho_after_step <= 1,
+          "solver.barrier.rho_after_step must be in [0, 1] (0 = after every step)");
   require(s.barrier.rho_floor_factor > 0 && s.barrier.rho_floor_factor <= 1, "solver.barrier.rho_floor_factor must be in (0, 1]");
   require(s.line_search.alpha > 0 && s.line_search.alpha < 1, "solver.line_search.alpha must be in (0, 1)");
   require(s.line_search.beta > 0 && s.line_search.beta < 1, "solver.line_search.beta must be in (0, 1)");

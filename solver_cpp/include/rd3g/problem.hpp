@@ -133,9 +133,13 @@ struct BarrierSettings {
   double rho_floor_factor = 0.01;
   double rho_kappa = 0.2;  ///< rho <- max(tol * rho_floor_factor, min(rho_kappa rho, rho^rho_beta))
   double rho_beta = 1.5;
-  /// Attempt 0 (restarts: RestartSettings::rho_progress). 0: lower rho every iteration (paper). > 0: only once
-  /// ||r|| <= rho_progress * rho, i.e. the barrier subproblem is nearly solved (IPOPT's monotone rule).
+  /// Attempt 0 (restarts: RestartSettings::rho_progress). 0: lower rho after each step (see rho_after_step). > 0:
+  /// only once ||r|| <= rho_progress * rho, i.e. the barrier subproblem is nearly solved (IPOPT's monotone rule).
   double rho_progress = 0.0;
+  /// Where the rho_progress in force is 0: rho is lowered after a step the line search took at least this fraction
+  /// of (dimensionless, in [0, 1]; 0 = after every step, the paper). After a shorter step rho keeps its weight: the
+  /// line search cut the step at constraints that a weaker barrier would let the next step cross too.
+  double rho_after_step = 0.5;
   double margin = 1e-4;  ///< (constraint units) released constraints re-enter the barrier once h < -margin
 };
 
