@@ -19,11 +19,12 @@ namespace rd3g {
 namespace {
 // The best-response attempt is inserted before restart attempt 1 (attempt 0 keeps the initial guess).
 constexpr int kBestResponseAttempt = 1;
-// The passing-order search (the rescue) runs after this restart attempt if no equilibrium was found yet: after the
-// four barrier variants from the initial guess and the best-response attempt, before the seeded offsets, which
-// change the passing order only by chance (merging_problem(7, 70): none of 21 attempts finds the equilibrium, five
-// stall at the same non-equilibrium of one pair; the search's ordered guess reaches it).
-constexpr int kOrderSearchAfterAttempt = 3;
+// The passing-order search (the rescue) runs after this restart attempt if no equilibrium was found yet: after
+// attempt 0, the best-response attempt and the first barrier variant, before the other variants and the seeded
+// offsets, which change the passing order only by chance (merging_problem(7, 70): none of 21 attempts finds the
+// equilibrium, five stall at the same non-equilibrium of one pair; the search's ordered guess reaches it). The later
+// barrier variants stall for 100-200 iterations each where the order is what is wrong.
+constexpr int kOrderSearchAfterAttempt = 1;
 // Std of the seeded constant control offsets of restart attempts 4.. (control units).
 constexpr double kRestartOffsetStd = 0.2;
 // The stationarity test lowers rho's floor at most to this fraction of tol * barrier.rho_floor_factor.

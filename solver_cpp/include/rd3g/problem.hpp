@@ -246,9 +246,9 @@ struct SecondOrderSettings {
 /// returned, the others are reported in Info::orders. Sub-solve iterations count 1/N of a game iteration, as in the
 /// best-response restart.
 /// By default the search is a stage of the restart schedule, the rescue: it runs when attempt 0, the best-response
-/// attempt, restarts 1-3 and the escapes from saddles have ended without an equilibrium, before the seeded-offset
-/// restarts 4.. (after the last restart if restart.count < 4; never with restart.count 0), so a solve the schedule
-/// finishes within restart 3 is unchanged, and if the search finds nothing the later restarts run as without it.
+/// attempt, restart 1 and the escapes from saddles have ended without an equilibrium, before restarts 2.. (after the
+/// last restart if restart.count < 2; never with restart.count 0), so a solve the schedule finishes within restart 1
+/// is unchanged, and if the search finds nothing the later restarts run as without it.
 /// The rescue has its own iteration budget beyond Settings::max_iter: at most max_iter (of this group) game
 /// iterations for the agents' solo plans (which define the conflicting pairs) and per guess, polish_iter per polished
 /// candidate, and never more than Settings::max_iter; the time limit bounds it as every attempt.
