@@ -363,26 +363,17 @@ double Solver::relative_stationarity() {
   return std::sqrt(worst) / std::max(cost_gradient_norm(), 1e-300);
 }
 
-double Solver::cost_gradient_norm() const {
+double Solver::cost_gradient_norm() {
   double sq = 0;
   for (int i = 0; i < N_; ++i) {
-    const QuadraticCost& cost = prob_.costs[i];
-    const double lead = N_ > 1 ? prob_.lead[i].weight * (N_ - 1) : 0.0;
+    const double lead = lead_gradient(prob_.lead[i], N_);
     for (int k = 0; k < T_; ++k) {
-      sq += (2.0 * cost.R.cwiseProduct(y_.u[i].col(k))).squaredNorm();
-      const bool terminal = (k + 1 == T_);
-      const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
-      const Vec& q = terminal ? cost.Qf : cost.Q;
-      const auto x1 = y_.x[i].col(k + 1);
-      sq += (2.0 * (qr.cwiseProduct(x1 - cost.reference(k + 1)) + q.cwiseProduct(x1))).squaredNorm();
-      if (lead != 0.0) {  // the lead term's constant gradient on one component
-        const int l = prob_.lead[i].index;
-        const double v = 2.0 * (qr[l] * (x1[l] - cost.reference(k + 1)[l]) + q[l] * x1[l]);
-        sq += (v - lead) * (v - lead) - v * v;
-      }
+      stage_cost_gradient(k, T_, prob_.costs[i], y_.x[i], y_.u[i], stage_);
+      stage_.gx[prob_.lead[i].index] += lead;
+      sq += stage_.gu.squaredNorm() + stage_.gx.squaredNorm();
     }
   }
-  return std::sqrt(std::max(sq, 0.0));
+  return std::sqrt(sq);
 }
 
 double Solver::rho_floor() const {

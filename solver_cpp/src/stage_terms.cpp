@@ -11,6 +11,17 @@ void StageWorkspace::resize(int nx, int nu) {
   fx = Vec::Zero(nx);
   Btl = Vec::Zero(nu);
   Atl = Vec::Zero(nx);
+  gu = Vec::Zero(nu);
+  gx = Vec::Zero(nx);
+}
+
+void stage_cost_gradient(int k, int T, const QuadraticCost& cost, const Mat& x, const Mat& u, StageWorkspace& w) {
+  const bool terminal = (k + 1 == T);
+  const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
+  const Vec& q = terminal ? cost.Qf : cost.Q;
+  const auto x1 = x.col(k + 1);
+  w.gu = 2.0 * cost.R.cwiseProduct(u.col(k));
+  w.gx = 2.0 * (qr.cwiseProduct(x1 - cost.reference(k + 1)) + q.cwiseProduct(x1));
 }
 
 void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& f, const QuadraticCost& cost,
@@ -20,18 +31,15 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   const int ru = L.col_u(i, k), rf = L.col_lam(i, k), rx1 = L.col_x(i, k + 1);
   if (trip) f.eval_with_hessian(x.col(k), u.col(k), lk, w.fx, w.A, w.B, w.Hl);
   else f.eval(x.col(k), u.col(k), w.fx, w.A, w.B);
+  stage_cost_gradient(k, T, cost, x, u, w);
   // dL/du_k = 2 R u_k + B' lambda_k
   w.Btl.noalias() = w.B.transpose() * lk;
-  r.segment(ru, nu) = 2.0 * cost.R.cwiseProduct(u.col(k)) + w.Btl;
+  r.segment(ru, nu) = w.gu + w.Btl;
   // F_k = f(x_k, u_k) - x_{k+1}
   r.segment(rf, nx) = w.fx - x.col(k + 1);
   // dL/dx_{k+1}: cost gradient - lambda_k (+ A_{k+1}' lambda_{k+1}, added at stage k+1)
-  const bool terminal = (k + 1 == T);
-  const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
-  const Vec& q = terminal ? cost.Qf : cost.Q;
-  const auto x1 = x.col(k + 1);
-  r.segment(rx1, nx) += 2.0 * (qr.cwiseProduct(x1 - cost.reference(k + 1)) + q.cwiseProduct(x1)) - lk;
-  if (lead.weight != 0.0 && L.N > 1) r[rx1 + lead.index] += -lead.weight * (L.N - 1);
+  r.segment(rx1, nx) += w.gx - lk;
+  if (const double g = lead_gradient(lead, L.N); g != 0.0) r[rx1 + lead.index] += g;
   if (k >= 1) {
     w.Atl.noalias() = w.A.transpose() * lk;
     r.segment(L.col_x(i, k), nx) += w.Atl;
@@ -55,8 +63,9 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   add_neg_identity(rf, rx1, nx);
   // rows dL/dx_{k+1}
   add_neg_identity(rx1, rf, nx);
+  const bool terminal = (k + 1 == T);
   w.Hc.setZero();
-  w.Hc.diagonal() = 2.0 * (qr + q);
+  w.Hc.diagonal() = 2.0 * (terminal ? cost.Qf_ref + cost.Qf : cost.Q_ref + cost.Q);
   add_block(rx1, rx1, w.Hc);
   if (k >= 1) {
     const int rxk = L.col_x(i, k);

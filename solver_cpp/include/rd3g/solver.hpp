@@ -254,7 +254,7 @@ class Solver {
   /// with h < -second_order.gap, divided by cost_gradient_norm().
   double relative_stationarity();
   /// sqrt(sum over agents of ||dJ^i / d(x^i_1..T, u^i_0..T-1)||^2) at y_ (cost units per variable unit).
-  double cost_gradient_norm() const;
+  double cost_gradient_norm();
   /// rho's floor, tol * barrier.rho_floor_factor (times rho_floor_scale_), and whether rho has reached it (to rounding).
   double rho_floor() const;
   bool at_rho_floor() const;

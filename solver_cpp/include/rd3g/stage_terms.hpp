@@ -25,8 +25,17 @@ struct StageWorkspace {
   Mat A, B, Hl, Huu, Hc;
   Vec fx;
   Vec Btl, Atl;  // B' lambda_k and A' lambda_k (products into these instead of temporaries: no allocation)
+  Vec gu, gx;    // stage_cost_gradient's output
   void resize(int nx, int nu);
 };
+
+/// The quadratic cost's gradient at stage k (0..T-1): w.gu = dJ/du_k = 2 R u_k and w.gx = dJ/dx_{k+1} =
+/// 2 (Q_ref (x_{k+1} - ref_{k+1}) + Q x_{k+1}) (Qf_ref, Qf at k = T-1); cost units per control / state unit.
+/// The lead term adds lead_gradient on component lead.index of every x_{k+1}.
+void stage_cost_gradient(int k, int T, const QuadraticCost& cost, const Mat& x, const Mat& u, StageWorkspace& w);
+
+/// The lead term's constant gradient on its state component, -weight (N - 1) (0 in a one-agent game).
+inline double lead_gradient(const LeadCost& lead, int N) { return N > 1 ? -lead.weight * (N - 1) : 0.0; }
 
 /// Adds agent i's terms of stage k (0..T-1) to the residual r (rows of the layout; r must be zero there
 /// before stage 0, and the stage-k terms of x_k are added at stage k) and, if trip, the Jacobian's triplets
