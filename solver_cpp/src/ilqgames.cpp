@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include "rd3g/clock.hpp"
+#include "rd3g/stage_terms.hpp"
 #include "rd3g/validate.hpp"
 
 namespace rd3g {
@@ -171,7 +172,7 @@ void ILQGamesSolver::linearize_and_quadratize() {
         const QuadraticCost& cost = prob_.costs[i];
         const int o = i * nu_;
         lq_.R[k][i].block(o, o, nu_, nu_).diagonal() = 2.0 * cost.R;
-        lq_.r[k][i].segment(o, nu_) = 2.0 * cost.R.cwiseProduct(u_[i].col(k));
+        control_cost_gradient(cost, u_[i].col(k), lq_.r[k][i].segment(o, nu_));
       }
     }
     if (k >= 1) {
@@ -182,10 +183,10 @@ void ILQGamesSolver::linearize_and_quadratize() {
         const auto xi = x_[i].col(k);
         const int o = i * nx_;
         Q[i].block(o, o, nx_, nx_).diagonal() = 2.0 * (qr + q);
-        l[i].segment(o, nx_) = 2.0 * (qr.cwiseProduct(xi - cost.reference(k)) + q.cwiseProduct(xi));
+        state_cost_gradient(cost, k, T_, xi, l[i].segment(o, nx_));
         const LeadCost& lead = prob_.lead[i];
         if (lead.weight != 0.0)  // w * sum_{j != i} (x^j[idx] - x^i[idx]): couples the players through the gradient
-          for (int j = 0; j < N_; ++j) l[i][j * nx_ + lead.index] += j == i ? -lead.weight * (N_ - 1) : lead.weight;
+          for (int j = 0; j < N_; ++j) l[i][j * nx_ + lead.index] += j == i ? lead_gradient(lead, N_) : lead.weight;
       }
     }
     for (int c : cons_at_[k]) {

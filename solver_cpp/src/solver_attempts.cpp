@@ -368,7 +368,8 @@ double Solver::cost_gradient_norm() {
   for (int i = 0; i < N_; ++i) {
     const double lead = lead_gradient(prob_.lead[i], N_);
     for (int k = 0; k < T_; ++k) {
-      stage_cost_gradient(k, T_, prob_.costs[i], y_.x[i], y_.u[i], stage_);
+      control_cost_gradient(prob_.costs[i], y_.u[i].col(k), stage_.gu);
+      state_cost_gradient(prob_.costs[i], k + 1, T_, y_.x[i].col(k + 1), stage_.gx);
       stage_.gx[prob_.lead[i].index] += lead;
       sq += stage_.gu.squaredNorm() + stage_.gx.squaredNorm();
     }

@@ -15,13 +15,15 @@ void StageWorkspace::resize(int nx, int nu) {
   gx = Vec::Zero(nx);
 }
 
-void stage_cost_gradient(int k, int T, const QuadraticCost& cost, const Mat& x, const Mat& u, StageWorkspace& w) {
-  const bool terminal = (k + 1 == T);
+void control_cost_gradient(const QuadraticCost& cost, const Eigen::Ref<const Vec>& u_k, Eigen::Ref<Vec> g) {
+  g = 2.0 * cost.R.cwiseProduct(u_k);
+}
+
+void state_cost_gradient(const QuadraticCost& cost, int k, int T, const Eigen::Ref<const Vec>& x_k, Eigen::Ref<Vec> g) {
+  const bool terminal = (k == T);
   const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
   const Vec& q = terminal ? cost.Qf : cost.Q;
-  const auto x1 = x.col(k + 1);
-  w.gu = 2.0 * cost.R.cwiseProduct(u.col(k));
-  w.gx = 2.0 * (qr.cwiseProduct(x1 - cost.reference(k + 1)) + q.cwiseProduct(x1));
+  g = 2.0 * (qr.cwiseProduct(x_k - cost.reference(k)) + q.cwiseProduct(x_k));
 }
 
 void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& f, const QuadraticCost& cost,
@@ -31,7 +33,8 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   const int ru = L.col_u(i, k), rf = L.col_lam(i, k), rx1 = L.col_x(i, k + 1);
   if (trip) f.eval_with_hessian(x.col(k), u.col(k), lk, w.fx, w.A, w.B, w.Hl);
   else f.eval(x.col(k), u.col(k), w.fx, w.A, w.B);
-  stage_cost_gradient(k, T, cost, x, u, w);
+  control_cost_gradient(cost, u.col(k), w.gu);
+  state_cost_gradient(cost, k + 1, T, x.col(k + 1), w.gx);
   // dL/du_k = 2 R u_k + B' lambda_k
   w.Btl.noalias() = w.B.transpose() * lk;
   r.segment(ru, nu) = w.gu + w.Btl;

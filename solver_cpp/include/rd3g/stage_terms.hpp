@@ -20,19 +20,22 @@ struct StageLayout {
   int col_x(int i, int k) const { return col_u(i, k - 1) + nu + nx; }  // k = 1..T
 };
 
-/// Scratch space of add_stage_terms, sized once (no allocation per stage).
+/// Scratch space of add_stage_terms (and of the cost gradients Solver::cost_gradient_norm sums), sized once (no
+/// allocation per stage).
 struct StageWorkspace {
   Mat A, B, Hl, Huu, Hc;
   Vec fx;
   Vec Btl, Atl;  // B' lambda_k and A' lambda_k (products into these instead of temporaries: no allocation)
-  Vec gu, gx;    // stage_cost_gradient's output
+  Vec gu, gx;    // cost gradients in u_k and x_{k+1}
   void resize(int nx, int nu);
 };
 
-/// The quadratic cost's gradient at stage k (0..T-1): w.gu = dJ/du_k = 2 R u_k and w.gx = dJ/dx_{k+1} =
-/// 2 (Q_ref (x_{k+1} - ref_{k+1}) + Q x_{k+1}) (Qf_ref, Qf at k = T-1); cost units per control / state unit.
-/// The lead term adds lead_gradient on component lead.index of every x_{k+1}.
-void stage_cost_gradient(int k, int T, const QuadraticCost& cost, const Mat& x, const Mat& u, StageWorkspace& w);
+/// The quadratic cost's gradient in one control, dJ/du_k = 2 R u_k (cost units per control unit).
+void control_cost_gradient(const QuadraticCost& cost, const Eigen::Ref<const Vec>& u_k, Eigen::Ref<Vec> g);
+
+/// The quadratic cost's gradient in the state of step k (1..T), dJ/dx_k = 2 (Q_ref (x_k - ref_k) + Q x_k), with
+/// Qf_ref and Qf at k = T (cost units per state unit). The lead term adds lead_gradient on component lead.index.
+void state_cost_gradient(const QuadraticCost& cost, int k, int T, const Eigen::Ref<const Vec>& x_k, Eigen::Ref<Vec> g);
 
 /// The lead term's constant gradient on its state component, -weight (N - 1) (0 in a one-agent game).
 inline double lead_gradient(const LeadCost& lead, int N) { return N > 1 ? -lead.weight * (N - 1) : 0.0; }
