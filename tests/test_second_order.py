@@ -7,6 +7,7 @@
   a finite-difference Hessian of
   each player's shooting Lagrangian U -> J(x(U), U) + sum_c mu_c h_c(x(U), U) projected on the null space of
   its active constraints (scipy), computed from the trajectories and multipliers the solver returns;
+- the extreme eigenvalues of the tridiagonal form (Sturm bisection) against LAPACK's (numpy.linalg.eigvalsh);
 - the lscg case in tests/test_merging_equilibria.py (a first-order point that unilateral deviations improve) is
   tested there."""
 import numpy as np
@@ -15,6 +16,7 @@ from scipy.linalg import null_space
 
 from bench.merging import merging_problem
 from bench.verify import best_response_gap, player_cost, stationarity_residual
+from solver_cpp import _core
 from solver_cpp import Agent, Collision, GameProblem, LinearModel, Obstacle, PairDistance, QuadraticCost, solve
 from solver_cpp.problem_file import result_to_dict
 
@@ -242,3 +244,32 @@ def test_inertia_correction_keeps_the_roots():
     assert np.all(r.second_order > 0)
     assert np.all(stationarity_residual(problem, r.x, r.u, relative=True) <= 1e-3)
     assert max(best_response_gap(problem, r.x, r.u, i) for i in range(2)) <= 1e-4
+
+
+def _tridiagonal_cases():
+    rng = np.random.default_rng(7)
+    yield np.array([3.0]), np.zeros(0)
+    yield np.array([1.0, 1.0]), np.array([1.0])  # eigenvalues 0 and 2: a singular matrix
+    yield np.full(80, 2.0), np.full(79, -1.0)  # 2 - 2 cos(k pi / 81): the smallest near 0, clustered ends
+    for n in (2, 3, 7, 40, 120):
+        for scale in (1e-3, 1.0, 1e4):
+            d, e = scale * rng.normal(size=n), scale * rng.normal(size=n - 1)
+            yield d, e
+            e_split = e.copy()
+            e_split[::3] = 0.0  # decoupled blocks
+            yield d, e_split
+            yield np.full(n, scale), scale * 1e-9 * rng.normal(size=n - 1)  # nearly repeated eigenvalues
+
+
+def test_tridiagonal_extreme_eigenvalues_match_lapack():
+    for d, e in _tridiagonal_cases():
+        w = np.linalg.eigvalsh(np.diag(d) + np.diag(e, 1) + np.diag(e, -1))
+        lo, hi = _core.tridiagonal_extreme_eigenvalues(d, e)
+        norm = np.abs(w).max()
+        assert abs(lo - w[0]) <= 1e-13 * norm and abs(hi - w[-1]) <= 1e-13 * norm, (len(d), lo, w[0], hi, w[-1])
+
+
+def test_tridiagonal_extreme_eigenvalues_reject_non_finite():
+    assert np.isnan(_core.tridiagonal_extreme_eigenvalues(np.array([1.0, np.nan]), np.array([0.5]))[0])
+    with pytest.raises(ValueError, match="length n - 1"):
+        _core.tridiagonal_extreme_eigenvalues(np.array([1.0, 2.0]), np.array([0.5, 0.5]))

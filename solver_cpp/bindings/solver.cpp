@@ -3,6 +3,7 @@
 #include <pybind11/stl.h>
 
 #include "bindings.hpp"
+#include "rd3g/second_order.hpp"
 #include "rd3g/shifted_ldlt.hpp"
 #include "rd3g/solver.hpp"
 #include "rd3g/validate.hpp"
@@ -23,6 +24,17 @@ void bind_solver(py::module_& m) {
   m.def("validate_problem", &validate_problem, py::arg("problem"),
         "Checks every field of a problem (the validation Solver.setup and the baselines run); ValueError names the field.");
   m.def("validate_settings", &validate_settings, py::arg("settings"));
+  m.def(
+      "tridiagonal_extreme_eigenvalues",
+      [](const Vec& d, const Vec& e) {
+        // For tests: the second-order test's smallest and largest eigenvalue of a symmetric tridiagonal matrix.
+        if (d.size() < 1 || e.size() != d.size() - 1)
+          throw std::invalid_argument("d must have length n >= 1 and e length n - 1");
+        double lo, hi;
+        tridiagonal_extreme_eigenvalues(d, e, lo, hi);
+        return std::make_pair(lo, hi);
+      },
+      py::arg("d"), py::arg("e"));
   m.def(
       "debug_shifted_ldlt",
       [](const std::vector<Eigen::SparseMatrix<double>>& mats, const std::vector<double>& shifts, const Vec& b) {

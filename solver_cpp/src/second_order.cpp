@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 
 namespace rd3g {
 
@@ -14,6 +15,84 @@ namespace {
 constexpr double kEscapeStep = 1.0;
 constexpr double kEscapeRho = 1e-2;
 }  // namespace
+
+void tridiagonal_extreme_eigenvalues(const Eigen::Ref<const Vec>& d, const Eigen::Ref<const Vec>& e, double& lo,
+                                     double& hi) {
+  const int n = static_cast<int>(d.size());
+  if (!d.allFinite() || !e.allFinite()) {
+    lo = hi = std::numeric_limits<double>::quiet_NaN();
+    return;
+  }
+  if (n == 1) {
+    lo = hi = d[0];
+    return;
+  }
+  // Gershgorin bounds, widened as dstebz does; pivmin keeps a Sturm pivot away from 0.
+  double gl = kInf, gu = -kInf, e2max = 0;
+  for (int i = 0; i < n; ++i) {
+    const double r = (i > 0 ? std::abs(e[i - 1]) : 0.0) + (i + 1 < n ? std::abs(e[i]) : 0.0);
+    gl = std::min(gl, d[i] - r);
+    gu = std::max(gu, d[i] + r);
+    if (i + 1 < n) e2max = std::max(e2max, e[i] * e[i]);
+  }
+  const double eps = std::numeric_limits<double>::epsilon();
+  const double pivmin = std::numeric_limits<double>::min() * std::max(1.0, e2max);
+  const double widen = 2.1 * eps * n * std::max(std::abs(gl), std::abs(gu)) + 2.1 * pivmin;
+  gl -= widen;
+  gu += widen;
+  // [a[0], b[0]] holds the smallest eigenvalue (no eigenvalue below a[0], at least one below b[0]); [a[1], b[1]]
+  // the largest (at most n - 1 below a[1], all n below b[1]). Each is narrowed to the accuracy of the counts themselves (a few ulps of
+  // the matrix's norm; dstebz's default abstol), about 26 sweeps.
+  const double atol = 4 * eps * std::max(std::abs(gl), std::abs(gu)) + pivmin;
+  // Three points per interval, six independent Sturm sequences per sweep: a sweep is bound by the division's
+  // latency, so six cost little more than two, and each narrows its interval four-fold.
+  constexpr int kPoints = 3, kSeq = 2 * kPoints;
+  double a[2] = {gl, gl}, b[2] = {gu, gu};
+  bool done[2] = {false, false};  // narrowed to atol, or no representable point left inside
+  for (int it = 0; it < 200; ++it) {
+    bool more[2];
+    double x[kSeq];
+    for (int s = 0; s < 2; ++s) {
+      more[s] = !done[s] && b[s] - a[s] > atol;
+      for (int p = 0; p < kPoints; ++p) x[s * kPoints + p] = a[s] + (b[s] - a[s]) * (p + 1) / (kPoints + 1);
+    }
+    if (!more[0] && !more[1]) break;
+    // Sturm counts: the number of negative pivots of T - x I (its LDL' pivots) is the number of eigenvalues below x.
+    double q[kSeq];
+    int c[kSeq];
+    for (int p = 0; p < kSeq; ++p) {
+      q[p] = d[0] - x[p];
+      if (std::abs(q[p]) < pivmin) q[p] = -pivmin;
+      c[p] = q[p] < 0;
+    }
+    for (int i = 1; i < n; ++i) {
+      const double e2 = e[i - 1] * e[i - 1];
+      for (int p = 0; p < kSeq; ++p) {
+        q[p] = (d[i] - x[p]) - e2 / q[p];
+        if (std::abs(q[p]) < pivmin) q[p] = -pivmin;
+        c[p] += q[p] < 0;
+      }
+    }
+    // Interval 0 brackets the first eigenvalue (count >= 1 at its top), interval 1 the last (count n at its top).
+    for (int s = 0; s < 2; ++s) {
+      if (!more[s]) continue;
+      const int need = s == 0 ? 1 : n;
+      double na = a[s], nb = b[s];
+      for (int p = kPoints - 1; p >= 0; --p)
+        if (c[s * kPoints + p] >= need) nb = x[s * kPoints + p];
+      for (int p = 0; p < kPoints; ++p)
+        if (c[s * kPoints + p] < need) na = x[s * kPoints + p];
+      if (na >= nb || (na == a[s] && nb == b[s])) {
+        done[s] = true;
+        continue;
+      }
+      a[s] = na;
+      b[s] = nb;
+    }
+  }
+  lo = 0.5 * (a[0] + b[0]);
+  hi = 0.5 * (a[1] + b[1]);
+}
 
 void SecondOrderCheck::setup(int num_agents, int horizon, int nx, int nu) {
   N_ = num_agents;
@@ -146,18 +225,24 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
       out.direction.resize(0, 0);
       continue;
     }
-    // Eigenvalues only: the eigenvectors cost about four times as much and are needed only by an agent that fails.
+    // The two extreme eigenvalues only (the test needs no others): the tridiagonal form, then bisection; an
+    // implicit QL sweep for the whole spectrum cost several times the tridiagonalisation. The eigenvector is needed
+    // only by an agent that fails.
     if (na > 0) Rz_.noalias() = Z.transpose() * Hr_ * Z;
     const Mat& R = na > 0 ? Rz_ : Hr_;
-    es_.compute(R, Eigen::EigenvaluesOnly);
+    tri_.compute(R);
+    diag_ = tri_.diagonal();
+    subdiag_ = tri_.subDiagonal();
+    double lo, hi;
+    tridiagonal_extreme_eigenvalues(diag_, subdiag_, lo, hi);
     out.direction.resize(0, 0);
-    if (es_.info() != Eigen::Success) {
-      out.min_eigenvalue = std::numeric_limits<double>::quiet_NaN();
+    if (std::isnan(lo)) {
+      out.min_eigenvalue = lo;
       out.max_abs_eigenvalue = 0;
       continue;
     }
-    out.min_eigenvalue = es_.eigenvalues()[0];
-    out.max_abs_eigenvalue = es_.eigenvalues().cwiseAbs().maxCoeff();
+    out.min_eigenvalue = lo;
+    out.max_abs_eigenvalue = std::max(std::abs(lo), std::abs(hi));
     if (agent_passes(a, tol)) continue;
     es_.compute(R);
     if (es_.info() != Eigen::Success) continue;

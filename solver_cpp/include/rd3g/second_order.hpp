@@ -32,6 +32,13 @@ struct SecondOrderAgent {
   Mat direction;
 };
 
+/// Smallest and largest eigenvalue of the symmetric tridiagonal matrix with diagonal d (length n >= 1) and
+/// off-diagonal e (length n - 1), by bisection on Sturm counts (LAPACK dstebz's method), to about machine precision
+/// times the matrix's norm. The two searches run interleaved (independent dependency chains). NaN if d or e is not
+/// finite.
+void tridiagonal_extreme_eigenvalues(const Eigen::Ref<const Vec>& d, const Eigen::Ref<const Vec>& e, double& lo,
+                                     double& hi);
+
 /// Value h, gradient g (w.r.t. the agent's own position or bounded component) and Hessian H of constraint c at the
 /// point being checked (the solver's own evaluation, so that both agree on forms and units).
 using ConstraintEval = std::function<void(int c, double& h, Eigen::Vector2d& g, Eigen::Matrix2d& H)>;
@@ -59,8 +66,9 @@ class SecondOrderCheck {
   std::vector<Mat> S_;  // S_k = dx_k/dU, nx x (T nu), k = 0..T
   std::vector<Mat> A_, B_, Q_, M_, R_;  // per stage: dynamics Jacobians; Lagrangian Hessian blocks xx, xu, uu
   Mat Hr_, Rz_, Hl_, P_, PA_, PB_, W_, C_;
-  Vec fx_;
-  Eigen::SelfAdjointEigenSolver<Mat> es_;
+  Vec fx_, diag_, subdiag_;
+  Eigen::Tridiagonalization<Mat> tri_;  // the extreme eigenvalues: tridiagonal form, then Sturm bisection
+  Eigen::SelfAdjointEigenSolver<Mat> es_;  // the eigenvector of a failing agent
   std::vector<SecondOrderAgent> out_;
 };
 
