@@ -171,18 +171,16 @@ void ILQGamesSolver::linearize_and_quadratize() {
         lq_.B[k].block(i * nx_, i * nu_, nx_, nu_) = Bi_;
         const QuadraticCost& cost = prob_.costs[i];
         const int o = i * nu_;
-        lq_.R[k][i].block(o, o, nu_, nu_).diagonal() = 2.0 * cost.R;
+        lq_.R[k][i].block(o, o, nu_, nu_).diagonal() = control_cost_hessian(cost);
         control_cost_gradient(cost, u_[i].col(k), lq_.r[k][i].segment(o, nu_));
       }
     }
     if (k >= 1) {
       for (int i = 0; i < N_; ++i) {
         const QuadraticCost& cost = prob_.costs[i];
-        const Vec& qr = terminal ? cost.Qf_ref : cost.Q_ref;
-        const Vec& q = terminal ? cost.Qf : cost.Q;
         const auto xi = x_[i].col(k);
         const int o = i * nx_;
-        Q[i].block(o, o, nx_, nx_).diagonal() = 2.0 * (qr + q);
+        Q[i].block(o, o, nx_, nx_).diagonal() = state_cost_hessian(cost, k, T_);
         state_cost_gradient(cost, k, T_, xi, l[i].segment(o, nx_));
         const LeadCost& lead = prob_.lead[i];
         if (lead.weight != 0.0)  // w * sum_{j != i} (x^j[idx] - x^i[idx]): couples the players through the gradient

@@ -7,6 +7,8 @@
 #include <cstdio>
 #include <limits>
 
+#include "rd3g/stage_terms.hpp"
+
 namespace rd3g {
 
 namespace {
@@ -138,16 +140,16 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
       f.eval(x[a].col(k), u[a].col(k), fx_, A_[k], B_[k]);
       f.lambda_hessian(x[a].col(k), u[a].col(k), lam[a].col(k), Hl_);
       Q_[k] = Hl_.topLeftCorner(nx_, nx_);
-      if (k >= 1) Q_[k].diagonal() += 2.0 * (cost.Q_ref + cost.Q);
+      if (k >= 1) Q_[k].diagonal() += state_cost_hessian(cost, k, T_);
       M_[k] = Hl_.topRightCorner(nx_, nu_);
       R_[k] = Hl_.bottomRightCorner(nu_, nu_);
-      R_[k].diagonal() += 2.0 * cost.R;
+      R_[k].diagonal() += control_cost_hessian(cost);
       S_[k + 1].setZero();
       S_[k + 1].leftCols(n).noalias() = A_[k] * S_[k].leftCols(n);
       S_[k + 1].block(0, k * nu_, nx_, nu_) += B_[k];
     }
     Q_[T_].setZero();
-    Q_[T_].diagonal() = 2.0 * (cost.Qf_ref + cost.Qf);
+    Q_[T_].diagonal() = state_cost_hessian(cost, T_, T_);
 
     // Constraints of agent a: curvature w_c d2h_c, and the Jacobian rows of the ones held as equalities.
     int na = 0;

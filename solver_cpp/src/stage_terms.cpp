@@ -16,7 +16,7 @@ void StageWorkspace::resize(int nx, int nu) {
 }
 
 void control_cost_gradient(const QuadraticCost& cost, const Eigen::Ref<const Vec>& u_k, Eigen::Ref<Vec> g) {
-  g = 2.0 * cost.R.cwiseProduct(u_k);
+  g = control_cost_hessian(cost).cwiseProduct(u_k);
 }
 
 void state_cost_gradient(const QuadraticCost& cost, int k, int T, const Eigen::Ref<const Vec>& x_k, Eigen::Ref<Vec> g) {
@@ -58,7 +58,7 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   };
   // rows dL/du_k
   w.Huu = w.Hl.bottomRightCorner(nu, nu);
-  w.Huu.diagonal() += 2.0 * cost.R;
+  w.Huu.diagonal() += control_cost_hessian(cost);
   add_block(ru, ru, w.Huu);
   add_block(ru, rf, w.B.transpose());
   // rows F_k
@@ -66,9 +66,8 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   add_neg_identity(rf, rx1, nx);
   // rows dL/dx_{k+1}
   add_neg_identity(rx1, rf, nx);
-  const bool terminal = (k + 1 == T);
   w.Hc.setZero();
-  w.Hc.diagonal() = 2.0 * (terminal ? cost.Qf_ref + cost.Qf : cost.Q_ref + cost.Q);
+  w.Hc.diagonal() = state_cost_hessian(cost, k + 1, T);
   add_block(rx1, rx1, w.Hc);
   if (k >= 1) {
     const int rxk = L.col_x(i, k);

@@ -37,6 +37,15 @@ void control_cost_gradient(const QuadraticCost& cost, const Eigen::Ref<const Vec
 /// Qf_ref and Qf at k = T (cost units per state unit). The lead term adds lead_gradient on component lead.index.
 void state_cost_gradient(const QuadraticCost& cost, int k, int T, const Eigen::Ref<const Vec>& x_k, Eigen::Ref<Vec> g);
 
+/// The quadratic cost's Hessian in one control, d2J/du_k^2 = 2 R (the diagonal; cost units per control unit^2).
+inline auto control_cost_hessian(const QuadraticCost& cost) { return 2.0 * cost.R; }
+
+/// The quadratic cost's Hessian in the state of step k (1..T), d2J/dx_k^2 = 2 (Q_ref + Q), with Qf_ref and Qf at
+/// k = T (the diagonal; cost units per state unit^2).
+inline auto state_cost_hessian(const QuadraticCost& cost, int k, int T) {
+  return k == T ? 2.0 * (cost.Qf_ref + cost.Qf) : 2.0 * (cost.Q_ref + cost.Q);
+}
+
 /// The lead term's constant gradient on its state component, -weight (N - 1) (0 in a one-agent game).
 inline double lead_gradient(const LeadCost& lead, int N) { return N > 1 ? -lead.weight * (N - 1) : 0.0; }
 
