@@ -16,8 +16,7 @@ from scipy.linalg import null_space
 
 from bench.merging import merging_problem
 from bench.verify import best_response_gap, player_cost, stationarity_residual
-from solver_cpp import _core
-from solver_cpp import Agent, Collision, GameProblem, LinearModel, Obstacle, PairDistance, QuadraticCost, solve
+from solver_cpp import Agent, Collision, GameProblem, LinearModel, Obstacle, PairDistance, QuadraticCost, _core, solve
 from solver_cpp.problem_file import result_to_dict
 
 

@@ -43,8 +43,8 @@ void tridiagonal_extreme_eigenvalues(const Eigen::Ref<const Vec>& d, const Eigen
   gl -= widen;
   gu += widen;
   // [a[0], b[0]] holds the smallest eigenvalue (no eigenvalue below a[0], at least one below b[0]); [a[1], b[1]]
-  // the largest (at most n - 1 below a[1], all n below b[1]). Each is narrowed to the accuracy of the counts themselves (a few ulps of
-  // the matrix's norm; dstebz's default abstol), about 26 sweeps.
+  // the largest (at most n - 1 below a[1], all n below b[1]). Each is narrowed to the accuracy of the counts
+  // themselves (a few ulps of the matrix's norm; dstebz's default abstol), about 26 sweeps.
   const double atol = 4 * eps * std::max(std::abs(gl), std::abs(gu)) + pivmin;
   // Three points per interval, six independent Sturm sequences per sweep: a sweep is bound by the division's
   // latency, so six cost little more than two, and each narrows its interval four-fold.
@@ -238,14 +238,9 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
     double lo, hi;
     tridiagonal_extreme_eigenvalues(diag_, subdiag_, lo, hi);
     out.direction.resize(0, 0);
-    if (std::isnan(lo)) {
-      out.min_eigenvalue = lo;
-      out.max_abs_eigenvalue = 0;
-      continue;
-    }
-    out.min_eigenvalue = lo;
-    out.max_abs_eigenvalue = std::max(std::abs(lo), std::abs(hi));
-    if (agent_passes(a, tol)) continue;
+    out.min_eigenvalue = lo;  // NaN for a non-finite Hessian: the agent fails, with no direction
+    out.max_abs_eigenvalue = std::isnan(lo) ? 0.0 : std::max(std::abs(lo), std::abs(hi));
+    if (std::isnan(lo) || agent_passes(a, tol)) continue;
     es_.compute(R);
     if (es_.info() != Eigen::Success) continue;
     const Vec d = na > 0 ? Vec(Z * es_.eigenvectors().col(0)) : Vec(es_.eigenvectors().col(0));

@@ -34,8 +34,8 @@ struct SecondOrderAgent {
 
 /// Smallest and largest eigenvalue of the symmetric tridiagonal matrix with diagonal d (length n >= 1) and
 /// off-diagonal e (length n - 1), by bisection on Sturm counts (LAPACK dstebz's method), to about machine precision
-/// times the matrix's norm. The two searches run interleaved (independent dependency chains). NaN if d or e is not
-/// finite.
+/// times the matrix's norm. The two searches share each sweep (independent Sturm sequences, whose divisions overlap).
+/// NaN if d or e is not finite.
 void tridiagonal_extreme_eigenvalues(const Eigen::Ref<const Vec>& d, const Eigen::Ref<const Vec>& e, double& lo,
                                      double& hi);
 
