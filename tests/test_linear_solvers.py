@@ -74,6 +74,28 @@ def test_levenberg_marquardt_ldlt_against_dense_solve():
         np.testing.assert_allclose(x, ref, rtol=1e-8 * np.linalg.cond(A), atol=0)
 
 
+def test_normal_matrix_reuses_its_plan_and_equals_eigens_product():
+    # The LM matrix J'J of successive iterations with one pattern of J: formed by Eigen's product on the first,
+    # then from the kept pairs of entries, summed in the product's order: equal to a fresh product bit for bit.
+    import scipy.sparse as sp
+    from solver_cpp import _core
+
+    rng = np.random.default_rng(5)
+    pattern = sp.random(80, 50, density=0.1, random_state=6, format="csc")
+    other = sp.random(80, 50, density=0.1, random_state=7, format="csc")
+    js = []
+    for p in (pattern, pattern, pattern, other, other):
+        j = p.copy()
+        j.data = rng.normal(size=j.nnz)
+        j.data[::7] = -0.0  # signed zeros: the product stores +0 for a -0 sum, as Eigen's J'J + 0 I does
+        js.append(j)
+    ours, eigen, reused = _core.debug_normal_matrix(js)
+    assert reused == [False, True, True, False, True]
+    for j, a, b in zip(js, ours, eigen):
+        np.testing.assert_array_equal(a.toarray(), b.toarray())
+        np.testing.assert_allclose(a.toarray(), np.tril((j.T @ j).toarray()), rtol=1e-12, atol=1e-12)
+
+
 def test_levenberg_marquardt_ldlt_refuses_another_pattern():
     import scipy.sparse as sp
     from solver_cpp import _core

@@ -64,6 +64,26 @@ void bind_solver(py::module_& m) {
         return py::make_tuple(ours, eigen);
       },
       py::arg("mats"), py::arg("shifts"), py::arg("b"));
+  m.def(
+      "debug_normal_matrix",
+      [](const std::vector<Eigen::SparseMatrix<double>>& js) {
+        // For tests: J'J by the Levenberg-Marquardt path's NormalMatrix for each J in turn (planned on the first of
+        // a pattern, reused while the pattern holds) and by Eigen's product afresh; whether each reused the plan.
+        using SpMat = Eigen::SparseMatrix<double>;
+        NormalMatrix nm;
+        SpMat a;
+        std::vector<SpMat> ours, eigen;
+        std::vector<bool> reused;
+        for (SpMat j : js) {
+          j.makeCompressed();
+          reused.push_back(nm.compute(j, a));
+          ours.push_back(SpMat(a.triangularView<Eigen::Lower>()));
+          SpMat ref = j.transpose() * j;
+          eigen.push_back(SpMat(ref.triangularView<Eigen::Lower>()));
+        }
+        return py::make_tuple(ours, eigen, reused);
+      },
+      py::arg("js"));
   py::class_<Timings>(m, "Timings")
       .def_readonly("total", &Timings::total)
       .def_readonly("assembly", &Timings::assembly)

@@ -233,12 +233,8 @@ bool Solver::bounded_least_squares(Vec& dy) {
 bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
   if (!lm_ready_) {
     build_J();
-    lm_JtJ_ = J_.transpose() * J_;
-    SpMat eye(n_vars_, n_vars_);
-    eye.setIdentity();
-    lm_JtJ_ = lm_JtJ_ + 0.0 * eye;  // every diagonal entry stored: the shift nu lands on stored entries
-    lm_JtJ_.makeCompressed();
-    if (!lm_analyzed_ || !lm_ldlt_.same_pattern(lm_JtJ_)) {
+    const bool same_pattern = lm_normal_.compute(J_, lm_JtJ_);
+    if (!lm_analyzed_ || (!same_pattern && !lm_ldlt_.same_pattern(lm_JtJ_))) {
       lm_analyzed_ = false;
       if (!lm_ldlt_.analyze(lm_JtJ_)) return false;
       lm_analyzed_ = true;

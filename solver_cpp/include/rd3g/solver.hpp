@@ -14,6 +14,7 @@
 
 #include "rd3g/clock.hpp"
 #include "rd3g/constraints.hpp"
+#include "rd3g/normal_matrix.hpp"
 #include "rd3g/problem.hpp"
 #include "rd3g/riccati.hpp"
 #include "rd3g/shifted_ldlt.hpp"
@@ -384,6 +385,7 @@ class Solver {
   // factorisation depends on nu. Invalidated with J_built_. The ordering and symbolic LDLT depend only on J'J's
   // pattern (in practice on the partition) and are kept while it is unchanged (checked entry by entry).
   SpMat lm_JtJ_;
+  NormalMatrix lm_normal_;  // forms lm_JtJ_, reusing the product's plan while J's pattern is unchanged
   Vec lm_Jtr_;
   ShiftedLDLT lm_ldlt_;
   bool lm_ready_ = false;
