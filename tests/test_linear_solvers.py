@@ -43,35 +43,72 @@ def test_riccati_with_active_bounds_matches_sparse_lu(cars, seed):
         assert np.max(np.stack(ric.x)[i][1:, 2]) <= c + 1e-6
 
 
-def test_levenberg_marquardt_ldlt_against_dense_solve():
-    # The LM tries factorise J'J + nu I for several nu, analysing J'J's pattern once and reusing it while the
-    # partition is unchanged. Reference: numpy's dense solve of the same shifted system; and the factors must
-    # be Eigen's own SimplicialLDLT of the explicitly shifted matrix, bit for bit (the solver's iterates
-    # do not depend on the reuse).
+def _shifted_normal_matrices(n, density, count, rng, seed):
+    """count matrices J'J of one pattern (random J with a stored diagonal, so J'J is nonsingular)."""
     import scipy.sparse as sp
-    from solver_cpp import _core
 
-    rng = np.random.default_rng(3)
-    n = 60
-    pattern = (sp.random(n, n, density=0.08, random_state=4, format="csc") + sp.identity(n)).tocsc()
-    pattern.data[:] = 1.0  # a stored diagonal: J'J is nonsingular and stores its whole diagonal
+    pattern = (sp.random(n, n, density=density, random_state=seed, format="csc") + sp.identity(n)).tocsc()
+    pattern.data[:] = 1.0
     mats = []
-    for _ in range(3):  # same pattern, new values (successive iterations)
+    for _ in range(count):  # same pattern, new values (successive iterations)
         J = pattern.copy()
         J.data = rng.normal(size=J.nnz)
         A = (J.T @ J).tocsc()
         A.sort_indices()
         mats.append(A)
     assert all(m.nnz == mats[0].nnz for m in mats)
+    return mats
+
+
+@pytest.mark.parametrize("n, density", [(60, 0.08), (400, 0.01), (1, 1.0), (7, 0.0)])
+def test_levenberg_marquardt_ldlt_against_dense_solve(n, density):
+    # The LM tries factorise J'J + nu I for several nu, analysing J'J's pattern once and reusing it while the
+    # partition is unchanged (a supernodal LDL'). References: numpy's dense solve of the same shifted system, and
+    # Eigen's SimplicialLDLT of the explicitly shifted matrix computed afresh.
+    from solver_cpp import _core
+
+    rng = np.random.default_rng(3)
+    mats = _shifted_normal_matrices(n, density, 3, rng, seed=4)
     shifts = [1e-6, 1e-5, 1e-3, 1.0]
     b = rng.normal(size=n)
-    ours, eigen = _core.debug_shifted_ldlt(mats, shifts, b)
+    ours, eigen, supernodes = _core.debug_shifted_ldlt(mats, shifts, b)
     assert len(ours) == len(eigen) == len(mats) * len(shifts)
+    assert 1 <= supernodes <= n
     for q, (x, y) in enumerate(zip(ours, eigen)):
         A = mats[q // len(shifts)].toarray() + shifts[q % len(shifts)] * np.eye(n)
-        np.testing.assert_array_equal(x, y)
-        ref = np.linalg.solve(A, b)
-        np.testing.assert_allclose(x, ref, rtol=1e-8 * np.linalg.cond(A), atol=0)
+        scale = 1e-12 * np.linalg.cond(A) * np.abs(np.linalg.solve(A, b)).max()
+        np.testing.assert_allclose(x, np.linalg.solve(A, b), rtol=0, atol=scale)
+        np.testing.assert_allclose(x, y, rtol=0, atol=scale)
+
+
+def test_levenberg_marquardt_ldlt_groups_columns_into_supernodes():
+    # Five dense 30 x 30 diagonal blocks: each block's columns share one pattern, so each is one supernode (the
+    # point of the supernodal factorisation: dense panel operations instead of entry-by-entry updates).
+    import scipy.linalg
+    import scipy.sparse as sp
+    from solver_cpp import _core
+
+    rng = np.random.default_rng(8)
+    blocks = []
+    for _ in range(5):
+        g = rng.normal(size=(30, 30))
+        blocks.append(g @ g.T + 30 * np.eye(30))
+    A = sp.csc_matrix(scipy.linalg.block_diag(*blocks))
+    A.sort_indices()
+    b = rng.normal(size=150)
+    ours, _, supernodes = _core.debug_shifted_ldlt([A], [0.0], b)
+    np.testing.assert_allclose(ours[0], np.linalg.solve(A.toarray(), b), rtol=1e-10, atol=1e-12)
+    assert supernodes == 5
+
+
+def test_levenberg_marquardt_ldlt_reports_a_zero_pivot():
+    import scipy.sparse as sp
+    from solver_cpp import _core
+
+    A = sp.csc_matrix(np.array([[1.0, 1.0], [1.0, 1.0]]))  # singular: the second pivot is exactly 0
+    ours, eigen, _ = _core.debug_shifted_ldlt([A], [0.0, 1.0], np.ones(2))
+    assert len(ours[0]) == 0 and len(eigen[0]) == 0  # failed, as Eigen's
+    np.testing.assert_allclose(ours[1], np.linalg.solve(A.toarray() + np.eye(2), np.ones(2)), rtol=1e-14)
 
 
 def test_normal_matrix_reuses_its_plan_and_equals_eigens_product():

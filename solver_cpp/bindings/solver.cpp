@@ -40,7 +40,7 @@ void bind_solver(py::module_& m) {
       [](const std::vector<Eigen::SparseMatrix<double>>& mats, const std::vector<double>& shifts, const Vec& b) {
         // For tests: the Levenberg-Marquardt factorisation (analysed on mats[0], reused for the others, which must
         // share its pattern) solving (A + shift I) x = b for every A and shift, and Eigen's SimplicialLDLT
-        // computed afresh on the explicitly shifted matrix, in the same order.
+        // computed afresh on the explicitly shifted matrix, in the same order; and the number of supernodes.
         using SpMat = Eigen::SparseMatrix<double>;
         if (mats.empty()) throw std::invalid_argument("mats must not be empty");
         std::vector<Vec> ours, eigen;
@@ -54,14 +54,17 @@ void bind_solver(py::module_& m) {
           if (!ldlt.same_pattern(a)) throw std::invalid_argument("every matrix must have mats[0]'s pattern");
           ldlt.load(a);
           for (double s : shifts) {
-            ours.push_back(ldlt.factorize_shifted(s) ? Vec(ldlt.solve(b)) : Vec());
+            Vec x(b.size());
+            if (ldlt.factorize_shifted(s)) ldlt.solve(b, x);
+            else x.resize(0);
+            ours.push_back(x);
             SpMat shifted = a;
             for (int d = 0; d < a.rows(); ++d) shifted.coeffRef(d, d) += s;
             Eigen::SimplicialLDLT<SpMat> ref(shifted);
             eigen.push_back(ref.info() == Eigen::Success ? Vec(ref.solve(b)) : Vec());
           }
         }
-        return py::make_tuple(ours, eigen);
+        return py::make_tuple(ours, eigen, ldlt.supernodes());
       },
       py::arg("mats"), py::arg("shifts"), py::arg("b"));
   m.def(

@@ -244,9 +244,10 @@ bool Solver::solve_levenberg_marquardt(double nu, Vec& dy) {
     lm_ready_ = true;
   }
   if (!lm_ldlt_.factorize_shifted(nu)) return false;
-  dy.head(n_vars_) = lm_ldlt_.solve(-lm_Jtr_);
+  lm_ldlt_.solve(lm_Jtr_, dy.head(n_vars_));
+  dy.head(n_vars_) = -dy.head(n_vars_);
   if (settings_.verbose) std::printf("   Levenberg-Marquardt step, nu %.2e\n", nu);
-  return lm_ldlt_.info() == Eigen::Success && dy.head(n_vars_).allFinite();
+  return dy.head(n_vars_).allFinite();
 }
 
 }  // namespace rd3g

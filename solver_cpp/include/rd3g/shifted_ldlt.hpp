@@ -1,63 +1,54 @@
-// Sparse LDLT of A + shift I for a sequence of matrices A with one sparsity pattern (the Levenberg-Marquardt
-// tries: J'J + nu I for several nu per iteration, and J'J keeps its pattern while the constraint partition does).
-// Eigen's SimplicialLDLT with three costs taken out of the repeated numeric factorisation: the ordering and the
-// elimination tree are computed once per pattern (analyze), the symmetric permutation P A P' is a value copy
-// through a precomputed index map (no allocation), and the shift is Eigen's own setShift, i.e. d_kk = a_kk + shift
-// inside the factorisation. The arithmetic is Eigen's factorize() on the same permuted matrix, so the factors
-// are bit for bit those of SimplicialLDLT::compute(A + shift I) when A stores its whole diagonal.
+// Sparse LDL' of A + shift I for a sequence of symmetric matrices A with one sparsity pattern (the Levenberg-Marquardt
+// tries: J'J + nu I for several nu per iteration; J'J keeps its pattern while the constraint partition does).
+//
+// analyze() orders A by approximate minimum degree (Eigen's AMD, as Eigen's SimplicialLDLT orders it), computes the
+// elimination tree and the pattern of L, and groups L's columns into supernodes: runs of consecutive columns with
+// the same pattern below their diagonal block, stored together as one dense column-major panel. load() copies A's
+// values into the permuted lower triangle through a precomputed index map. factorize_shifted() is a left-looking
+// supernodal LDL' without pivoting: each panel receives the updates of the panels below whose rows reach its
+// columns (dense products over whole panel columns instead of Eigen's entry-by-entry up-looking LDLT), then is
+// factored densely. Like Eigen's, it fails only on an exact zero pivot (A + shift I is positive definite for J'J and
+// shift > 0). Buffers are sized in analyze(); factorize_shifted() and solve() do not allocate.
 #pragma once
-#include <Eigen/SparseCholesky>
-#include <algorithm>
+#include <Eigen/Sparse>
 #include <vector>
 
 namespace rd3g {
 
-class ShiftedLDLT : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
+class ShiftedLDLT {
  public:
   using SpMat = Eigen::SparseMatrix<double>;
-  /// Ordering (AMD) and symbolic factorisation of A's pattern (A compressed, lower triangle used, every
-  /// diagonal entry stored). False if the analysis failed.
-  bool analyze(const SpMat& A) {
-    analyzePattern(A);
-    if (info() != Eigen::Success) return false;
-    // Permute a copy whose values are the entry indices: where each stored entry of A lands in P A P'.
-    // The copy has exactly the layout factorize() would build, so the factorisation visits entries in
-    // the same order.
-    SpMat idx = A;
-    for (Eigen::Index p = 0; p < idx.nonZeros(); ++p) idx.valuePtr()[p] = static_cast<double>(p);
-    ap_.resize(A.rows(), A.cols());
-    ap_.selfadjointView<Eigen::Upper>() = idx.selfadjointView<Eigen::Lower>().twistedBy(m_P);
-    map_.resize(ap_.nonZeros());
-    for (Eigen::Index q = 0; q < ap_.nonZeros(); ++q) map_[q] = static_cast<int>(ap_.valuePtr()[q]);
-    outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + A.outerSize() + 1);
-    inner_.assign(A.innerIndexPtr(), A.innerIndexPtr() + A.nonZeros());
-    return true;
-  }
-  /// True if A (compressed) has exactly the pattern of the last analyze(): then load() and factorize_shifted()
-  /// may be used on it. O(nnz), against the O(nnz(L) * column length) of a factorisation.
-  bool same_pattern(const SpMat& A) const {
-    return A.isCompressed() && A.outerSize() + 1 == static_cast<Eigen::Index>(outer_.size()) &&
-           A.nonZeros() == static_cast<Eigen::Index>(inner_.size()) &&
-           std::equal(outer_.begin(), outer_.end(), A.outerIndexPtr()) &&
-           std::equal(inner_.begin(), inner_.end(), A.innerIndexPtr());
-  }
-  /// Loads the values of A (the analysed pattern, see same_pattern) into the permuted copy; once per A.
-  void load(const SpMat& A) {
-    const double* a = A.valuePtr();
-    double* v = ap_.valuePtr();
-    for (size_t q = 0; q < map_.size(); ++q) v[q] = a[map_[q]];
-  }
-  /// Numeric LDLT of (the loaded A) + shift I. False on a zero pivot.
-  bool factorize_shifted(double shift) {
-    setShift(shift);
-    factorize_preordered<true>(ap_);
-    return info() == Eigen::Success;
-  }
+  /// Ordering, elimination tree, supernodes and storage for A's pattern (A square, compressed, symmetric with every
+  /// diagonal entry stored; its lower triangle is used). False if A is not square.
+  bool analyze(const SpMat& A);
+  /// True if A (compressed) has exactly the pattern of the last analyze(): then load() may be used on it.
+  bool same_pattern(const SpMat& A) const;
+  /// Loads the lower triangle's values of A (the analysed pattern) for the factorisations that follow.
+  void load(const SpMat& A);
+  /// Numeric LDL' of (the loaded A) + shift I. False on a zero pivot or before analyze().
+  bool factorize_shifted(double shift);
+  /// x = (A + shift I)^{-1} b with the last successful factorisation (b and x of length n, may not alias).
+  void solve(const Eigen::Ref<const Eigen::VectorXd>& b, Eigen::Ref<Eigen::VectorXd> x) const;
+  /// Columns of L and supernodes of the analysed pattern (for tests and benchmarks).
+  int supernodes() const { return static_cast<int>(sn_first_.size()) - 1; }
+  /// Entries of L below the diagonal, as stored in the panels (each supernode's diagonal block in full).
+  long stored_entries() const { return static_cast<long>(lx_.size()); }
 
  private:
-  SpMat ap_;              // P A P', upper triangle, as factorize() would build it
-  std::vector<int> map_;  // entry q of ap_ is entry map_[q] of A
-  std::vector<int> outer_, inner_;  // the analysed pattern
+  int n_ = 0;
+  std::vector<int> new_of_old_;         // P: position in the ordered matrix of each original index
+  std::vector<int> outer_, inner_;      // the analysed pattern of A
+  std::vector<int> bptr_, brow_, map_;  // lower triangle of P A P' by columns; value q is A's value map_[q]
+  std::vector<double> bval_;
+  std::vector<int> sn_first_;           // supernode s holds columns [sn_first_[s], sn_first_[s + 1])
+  std::vector<int> sn_of_;              // supernode of each column
+  std::vector<int> rptr_, rows_;        // supernode s's rows, its own columns first: rows_[rptr_[s] .. rptr_[s + 1])
+  std::vector<long> vptr_;              // offset of supernode s's panel (rows x width, column-major) in lx_
+  std::vector<double> lx_, d_;          // the panels (unit lower L; the diagonal holds D) and D
+  std::vector<int> pos_, head_, link_, next_;  // factorisation work: row positions, update lists
+  std::vector<double> acc_;
+  mutable std::vector<double> y_;
+  bool factored_ = false;
 };
 
 }  // namespace rd3g
