@@ -7,9 +7,18 @@
 namespace rd3g {
 
 namespace {
+// Where the loader can choose an implementation by CPU (GCC/Clang on x86-64 Linux: ifunc), this kernel is also
+// compiled for AVX2 (4 doubles per instruction instead of SSE2's 2) and the faster one runs. AVX2 without FMA: every
+// element is computed with the same operations in the same order, so both give the same bits.
+#if defined(__x86_64__) && defined(__linux__) && (defined(__GNUC__) || defined(__clang__))
+#define RD3G_AVX2_CLONE __attribute__((target_clones("avx2", "default")))
+#else
+#define RD3G_AVX2_CLONE
+#endif
+
 // acc[a] += sum_k L[k ld + a] L[k ld] D[k], a < len, k < w: the columns of a panel (L points at the first row used,
 // ld is the panel's height) weighted by their entries in that first row and D. Four columns per pass over acc.
-void axpy_columns(const double* L, int ld, const double* D, int w, int len, double* acc) {
+RD3G_AVX2_CLONE void axpy_columns(const double* L, int ld, const double* D, int w, int len, double* acc) {
   int k = 0;
   for (; k + 4 <= w; k += 4) {
     const double* L0 = L + static_cast<long>(k) * ld;
