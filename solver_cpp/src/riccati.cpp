@@ -17,16 +17,51 @@ void StageRiccati::setup(int N, int T, int nx, int nu) {
   kap_.assign(T, Eigen::VectorXd::Zero(U_));
   g_.resize(U_); u_.resize(U_);
   for (Eigen::VectorXd* v : {&e_, &h_, &pe_, &x_, &xn_, &lam_}) v->resize(X_);
+  PFx_.resize(X_, X_);
+  PFu_.resize(X_, U_);
   const int ss = nu_ + 2 * nx_, stage = N_ * ss;
   slots_.resize(n_primal_);
   for (int g = 0; g < n_primal_; ++g) {
     const int rem = g % stage, i = rem / ss, loc = rem % ss;
     Slot& s = slots_[g];
     s.k = g / stage;
+    s.agent = i;
     if (loc < nu_) { s.kind = 0; s.pos = i * nu_ + loc; }
     else if (loc < nu_ + nx_) { s.kind = 1; s.pos = i * nx_ + loc - nu_; }
     else { s.kind = 2; s.pos = i * nx_ + loc - nu_ - nx_; }
   }
+}
+
+void StageRiccati::times_block_diagonal(const Eigen::MatrixXd& A, const Eigen::MatrixXd& B, int br, int bc,
+                                        Eigen::MatrixXd& out) const {
+  // out = A B, B block-diagonal with N blocks br x bc: out's columns of block i = A's columns of block i times it.
+  const int R = static_cast<int>(A.rows());
+  for (int i = 0; i < N_; ++i)
+    for (int c = i * bc; c < (i + 1) * bc; ++c) {
+      double* o = out.col(c).data();
+      for (int r = 0; r < R; ++r) o[r] = 0.0;
+      for (int q = i * br; q < (i + 1) * br; ++q) {
+        const double f = B(q, c);
+        const double* a = A.col(q).data();
+        for (int r = 0; r < R; ++r) o[r] += a[r] * f;
+      }
+    }
+}
+
+void StageRiccati::add_block_diagonal_times(const Eigen::MatrixXd& A, const Eigen::Ref<const Eigen::MatrixXd>& C,
+                                            int ar, int ac, Eigen::Ref<Eigen::MatrixXd> out, double sign) const {
+  // out += sign A C, A block-diagonal with N blocks ar x ac: out's rows of block i get A's block i times C's rows of
+  // block i.
+  const int M = static_cast<int>(C.cols());
+  for (int j = 0; j < M; ++j)
+    for (int i = 0; i < N_; ++i) {
+      double* o = &out(i * ar, j);
+      for (int q = i * ac; q < (i + 1) * ac; ++q) {
+        const double f = sign * C(q, j);
+        const double* a = &A(i * ar, q);
+        for (int r = 0; r < ar; ++r) o[r] += a[r] * f;
+      }
+    }
 }
 
 void StageRiccati::stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind,
@@ -50,9 +85,10 @@ bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
     if (rk == 0) {  // u-stationarity rows of stage kr
       if (ck == 0 && kc == kr) Ruu_[kr](pr, pc) += v;
       else if (ck == 2 && kc == kr - 1) Rux_[kr](pr, pc) += v;
-      else if (ck == 1 && kc == kr) Rul_[kr](pr, pc) += v;
+      else if (ck == 1 && kc == kr && r.agent == c.agent) Rul_[kr](pr, pc) += v;
       else return false;
     } else if (rk == 1) {  // dynamics rows of stage kr
+      if (r.agent != c.agent) return false;  // each agent's dynamics involve only its own state and controls
       if (ck == 2 && kc == kr - 1) Fx_[kr](pr, pc) += v;
       else if (ck == 0 && kc == kr) Fu_[kr](pr, pc) += v;
       else if (ck == 2 && kc == kr) { if (pr != pc || v != -1.0) return false; }
@@ -60,7 +96,7 @@ bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
     } else {  // x-stationarity rows of time kr+1
       if (ck == 2 && kc == kr) Qxx_[kr](pr, pc) += v;
       else if (ck == 0 && kc == kr + 1) Qxu_[kr](pr, pc) += v;
-      else if (ck == 1 && kc == kr + 1) Qxl_[kr](pr, pc) += v;
+      else if (ck == 1 && kc == kr + 1 && r.agent == c.agent) Qxl_[kr](pr, pc) += v;
       else if (ck == 1 && kc == kr) { if (pr != pc || v != -1.0) return false; }
       else return false;
     }
@@ -69,23 +105,25 @@ bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
   P_[T_ - 1] = Qxx_[T_ - 1];
   for (int k = T_ - 1; k >= 0; --k) {
     // lambda_k = P x_{k+1} + p, with P = P_[k] (for x_{k+1}); x_{k+1} = Fx x_k + Fu u_k + e.
+    // Fx, Fu, Rul and Qxl are block-diagonal by agent (checked in the scatter above): their products are taken
+    // block by block, N times fewer flops than dense.
     const Eigen::MatrixXd& P = P_[k];
-    PFx_.noalias() = P * Fx_[k];
-    PFu_.noalias() = P * Fu_[k];
+    times_block_diagonal(P, Fx_[k], nx_, nx_, PFx_);
+    times_block_diagonal(P, Fu_[k], nx_, nu_, PFu_);
     G_ = Ruu_[k];
-    G_.noalias() += Rul_[k] * PFu_;
+    add_block_diagonal_times(Rul_[k], PFu_, nu_, nx_, G_);
     lu_[k].compute(G_);
     const double det = lu_[k].determinant();
     if (!(std::abs(det) > 1e-300) || !std::isfinite(det)) return false;
     K_[k] = Rux_[k];
-    K_[k].noalias() += Rul_[k] * PFx_;
+    add_block_diagonal_times(Rul_[k], PFx_, nu_, nx_, K_[k]);
     K_[k] = -lu_[k].solve(K_[k]);
     if (k == 0) break;
     // x-rows of time k: Qxx x_k + Qxu u_k + Qxl lambda_k - lambda_{k-1} = h_k (stored at index k-1).
     W_[k - 1] = Qxu_[k - 1];
-    W_[k - 1].noalias() += Qxl_[k - 1] * PFu_;
+    add_block_diagonal_times(Qxl_[k - 1], PFu_, nx_, nx_, W_[k - 1]);
     Pn_ = Qxx_[k - 1];
-    Pn_.noalias() += Qxl_[k - 1] * PFx_;
+    add_block_diagonal_times(Qxl_[k - 1], PFx_, nx_, nx_, Pn_);
     Pn_.noalias() += W_[k - 1] * K_[k];
     P_[k - 1] = Pn_;
   }
@@ -102,13 +140,13 @@ void StageRiccati::back_substitute(const Eigen::Ref<const Eigen::VectorXd>& b, E
     e_ = -e_;  // dynamics rows read Fx x + Fu u - x_{k+1} = -b_F, so x_{k+1} = Fx x + Fu u + b_F
     pe_ = p_[k + 1];
     pe_.noalias() += P_[k] * e_;
-    g_.noalias() -= Rul_[k] * pe_;
+    add_block_diagonal_times(Rul_[k], pe_, nu_, nx_, g_, -1.0);
     kap_[k] = lu_[k].solve(g_);
     if (k == 0) break;
     stage_segment(b, k - 1, 2, h_);
     p_[k] = -h_;
     p_[k].noalias() += W_[k - 1] * kap_[k];
-    p_[k].noalias() += Qxl_[k - 1] * pe_;
+    add_block_diagonal_times(Qxl_[k - 1], pe_, nx_, nx_, p_[k]);
   }
   // Forward pass from dx_0 = 0.
   x_.setZero();
@@ -117,8 +155,8 @@ void StageRiccati::back_substitute(const Eigen::Ref<const Eigen::VectorXd>& b, E
     u_.noalias() += K_[k] * x_;
     stage_segment(b, k, 1, e_);
     xn_ = -e_;
-    xn_.noalias() += Fx_[k] * x_;
-    xn_.noalias() += Fu_[k] * u_;
+    add_block_diagonal_times(Fx_[k], x_, nx_, nx_, xn_);
+    add_block_diagonal_times(Fu_[k], u_, nx_, nu_, xn_);
     lam_ = p_[k + 1];
     lam_.noalias() += P_[k] * xn_;
     for (int i = 0; i < N_; ++i) {

@@ -26,12 +26,18 @@ class StageRiccati {
   /// out = -K^{-1} b for the primal block K factored last (b, out of length n_primal).
   void back_substitute(const Eigen::Ref<const Eigen::VectorXd>& b, Eigen::Ref<Eigen::VectorXd> out);
   void stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind, Eigen::VectorXd& out) const;
+  /// out = A B for B block-diagonal by agent (N blocks br x bc); out sized A.rows() x N bc.
+  void times_block_diagonal(const Eigen::MatrixXd& A, const Eigen::MatrixXd& B, int br, int bc,
+                            Eigen::MatrixXd& out) const;
+  /// out += sign A C for A block-diagonal by agent (N blocks ar x ac).
+  void add_block_diagonal_times(const Eigen::MatrixXd& A, const Eigen::Ref<const Eigen::MatrixXd>& C, int ar, int ac,
+                                Eigen::Ref<Eigen::MatrixXd> out, double sign = 1.0) const;
 
   int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0, X_ = 0, U_ = 0, n_primal_ = 0;
   /// Where primal variable g sits: stage k, kind (0 = u, 1 = lambda, 2 = x_{k+1}) and position in the stage's
   /// stacked block. A table, not divisions: factor decodes every triplet's row and column (most of its time).
   struct Slot {
-    int k, kind, pos;
+    int k, kind, pos, agent;
   };
   std::vector<Slot> slots_;
   // Per stage k = 0..T-1 (x-row blocks Q* belong to time k+1 and are stored at index k):
