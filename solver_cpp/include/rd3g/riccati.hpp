@@ -1,7 +1,8 @@
 // Structured solve of RD3G's Newton system: with the variables ordered stage by stage, the primal part
 // is block-tridiagonal in time, and a backward recursion on lambda_k = P_{k+1} dx_{k+1} + p_{k+1} (the
 // coupled, nonsymmetric Riccati recursion of an open-loop game) solves it in O(T (N nx)^3) instead of a
-// general sparse LU. Constraints held as equalities add a few multiplier rows and columns; they are
+// general sparse LU. The dynamics Jacobians (Fx, Fu) and the costate columns of the stationarity rows (Rul, Qxl)
+// are block-diagonal by agent and are multiplied block by block. Constraints held as equalities add a few multiplier rows and columns; they are
 // eliminated by a Schur complement (one Riccati back-substitution per multiplier column, then a small
 // dense solve), so the structured solve is kept while track limits or speed bounds are active.
 #pragma once
@@ -17,7 +18,8 @@ class StageRiccati {
   void setup(int N, int T, int nx, int nu);
   /// Solves J dy = -rhs (J of size n, given by its triplets; the first n_primal = N T (nu + 2 nx) variables
   /// are the primal ones, the rest multipliers). Returns false when the primal block does not have the
-  /// stage structure or a stage or Schur matrix is singular; the caller then uses a general solver.
+  /// stage structure (including an entry across agents in Fx, Fu, Rul or Qxl) or a stage or Schur matrix is
+  /// singular; the caller then uses a general solver.
   bool solve(const std::vector<Eigen::Triplet<double>>& trip, int n, const Eigen::VectorXd& rhs, Eigen::VectorXd& dy);
 
  private:
