@@ -36,8 +36,8 @@ class StageRiccati {
                                 Eigen::Ref<Eigen::MatrixXd> out, double sign = 1.0) const;
 
   int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0, X_ = 0, U_ = 0, n_primal_ = 0;
-  /// Where primal variable g sits: stage k, kind (0 = u, 1 = lambda, 2 = x_{k+1}) and position in the stage's
-  /// stacked block. A table, not divisions: factor decodes every triplet's row and column (most of its time).
+  /// Where primal variable g sits: stage k, kind (0 = u, 1 = lambda, 2 = x_{k+1}), position in the stage's
+  /// stacked block and agent. A table, not divisions: factor decodes every triplet's row and column (most of its time).
   struct Slot {
     int k, kind, pos, agent;
   };
