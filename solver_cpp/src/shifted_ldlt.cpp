@@ -52,10 +52,18 @@ void elimination_tree(int n, const std::vector<int>& uptr, const std::vector<int
 bool ShiftedLDLT::analyze(const SpMat& A) {
   factored_ = false;
   if (A.rows() != A.cols()) return false;
-  const int n = n_ = static_cast<int>(A.rows());
+  n_ = static_cast<int>(A.rows());
   outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + A.outerSize() + 1);
   inner_.assign(A.innerIndexPtr(), A.innerIndexPtr() + A.nonZeros());
+  order(A);
+  permute_lower();
+  std::vector<int> parent, count, lptr, lrow;
+  symbolic(parent, count, lptr, lrow);
+  make_supernodes(parent, count, lptr, lrow);
+  return true;
+}
 
+void ShiftedLDLT::order(const SpMat& A) {
   // The ordering Eigen's SimplicialLDLT uses: AMD on the symmetric pattern, P = its inverse.
   Eigen::PermutationMatrix<Eigen::Dynamic, Eigen::Dynamic, int> pinv;
   {
@@ -64,14 +72,17 @@ bool ShiftedLDLT::analyze(const SpMat& A) {
     Eigen::AMDOrdering<int> amd;
     amd(C, pinv);
   }
-  new_of_old_.resize(n);
-  if (pinv.size() == n) {
-    for (int i = 0; i < n; ++i) new_of_old_[pinv.indices()[i]] = i;
+  new_of_old_.resize(n_);
+  if (pinv.size() == n_) {
+    for (int i = 0; i < n_; ++i) new_of_old_[pinv.indices()[i]] = i;
   } else {
     std::iota(new_of_old_.begin(), new_of_old_.end(), 0);
   }
+}
 
+void ShiftedLDLT::permute_lower() {
   // Lower triangle of P A P' by columns, rows ascending, with the index of each value in A.
+  const int n = n_;
   bptr_.assign(n + 1, 0);
   for (int j = 0; j < n; ++j)
     for (int p = outer_[j]; p < outer_[j + 1]; ++p)
@@ -80,24 +91,27 @@ bool ShiftedLDLT::analyze(const SpMat& A) {
   brow_.resize(bptr_[n]);
   map_.resize(bptr_[n]);
   bval_.assign(bptr_[n], 0.0);
-  {
-    std::vector<int> fill(bptr_.begin(), bptr_.end() - 1);
-    for (int j = 0; j < n; ++j)
-      for (int p = outer_[j]; p < outer_[j + 1]; ++p) {
-        if (inner_[p] < j) continue;
-        const int a = new_of_old_[inner_[p]], b = new_of_old_[j];
-        const int at = fill[std::min(a, b)]++;
-        brow_[at] = std::max(a, b);
-        map_[at] = p;
-      }
-    std::vector<std::pair<int, int>> col;
-    for (int c = 0; c < n; ++c) {
-      col.clear();
-      for (int q = bptr_[c]; q < bptr_[c + 1]; ++q) col.emplace_back(brow_[q], map_[q]);
-      std::sort(col.begin(), col.end());
-      for (int q = bptr_[c]; q < bptr_[c + 1]; ++q) std::tie(brow_[q], map_[q]) = col[q - bptr_[c]];
+  std::vector<int> fill(bptr_.begin(), bptr_.end() - 1);
+  for (int j = 0; j < n; ++j)
+    for (int p = outer_[j]; p < outer_[j + 1]; ++p) {
+      if (inner_[p] < j) continue;
+      const int a = new_of_old_[inner_[p]], b = new_of_old_[j];
+      const int at = fill[std::min(a, b)]++;
+      brow_[at] = std::max(a, b);
+      map_[at] = p;
     }
+  std::vector<std::pair<int, int>> col;
+  for (int c = 0; c < n; ++c) {
+    col.clear();
+    for (int q = bptr_[c]; q < bptr_[c + 1]; ++q) col.emplace_back(brow_[q], map_[q]);
+    std::sort(col.begin(), col.end());
+    for (int q = bptr_[c]; q < bptr_[c + 1]; ++q) std::tie(brow_[q], map_[q]) = col[q - bptr_[c]];
   }
+}
+
+void ShiftedLDLT::symbolic(std::vector<int>& parent, std::vector<int>& count, std::vector<int>& lptr,
+                           std::vector<int>& lrow) const {
+  const int n = n_;
   // Rows of the lower triangle (for each k, the columns c < k with B(k, c) != 0).
   std::vector<int> uptr(n + 1, 0), ucol;
   for (int c = 0; c < n; ++c)
@@ -111,11 +125,10 @@ bool ShiftedLDLT::analyze(const SpMat& A) {
       for (int q = bptr_[c]; q < bptr_[c + 1]; ++q)
         if (brow_[q] > c) ucol[fill[brow_[q]]++] = c;
   }
-  std::vector<int> parent;
   elimination_tree(n, uptr, ucol, parent);
-
   // Pattern of L by columns: row k of L is the union of the tree paths from each c in row k of B up to k.
-  std::vector<int> count(n, 0), mark(n, -1);
+  count.assign(n, 0);
+  std::vector<int> mark(n, -1);
   auto for_row = [&](int k, auto&& visit) {
     mark[k] = k;
     for (int q = uptr[k]; q < uptr[k + 1]; ++q)
@@ -125,16 +138,18 @@ bool ShiftedLDLT::analyze(const SpMat& A) {
       }
   };
   for (int k = 0; k < n; ++k) for_row(k, [&](int i) { ++count[i]; });
-  std::vector<int> lptr(n + 1, 0), lrow;
+  lptr.assign(n + 1, 0);
   for (int j = 0; j < n; ++j) lptr[j + 1] = lptr[j] + count[j];
   lrow.resize(lptr[n]);
-  {
-    std::vector<int> fill(lptr.begin(), lptr.end() - 1);
-    std::fill(mark.begin(), mark.end(), -1);
-    for (int k = 0; k < n; ++k) for_row(k, [&](int i) { lrow[fill[i]++] = k; });  // rows ascending per column
-  }
+  std::vector<int> fill(lptr.begin(), lptr.end() - 1);
+  std::fill(mark.begin(), mark.end(), -1);
+  for (int k = 0; k < n; ++k) for_row(k, [&](int i) { lrow[fill[i]++] = k; });  // rows ascending per column
+}
 
-  // Supernodes: column j + 1 continues j's when it is j's parent and L(:, j) below j + 1 is L(:, j + 1).
+void ShiftedLDLT::make_supernodes(const std::vector<int>& parent, const std::vector<int>& count,
+                                  const std::vector<int>& lptr, const std::vector<int>& lrow) {
+  // Column j + 1 continues j's supernode when it is j's parent and L(:, j) below j + 1 is L(:, j + 1).
+  const int n = n_;
   sn_first_.assign(1, 0);
   for (int j = 1; j < n; ++j)
     if (!(parent[j - 1] == j && count[j - 1] == count[j] + 1)) sn_first_.push_back(j);
@@ -144,6 +159,7 @@ bool ShiftedLDLT::analyze(const SpMat& A) {
   rptr_.assign(S + 1, 0);
   vptr_.assign(S + 1, 0);
   rows_.clear();
+  int max_rows = 0;
   for (int s = 0; s < S; ++s) {
     const int f = sn_first_[s], l = sn_first_[s + 1] - 1, w = l - f + 1;
     for (int j = f; j <= l; ++j) sn_of_[j] = s;
@@ -151,6 +167,7 @@ bool ShiftedLDLT::analyze(const SpMat& A) {
     rows_.insert(rows_.end(), lrow.begin() + lptr[l], lrow.begin() + lptr[l + 1]);
     rptr_[s + 1] = static_cast<int>(rows_.size());
     vptr_[s + 1] = vptr_[s] + static_cast<long>(rptr_[s + 1] - rptr_[s]) * w;
+    max_rows = std::max(max_rows, rptr_[s + 1] - rptr_[s]);
   }
   lx_.assign(vptr_[S], 0.0);
   d_.assign(n, 0.0);
@@ -158,11 +175,8 @@ bool ShiftedLDLT::analyze(const SpMat& A) {
   head_.assign(S, -1);
   link_.assign(S, -1);
   next_.assign(S, 0);
-  int max_rows = 0;
-  for (int s = 0; s < S; ++s) max_rows = std::max(max_rows, rptr_[s + 1] - rptr_[s]);
   acc_.assign(max_rows, 0.0);
   y_.assign(n, 0.0);
-  return true;
 }
 
 bool ShiftedLDLT::same_pattern(const SpMat& A) const {
@@ -196,47 +210,9 @@ bool ShiftedLDLT::factorize_shifted(double shift) {
       for (int q = bptr_[f + c]; q < bptr_[f + c + 1]; ++q) Fc[pos_[brow_[q]]] += bval_[q];
       Fc[c] += shift;
     }
-    // Updates from every supernode d whose rows reach columns f..f+w-1: rows [p1, p2) of d are in them.
-    for (int d = head_[s]; d != -1;) {
-      const int next_d = link_[d];
-      const int fd = sn_first_[d], wd = sn_first_[d + 1] - fd;
-      const int* Rd = rows_.data() + rptr_[d];
-      const int md = rptr_[d + 1] - rptr_[d];
-      const double* L = lx_.data() + vptr_[d];
-      const double* D = d_.data() + fd;
-      const int p1 = next_[d];
-      int p2 = p1;
-      while (p2 < md && Rd[p2] < f + w) ++p2;
-      for (int b = p1; b < p2; ++b) {
-        // acc = L(b.., :) D L(b, :)' over rows b..md-1 of d, subtracted from column Rd[b] - f of F.
-        const int len = md - b;
-        double* acc = acc_.data();
-        std::fill(acc, acc + len, 0.0);
-        axpy_columns(L + b, md, D, wd, len, acc);
-        double* Fc = F + static_cast<long>(Rd[b] - f) * m;
-        for (int a = 0; a < len; ++a) Fc[pos_[Rd[b + a]]] -= acc[a];
-      }
-      next_[d] = p2;
-      if (p2 < md) {
-        const int t = sn_of_[Rd[p2]];
-        link_[d] = head_[t];
-        head_[t] = d;
-      }
-      d = next_d;
-    }
-    // Dense LDL' of the panel, column by column (left-looking within it).
-    for (int c = 0; c < w; ++c) {
-      double* Fc = F + static_cast<long>(c) * m;
-      std::fill(acc_.begin(), acc_.begin() + (m - c), 0.0);
-      axpy_columns(F + c, m, d_.data() + f, c, m - c, acc_.data());
-      for (int a = c; a < m; ++a) Fc[a] -= acc_[a - c];
-      const double dc = Fc[c];
-      if (dc == 0.0) return false;
-      d_[f + c] = dc;
-      const double inv = 1.0 / dc;
-      for (int a = c + 1; a < m; ++a) Fc[a] *= inv;
-    }
-    if (w < m) {
+    update_panel(s);
+    if (!factor_panel(s)) return false;
+    if (w < m) {  // s updates the supernode of its first row below its own columns next
       next_[s] = w;
       const int t = sn_of_[R[w]];
       link_[s] = head_[t];
@@ -244,6 +220,60 @@ bool ShiftedLDLT::factorize_shifted(double shift) {
     }
   }
   factored_ = true;
+  return true;
+}
+
+void ShiftedLDLT::update_panel(int s) {
+  // Updates from every supernode d whose rows reach columns f..f+w-1 of s: rows [p1, p2) of d are in them. pos_
+  // holds the positions of s's rows.
+  const int f = sn_first_[s], w = sn_first_[s + 1] - f;
+  const int m = rptr_[s + 1] - rptr_[s];
+  double* F = lx_.data() + vptr_[s];
+  for (int d = head_[s]; d != -1;) {
+    const int next_d = link_[d];
+    const int fd = sn_first_[d], wd = sn_first_[d + 1] - fd;
+    const int* Rd = rows_.data() + rptr_[d];
+    const int md = rptr_[d + 1] - rptr_[d];
+    const double* L = lx_.data() + vptr_[d];
+    const double* D = d_.data() + fd;
+    const int p1 = next_[d];
+    int p2 = p1;
+    while (p2 < md && Rd[p2] < f + w) ++p2;
+    for (int b = p1; b < p2; ++b) {
+      // acc = L(b.., :) D L(b, :)' over rows b..md-1 of d, subtracted from column Rd[b] - f of F.
+      const int len = md - b;
+      double* acc = acc_.data();
+      std::fill(acc, acc + len, 0.0);
+      axpy_columns(L + b, md, D, wd, len, acc);
+      double* Fc = F + static_cast<long>(Rd[b] - f) * m;
+      for (int a = 0; a < len; ++a) Fc[pos_[Rd[b + a]]] -= acc[a];
+    }
+    next_[d] = p2;
+    if (p2 < md) {  // d updates the supernode of its next row later
+      const int t = sn_of_[Rd[p2]];
+      link_[d] = head_[t];
+      head_[t] = d;
+    }
+    d = next_d;
+  }
+}
+
+bool ShiftedLDLT::factor_panel(int s) {
+  // Dense LDL' of the panel, column by column (left-looking within it); false on a zero pivot.
+  const int f = sn_first_[s], w = sn_first_[s + 1] - f;
+  const int m = rptr_[s + 1] - rptr_[s];
+  double* F = lx_.data() + vptr_[s];
+  for (int c = 0; c < w; ++c) {
+    double* Fc = F + static_cast<long>(c) * m;
+    std::fill(acc_.begin(), acc_.begin() + (m - c), 0.0);
+    axpy_columns(F + c, m, d_.data() + f, c, m - c, acc_.data());
+    for (int a = c; a < m; ++a) Fc[a] -= acc_[a - c];
+    const double dc = Fc[c];
+    if (dc == 0.0) return false;
+    d_[f + c] = dc;
+    const double inv = 1.0 / dc;
+    for (int a = c + 1; a < m; ++a) Fc[a] *= inv;
+  }
   return true;
 }
 

@@ -35,6 +35,18 @@ class ShiftedLDLT {
   long stored_entries() const { return static_cast<long>(lx_.size()); }
 
  private:
+  // analyze()'s steps: the ordering; P A P''s lower triangle; the elimination tree (parent), the counts below the
+  // diagonal and the rows (lrow[lptr[j] ..]) of L's columns; the supernodes and the factor's storage.
+  void order(const SpMat& A);
+  void permute_lower();
+  void symbolic(std::vector<int>& parent, std::vector<int>& count, std::vector<int>& lptr,
+                std::vector<int>& lrow) const;
+  void make_supernodes(const std::vector<int>& parent, const std::vector<int>& count, const std::vector<int>& lptr,
+                       const std::vector<int>& lrow);
+  // factorize_shifted()'s steps for supernode s: the updates from the supernodes below it, then its dense LDL'.
+  void update_panel(int s);
+  bool factor_panel(int s);
+
   int n_ = 0;
   std::vector<int> new_of_old_;         // P: position in the ordered matrix of each original index
   std::vector<int> outer_, inner_;      // the analysed pattern of A
