@@ -1,22 +1,15 @@
 #include "rd3g/normal_matrix.hpp"
 
-#include <algorithm>
-
 namespace rd3g {
 
 bool NormalMatrix::compute(const SpMat& J, SpMat& A) {
-  const bool same = J.isCompressed() && outer_.size() == static_cast<size_t>(J.outerSize() + 1) &&
-                    inner_.size() == static_cast<size_t>(J.nonZeros()) &&
-                    std::equal(outer_.begin(), outer_.end(), J.outerIndexPtr()) &&
-                    std::equal(inner_.begin(), inner_.end(), J.innerIndexPtr());
-  if (!same) {
+  if (!pattern_.matches(J)) {
     A = J.transpose() * J;
     SpMat eye(J.cols(), J.cols());
     eye.setIdentity();
     A = A + 0.0 * eye;  // every diagonal entry stored: a shift lands on stored entries
     A.makeCompressed();
-    outer_.assign(J.outerIndexPtr(), J.outerIndexPtr() + J.outerSize() + 1);
-    inner_.assign(J.innerIndexPtr(), J.innerIndexPtr() + J.nonZeros());
+    pattern_.assign(J);
     plan(J, A);
     return false;
   }

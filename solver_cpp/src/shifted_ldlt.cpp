@@ -50,11 +50,9 @@ void elimination_tree(int n, const std::vector<int>& uptr, const std::vector<int
 }  // namespace
 
 bool ShiftedLDLT::analyze(const SpMat& A) {
-  factored_ = false;
   if (A.rows() != A.cols()) return false;
   n_ = static_cast<int>(A.rows());
-  outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + A.outerSize() + 1);
-  inner_.assign(A.innerIndexPtr(), A.innerIndexPtr() + A.nonZeros());
+  pattern_.assign(A);
   order(A);
   permute_lower();
   std::vector<int> parent, count, lptr, lrow;
@@ -85,17 +83,17 @@ void ShiftedLDLT::permute_lower() {
   const int n = n_;
   bptr_.assign(n + 1, 0);
   for (int j = 0; j < n; ++j)
-    for (int p = outer_[j]; p < outer_[j + 1]; ++p)
-      if (inner_[p] >= j) ++bptr_[std::min(new_of_old_[inner_[p]], new_of_old_[j]) + 1];
+    for (int p = pattern_.outer[j]; p < pattern_.outer[j + 1]; ++p)
+      if (pattern_.inner[p] >= j) ++bptr_[std::min(new_of_old_[pattern_.inner[p]], new_of_old_[j]) + 1];
   for (int j = 0; j < n; ++j) bptr_[j + 1] += bptr_[j];
   brow_.resize(bptr_[n]);
   map_.resize(bptr_[n]);
   bval_.assign(bptr_[n], 0.0);
   std::vector<int> fill(bptr_.begin(), bptr_.end() - 1);
   for (int j = 0; j < n; ++j)
-    for (int p = outer_[j]; p < outer_[j + 1]; ++p) {
-      if (inner_[p] < j) continue;
-      const int a = new_of_old_[inner_[p]], b = new_of_old_[j];
+    for (int p = pattern_.outer[j]; p < pattern_.outer[j + 1]; ++p) {
+      if (pattern_.inner[p] < j) continue;
+      const int a = new_of_old_[pattern_.inner[p]], b = new_of_old_[j];
       const int at = fill[std::min(a, b)]++;
       brow_[at] = std::max(a, b);
       map_[at] = p;
@@ -179,21 +177,14 @@ void ShiftedLDLT::make_supernodes(const std::vector<int>& parent, const std::vec
   y_.assign(n, 0.0);
 }
 
-bool ShiftedLDLT::same_pattern(const SpMat& A) const {
-  return A.isCompressed() && A.outerSize() + 1 == static_cast<Eigen::Index>(outer_.size()) &&
-         A.nonZeros() == static_cast<Eigen::Index>(inner_.size()) &&
-         std::equal(outer_.begin(), outer_.end(), A.outerIndexPtr()) &&
-         std::equal(inner_.begin(), inner_.end(), A.innerIndexPtr());
-}
+bool ShiftedLDLT::same_pattern(const SpMat& A) const { return pattern_.matches(A); }
 
 void ShiftedLDLT::load(const SpMat& A) {
   const double* a = A.valuePtr();
   for (size_t q = 0; q < map_.size(); ++q) bval_[q] = a[map_[q]];
-  factored_ = false;
 }
 
 bool ShiftedLDLT::factorize_shifted(double shift) {
-  factored_ = false;
   const int S = supernodes();
   if (S < 0) return false;
   std::fill(lx_.begin(), lx_.end(), 0.0);
@@ -219,7 +210,6 @@ bool ShiftedLDLT::factorize_shifted(double shift) {
       head_[t] = s;
     }
   }
-  factored_ = true;
   return true;
 }
 

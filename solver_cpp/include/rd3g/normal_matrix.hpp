@@ -10,6 +10,8 @@
 #include <Eigen/Sparse>
 #include <vector>
 
+#include "rd3g/sparsity_pattern.hpp"
+
 namespace rd3g {
 
 class NormalMatrix {
@@ -21,7 +23,7 @@ class NormalMatrix {
 
  private:
   void plan(const SpMat& J, const SpMat& A);
-  std::vector<int> outer_, inner_;  // J's pattern of the last call
+  SparsityPattern pattern_;         // J's pattern of the last call
   std::vector<int> start_;          // per stored entry p of A: its pairs are [start_[p], start_[p + 1])
   std::vector<int> lhs_, rhs_;      // per pair: the value indices in J of J(k, i) and J(k, j)
 };

@@ -2,9 +2,10 @@
 // is block-tridiagonal in time, and a backward recursion on lambda_k = P_{k+1} dx_{k+1} + p_{k+1} (the
 // coupled, nonsymmetric Riccati recursion of an open-loop game) solves it in O(T (N nx)^3) instead of a
 // general sparse LU. The dynamics Jacobians (Fx, Fu) and the costate columns of the stationarity rows (Rul, Qxl)
-// are block-diagonal by agent and are multiplied block by block. Constraints held as equalities add a few multiplier rows and columns; they are
-// eliminated by a Schur complement (one Riccati back-substitution per multiplier column, then a small
-// dense solve), so the structured solve is kept while track limits or speed bounds are active.
+// are block-diagonal by agent and are multiplied block by block. Constraints held as equalities add a few
+// multiplier rows and columns; they are eliminated by a Schur complement (one Riccati back-substitution per
+// multiplier column, then a small dense solve), so the structured solve is kept while track limits or speed bounds
+// are active.
 #pragma once
 #include <Eigen/Dense>
 #include <Eigen/Sparse>
@@ -37,7 +38,8 @@ class StageRiccati {
 
   int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0, X_ = 0, U_ = 0, n_primal_ = 0;
   /// Where primal variable g sits: stage k, kind (0 = u, 1 = lambda, 2 = x_{k+1}), position in the stage's
-  /// stacked block and agent. A table, not divisions: factor decodes every triplet's row and column (most of its time).
+  /// stacked block and agent. A table, not divisions: factor decodes every triplet's row and column (most of its
+  /// time).
   struct Slot {
     int k, kind, pos, agent;
   };

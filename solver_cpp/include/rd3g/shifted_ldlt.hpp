@@ -13,6 +13,8 @@
 #include <Eigen/Sparse>
 #include <vector>
 
+#include "rd3g/sparsity_pattern.hpp"
+
 namespace rd3g {
 
 class ShiftedLDLT {
@@ -29,10 +31,8 @@ class ShiftedLDLT {
   bool factorize_shifted(double shift);
   /// x = (A + shift I)^{-1} b with the last successful factorisation (b and x of length n, may not alias).
   void solve(const Eigen::Ref<const Eigen::VectorXd>& b, Eigen::Ref<Eigen::VectorXd> x) const;
-  /// Columns of L and supernodes of the analysed pattern (for tests and benchmarks).
+  /// Supernodes of the analysed pattern (-1 before analyze()).
   int supernodes() const { return static_cast<int>(sn_first_.size()) - 1; }
-  /// Entries of L below the diagonal, as stored in the panels (each supernode's diagonal block in full).
-  long stored_entries() const { return static_cast<long>(lx_.size()); }
 
  private:
   // analyze()'s steps: the ordering; P A P''s lower triangle; the elimination tree (parent), the counts below the
@@ -49,7 +49,7 @@ class ShiftedLDLT {
 
   int n_ = 0;
   std::vector<int> new_of_old_;         // P: position in the ordered matrix of each original index
-  std::vector<int> outer_, inner_;      // the analysed pattern of A
+  SparsityPattern pattern_;             // the analysed pattern of A
   std::vector<int> bptr_, brow_, map_;  // lower triangle of P A P' by columns; value q is A's value map_[q]
   std::vector<double> bval_;
   std::vector<int> sn_first_;           // supernode s holds columns [sn_first_[s], sn_first_[s + 1])
@@ -60,7 +60,6 @@ class ShiftedLDLT {
   std::vector<int> pos_, head_, link_, next_;  // factorisation work: row positions, update lists
   std::vector<double> acc_;
   mutable std::vector<double> y_;
-  bool factored_ = false;
 };
 
 }  // namespace rd3g
