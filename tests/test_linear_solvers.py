@@ -43,7 +43,7 @@ def test_riccati_with_active_bounds_matches_sparse_lu(cars, seed):
         assert np.max(np.stack(ric.x)[i][1:, 2]) <= c + 1e-6
 
 
-def _shifted_normal_matrices(n, density, count, rng, seed):
+def _normal_matrices(n, density, count, rng, seed):
     """count matrices J'J of one pattern (random J with a stored diagonal, so J'J is nonsingular)."""
     import scipy.sparse as sp
 
@@ -68,7 +68,7 @@ def test_levenberg_marquardt_ldlt_against_dense_solve(n, density):
     from solver_cpp import _core
 
     rng = np.random.default_rng(3)
-    mats = _shifted_normal_matrices(n, density, 3, rng, seed=4)
+    mats = _normal_matrices(n, density, 3, rng, seed=4)
     shifts = [1e-6, 1e-5, 1e-3, 1.0]
     b = rng.normal(size=n)
     ours, eigen, supernodes = _core.debug_shifted_ldlt(mats, shifts, b)
