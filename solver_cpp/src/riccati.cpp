@@ -48,20 +48,35 @@ void StageRiccati::times_block_diagonal(const Eigen::MatrixXd& A, const Eigen::M
     }
 }
 
-void StageRiccati::add_block_diagonal_times(const Eigen::MatrixXd& A, const Eigen::Ref<const Eigen::MatrixXd>& C,
-                                            int ar, int ac, Eigen::Ref<Eigen::MatrixXd> out, double sign) const {
-  // out += sign A C, A block-diagonal with N blocks ar x ac: out's rows of block i get A's block i times C's rows of
-  // block i.
+namespace {
+// out += sign A C for A block-diagonal with n blocks ar x ac. AR, AC > 0 fix the block size at compile time so the
+// short inner loops unroll (the kinematic bicycle's 4 x 4 and 2 x 4 blocks); the sums run in the same order either
+// way, so the results are the same bits.
+template <int AR, int AC>
+void add_block_diagonal_times_sized(const Eigen::MatrixXd& A, const Eigen::Ref<const Eigen::MatrixXd>& C, int n,
+                                    int ar_runtime, int ac_runtime, Eigen::Ref<Eigen::MatrixXd> out, double sign) {
+  const int ar = AR > 0 ? AR : ar_runtime, ac = AC > 0 ? AC : ac_runtime;
   const int M = static_cast<int>(C.cols());
   for (int j = 0; j < M; ++j)
-    for (int i = 0; i < N_; ++i) {
+    for (int i = 0; i < n; ++i) {
       double* o = &out(i * ar, j);
-      for (int q = i * ac; q < (i + 1) * ac; ++q) {
-        const double f = sign * C(q, j);
-        const double* a = &A(i * ar, q);
+      const double* c = C.col(j).data() + i * ac;
+      for (int q = 0; q < ac; ++q) {
+        const double f = sign * c[q];
+        const double* a = &A(i * ar, i * ac + q);
         for (int r = 0; r < ar; ++r) o[r] += a[r] * f;
       }
     }
+}
+}  // namespace
+
+void StageRiccati::add_block_diagonal_times(const Eigen::MatrixXd& A, const Eigen::Ref<const Eigen::MatrixXd>& C,
+                                            int ar, int ac, Eigen::Ref<Eigen::MatrixXd> out, double sign) const {
+  // out's rows of block i get A's block i times C's rows of block i.
+  if (ar == 4 && ac == 4) add_block_diagonal_times_sized<4, 4>(A, C, N_, ar, ac, out, sign);
+  else if (ar == 2 && ac == 4) add_block_diagonal_times_sized<2, 4>(A, C, N_, ar, ac, out, sign);
+  else if (ar == 4 && ac == 2) add_block_diagonal_times_sized<4, 2>(A, C, N_, ar, ac, out, sign);
+  else add_block_diagonal_times_sized<0, 0>(A, C, N_, ar, ac, out, sign);
 }
 
 void StageRiccati::stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind,
@@ -72,9 +87,15 @@ void StageRiccati::stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int
 }
 
 bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
+  // Fx, Fu, Rul and Qxl never receive an entry across agents (the scatter declines first): their off-diagonal blocks
+  // stay zero from setup, and only the diagonal blocks are cleared.
+  auto zero_diagonal_blocks = [&](Eigen::MatrixXd& m, int br, int bc) {
+    for (int i = 0; i < N_; ++i) m.block(i * br, i * bc, br, bc).setZero();
+  };
   for (int k = 0; k < T_; ++k) {
-    Ruu_[k].setZero(); Rux_[k].setZero(); Rul_[k].setZero(); Fx_[k].setZero(); Fu_[k].setZero();
-    Qxx_[k].setZero(); Qxu_[k].setZero(); Qxl_[k].setZero();
+    Ruu_[k].setZero(); Rux_[k].setZero(); Qxx_[k].setZero(); Qxu_[k].setZero();
+    zero_diagonal_blocks(Rul_[k], nu_, nx_); zero_diagonal_blocks(Fx_[k], nx_, nx_);
+    zero_diagonal_blocks(Fu_[k], nx_, nu_); zero_diagonal_blocks(Qxl_[k], nx_, nx_);
   }
   for (const auto& t : trip) {
     if (t.row() >= n_primal_ || t.col() >= n_primal_) continue;  // multiplier rows/columns: Schur complement
