@@ -1,5 +1,6 @@
 #include "rd3g/riccati.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 namespace rd3g {
@@ -19,6 +20,7 @@ void StageRiccati::setup(int N, int T, int nx, int nu) {
   for (Eigen::VectorXd* v : {&e_, &h_, &pe_, &x_, &xn_, &lam_}) v->resize(X_);
   PFx_.resize(X_, X_);
   PFu_.resize(X_, U_);
+  plan_.clear();  // its destinations were the old stage blocks
   const int ss = nu_ + 2 * nx_, stage = N_ * ss;
   slots_.resize(n_primal_);
   for (int g = 0; g < n_primal_; ++g) {
@@ -86,6 +88,36 @@ void StageRiccati::stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int
   for (int i = 0; i < N_; ++i) out.segment(i * n, n) = -b.segment(k * stage + i * ss + off, n);
 }
 
+bool StageRiccati::decode(int row, int col, double*& dest) {
+  if (row >= n_primal_ || col >= n_primal_) {  // multiplier rows/columns: Schur complement
+    dest = &discarded_;
+    return true;
+  }
+  const Slot& r = slots_[row];
+  const Slot& c = slots_[col];
+  const int kr = r.k, rk = r.kind, pr = r.pos, kc = c.k, ck = c.kind, pc = c.pos;
+  dest = nullptr;  // an entry of a -I block
+  if (rk == 0) {  // u-stationarity rows of stage kr
+    if (ck == 0 && kc == kr) dest = &Ruu_[kr](pr, pc);
+    else if (ck == 2 && kc == kr - 1) dest = &Rux_[kr](pr, pc);
+    else if (ck == 1 && kc == kr && r.agent == c.agent) dest = &Rul_[kr](pr, pc);
+    else return false;
+  } else if (rk == 1) {  // dynamics rows of stage kr
+    if (r.agent != c.agent) return false;  // each agent's dynamics involve only its own state and controls
+    if (ck == 2 && kc == kr - 1) dest = &Fx_[kr](pr, pc);
+    else if (ck == 0 && kc == kr) dest = &Fu_[kr](pr, pc);
+    else if (ck == 2 && kc == kr) return pr == pc;
+    else return false;
+  } else {  // x-stationarity rows of time kr+1
+    if (ck == 2 && kc == kr) dest = &Qxx_[kr](pr, pc);
+    else if (ck == 0 && kc == kr + 1) dest = &Qxu_[kr](pr, pc);
+    else if (ck == 1 && kc == kr + 1 && r.agent == c.agent) dest = &Qxl_[kr](pr, pc);
+    else if (ck == 1 && kc == kr) return pr == pc;
+    else return false;
+  }
+  return true;
+}
+
 bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
   // Fx, Fu, Rul and Qxl never receive an entry across agents (the scatter declines first): their off-diagonal blocks
   // stay zero from setup, and only the diagonal blocks are cleared.
@@ -97,30 +129,26 @@ bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
     zero_diagonal_blocks(Rul_[k], nu_, nx_); zero_diagonal_blocks(Fx_[k], nx_, nx_);
     zero_diagonal_blocks(Fu_[k], nx_, nu_); zero_diagonal_blocks(Qxl_[k], nx_, nx_);
   }
-  for (const auto& t : trip) {
-    if (t.row() >= n_primal_ || t.col() >= n_primal_) continue;  // multiplier rows/columns: Schur complement
-    const Slot& r = slots_[t.row()];
-    const Slot& c = slots_[t.col()];
-    const int kr = r.k, rk = r.kind, pr = r.pos, kc = c.k, ck = c.kind, pc = c.pos;
-    const double v = t.value();
-    if (rk == 0) {  // u-stationarity rows of stage kr
-      if (ck == 0 && kc == kr) Ruu_[kr](pr, pc) += v;
-      else if (ck == 2 && kc == kr - 1) Rux_[kr](pr, pc) += v;
-      else if (ck == 1 && kc == kr && r.agent == c.agent) Rul_[kr](pr, pc) += v;
-      else return false;
-    } else if (rk == 1) {  // dynamics rows of stage kr
-      if (r.agent != c.agent) return false;  // each agent's dynamics involve only its own state and controls
-      if (ck == 2 && kc == kr - 1) Fx_[kr](pr, pc) += v;
-      else if (ck == 0 && kc == kr) Fu_[kr](pr, pc) += v;
-      else if (ck == 2 && kc == kr) { if (pr != pc || v != -1.0) return false; }
-      else return false;
-    } else {  // x-stationarity rows of time kr+1
-      if (ck == 2 && kc == kr) Qxx_[kr](pr, pc) += v;
-      else if (ck == 0 && kc == kr + 1) Qxu_[kr](pr, pc) += v;
-      else if (ck == 1 && kc == kr + 1 && r.agent == c.agent) Qxl_[kr](pr, pc) += v;
-      else if (ck == 1 && kc == kr) { if (pr != pc || v != -1.0) return false; }
-      else return false;
-    }
+  // The triplets that match the plan's (row, col) go to the destinations found when they were last decoded; from the
+  // first that does not, the rest are decoded and the plan is rewritten. The same sums in the same order either way.
+  const size_t n = trip.size();
+  const size_t planned = std::min(n, plan_.size());
+  size_t j = 0;
+  for (; j < planned; ++j) {
+    const auto& t = trip[j];
+    const PlannedEntry& e = plan_[j];
+    if (e.row != t.row() || e.col != t.col()) break;
+    if (e.dest) *e.dest += t.value();
+    else if (t.value() != -1.0) return false;
+  }
+  plan_.resize(j);
+  for (; j < n; ++j) {
+    const auto& t = trip[j];
+    double* dest = nullptr;
+    if (!decode(t.row(), t.col(), dest)) return false;
+    plan_.push_back({t.row(), t.col(), dest});
+    if (dest) *dest += t.value();
+    else if (t.value() != -1.0) return false;
   }
   // Terminal: -lambda_{T-1} + Qxx_T x_T = h_T  =>  lambda_{T-1} = Qxx_T x_T - h_T.
   P_[T_ - 1] = Qxx_[T_ - 1];

@@ -15,6 +15,9 @@ namespace rd3g {
 
 class StageRiccati {
  public:
+  StageRiccati() = default;
+  StageRiccati(const StageRiccati&) = delete;  // the scatter plan points into this object's stage blocks
+  StageRiccati& operator=(const StageRiccati&) = delete;
   /// N agents, horizon T, sizes nx, nu; variables per stage and agent ordered [u, lambda, x_{k+1}].
   void setup(int N, int T, int nx, int nu);
   /// Solves J dy = -rhs (J of size n, given by its triplets; the first n_primal = N T (nu + 2 nx) variables
@@ -44,6 +47,18 @@ class StageRiccati {
     int k, kind, pos, agent;
   };
   std::vector<Slot> slots_;
+  /// Where triplet (row, col) is added: dest points into a stage block, is nullptr for an entry of a -I block
+  /// (its value is checked instead), or is &discarded_ for a multiplier row or column (the Schur complement's).
+  bool decode(int row, int col, double*& dest);
+  /// The destinations of the last factorisation's triplets, in their order: the assembly emits the stage terms
+  /// first, in an order fixed by the sizes, so most of the plan holds from one Newton step to the next and the
+  /// scatter skips the decoding.
+  struct PlannedEntry {
+    int row, col;
+    double* dest;
+  };
+  std::vector<PlannedEntry> plan_;
+  double discarded_ = 0.0;
   // Per stage k = 0..T-1 (x-row blocks Q* belong to time k+1 and are stored at index k):
   std::vector<Eigen::MatrixXd> Ruu_, Rux_, Rul_, Fx_, Fu_, Qxx_, Qxu_, Qxl_, P_, K_, W_;
   std::vector<Eigen::PartialPivLU<Eigen::MatrixXd>> lu_;
