@@ -34,9 +34,34 @@ void StageRiccati::setup(int N, int T, int nx, int nu) {
   }
 }
 
+namespace {
+// out = A B for B block-diagonal with n blocks BR x bc: out's columns of block i are A's columns of block i times it.
+// BR is fixed at compile time, so each entry's BR products are summed in one unrolled pass.
+template <int BR>
+void times_block_diagonal_sized(const Eigen::MatrixXd& A, const Eigen::MatrixXd& B, int n, int bc,
+                                Eigen::MatrixXd& out) {
+  const int R = static_cast<int>(A.rows());
+  for (int i = 0; i < n; ++i) {
+    const double* a[BR];
+    for (int q = 0; q < BR; ++q) a[q] = A.col(i * BR + q).data();
+    for (int c = i * bc; c < (i + 1) * bc; ++c) {
+      double f[BR];
+      for (int q = 0; q < BR; ++q) f[q] = B(i * BR + q, c);
+      double* o = out.col(c).data();
+      for (int r = 0; r < R; ++r) {
+        double sum = 0.0;
+        for (int q = 0; q < BR; ++q) sum += a[q][r] * f[q];
+        o[r] = sum;
+      }
+    }
+  }
+}
+}  // namespace
+
 void StageRiccati::times_block_diagonal(const Eigen::MatrixXd& A, const Eigen::MatrixXd& B, int br, int bc,
                                         Eigen::MatrixXd& out) const {
-  // out = A B, B block-diagonal with N blocks br x bc: out's columns of block i = A's columns of block i times it.
+  // out = A B, B block-diagonal with N blocks br x bc. Each entry sums its br products in order of q on both paths.
+  if (br == 4) return times_block_diagonal_sized<4>(A, B, N_, bc, out);
   const int R = static_cast<int>(A.rows());
   for (int i = 0; i < N_; ++i)
     for (int c = i * bc; c < (i + 1) * bc; ++c) {
