@@ -65,22 +65,45 @@ double Solver::line_search(double merit0) {
     domain_blocked_ = t <= 0;
     if (domain_blocked_) return 0.0;  // a held control is at its box and the step points out of it
   }
-  for (int ls = 0; ls < settings_.line_search.max_steps; ++ls, t *= settings_.line_search.beta) {
+  const double beta = settings_.line_search.beta;
+  for (int ls = 0; ls < settings_.line_search.max_steps; ++ls) {
     apply_step(y_, dy_, t, trial_);
     eval_all_constraints(trial_, h_trial_);
     if (violation_sum(h_trial_) > hsum + 1e-12) {
       if (settings_.verbose) std::printf("   t %.2e rejected: violation %.3e > %.3e\n", t, violation_sum(h_trial_), hsum);
+      t = rho_ < settings_.barrier.rho_init ? std::max(beta * t, kFractionToBoundary * step_to_first_crossing(t)) : beta * t;
       continue;
     }
     if (!evaluate(trial_, h_trial_, false, r_trial_, rc_trial_)) {
       if (settings_.verbose) std::printf("   t %.2e rejected: barrier constraint crossed\n", t);
+      t *= beta;
       continue;
     }
     const double mt = merit(r_trial_, rc_trial_);
     if (mt <= (1.0 - settings_.line_search.alpha * t) * merit0) return t;
     if (settings_.verbose) std::printf("   t %.2e rejected: |r| %.3e vs %.3e\n", t, mt, merit0);
+    t *= beta;
   }
   return 0.0;
+}
+
+// Near a barrier solution every full Newton step crosses the nearest constraint by a little (its curvature), and
+// halving t then takes half of the step per iteration: the residual falls by half per iteration instead of
+// quadratically. After a trial t that crossed constraints satisfied at y_, the step just short of the first crossing
+// is estimated from each such constraint's values at 0 and t (a secant in t; for a constraint convex along the step
+// the true crossing is later). 0 when a constraint already violated at y_ grew (plain backtracking then).
+double Solver::step_to_first_crossing(double t) const {
+  double first = t;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    const double h0 = h_[c], ht = h_trial_[c];
+    if (ht <= 0.0) continue;
+    if (h0 > 0.0) {
+      if (ht > h0) return 0.0;
+      continue;
+    }
+    first = std::min(first, t * (-h0) / (ht - h0));
+  }
+  return first;
 }
 
 // The models' control domains: a full Newton step can carry a steering angle across |delta| = pi/2, where the

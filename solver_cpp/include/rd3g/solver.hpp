@@ -312,6 +312,9 @@ class Solver {
   bool solve_levenberg_marquardt(double nu, Vec& dy);
   /// Backtracking line search along dy_ from y_ into trial_; returns the accepted t or 0.
   double line_search(double merit0);
+  /// The step, of the trial t, at which the first constraint satisfied at y_ and violated at the trial crosses
+  /// (secant estimate); 0 if a constraint violated at y_ grew (line_search.cpp).
+  double step_to_first_crossing(double t) const;
   void apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const;
   /// The largest t' <= t at which y_'s held controls stay in their models' domain boxes along dy_ (domain_fraction).
   double domain_step(double t);
