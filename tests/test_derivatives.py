@@ -87,6 +87,37 @@ def test_dynamics_models_match_finite_differences():
             np.testing.assert_allclose(H, H.T, atol=1e-12, err_msg=f"{name}: lambda_hessian not symmetric")
 
 
+def test_derivative_patterns_hold_every_nonzero_derivative():
+    """Outside a model's declared pattern the finite-difference derivatives are zero at every sampled point (the
+    Newton matrix holds only the pattern's entries); the bicycle's pattern is the sparse one its equations give."""
+    rng = np.random.default_rng(11)
+    models = _models(rng)
+    A_lin = np.array([[1.0, 0.0, 0.1], [0.0, 1.0, 0.0], [0.2, 0.0, 1.0]])
+    models.append(("linear_sparse", LinearModel(A_lin, np.array([[0.0, 1.0], [0.5, 0.0], [0.0, 0.0]])).build(0.1),
+                   lambda: (rng.normal(size=3), rng.normal(size=2))))
+    for name, f, sample in models:
+        nx = f.nx
+        PA, PB, PH = (np.asarray(p, dtype=bool) for p in f.derivative_pattern())
+        for _ in range(25):
+            x, u = sample()
+            lam = rng.normal(size=nx)
+            A_fd = _central_diff(lambda xx: f.eval(xx, u)[0], x)
+            B_fd = _central_diff(lambda uu: f.eval(x, uu)[0], u)
+
+            def grad_lam_f(z):
+                _, Az, Bz = f.eval(z[:nx], z[nx:])
+                return np.concatenate([Az.T @ lam, Bz.T @ lam])
+
+            H_fd = _central_diff(grad_lam_f, np.concatenate([x, u]))
+            for label, fd, pattern in (("A", A_fd, PA), ("B", B_fd, PB), ("H", H_fd, PH)):
+                assert np.all(np.abs(fd[~pattern]) <= 1e-9), f"{name}: {label} nonzero outside its pattern at x={x}, u={u}"
+    bicycle = KinematicBicycle(lf=0.9, lr=1.1).build(0.1)
+    PA, PB, PH = (np.asarray(p, dtype=bool) for p in bicycle.derivative_pattern())
+    # px' = px + dt v cos(theta + beta), py' = py + dt v sin(.), v' = v + dt a, theta' = theta + dt v sin(beta) / lr
+    assert PA.sum() == 9 and PB.sum() == 4 and PH.sum() == 8
+    assert not PH[2, 2] and PH[5, 5] and PB[2, 0] and not PB[2, 1]
+
+
 # ------------------------------------------------------------------------------------------------
 # Residual and Newton matrix of the solver
 T_RES = 4

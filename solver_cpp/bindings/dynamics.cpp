@@ -32,6 +32,14 @@ void bind_dynamics(py::module_& m) {
           },
           py::arg("x"), py::arg("u"), py::arg("lam"), "Returns d^2(lam' f)/d(x,u)^2 ordered [x; u].")
       .def(
+          "derivative_pattern",
+          [](const Dynamics& d) {
+            Pattern A, B, H;
+            d.derivative_pattern(A, B, H);
+            return py::make_tuple(A, B, H);
+          },
+          "Returns (A, B, H) boolean: the entries of df/dx, df/du and d^2(lam' f)/d(x,u)^2 that can be nonzero.")
+      .def(
           "control_domain",
           [](const Dynamics& d) {
             Vec lo(d.nu()), hi(d.nu());

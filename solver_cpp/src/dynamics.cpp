@@ -19,6 +19,18 @@ void LinearDynamics::eval(const CVecRef& x, const CVecRef& u, VecRef x_next, Mat
   B = B_;
 }
 
+void Dynamics::derivative_pattern(Pattern& A, Pattern& B, Pattern& H) const {
+  A.setConstant(nx(), nx(), true);
+  B.setConstant(nx(), nu(), true);
+  H.setConstant(nx() + nu(), nx() + nu(), true);
+}
+
+void LinearDynamics::derivative_pattern(Pattern& A, Pattern& B, Pattern& H) const {
+  A = A_.array() != 0.0;
+  B = B_.array() != 0.0;
+  H.setConstant(nx() + nu(), nx() + nu(), false);
+}
+
 std::shared_ptr<Dynamics> make_linear(const Mat& A, const Mat& B) { return std::make_shared<LinearDynamics>(A, B); }
 
 void steering_domain(VecRef lo, VecRef hi) {
@@ -64,6 +76,19 @@ void KinematicBicycle::eval(const CVecRef& x, const CVecRef& u, VecRef xn, MatRe
   B(1, 1) = dt_ * v * c * sl.db;
   B(2, 0) = dt_;
   B(3, 1) = dt_ * v * cb * sl.db / lr_;
+}
+
+void KinematicBicycle::derivative_pattern(Pattern& A, Pattern& B, Pattern& H) const {
+  // As eval and lambda_hessian write them; z = (px, py, v, theta, a, delta).
+  A.setConstant(4, 4, false);
+  A.diagonal().setConstant(true);
+  A(0, 2) = A(0, 3) = A(1, 2) = A(1, 3) = A(3, 2) = true;
+  B.setConstant(4, 2, false);
+  B(0, 1) = B(1, 1) = B(2, 0) = B(3, 1) = true;
+  H.setConstant(6, 6, false);
+  for (int r : {2, 3, 5})
+    for (int c : {2, 3, 5}) H(r, c) = true;
+  H(2, 2) = false;  // v enters each term linearly
 }
 
 void KinematicBicycle::lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& l, MatRef H) const {

@@ -7,12 +7,43 @@ void StageWorkspace::resize(int nx, int nu) {
   B = Mat::Zero(nx, nu);
   Hl = Mat::Zero(nx + nu, nx + nu);
   Huu = Mat::Zero(nu, nu);
-  Hc = Mat::Zero(nx, nx);
   fx = Vec::Zero(nx);
   Btl = Vec::Zero(nu);
   Atl = Vec::Zero(nx);
   gu = Vec::Zero(nu);
   gx = Vec::Zero(nx);
+}
+
+namespace {
+StagePattern::Entries entries_of(const Pattern& m, bool transposed) {
+  StagePattern::Entries e;
+  const int rows = static_cast<int>(transposed ? m.cols() : m.rows()), cols = static_cast<int>(transposed ? m.rows() : m.cols());
+  for (int r = 0; r < rows; ++r)
+    for (int c = 0; c < cols; ++c)
+      if (transposed ? m(c, r) : m(r, c)) e.push_back({r, c});
+  return e;
+}
+}  // namespace
+
+StagePattern::StagePattern(const Dynamics& f) {
+  const int nx = f.nx(), nu = f.nu();
+  Pattern a, b, h;
+  f.derivative_pattern(a, b, h);
+  Pattern huu = h.bottomRightCorner(nu, nu);
+  huu.diagonal().setConstant(true);
+  Huu = entries_of(huu, false);
+  Bt = entries_of(b, true);
+  B = entries_of(b, false);
+  Hux = entries_of(h.bottomLeftCorner(nu, nx), false);
+  Hxu = entries_of(h.topRightCorner(nx, nu), false);
+  Hxx = entries_of(h.topLeftCorner(nx, nx), false);
+  At = entries_of(a, true);
+  A = entries_of(a, false);
+}
+
+bool StagePattern::same_as(const StagePattern& o) const {
+  return Huu == o.Huu && Bt == o.Bt && B == o.B && Hux == o.Hux && Hxu == o.Hxu && Hxx == o.Hxx && At == o.At &&
+         A == o.A;
 }
 
 void control_cost_gradient(const QuadraticCost& cost, const Eigen::Ref<const Vec>& u_k, Eigen::Ref<Vec> g) {
@@ -26,9 +57,10 @@ void state_cost_gradient(const QuadraticCost& cost, int k, int T, const Eigen::R
   g = 2.0 * (qr.cwiseProduct(x_k - cost.reference(k)) + q.cwiseProduct(x_k));
 }
 
-void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& f, const QuadraticCost& cost,
-                     const LeadCost& lead, const Mat& x, const Mat& u, const Eigen::Ref<const Vec>& lk, Vec& r,
-                     std::vector<Eigen::Triplet<double>>* trip, StageWorkspace& w) {
+void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& f, const StagePattern& pattern,
+                     const QuadraticCost& cost, const LeadCost& lead, const Mat& x, const Mat& u,
+                     const Eigen::Ref<const Vec>& lk, Vec& r, std::vector<Eigen::Triplet<double>>* trip,
+                     StageWorkspace& w) {
   const int nx = L.nx, nu = L.nu;
   const int ru = L.col_u(i, k), rf = L.col_lam(i, k), rx1 = L.col_x(i, k + 1);
   if (trip) f.eval_with_hessian(x.col(k), u.col(k), lk, w.fx, w.A, w.B, w.Hl);
@@ -49,9 +81,8 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   }
   if (!trip) return;
 
-  auto add_block = [&](int r0, int c0, const auto& M) {
-    for (int a = 0; a < M.rows(); ++a)
-      for (int b = 0; b < M.cols(); ++b) trip->emplace_back(r0 + a, c0 + b, M(a, b));
+  auto add_entries = [&](int r0, int c0, const auto& M, const StagePattern::Entries& entries) {
+    for (const auto& e : entries) trip->emplace_back(r0 + e[0], c0 + e[1], M(e[0], e[1]));
   };
   auto add_neg_identity = [&](int r0, int c0, int n) {
     for (int a = 0; a < n; ++a) trip->emplace_back(r0 + a, c0 + a, -1.0);
@@ -59,23 +90,22 @@ void add_stage_terms(const StageLayout& L, int i, int k, int T, const Dynamics& 
   // rows dL/du_k
   w.Huu = w.Hl.bottomRightCorner(nu, nu);
   w.Huu.diagonal() += control_cost_hessian(cost);
-  add_block(ru, ru, w.Huu);
-  add_block(ru, rf, w.B.transpose());
+  add_entries(ru, ru, w.Huu, pattern.Huu);
+  add_entries(ru, rf, w.B.transpose(), pattern.Bt);
   // rows F_k
-  add_block(rf, ru, w.B);
+  add_entries(rf, ru, w.B, pattern.B);
   add_neg_identity(rf, rx1, nx);
   // rows dL/dx_{k+1}
   add_neg_identity(rx1, rf, nx);
-  w.Hc.setZero();
-  w.Hc.diagonal() = state_cost_hessian(cost, k + 1, T);
-  add_block(rx1, rx1, w.Hc);
+  const auto state_hessian = state_cost_hessian(cost, k + 1, T);  // the cost's Hessian in x_{k+1}: a diagonal
+  for (int a = 0; a < nx; ++a) trip->emplace_back(rx1 + a, rx1 + a, state_hessian[a]);
   if (k >= 1) {
     const int rxk = L.col_x(i, k);
-    add_block(ru, rxk, w.Hl.bottomLeftCorner(nu, nx));
-    add_block(rxk, ru, w.Hl.topRightCorner(nx, nu));
-    add_block(rxk, rxk, w.Hl.topLeftCorner(nx, nx));
-    add_block(rxk, rf, w.A.transpose());
-    add_block(rf, rxk, w.A);
+    add_entries(ru, rxk, w.Hl.bottomLeftCorner(nu, nx), pattern.Hux);
+    add_entries(rxk, ru, w.Hl.topRightCorner(nx, nu), pattern.Hxu);
+    add_entries(rxk, rxk, w.Hl.topLeftCorner(nx, nx), pattern.Hxx);
+    add_entries(rxk, rf, w.A.transpose(), pattern.At);
+    add_entries(rf, rxk, w.A, pattern.A);
   }
 }
 

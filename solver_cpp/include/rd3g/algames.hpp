@@ -68,6 +68,7 @@ class ALGamesSolver {
   Vec y_, y_trial_, G_, G_trial_, dy_;
   std::vector<Mat> X_, U_;
   StageLayout layout_;
+  std::vector<StagePattern> stage_patterns_;  // per agent: its model's Jacobian entries
   StageWorkspace stage_;
   Mat A_, B_;
   Vec fx_;

@@ -15,6 +15,7 @@ using Mat = Eigen::MatrixXd;
 using VecRef = Eigen::Ref<Vec>;
 using MatRef = Eigen::Ref<Mat>;
 using CVecRef = Eigen::Ref<const Vec>;
+using Pattern = Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic>;
 
 /// A discrete-time model. Implementations keep value and derivatives together in one place,
 /// and must not allocate in eval()/lambda_hessian() (the solver calls them in its hot loop).
@@ -35,6 +36,10 @@ class Dynamics {
     eval(x, u, x_next, A, B);
     lambda_hessian(x, u, lambda, H);
   }
+  /// Which entries of A (nx x nx), B (nx x nu) and H ((nx+nu) x (nx+nu), ordered [x; u]) can be nonzero at some
+  /// (x, u, lambda); every other entry must be exactly 0 everywhere. The Newton matrix holds only these (one pattern
+  /// per model, so its symbolic analyses are reused). Default: every entry.
+  virtual void derivative_pattern(Pattern& A, Pattern& B, Pattern& H) const;
   /// The open box lo < u < hi of controls on which the model is smooth (control units; +-inf: no limit, the
   /// default). The solver keeps its steps inside it (Settings::domain_fraction).
   virtual void control_domain(VecRef lo, VecRef hi) const {
@@ -55,6 +60,8 @@ class LinearDynamics final : public Dynamics {
   std::string name() const override { return "linear"; }
   void eval(const CVecRef& x, const CVecRef& u, VecRef x_next, MatRef A, MatRef B) const override;
   void lambda_hessian(const CVecRef&, const CVecRef&, const CVecRef&, MatRef H) const override { H.setZero(); }
+  /// A's and B's nonzero entries; H is zero.
+  void derivative_pattern(Pattern& A, Pattern& B, Pattern& H) const override;
   const Mat& A() const { return A_; }
   const Mat& B() const { return B_; }
 
@@ -73,6 +80,8 @@ class KinematicBicycle final : public Dynamics {
   std::string name() const override { return "kinematic_bicycle"; }
   void eval(const CVecRef& x, const CVecRef& u, VecRef x_next, MatRef A, MatRef B) const override;
   void lambda_hessian(const CVecRef& x, const CVecRef& u, const CVecRef& lambda, MatRef H) const override;
+  /// px and py enter linearly and a only in v': A has 9 entries, B 4, H 8 (among v, theta, delta).
+  void derivative_pattern(Pattern& A, Pattern& B, Pattern& H) const override;
   /// |delta| < pi/2: beta = atan(c tan(delta)) jumps by pi there (sin(beta) from +1 to -1).
   void control_domain(VecRef lo, VecRef hi) const override { steering_domain(lo, hi); }
   double lf() const { return lf_; }

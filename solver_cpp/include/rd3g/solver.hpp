@@ -373,6 +373,7 @@ class Solver {
   // buffers (allocated in setup)
   Iterate y_, trial_, best_, best_seen_;
   StageLayout layout_;
+  std::vector<StagePattern> stage_patterns_;  // per agent: its model's Jacobian entries (set up and on update)
   StageWorkspace stage_;
   Mat fx_, Atmp_, Btmp_;
   Vec dom_lo_, dom_hi_;  // one agent's control domain (domain_box)

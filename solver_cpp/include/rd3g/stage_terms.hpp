@@ -4,6 +4,7 @@
 // each adds its constraint terms on top.
 #pragma once
 #include <Eigen/Sparse>
+#include <array>
 #include <vector>
 
 #include "rd3g/dynamics.hpp"
@@ -20,10 +21,20 @@ struct StageLayout {
   int col_x(int i, int k) const { return col_u(i, k - 1) + nu + nx; }  // k = 1..T
 };
 
+/// The Jacobian entries add_stage_terms emits for one agent's stage: its model's derivative pattern
+/// (Dynamics::derivative_pattern) as (row, col) lists of each block, row-major; the control block also holds its
+/// diagonal (the cost's R), and the state block's diagonal (the cost's Q) is emitted besides these.
+struct StagePattern {
+  using Entries = std::vector<std::array<int, 2>>;
+  Entries Huu, Bt, B, Hux, Hxu, Hxx, At, A;  // Bt, At: B' and A' (rows u and x, columns lambda)
+  explicit StagePattern(const Dynamics& f);
+  bool same_as(const StagePattern& o) const;
+};
+
 /// Scratch space of add_stage_terms (and of the cost gradients Solver::cost_gradient_norm sums), sized once (no
 /// allocation per stage).
 struct StageWorkspace {
-  Mat A, B, Hl, Huu, Hc;
+  Mat A, B, Hl, Huu;
   Vec fx;
   Vec Btl, Atl;  // B' lambda_k and A' lambda_k (products into these instead of temporaries: no allocation)
   Vec gu, gx;    // cost gradients in u_k and x_{k+1}
@@ -50,11 +61,12 @@ inline auto state_cost_hessian(const QuadraticCost& cost, int k, int T) {
 inline double lead_gradient(const LeadCost& lead, int N) { return N > 1 ? -lead.weight * (N - 1) : 0.0; }
 
 /// Adds agent i's terms of stage k (0..T-1) to the residual r (rows of the layout; r must be zero there
-/// before stage 0, and the stage-k terms of x_k are added at stage k) and, if trip, the Jacobian's triplets
-/// (dense blocks, explicit zeros included, so the pattern depends only on the sizes). x: nx x (T+1) with
-/// column k = x_k, u: nu x T, lam_k: the dynamics multiplier of stage k.
-void add_stage_terms(const StageLayout& layout, int i, int k, int T, const Dynamics& f, const QuadraticCost& cost,
-                     const LeadCost& lead, const Mat& x, const Mat& u, const Eigen::Ref<const Vec>& lam_k, Vec& r,
-                     std::vector<Eigen::Triplet<double>>* trip, StageWorkspace& w);
+/// before stage 0, and the stage-k terms of x_k are added at stage k) and, if trip, the Jacobian's triplets: the
+/// entries of pattern (f's), explicit zeros included, so the Newton matrix's pattern depends only on the models.
+/// x: nx x (T+1) with column k = x_k, u: nu x T, lam_k: the dynamics multiplier of stage k.
+void add_stage_terms(const StageLayout& layout, int i, int k, int T, const Dynamics& f, const StagePattern& pattern,
+                     const QuadraticCost& cost, const LeadCost& lead, const Mat& x, const Mat& u,
+                     const Eigen::Ref<const Vec>& lam_k, Vec& r, std::vector<Eigen::Triplet<double>>* trip,
+                     StageWorkspace& w);
 
 }  // namespace rd3g
