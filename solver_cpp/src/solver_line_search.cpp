@@ -71,7 +71,7 @@ double Solver::line_search(double merit0) {
     eval_all_constraints(trial_, h_trial_);
     if (violation_sum(h_trial_) > hsum + 1e-12) {
       if (settings_.verbose) std::printf("   t %.2e rejected: violation %.3e > %.3e\n", t, violation_sum(h_trial_), hsum);
-      t = rho_ < settings_.barrier.rho_init ? std::max(beta * t, kFractionToBoundary * step_to_first_crossing(t)) : beta * t;
+      t = rules_.backtrack_to_crossing && rho_ < settings_.barrier.rho_init ? std::max(beta * t, kFractionToBoundary * step_to_first_crossing(t)) : beta * t;
       continue;
     }
     if (!evaluate(trial_, h_trial_, false, r_trial_, rc_trial_)) {

@@ -342,6 +342,7 @@ class Solver {
     double rho_progress = 0;
     int violation_memory = 1;
     bool rho_on_stall = false;
+    bool backtrack_to_crossing = false;  // attempt 0's (line_search.cpp, step_to_first_crossing)
   };
   AttemptRules rules_;
 
