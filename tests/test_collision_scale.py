@@ -53,7 +53,8 @@ def test_an_agent_pulled_onto_an_obstacle_ends_on_the_same_ellipse(scale):
     fixed = Obstacle(positions=np.zeros((T + 1, 2)), min_distance=D_MIN)
     result = solve(_pulled([(3.0, 0.2)], scale, [fixed]))
     assert result.status == "converged"
-    assert np.abs(result.x[0, -1]) == pytest.approx(_nearest_gap(scale), abs=1e-4)
+    # To the solve's accuracy (it stops at a residual norm of 5e-4); the far vertex is 0.5 m away.
+    assert np.abs(result.x[0, -1]) == pytest.approx(_nearest_gap(scale), abs=1e-3)
 
 
 @pytest.mark.parametrize("scale, message", [([0.5] * (T - 1), "collision.pos_x_scale must be empty or 6 numbers"),

@@ -101,13 +101,15 @@ def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
     """The C++ sweeps (the best-response restart's) against single-agent games built here with the Python API: agent
     i alone, the problem's obstacles plus the others' current rolled-out positions as moving discs at (1 + margin)
     d_min, solved from its current controls with the sub-solve settings (best_response_max_iter iterations, one
-    restart, no best response of its own), agents in order, each new plan rolled out before the next agent solves.
-    Three cars head-on, two rounds: every agent's sub-problem has two moving obstacles and the second round starts
-    from the first one's plans."""
+    restart, no best response or passing-order search of its own, no relative stationarity test), agents in order,
+    each new plan rolled out before the next agent solves. Three cars head-on, two rounds: every agent's sub-problem
+    has two moving obstacles and the second round starts from the first one's plans. Every solve here converges in
+    its first attempt; a game solve's line search backtracks to just before a crossing where a sub-solve's halves
+    (docs/solver.md), so the two agree to the solves' accuracy, not bit for bit."""
     from solver_cpp import GameProblem, Obstacle, WarmStart, solve
     from solver_cpp.best_response import best_response_guess
 
-    problem = family_problem("head-on", 3, 0)
+    problem = family_problem("head-on", 3, 1)
     N, T, nu = problem.num_agents, problem.horizon, problem.agents[0].dynamics.nu
     col = problem.collision
     margin = 0.15  # the others are kept at (1 + margin) d_min
@@ -119,13 +121,14 @@ def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
                       for j in range(N) if j != i]
             alone = GameProblem(dt=problem.dt, horizon=T, agents=[problem.agents[i]], collision=col,
                                 obstacles=list(problem.obstacles) + others)
-            r = solve(alone, warm_start=WarmStart(u=u[i:i + 1]), max_iter=100, restart=dict(count=1), best_response=dict(rounds=0))
-            assert np.all(np.isfinite(r.u))
+            r = solve(alone, warm_start=WarmStart(u=u[i:i + 1]), max_iter=100, restart=dict(count=1),
+                      best_response=dict(rounds=0), order=dict(candidates=0), stationarity_tol=0)
+            assert r.status == "converged" and r.attempts == 1
             u[i] = r.u[0]
             x = problem.rollout(u)
     guess = best_response_guess(problem, rounds=2, best_response=dict(margin=margin))
     assert np.abs(u).max() > 0.1  # the sub-solves moved the cars
-    np.testing.assert_allclose(guess.u, u, atol=1e-9, rtol=0)
+    np.testing.assert_allclose(guess.u, u, atol=1e-2, rtol=0)
 
 
 def test_best_response_sub_solvers_follow_updates():
