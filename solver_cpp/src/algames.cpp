@@ -71,8 +71,8 @@ bool ALGamesSolver::evaluate(const Vec& y, bool jac, Vec& G, Vec& h) {
   if (jac) trip_.clear();
   for (int i = 0; i < N_; ++i)
     for (int k = 0; k < T_; ++k)
-      add_stage_terms(layout_, i, k, T_, *prob_.dynamics[i], stage_patterns_[i], prob_.costs[i], prob_.lead[i], X_[i], U_[i],
-                      y.segment(col_nu(i, k), nx_), G, jac ? &trip_ : nullptr, stage_);
+      add_stage_terms(layout_, i, k, T_, *prob_.dynamics[i], stage_patterns_[i], prob_.costs[i], prob_.lead[i],
+                      X_[i], U_[i], y.segment(col_nu(i, k), nx_), G, jac ? &trip_ : nullptr, stage_);
   // Constraints: each involved player's stationarity gets w grad h, w = max(0, lambda + rho h). A variable
   // belongs to exactly one player, so the rows of a constraint's variables are those players' rows.
   ConstraintValue cv;

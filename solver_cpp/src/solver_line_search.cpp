@@ -12,7 +12,7 @@ namespace rd3g {
 
 namespace {
 // Fixed constants (settings before; never set by any caller): the primal-dual barrier keeps z >= (1 - 0.99) z along a
-// step (IPOPT's fraction to the boundary); Levenberg-Marquardt's nu = 1e-6 10^q ||r||, and its tries compete with an
+// step (IPOPT's fraction to the boundary), and a step backtracked to a crossing stops at 0.99 of it; Levenberg-Marquardt's nu = 1e-6 10^q ||r||, and its tries compete with an
 // accepted Newton step shorter than t = 0.01.
 constexpr double kFractionToBoundary = 0.99;
 constexpr double kLmNuInit = 1e-6;
@@ -44,7 +44,8 @@ void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out)
 
 // Backtracking line search (paper, Algorithm 1), with the partition and rho of this iteration:
 // accept t when ||r(y + t dy)|| <= (1 - alpha t) ||r(y)|| and the total violation does not exceed the
-// largest of the last violation_memory iterates' (1: does not grow).
+// largest of the last violation_memory iterates' (1: does not grow). A rejected t shrinks by beta, or after a trial
+// that crossed constraints, in the game's attempts once rho has fallen, to just before the first crossing.
 double Solver::line_search(double merit0) {
   double hsum = violation_sum(h_);
   const int mem = std::min<int>(rules_.violation_memory, static_cast<int>(violations_.size()));
@@ -71,7 +72,8 @@ double Solver::line_search(double merit0) {
     eval_all_constraints(trial_, h_trial_);
     if (violation_sum(h_trial_) > hsum + 1e-12) {
       if (settings_.verbose) std::printf("   t %.2e rejected: violation %.3e > %.3e\n", t, violation_sum(h_trial_), hsum);
-      t = rules_.backtrack_to_crossing && rho_ < settings_.barrier.rho_init ? std::max(beta * t, kFractionToBoundary * step_to_first_crossing(t)) : beta * t;
+      const bool to_crossing = rules_.backtrack_to_crossing && rho_ < settings_.barrier.rho_init;
+      t = to_crossing ? std::max(beta * t, kFractionToBoundary * step_to_first_crossing(t)) : beta * t;
       continue;
     }
     if (!evaluate(trial_, h_trial_, false, r_trial_, rc_trial_)) {

@@ -108,8 +108,8 @@ bool Solver::evaluate(const Iterate& y, const Vec& h, bool jac, Vec& r, Vec& rc)
   }
   for (int i = 0; i < N_; ++i)
     for (int k = 0; k < T_; ++k)
-      add_stage_terms(layout_, i, k, T_, *prob_.dynamics[i], stage_patterns_[i], prob_.costs[i], prob_.lead[i], y.x[i], y.u[i],
-                      y.lam[i].col(k), r, jac ? &trip_ : nullptr, stage_);
+      add_stage_terms(layout_, i, k, T_, *prob_.dynamics[i], stage_patterns_[i], prob_.costs[i], prob_.lead[i],
+                      y.x[i], y.u[i], y.lam[i].col(k), r, jac ? &trip_ : nullptr, stage_);
   // Constraints: equality rows + multiplier columns (Active), barrier terms (Barrier), nothing (Free).
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c)
     if (state_[c] != ConstraintState::Free && !add_constraint_terms(y, c, jac, r, rc)) return false;

@@ -51,7 +51,7 @@ class StageRiccati {
   /// (its value is checked instead), or is &discarded_ for a multiplier row or column (the Schur complement's).
   bool decode(int row, int col, double*& dest);
   /// The destinations of the last factorisation's triplets, in their order: the assembly emits the stage terms
-  /// first, in an order fixed by the sizes, so most of the plan holds from one Newton step to the next and the
+  /// first, in an order fixed by the models, so most of the plan holds from one Newton step to the next and the
   /// scatter skips the decoding.
   struct PlannedEntry {
     int row, col;

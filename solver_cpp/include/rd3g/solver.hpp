@@ -337,12 +337,13 @@ class Solver {
   double rho_ = 0;
   BarrierMode barrier_ = BarrierMode::PrimalDual;  // barrier form of the current attempt
   /// Globalisation rules of the current attempt (start_attempt): barrier.rho_progress and
-  /// line_search.violation_memory (rho never lowered on a stall) in attempt 0, the restart group's in later attempts.
+  /// line_search.violation_memory (rho never lowered on a stall) in attempt 0, the restart group's in later attempts;
+  /// the backtracking to just before a crossing in every attempt of the game itself.
   struct AttemptRules {
     double rho_progress = 0;
     int violation_memory = 1;
     bool rho_on_stall = false;
-    bool backtrack_to_crossing = false;  // attempt 0's (line_search.cpp, step_to_first_crossing)
+    bool backtrack_to_crossing = false;  // in the game's attempts, not its sub-solves (step_to_first_crossing)
   };
   AttemptRules rules_;
 
