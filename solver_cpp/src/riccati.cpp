@@ -143,7 +143,7 @@ bool StageRiccati::decode(int row, int col, double*& dest) {
   return true;
 }
 
-bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
+bool StageRiccati::scatter(const std::vector<Eigen::Triplet<double>>& trip) {
   // Fx, Fu, Rul and Qxl never receive an entry across agents (the scatter declines first): their off-diagonal blocks
   // stay zero from setup, and only the diagonal blocks are cleared.
   auto zero_diagonal_blocks = [&](Eigen::MatrixXd& m, int br, int bc) {
@@ -175,6 +175,11 @@ bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
     if (dest) *dest += t.value();
     else if (t.value() != -1.0) return false;
   }
+  return true;
+}
+
+bool StageRiccati::factor(const std::vector<Eigen::Triplet<double>>& trip) {
+  if (!scatter(trip)) return false;
   // Terminal: -lambda_{T-1} + Qxx_T x_T = h_T  =>  lambda_{T-1} = Qxx_T x_T - h_T.
   P_[T_ - 1] = Qxx_[T_ - 1];
   for (int k = T_ - 1; k >= 0; --k) {

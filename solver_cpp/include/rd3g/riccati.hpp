@@ -29,6 +29,8 @@ class StageRiccati {
  private:
   /// Stage blocks of the primal-primal triplets and the rhs-independent part of the recursion.
   bool factor(const std::vector<Eigen::Triplet<double>>& trip);
+  /// The stage blocks from the triplets (through the plan); false if the primal block lacks the stage structure.
+  bool scatter(const std::vector<Eigen::Triplet<double>>& trip);
   /// out = -K^{-1} b for the primal block K factored last (b, out of length n_primal).
   void back_substitute(const Eigen::Ref<const Eigen::VectorXd>& b, Eigen::Ref<Eigen::VectorXd> out);
   void stage_segment(const Eigen::Ref<const Eigen::VectorXd>& b, int k, int kind, Eigen::VectorXd& out) const;
