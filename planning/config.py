@@ -111,9 +111,13 @@ class PlannerConfig:
     # the 15 iterations went into the three barrier reductions; 1e-4 and below stalled: the barrier duals
     # start at zero). The same rules in every attempt (restart_*) and from a deeply overlapping start (deep_overlap
     # > 1: never switched): with the solver's default restart rules and deep_overlap 0.5, `python -m app race` took
-    # 11 fallbacks instead of 10, and tests/test_planning.py's closed loop behind a car left the track.
+    # 11 fallbacks instead of 10, and tests/test_planning.py's closed loop behind a car left the track. Plain
+    # halving backtracking (to_crossing off): with the backtracking to just before a crossing, a warm plan on the
+    # oval's curve in tests/test_planning.py ended unusable and its fallback left the track limits; not measured
+    # on races.
     solver: dict = field(default_factory=lambda: dict(
-        max_iter=15, barrier=dict(rho_progress=1.0, rho_init=0.001), line_search=dict(max_steps=8, lm_tries=0),
+        max_iter=15, barrier=dict(rho_progress=1.0, rho_init=0.001),
+        line_search=dict(max_steps=8, lm_tries=0, to_crossing=False),
         restart=dict(count=0, deep_overlap=2.0, rho_progress=1.0, violation_memory=1, rho_on_stall=False)))
     # The first (cold) plan, computed before the start outside the real-time budget: `solver` with these
     # overrides; None = the solver's own default (here its full globalisation: restarts, Levenberg-Marquardt

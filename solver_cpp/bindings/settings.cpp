@@ -19,7 +19,7 @@ void bind_settings(py::module_& m) {
       RW(BarrierSettings, margin);
   py::class_<LineSearchSettings>(m, "LineSearchSettings").def(py::init<>())
       RW(LineSearchSettings, alpha) RW(LineSearchSettings, beta) RW(LineSearchSettings, max_steps)
-      RW(LineSearchSettings, violation_memory) RW(LineSearchSettings, lm_tries);
+      RW(LineSearchSettings, violation_memory) RW(LineSearchSettings, lm_tries) RW(LineSearchSettings, to_crossing);
   py::class_<LinearSettings>(m, "LinearSettings").def(py::init<>())
       RW(LinearSettings, solver) RW(LinearSettings, lscg_tol)
       RW(LinearSettings, lscg_max_iter);

@@ -276,7 +276,8 @@ void Solver::use_rules(bool restart_rules) {
   rules_.rho_progress = restart_rules ? settings_.restart.rho_progress : settings_.barrier.rho_progress;
   rules_.violation_memory = restart_rules ? settings_.restart.violation_memory : settings_.line_search.violation_memory;
   rules_.rho_on_stall = restart_rules && settings_.restart.rho_on_stall;
-  rules_.backtrack_to_crossing = role_ == Role::Game;  // not in the sub-solves that build guesses (docs/solver.md)
+  // Not in the sub-solves that build guesses (docs/solver.md).
+  rules_.backtrack_to_crossing = role_ == Role::Game && settings_.line_search.to_crossing;
 }
 
 void Solver::roll_out(Iterate& y, int i) {

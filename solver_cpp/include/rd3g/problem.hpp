@@ -156,6 +156,11 @@ struct LineSearchSettings {
   /// (the first that passes the line search is taken). After a Newton step shorter than t = 0.01 they compete
   /// with it instead: q from lm_tries-1 down while the merit keeps falling, the best step taken. 0 = off.
   int lm_tries = 4;
+  /// After a trial t that crosses constraints satisfied at the current point, once rho has fallen below
+  /// barrier.rho_init, the next trial is the larger of beta t and 0.99 of the secant estimate of the first crossing
+  /// (docs/solver.md, "Backtracking to just before a crossing"); false = beta t, the paper's. In the game's own
+  /// attempts only, not in its best-response and passing-order sub-solves.
+  bool to_crossing = true;
 };
 
 /// The Newton system's linear solver (Settings::linear).
