@@ -24,8 +24,7 @@ void ALGamesSolver::setup(const Problem& problem, const ALGamesSettings& s) {
   nx_ = prob_.dynamics[0]->nx();
   nu_ = prob_.dynamics[0]->nu();
   layout_ = StageLayout{N_, nx_, nu_};
-  stage_patterns_.clear();
-  for (const auto& f : prob_.dynamics) stage_patterns_.emplace_back(*f);
+  stage_patterns_ = stage_patterns(prob_.dynamics);
   n_vars_ = N_ * T_ * stage_size();
   cons_ = list_constraints(prob_, s.bounds);
   const int C = static_cast<int>(cons_.size());

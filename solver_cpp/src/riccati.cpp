@@ -156,6 +156,11 @@ bool StageRiccati::scatter(const std::vector<Eigen::Triplet<double>>& trip) {
   }
   // The triplets that match the plan's (row, col) go to the destinations found when they were last decoded; from the
   // first that does not, the rest are decoded and the plan is rewritten. The same sums in the same order either way.
+  auto add = [](double* dest, double v) {  // false for a -I block entry that is not -1
+    if (!dest) return v == -1.0;
+    *dest += v;
+    return true;
+  };
   const size_t n = trip.size();
   const size_t planned = std::min(n, plan_.size());
   size_t j = 0;
@@ -163,8 +168,7 @@ bool StageRiccati::scatter(const std::vector<Eigen::Triplet<double>>& trip) {
     const auto& t = trip[j];
     const PlannedEntry& e = plan_[j];
     if (e.row != t.row() || e.col != t.col()) break;
-    if (e.dest) *e.dest += t.value();
-    else if (t.value() != -1.0) return false;
+    if (!add(e.dest, t.value())) return false;
   }
   plan_.resize(j);
   for (; j < n; ++j) {
@@ -172,8 +176,7 @@ bool StageRiccati::scatter(const std::vector<Eigen::Triplet<double>>& trip) {
     double* dest = nullptr;
     if (!decode(t.row(), t.col(), dest)) return false;
     plan_.push_back({t.row(), t.col(), dest});
-    if (dest) *dest += t.value();
-    else if (t.value() != -1.0) return false;
+    if (!add(dest, t.value())) return false;
   }
   return true;
 }

@@ -39,8 +39,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
   nu_ = prob_.dynamics[0]->nu();
   per_agent_multipliers_ = s.linear.solver == LinearSolver::LSCG || s.linear.solver == LinearSolver::SparseQR;
   layout_ = StageLayout{N_, nx_, nu_};
-  stage_patterns_.clear();
-  for (const auto& f : prob_.dynamics) stage_patterns_.emplace_back(*f);
+  stage_patterns_ = stage_patterns(prob_.dynamics);
   n_primal_ = N_ * T_ * stage_size();
 
   // Buffers that depend only on the sizes.
@@ -225,13 +224,14 @@ void Solver::update(const Problem& p) {
   for (int i = 0; i < N_; ++i)
     same = same && same_finite_pattern(q.u_min[i], prob_.u_min[i]) && same_finite_pattern(q.u_max[i], prob_.u_max[i]) &&
            same_finite_pattern(q.x_min[i], prob_.x_min[i]) && same_finite_pattern(q.x_max[i], prob_.x_max[i]);
-  prob_ = std::move(q);
   for (int i = 0; i < N_; ++i) {
-    StagePattern pattern(*prob_.dynamics[i]);
+    if (q.dynamics[i] == prob_.dynamics[i]) continue;  // the same model object (a per-step update keeps it)
+    StagePattern pattern(*q.dynamics[i]);
     if (pattern.same_as(stage_patterns_[i])) continue;
-    stage_patterns_[i] = std::move(pattern);  // another model: the Newton matrix's pattern changes
+    stage_patterns_[i] = std::move(pattern);  // another model's pattern: the Newton matrix's pattern changes
     lu_analyzed_ = lm_analyzed_ = false;
   }
+  prob_ = std::move(q);
   if (!same) {
     list_and_allocate();
     ++setups_;

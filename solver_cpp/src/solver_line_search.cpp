@@ -12,8 +12,9 @@ namespace rd3g {
 
 namespace {
 // Fixed constants (settings before; never set by any caller): the primal-dual barrier keeps z >= (1 - 0.99) z along a
-// step (IPOPT's fraction to the boundary), and a step backtracked to a crossing stops at 0.99 of it; Levenberg-Marquardt's nu = 1e-6 10^q ||r||, and its tries compete with an
-// accepted Newton step shorter than t = 0.01.
+// step (IPOPT's fraction to the boundary), and a step backtracked to a crossing stops at 0.99 of it;
+// Levenberg-Marquardt's nu = 1e-6 10^q ||r||, and its tries compete with an accepted Newton step shorter than
+// t = 0.01.
 constexpr double kFractionToBoundary = 0.99;
 constexpr double kLmNuInit = 1e-6;
 constexpr double kLmBelowStep = 1e-2;

@@ -17,7 +17,8 @@ void StageWorkspace::resize(int nx, int nu) {
 namespace {
 StagePattern::Entries entries_of(const Pattern& m, bool transposed) {
   StagePattern::Entries e;
-  const int rows = static_cast<int>(transposed ? m.cols() : m.rows()), cols = static_cast<int>(transposed ? m.rows() : m.cols());
+  const int rows = static_cast<int>(transposed ? m.cols() : m.rows());
+  const int cols = static_cast<int>(transposed ? m.rows() : m.cols());
   for (int r = 0; r < rows; ++r)
     for (int c = 0; c < cols; ++c)
       if (transposed ? m(c, r) : m(r, c)) e.push_back({r, c});
@@ -44,6 +45,12 @@ StagePattern::StagePattern(const Dynamics& f) {
 bool StagePattern::same_as(const StagePattern& o) const {
   return Huu == o.Huu && Bt == o.Bt && B == o.B && Hux == o.Hux && Hxu == o.Hxu && Hxx == o.Hxx && At == o.At &&
          A == o.A;
+}
+
+std::vector<StagePattern> stage_patterns(const std::vector<std::shared_ptr<const Dynamics>>& dynamics) {
+  std::vector<StagePattern> out;
+  for (const auto& f : dynamics) out.emplace_back(*f);
+  return out;
 }
 
 void control_cost_gradient(const QuadraticCost& cost, const Eigen::Ref<const Vec>& u_k, Eigen::Ref<Vec> g) {

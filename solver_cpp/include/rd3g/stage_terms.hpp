@@ -5,6 +5,7 @@
 #pragma once
 #include <Eigen/Sparse>
 #include <array>
+#include <memory>
 #include <vector>
 
 #include "rd3g/dynamics.hpp"
@@ -30,6 +31,9 @@ struct StagePattern {
   explicit StagePattern(const Dynamics& f);
   bool same_as(const StagePattern& o) const;
 };
+
+/// One StagePattern per agent's model.
+std::vector<StagePattern> stage_patterns(const std::vector<std::shared_ptr<const Dynamics>>& dynamics);
 
 /// Scratch space of add_stage_terms (and of the cost gradients Solver::cost_gradient_norm sums), sized once (no
 /// allocation per stage).
