@@ -67,10 +67,22 @@ def test_squared_length_gradient_matches_finite_differences():
 def test_bending_jacobian_matches_finite_differences():
     points, normals, offsets = ring_samples(3)
     n = len(offsets)
-    _, jac = bending_residuals(offsets, points, normals, jacobian=True)
+    _, bands = bending_residuals(offsets, points, normals, jacobian=True)
+    i = np.arange(n)
+    jac = np.zeros((n, n))
+    for k, shift in enumerate((-1, 0, 1)):
+        jac[i, (i + shift) % n] = bands[:, k]
     numeric = np.array([approx_fprime(offsets, lambda a, i=i: bending_residuals(a, points, normals)[i], 1e-7)
                         for i in range(n)])
     assert jac == pytest.approx(numeric, abs=1e-5 * np.abs(jac).max())
+
+
+def test_bending_energy_gradient_matches_finite_differences():
+    points, normals, offsets = ring_samples(5)
+    energy, grad = rl._bending_energy(offsets, points, normals)
+    assert energy == pytest.approx(np.sum(bending_residuals(offsets, points, normals) ** 2))
+    numeric = approx_fprime(offsets, lambda a: rl._bending_energy(a, points, normals)[0], 1e-7)
+    assert grad == pytest.approx(numeric, abs=1e-5 * np.abs(grad).max())
 
 
 def test_speed_profile_of_straight_and_turn_is_analytic():
@@ -152,3 +164,24 @@ def test_racing_line_is_recorded_as_a_static_strip(tmp_path):
     assert len(strips) == len(line.s)
     # On the annulus the line is the circle of radius R - (w/2 - 0.1) about the origin.
     assert np.hypot(starts[:, 0], starts[:, 1]) == pytest.approx(np.full(len(starts), R - (WIDTH / 2 - 0.1)), abs=3e-3)
+
+
+_LINE_DIGEST = ("import hashlib, json; from tracks import load_track; from tests.test_racing_line import limits; "
+                "from tracks.racing_line import compute_racing_line; "
+                "line = compute_racing_line(load_track('oval'), limits(half_width_m=0.06, margin_m=0.02)); "
+                "print(hashlib.sha256(json.dumps(line.to_json()).encode()).hexdigest())")
+
+
+def test_the_line_is_the_same_on_one_and_two_blas_threads():
+    """One cache key must hold one line: the optimiser's BLAS calls round differently per thread count, so the
+    line is computed on one thread whatever the process runs on (without that the oval's line differs here)."""
+    import os
+    import subprocess
+    import sys
+    digests = set()
+    for threads in ("1", "2"):
+        env = dict(os.environ, OPENBLAS_NUM_THREADS=threads)
+        out = subprocess.run([sys.executable, "-c", _LINE_DIGEST], env=env, capture_output=True, text=True, check=True,
+                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        digests.add(out.stdout.strip())
+    assert len(digests) == 1

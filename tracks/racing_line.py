@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
+from threadpoolctl import threadpool_limits
 
 import fileio
 
@@ -48,7 +49,7 @@ from .track import Track
 
 GRAVITY_MPS2 = 9.81
 # Bumped whenever the line or profile computed for the same inputs changes, so old cache files are not reused.
-ALGORITHM_VERSION = 4
+ALGORITHM_VERSION = 5
 DEFAULT_CACHE_DIR = Path(__file__).resolve().parents[1] / "runs" / "cache" / "racing_lines"
 CACHE_ENV = "RD3G_RACING_LINE_CACHE"   # overrides DEFAULT_CACHE_DIR
 _OPTIMISATION_STEP_M = 0.1    # centre-line spacing of the optimised offsets
@@ -115,7 +116,8 @@ def bending_residuals(offsets: np.ndarray, points: np.ndarray, normals: np.ndarr
     """Residuals ``r_i = phi_i / sqrt(m_i)`` of the closed polygon ``points + offsets * normals``,
     whose squares sum to its discrete bending energy (an integral of curvature^2 over arc length,
     1/m): phi_i is the turning angle at vertex i and m_i = (|e_{i-1}| + |e_i|) / 2. With
-    ``jacobian``, also d r / d offsets (dense n x n; r_i depends on offsets i-1, i, i+1 only)."""
+    ``jacobian``, also d r / d offsets as its three cyclic bands (n x 3): column 0 is d r_i / d offset_{i-1},
+    1 d r_i / d offset_i, 2 d r_i / d offset_{i+1} (r_i depends on no other offset)."""
     p = points + offsets[:, None] * normals
     a = p - np.roll(p, 1, axis=0)        # edge into vertex i
     b = np.roll(p, -1, axis=0) - p       # edge out of vertex i
@@ -136,18 +138,18 @@ def bending_residuals(offsets: np.ndarray, points: np.ndarray, normals: np.ndarr
     dr_da = w_phi * dphi_da + w_m * a / la[:, None]
     dr_db = w_phi * dphi_db + w_m * b / lb[:, None]
     # a_i = p_i - p_{i-1} and b_i = p_{i+1} - p_i; each point moves along its normal.
-    n = len(offsets)
-    i = np.arange(n)
-    jac = np.zeros((n, n))
-    np.add.at(jac, (i, (i - 1) % n), -np.sum(dr_da * np.roll(normals, 1, axis=0), axis=1))
-    np.add.at(jac, (i, i), np.sum((dr_da - dr_db) * normals, axis=1))
-    np.add.at(jac, (i, (i + 1) % n), np.sum(dr_db * np.roll(normals, -1, axis=0), axis=1))
-    return r, jac
+    bands = np.column_stack([-np.sum(dr_da * np.roll(normals, 1, axis=0), axis=1),
+                             np.sum((dr_da - dr_db) * normals, axis=1),
+                             np.sum(dr_db * np.roll(normals, -1, axis=0), axis=1)])
+    return r, bands
 
 
 def _bending_energy(offsets: np.ndarray, points: np.ndarray, normals: np.ndarray):
-    r, jac = bending_residuals(offsets, points, normals, jacobian=True)
-    return float(r @ r), 2.0 * (jac.T @ r)
+    """The bending energy and its gradient, 2 J' r summed band by band: elementwise, so the same bits
+    whatever BLAS and its thread count (a dense J' r through a threaded gemv rounds differently)."""
+    r, bands = bending_residuals(offsets, points, normals, jacobian=True)
+    grad = bands[:, 1] * r + np.roll(bands[:, 2] * r, 1) + np.roll(bands[:, 0] * r, -1)
+    return float(np.sum(r * r)), 2.0 * grad
 
 
 def squared_length(offsets: np.ndarray, points: np.ndarray, normals: np.ndarray):
@@ -328,6 +330,14 @@ def compute_racing_line(track: Track, limits: RacingLineLimits) -> RacingLine:
     from the previous one's offsets), the one of the shortest lap time at ``limits``."""
     if not track.closed:
         raise RacingLineError(f"{track.name}: a racing line needs a closed track")
+    # L-BFGS-B's BLAS calls round differently on 1 and 2 OpenBLAS threads, and its 1000-odd iterations
+    # amplify that into lines that differ by micrometres: one cache key would hold whichever line the first
+    # process computed (`python -m app` runs BLAS on one thread, a bare `import planning` on every core).
+    with threadpool_limits(limits=1):
+        return _compute_racing_line(track, limits)
+
+
+def _compute_racing_line(track: Track, limits: RacingLineLimits) -> RacingLine:
     n = max(32, int(math.ceil(track.length / _OPTIMISATION_STEP_M)))
     s_opt = np.arange(n) * (track.length / n)
     bound = 0.5 * track.width(s_opt) - limits.half_width_m - limits.margin_m
