@@ -24,8 +24,9 @@ constexpr double kBoundedStartFraction = 0.6;
 }  // namespace
 
 bool Solver::domain_rescue_enabled() const {
-  // Not in receding-horizon solves (no restarts), nor without a domain box, nor in their own nested solvers.
-  return settings_.domain_fraction > 0 && settings_.restart.count > 0 && role_ != Role::BoundedGame;
+  // Not in receding-horizon solves (no restarts), nor without a domain box, nor in the nested solvers: a bounded
+  // game's, and a sub-solve's, whose controls are a guess and are kept as they end, at a domain edge or not.
+  return settings_.domain_fraction > 0 && settings_.restart.count > 0 && role_ == Role::Game;
 }
 
 bool Solver::domain_rescue_wanted(const Info& info) const {
@@ -68,12 +69,9 @@ bool Solver::bounded_problem(Problem* p, double fraction) {
 void Solver::prepare_domain_rescue() {
   const bool enabled = domain_rescue_enabled();
   domain_game_ = enabled && bounded_problem(nullptr, 1.0);
-  start_game_ = enabled && role_ == Role::Game && bounded_problem(nullptr, kBoundedStartFraction);
+  start_game_ = enabled && bounded_problem(nullptr, kBoundedStartFraction);
   bounded_stale_ = true;
   if (!domain_game_ && !start_game_) bounded_solver_.reset();
-  // A sub-solver is itself set up only on a rescue's path, and its budget is changed between its solves: its nested
-  // solver is set up now, with this budget.
-  else if (role_ == Role::SubSolve) set_up_bounded_games();
 }
 
 void Solver::set_up_bounded_games() {
