@@ -84,10 +84,11 @@ def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw()
     from solver_cpp import GameProblem, Obstacle
     from solver_cpp.best_response import best_response_guess
 
-    # Seed 1: the sub-solves converge within best_response_max_iter (at seed 0 with domain_fraction 0.99 agent 1's
-    # does not, against agent 0's plan steering at 1.3 rad, and the guess keeps its unconverged controls).
+    # Seed 1 with one restart per sub-solve: the sub-solves converge within best_response.max_iter (without the
+    # restart agent 1's first attempt stalls and the guess keeps its controls as they are; at seed 0 with
+    # domain_fraction 0.99 it does not converge either way, against agent 0's plan steering at 1.3 rad).
     problem = family_problem("head-on", 2, 1)
-    guess = best_response_guess(problem, rounds=1, tol=1e-8, best_response=dict(margin=0.0))
+    guess = best_response_guess(problem, rounds=1, tol=1e-8, best_response=dict(margin=0.0, restarts=1))
     x = problem.rollout(guess.u)
     assert max_collision_violation_m(problem, x) <= 1e-6
     alone = GameProblem(dt=problem.dt, horizon=problem.horizon, agents=[problem.agents[1]],
@@ -100,7 +101,7 @@ def test_best_response_guess_is_each_players_best_response_to_the_plans_it_saw()
 def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
     """The C++ sweeps (the best-response restart's) against single-agent games built here with the Python API: agent
     i alone, the problem's obstacles plus the others' current rolled-out positions as moving discs at (1 + margin)
-    d_min, solved from its current controls with the sub-solve settings (best_response_max_iter iterations, one
+    d_min, solved from its current controls with the sub-solve settings (best_response.max_iter iterations, no
     restart, no best response or passing-order search of its own, no relative stationarity test), agents in order,
     each new plan rolled out before the next agent solves. Three cars head-on, two rounds: every agent's sub-problem
     has two moving obstacles and the second round starts from the first one's plans. Every solve here converges in
@@ -121,7 +122,7 @@ def test_best_response_guess_is_single_agent_solves_in_gauss_seidel_order():
                       for j in range(N) if j != i]
             alone = GameProblem(dt=problem.dt, horizon=T, agents=[problem.agents[i]], collision=col,
                                 obstacles=list(problem.obstacles) + others)
-            r = solve(alone, warm_start=WarmStart(u=u[i:i + 1]), max_iter=100, restart=dict(count=1),
+            r = solve(alone, warm_start=WarmStart(u=u[i:i + 1]), max_iter=100, restart=dict(count=0),
                       best_response=dict(rounds=0), order=dict(candidates=0), stationarity_tol=0)
             assert r.status == "converged" and r.attempts == 1
             u[i] = r.u[0]
@@ -182,11 +183,12 @@ def test_best_response_guess_keeps_every_pair_beyond_the_margin():
     strictly inside the game's collision constraints."""
     from solver_cpp.best_response import best_response_guess
 
-    for name, cars, seed in (("crossing", 3, 1), ("head-on", 3, 0)):  # instances whose sub-solves all converge
+    # Instances whose sub-solves all converge, given one restart each (the default of none leaves some unconverged).
+    for name, cars, seed in (("crossing", 3, 1), ("head-on", 3, 0)):
         problem = family_problem(name, cars, seed)
         col = problem.collision
         for margin in (0.0, 0.1, 0.25):
-            guess = best_response_guess(problem, rounds=1, best_response=dict(margin=margin))
+            guess = best_response_guess(problem, rounds=1, best_response=dict(margin=margin, restarts=1))
             xy = problem.rollout(guess.u)[:, 1:, [col.pos_x, col.pos_y]]
             gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(cars, 1)]
             assert gaps.min() >= (1 + margin) * col.min_distance - 1e-4, (name, margin)  # sub-solve tolerance (m)

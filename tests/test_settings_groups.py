@@ -90,6 +90,7 @@ def test_flat_and_grouped_solves_are_the_same_solve():
     ({"linear": {"solver": "cholesky"}}, "solver.linear.solver must be one of"),
     ({"second_order": {"escapes": 1.5}}, "solver.second_order.escapes must be an integer"),
     ({"best_response": {"margin": float("nan")}}, "solver.best_response.margin must be finite"),
+    ({"best_response": {"restarts": -1}}, "solver.best_response.restarts must be >= 0"),
     ({"no_such_group": {"window": 1}}, "solver.no_such_group is not a solver setting"),
 ])
 def test_bad_grouped_setting_names_the_grouped_field(overrides, message):

@@ -31,7 +31,7 @@ void bind_settings(py::module_& m) {
       RW(RestartSettings, violation_memory) RW(RestartSettings, rho_on_stall) RW(RestartSettings, deep_overlap);
   py::class_<BestResponseSettings>(m, "BestResponseSettings").def(py::init<>())
       RW(BestResponseSettings, rounds) RW(BestResponseSettings, max_iter)
-      RW(BestResponseSettings, margin);
+      RW(BestResponseSettings, margin) RW(BestResponseSettings, restarts);
   py::class_<SecondOrderSettings>(m, "SecondOrderSettings").def(py::init<>())
       RW(SecondOrderSettings, gap) RW(SecondOrderSettings, tol) RW(SecondOrderSettings, restart_on_saddle)
       RW(SecondOrderSettings, escapes)

@@ -32,7 +32,7 @@ void Solver::prepare_sub_solvers() {
     Settings sub = settings_;
     sub.best_response.rounds = 0;
     sub.order.candidates = 0;
-    sub.restart.count = std::min(settings_.restart.count, 1);  // a guess, not an answer: one restart
+    sub.restart.count = 0;  // set per sub-solve (sub_solve)
     sub.max_iter = settings_.best_response.max_iter;
     sub.time_limit = 0;
     sub.verbose = false;
@@ -91,14 +91,15 @@ int Solver::best_response_sweeps(int rounds, int budget) {
           const auto [d, steps] = sub_solve_distance(i, j);
           s.update_obstacle(o++, br_positions_, d, steps);
         }
-      used += sub_solve(i, std::min(settings_.best_response.max_iter, left), time);
+      used += sub_solve(i, std::min(settings_.best_response.max_iter, left), settings_.best_response.restarts, time);
     }
   return used;
 }
 
-int Solver::sub_solve(int i, int max_iter, double time_limit) {
+int Solver::sub_solve(int i, int max_iter, int restarts, double time_limit) {
   Solver& s = *br_[i];
   s.settings_.max_iter = max_iter;
+  s.settings_.restart.count = restarts;
   s.settings_.time_limit = time_limit;
   br_warm_.u[0] = y_.u[i].transpose();
   const Result r = s.solve(&br_warm_);

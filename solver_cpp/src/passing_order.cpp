@@ -140,7 +140,7 @@ int Solver::solo_plans(int budget) {
       auto [d, steps] = sub_solve_distance(i, j);
       br_[i]->update_obstacle(o++, br_positions_, d, steps);
     }
-    used += sub_solve(i, std::min(settings_.order.max_iter, left), time);
+    used += sub_solve(i, std::min(settings_.order.max_iter, left), std::min(settings_.restart.count, 1), time);
   }
   return used;
 }
@@ -186,7 +186,7 @@ int Solver::ordered_guess(const std::vector<int>& winding, int budget) {
       }
       s.update_obstacle(o++, br_positions_, d, steps);
     }
-    used += sub_solve(i, std::min(settings_.order.max_iter, left), time);
+    used += sub_solve(i, std::min(settings_.order.max_iter, left), std::min(settings_.restart.count, 1), time);
   }
   return used;
 }

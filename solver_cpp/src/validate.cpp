@@ -230,6 +230,7 @@ void validate_settings(const Settings& s) {
   require(s.second_order.tol > 0, "solver.second_order.tol must be positive");
   require(s.best_response.rounds >= 0, "solver.best_response.rounds must be >= 0 (0 = off)");
   require(s.best_response.max_iter >= 1, "solver.best_response.max_iter must be >= 1");
+  require(s.best_response.restarts >= 0, "solver.best_response.restarts must be >= 0");
   require(std::isfinite(s.best_response.margin) && s.best_response.margin >= 0,
           "solver.best_response.margin must be finite and >= 0 (a fraction of the collision distance)");
   require(s.order.candidates >= 0, "solver.order.candidates must be >= 0 (0 = off)");

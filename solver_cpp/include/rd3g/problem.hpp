@@ -208,13 +208,18 @@ struct RestartSettings {
 /// attempt, inserted before restart attempt 1, starts from the controls that `rounds` Gauss-Seidel
 /// sweeps over the agents reach from the initial controls: each agent in turn solves its own problem alone (with
 /// the others' current rolled-out positions as moving obstacles at (1 + margin) times the collision distance),
-/// warm-started, with at most max_iter iterations, one restart and no best response of its own. A sub-solve
+/// warm-started, with at most max_iter iterations, `restarts` restarts and no best response of its own. A sub-solve
 /// iteration counts 1/N of a game iteration in Info::iterations and max_iter (rounded up per attempt). The attempt
 /// runs from rho_init with attempt 0's rules. rounds 0 = off; never with restart.count 0.
 struct BestResponseSettings {
   int rounds = 1;
   int max_iter = 100;   ///< per single-agent sub-solve (Newton iterations)
   double margin = 0.1;  ///< fraction of the collision distance, >= 0: the guess starts strictly inside the barrier
+  /// Restart attempts per best-response sub-solve, >= 0. 0: a sub-solve that stalls returns its controls as they
+  /// are, a guess that the game's attempt corrects (docs/benchmarks.md, "No restarts in the best-response
+  /// sub-solves"). The passing-order search's solo plans and ordered guesses keep one restart: an ordered guess
+  /// must reach its requested order.
+  int restarts = 0;
 };
 
 /// Second-order test after convergence and steering away from saddles (Settings::second_order).

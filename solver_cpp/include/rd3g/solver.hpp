@@ -116,9 +116,9 @@ class Solver {
   int best_response_sweeps(int rounds, int budget);
   /// The single-agent sub-solvers of the best response (br_), built if stale.
   void prepare_sub_solvers();
-  /// Agent i's sub-solve (obstacles already set) from its controls in y_, which take its result if finite;
-  /// returns its iterations.
-  int sub_solve(int i, int max_iter, double time_limit);
+  /// Agent i's sub-solve (obstacles already set) from its controls in y_, with at most max_iter iterations and
+  /// `restarts` restart attempts; y_ takes its controls if finite. Returns its iterations.
+  int sub_solve(int i, int max_iter, int restarts, double time_limit);
   /// (d_min, per-step d_min) at which a sub-solve keeps agent j away from agent i (best_response.margin beyond).
   std::pair<double, Vec> sub_solve_distance(int i, int j) const;
 
