@@ -145,8 +145,8 @@ def bending_residuals(offsets: np.ndarray, points: np.ndarray, normals: np.ndarr
 
 
 def _bending_energy(offsets: np.ndarray, points: np.ndarray, normals: np.ndarray):
-    """The bending energy and its gradient, 2 J' r summed band by band: elementwise, so the same bits
-    whatever BLAS and its thread count (a dense J' r through a threaded gemv rounds differently)."""
+    """The bending energy and its gradient, 2 J' r summed band by band (J is cyclic tridiagonal: no n x n
+    matrix per evaluation)."""
     r, bands = bending_residuals(offsets, points, normals, jacobian=True)
     grad = bands[:, 1] * r + np.roll(bands[:, 2] * r, 1) + np.roll(bands[:, 0] * r, -1)
     return float(np.sum(r * r)), 2.0 * grad
