@@ -4,6 +4,9 @@ circle; the bending-energy Jacobian and the squared-length gradient against fini
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -175,9 +178,6 @@ _LINE_DIGEST = ("import hashlib, json; from tracks import load_track; from tests
 def test_the_line_is_the_same_on_one_and_two_blas_threads():
     """One cache key must hold one line: the optimiser's BLAS calls round differently per thread count, so the
     line is computed on one thread whatever the process runs on (without that the oval's line differs here)."""
-    import os
-    import subprocess
-    import sys
     digests = set()
     for threads in ("1", "2"):
         env = dict(os.environ, OPENBLAS_NUM_THREADS=threads)

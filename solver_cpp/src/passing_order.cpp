@@ -121,6 +121,10 @@ void Solver::candidate_orders() {
   }
 }
 
+int Solver::order_sub_solve(int i, int left, double time_limit) {
+  return sub_solve(i, std::min(settings_.order.max_iter, left), std::min(settings_.restart.count, 1), time_limit);
+}
+
 int Solver::solo_plans(int budget) {
   for (int i = 0; i < N_; ++i) {
     y_.x[i].col(0) = prob_.x0[i];
@@ -140,7 +144,7 @@ int Solver::solo_plans(int budget) {
       auto [d, steps] = sub_solve_distance(i, j);
       br_[i]->update_obstacle(o++, br_positions_, d, steps);
     }
-    used += sub_solve(i, std::min(settings_.order.max_iter, left), std::min(settings_.restart.count, 1), time);
+    used += order_sub_solve(i, left, time);
   }
   return used;
 }
@@ -186,7 +190,7 @@ int Solver::ordered_guess(const std::vector<int>& winding, int budget) {
       }
       s.update_obstacle(o++, br_positions_, d, steps);
     }
-    used += sub_solve(i, std::min(settings_.order.max_iter, left), std::min(settings_.restart.count, 1), time);
+    used += order_sub_solve(i, left, time);
   }
   return used;
 }

@@ -119,6 +119,9 @@ class Solver {
   /// Agent i's sub-solve (obstacles already set) from its controls in y_, with at most max_iter iterations and
   /// `restarts` restart attempts; y_ takes its controls if finite. Returns its iterations.
   int sub_solve(int i, int max_iter, int restarts, double time_limit);
+  /// Agent i's sub-solve for the passing-order search (solo plan or ordered guess): order.max_iter iterations, at most
+  /// `left`, and one restart (not best_response.restarts: an ordered guess must reach its requested order).
+  int order_sub_solve(int i, int left, double time_limit);
   /// (d_min, per-step d_min) at which a sub-solve keeps agent j away from agent i (best_response.margin beyond).
   std::pair<double, Vec> sub_solve_distance(int i, int j) const;
 
@@ -216,7 +219,7 @@ class Solver {
   bool bounded_problem(Problem* p, double fraction);
   /// Which bounded games can run (domain_game_, start_game_), at the set-up and every update; their problems and the
   /// nested solver are built only when a solve first needs one (bounded_stale_: a failed schedule's rare path, which
-  /// kept off the set-up 0.05 ms of a 2-car solve's 0.6 ms); in a best-response sub-solver, at once.
+  /// kept off the set-up 0.05 ms of a 2-car solve's 0.6 ms). Only a game's own solver has them (domain_rescue_enabled).
   void prepare_domain_rescue();
   /// domain_problem_, start_problem_ and the nested solver for the current problem and settings.
   void set_up_bounded_games();
