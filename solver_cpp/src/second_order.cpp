@@ -16,6 +16,50 @@ namespace {
 // floor the barrier would hold the agent at the saddle's contacts).
 constexpr double kEscapeStep = 1.0;
 constexpr double kEscapeRho = 1e-2;
+
+// Three points per interval, six independent Sturm sequences per sweep: a sweep is bound by the division's latency,
+// so six cost little more than two, and each narrows its interval four-fold.
+constexpr int kPoints = 3, kSeq = 2 * kPoints;
+
+// An interval holding the whole spectrum: Gershgorin's bounds, widened as dstebz does; pivmin keeps a Sturm pivot
+// away from 0.
+void gershgorin_interval(const Eigen::Ref<const Vec>& d, const Eigen::Ref<const Vec>& e, double& gl, double& gu,
+                         double& pivmin) {
+  const int n = static_cast<int>(d.size());
+  double e2max = 0;
+  gl = kInf;
+  gu = -kInf;
+  for (int i = 0; i < n; ++i) {
+    const double r = (i > 0 ? std::abs(e[i - 1]) : 0.0) + (i + 1 < n ? std::abs(e[i]) : 0.0);
+    gl = std::min(gl, d[i] - r);
+    gu = std::max(gu, d[i] + r);
+    if (i + 1 < n) e2max = std::max(e2max, e[i] * e[i]);
+  }
+  const double eps = std::numeric_limits<double>::epsilon();
+  pivmin = std::numeric_limits<double>::min() * std::max(1.0, e2max);
+  const double widen = 2.1 * eps * n * std::max(std::abs(gl), std::abs(gu)) + 2.1 * pivmin;
+  gl -= widen;
+  gu += widen;
+}
+
+// Sturm counts: the number of negative pivots of T - x I (its LDL' pivots) is the number of eigenvalues below x.
+void sturm_counts(const Eigen::Ref<const Vec>& d, const Eigen::Ref<const Vec>& e, const double (&x)[kSeq],
+                  double pivmin, int (&c)[kSeq]) {
+  double q[kSeq];
+  for (int p = 0; p < kSeq; ++p) {
+    q[p] = d[0] - x[p];
+    if (std::abs(q[p]) < pivmin) q[p] = -pivmin;
+    c[p] = q[p] < 0;
+  }
+  for (int i = 1; i < static_cast<int>(d.size()); ++i) {
+    const double e2 = e[i - 1] * e[i - 1];
+    for (int p = 0; p < kSeq; ++p) {
+      q[p] = (d[i] - x[p]) - e2 / q[p];
+      if (std::abs(q[p]) < pivmin) q[p] = -pivmin;
+      c[p] += q[p] < 0;
+    }
+  }
+}
 }  // namespace
 
 void tridiagonal_extreme_eigenvalues(const Eigen::Ref<const Vec>& d, const Eigen::Ref<const Vec>& e, double& lo,
@@ -29,26 +73,12 @@ void tridiagonal_extreme_eigenvalues(const Eigen::Ref<const Vec>& d, const Eigen
     lo = hi = d[0];
     return;
   }
-  // Gershgorin bounds, widened as dstebz does; pivmin keeps a Sturm pivot away from 0.
-  double gl = kInf, gu = -kInf, e2max = 0;
-  for (int i = 0; i < n; ++i) {
-    const double r = (i > 0 ? std::abs(e[i - 1]) : 0.0) + (i + 1 < n ? std::abs(e[i]) : 0.0);
-    gl = std::min(gl, d[i] - r);
-    gu = std::max(gu, d[i] + r);
-    if (i + 1 < n) e2max = std::max(e2max, e[i] * e[i]);
-  }
-  const double eps = std::numeric_limits<double>::epsilon();
-  const double pivmin = std::numeric_limits<double>::min() * std::max(1.0, e2max);
-  const double widen = 2.1 * eps * n * std::max(std::abs(gl), std::abs(gu)) + 2.1 * pivmin;
-  gl -= widen;
-  gu += widen;
+  double gl, gu, pivmin;
+  gershgorin_interval(d, e, gl, gu, pivmin);
   // [a[0], b[0]] holds the smallest eigenvalue (no eigenvalue below a[0], at least one below b[0]); [a[1], b[1]]
   // the largest (at most n - 1 below a[1], all n below b[1]). Each is narrowed to the accuracy of the counts
   // themselves (a few ulps of the matrix's norm; dstebz's default abstol), about 26 sweeps.
-  const double atol = 4 * eps * std::max(std::abs(gl), std::abs(gu)) + pivmin;
-  // Three points per interval, six independent Sturm sequences per sweep: a sweep is bound by the division's
-  // latency, so six cost little more than two, and each narrows its interval four-fold.
-  constexpr int kPoints = 3, kSeq = 2 * kPoints;
+  const double atol = 4 * std::numeric_limits<double>::epsilon() * std::max(std::abs(gl), std::abs(gu)) + pivmin;
   double a[2] = {gl, gl}, b[2] = {gu, gu};
   bool done[2] = {false, false};  // narrowed to atol, or no representable point left inside
   for (int it = 0; it < 200; ++it) {
@@ -59,22 +89,8 @@ void tridiagonal_extreme_eigenvalues(const Eigen::Ref<const Vec>& d, const Eigen
       for (int p = 0; p < kPoints; ++p) x[s * kPoints + p] = a[s] + (b[s] - a[s]) * (p + 1) / (kPoints + 1);
     }
     if (!more[0] && !more[1]) break;
-    // Sturm counts: the number of negative pivots of T - x I (its LDL' pivots) is the number of eigenvalues below x.
-    double q[kSeq];
     int c[kSeq];
-    for (int p = 0; p < kSeq; ++p) {
-      q[p] = d[0] - x[p];
-      if (std::abs(q[p]) < pivmin) q[p] = -pivmin;
-      c[p] = q[p] < 0;
-    }
-    for (int i = 1; i < n; ++i) {
-      const double e2 = e[i - 1] * e[i - 1];
-      for (int p = 0; p < kSeq; ++p) {
-        q[p] = (d[i] - x[p]) - e2 / q[p];
-        if (std::abs(q[p]) < pivmin) q[p] = -pivmin;
-        c[p] += q[p] < 0;
-      }
-    }
+    sturm_counts(d, e, x, pivmin, c);
     // Interval 0 brackets the first eigenvalue (count >= 1 at its top), interval 1 the last (count n at its top).
     for (int s = 0; s < 2; ++s) {
       if (!more[s]) continue;
@@ -123,130 +139,148 @@ const std::vector<SecondOrderAgent>& SecondOrderCheck::check(const Problem& p, c
                                                              const ConstraintEval& eval, const std::vector<Mat>& x,
                                                              const std::vector<Mat>& u, const std::vector<Mat>& lam,
                                                              const Vec& w_i, const Vec& w_j, double active_gap, double tol) {
+  for (int a = 0; a < N_; ++a) {
+    stage_hessians(p, a, x, u, lam);
+    const int na = add_constraints(p, a, cons, eval, w_i, w_j, active_gap);
+    condense_hessian();
+    reduced_spectrum(a, na, tol);
+  }
+  return out_;
+}
+
+// Stages k = 0..T-1: d2L/d(x_k,u_k)^2 = lambda_k' d2f + cost, split into Q_k (xx), M_k (xu), R_k (uu); x_0 is fixed,
+// so Q_0 never enters. Q_T is x_T's cost. S_k = dx_k/dU alongside.
+void SecondOrderCheck::stage_hessians(const Problem& p, int a, const std::vector<Mat>& x, const std::vector<Mat>& u,
+                                      const std::vector<Mat>& lam) {
+  const Dynamics& f = *p.dynamics[a];
+  const QuadraticCost& cost = p.costs[a];
+  S_[0].setZero();
+  for (int k = 0; k < T_; ++k) {
+    const int n = (k + 1) * nu_;  // S_{k+1} only touches the controls u_0..u_k
+    f.eval(x[a].col(k), u[a].col(k), fx_, A_[k], B_[k]);
+    f.lambda_hessian(x[a].col(k), u[a].col(k), lam[a].col(k), Hl_);
+    Q_[k] = Hl_.topLeftCorner(nx_, nx_);
+    if (k >= 1) Q_[k].diagonal() += state_cost_hessian(cost, k, T_);
+    M_[k] = Hl_.topRightCorner(nx_, nu_);
+    R_[k] = Hl_.bottomRightCorner(nu_, nu_);
+    R_[k].diagonal() += control_cost_hessian(cost);
+    S_[k + 1].setZero();
+    S_[k + 1].leftCols(n).noalias() = A_[k] * S_[k].leftCols(n);
+    S_[k + 1].block(0, k * nu_, nx_, nu_) += B_[k];
+  }
+  Q_[T_].setZero();
+  Q_[T_].diagonal() = state_cost_hessian(cost, T_, T_);
+}
+
+// Constraints of agent a: curvature w_c d2h_c onto Q_k, and the Jacobian rows of the ones held as equalities into
+// C_'s first rows (their count is returned).
+int SecondOrderCheck::add_constraints(const Problem& p, int a, const std::vector<Constraint>& cons,
+                                      const ConstraintEval& eval, const Vec& w_i, const Vec& w_j, double active_gap) {
   using K = Constraint::Kind;
-  const int m = T_ * nu_;
   const int px = p.collision.pos_x, py = p.collision.pos_y;
   Eigen::Vector2d g;
   Eigen::Matrix2d H;
   double h;
-  for (int a = 0; a < N_; ++a) {
-    const Dynamics& f = *p.dynamics[a];
-    const QuadraticCost& cost = p.costs[a];
-    S_[0].setZero();
-    // Stages k = 0..T-1: d2L/d(x_k,u_k)^2 = lambda_k' d2f + cost, split into Q_k (xx), M_k (xu), R_k (uu); x_0 is
-    // fixed, so Q_0 never enters. Q_T is x_T's cost.
-    for (int k = 0; k < T_; ++k) {
-      const int n = (k + 1) * nu_;  // S_{k+1} only touches the controls u_0..u_k
-      f.eval(x[a].col(k), u[a].col(k), fx_, A_[k], B_[k]);
-      f.lambda_hessian(x[a].col(k), u[a].col(k), lam[a].col(k), Hl_);
-      Q_[k] = Hl_.topLeftCorner(nx_, nx_);
-      if (k >= 1) Q_[k].diagonal() += state_cost_hessian(cost, k, T_);
-      M_[k] = Hl_.topRightCorner(nx_, nu_);
-      R_[k] = Hl_.bottomRightCorner(nu_, nu_);
-      R_[k].diagonal() += control_cost_hessian(cost);
-      S_[k + 1].setZero();
-      S_[k + 1].leftCols(n).noalias() = A_[k] * S_[k].leftCols(n);
-      S_[k + 1].block(0, k * nu_, nx_, nu_) += B_[k];
-    }
-    Q_[T_].setZero();
-    Q_[T_].diagonal() = state_cost_hessian(cost, T_, T_);
-
-    // Constraints of agent a: curvature w_c d2h_c, and the Jacobian rows of the ones held as equalities.
-    int na = 0;
-    for (int c = 0; c < static_cast<int>(cons.size()); ++c) {
-      const Constraint& cn = cons[c];
-      if (!cn.involves(a)) continue;
-      eval(c, h, g, H);
-      const bool own = cn.i == a;
-      const double w = own ? w_i[c] : w_j[c];
-      const bool active = h >= -active_gap && w > 0;
-      if (active && na >= C_.rows()) C_.conservativeResize(std::max<Eigen::Index>(8, 2 * C_.rows()), m);
-      switch (cn.kind) {
-        case K::Pair:
-        case K::Obstacle: {
-          // h depends on d = p_i - p_j (or p_i - o): dh/dp_j = -g, d2h/dp_j^2 = H.
-          const Mat& S = S_[cn.k];
-          const double s = own ? 1.0 : -1.0;
-          if (w != 0.0) {  // curvature on the agent's position at stage k
-            Q_[cn.k](px, px) += w * H(0, 0);
-            Q_[cn.k](px, py) += w * H(0, 1);
-            Q_[cn.k](py, px) += w * H(1, 0);
-            Q_[cn.k](py, py) += w * H(1, 1);
-          }
-          if (active) C_.row(na++) = s * (g[0] * S.row(px) + g[1] * S.row(py));
-          break;
+  int na = 0;
+  for (int c = 0; c < static_cast<int>(cons.size()); ++c) {
+    const Constraint& cn = cons[c];
+    if (!cn.involves(a)) continue;
+    eval(c, h, g, H);
+    const bool own = cn.i == a;
+    const double w = own ? w_i[c] : w_j[c];
+    const bool active = h >= -active_gap && w > 0;
+    if (active && na >= C_.rows()) C_.conservativeResize(std::max<Eigen::Index>(8, 2 * C_.rows()), T_ * nu_);
+    switch (cn.kind) {
+      case K::Pair:
+      case K::Obstacle: {
+        // h depends on d = p_i - p_j (or p_i - o): dh/dp_j = -g, d2h/dp_j^2 = H.
+        const Mat& S = S_[cn.k];
+        const double s = own ? 1.0 : -1.0;
+        if (w != 0.0) {  // curvature on the agent's position at stage k
+          Q_[cn.k](px, px) += w * H(0, 0);
+          Q_[cn.k](px, py) += w * H(0, 1);
+          Q_[cn.k](py, px) += w * H(1, 0);
+          Q_[cn.k](py, py) += w * H(1, 1);
         }
-        case K::StateMax:
-        case K::StateMin:
-          if (active) C_.row(na++) = g[0] * S_[cn.k].row(cn.idx);
-          break;
-        case K::ControlMax:
-        case K::ControlMin:
-          if (active) {
-            C_.row(na).setZero();
-            C_(na++, cn.k * nu_ + cn.idx) = g[0];
-          }
-          break;
+        if (active) C_.row(na++) = s * (g[0] * S.row(px) + g[1] * S.row(py));
+        break;
       }
+      case K::StateMax:
+      case K::StateMin:
+        if (active) C_.row(na++) = g[0] * S_[cn.k].row(cn.idx);
+        break;
+      case K::ControlMax:
+      case K::ControlMin:
+        if (active) {
+          C_.row(na).setZero();
+          C_(na++, cn.k * nu_ + cn.idx) = g[0];
+        }
+        break;
     }
-    // H_U by a backward recursion (single shooting's condensed Hessian, O(T^2 nx nu^2) instead of O(T^3)):
-    // with P_{j+1} = sum_{k>j} Phi(k,j+1)' Q_k Phi(k,j+1) (Phi the state transition), block (j, j) is
-    // R_j + B_j' P_{j+1} B_j and block (i, j), i < j, is (dx_j/du_i)' (A_j' P_{j+1} B_j + M_j).
-    P_ = Q_[T_];
-    for (int j = T_ - 1; j >= 0; --j) {
-      PB_.noalias() = P_ * B_[j];
-      W_ = M_[j];
-      W_.noalias() += A_[j].transpose() * PB_;
-      Hr_.block(j * nu_, j * nu_, nu_, nu_) = R_[j];
-      Hr_.block(j * nu_, j * nu_, nu_, nu_).noalias() += B_[j].transpose() * PB_;
-      if (j > 0) {
-        Hr_.block(0, j * nu_, j * nu_, nu_).noalias() = S_[j].leftCols(j * nu_).transpose() * W_;
-        Hr_.block(j * nu_, 0, nu_, j * nu_) = Hr_.block(0, j * nu_, j * nu_, nu_).transpose();
-      }
-      PA_.noalias() = P_ * A_[j];
-      P_ = Q_[j];
-      P_.noalias() += A_[j].transpose() * PA_;
-    }
-    Hr_ = 0.5 * (Hr_ + Hr_.transpose()).eval();
-
-    // Orthonormal basis Z of the active rows' null space, then the spectrum of Z' H_U Z.
-    SecondOrderAgent& out = out_[a];
-    out.active = na;
-    Mat Z;  // empty if na == 0 (Z = I)
-    if (na > 0) {
-      Eigen::ColPivHouseholderQR<Mat> qr(C_.topRows(na).transpose());
-      qr.setThreshold(1e-9);
-      const int r = static_cast<int>(qr.rank());
-      const Mat Q = qr.householderQ();
-      Z = Q.rightCols(m - r);
-    }
-    out.free_directions = na > 0 ? static_cast<int>(Z.cols()) : m;
-    if (out.free_directions == 0) {
-      out.min_eigenvalue = kInf;
-      out.max_abs_eigenvalue = 0;
-      out.direction.resize(0, 0);
-      continue;
-    }
-    // The two extreme eigenvalues only (the test needs no others): the tridiagonal form, then bisection; an
-    // implicit QL sweep for the whole spectrum cost several times the tridiagonalisation. The eigenvector is needed
-    // only by an agent that fails.
-    if (na > 0) Rz_.noalias() = Z.transpose() * Hr_ * Z;
-    const Mat& R = na > 0 ? Rz_ : Hr_;
-    tri_.compute(R);
-    diag_ = tri_.diagonal();
-    subdiag_ = tri_.subDiagonal();
-    double lo, hi;
-    tridiagonal_extreme_eigenvalues(diag_, subdiag_, lo, hi);
-    out.direction.resize(0, 0);
-    out.min_eigenvalue = lo;  // NaN for a non-finite Hessian: the agent fails, with no direction
-    out.max_abs_eigenvalue = std::isnan(lo) ? 0.0 : std::max(std::abs(lo), std::abs(hi));
-    if (std::isnan(lo) || agent_passes(a, tol)) continue;
-    es_.compute(R);
-    if (es_.info() != Eigen::Success) continue;
-    const Vec d = na > 0 ? Vec(Z * es_.eigenvectors().col(0)) : Vec(es_.eigenvectors().col(0));
-    out.direction = Eigen::Map<const Mat>(d.data(), nu_, T_);
   }
-  return out_;
+  return na;
+}
+
+// H_U by a backward recursion (single shooting's condensed Hessian, O(T^2 nx nu^2) instead of O(T^3)): with
+// P_{j+1} = sum_{k>j} Phi(k,j+1)' Q_k Phi(k,j+1) (Phi the state transition), block (j, j) is R_j + B_j' P_{j+1} B_j
+// and block (i, j), i < j, is (dx_j/du_i)' (A_j' P_{j+1} B_j + M_j).
+void SecondOrderCheck::condense_hessian() {
+  P_ = Q_[T_];
+  for (int j = T_ - 1; j >= 0; --j) {
+    PB_.noalias() = P_ * B_[j];
+    W_ = M_[j];
+    W_.noalias() += A_[j].transpose() * PB_;
+    Hr_.block(j * nu_, j * nu_, nu_, nu_) = R_[j];
+    Hr_.block(j * nu_, j * nu_, nu_, nu_).noalias() += B_[j].transpose() * PB_;
+    if (j > 0) {
+      Hr_.block(0, j * nu_, j * nu_, nu_).noalias() = S_[j].leftCols(j * nu_).transpose() * W_;
+      Hr_.block(j * nu_, 0, nu_, j * nu_) = Hr_.block(0, j * nu_, j * nu_, nu_).transpose();
+    }
+    PA_.noalias() = P_ * A_[j];
+    P_ = Q_[j];
+    P_.noalias() += A_[j].transpose() * PA_;
+  }
+  Hr_ = 0.5 * (Hr_ + Hr_.transpose()).eval();
+}
+
+// Orthonormal basis Z of the na active rows' null space, then the extreme eigenvalues of Z' H_U Z into out_[a] (and
+// the eigenvector of the smallest when the agent fails).
+void SecondOrderCheck::reduced_spectrum(int a, int na, double tol) {
+  const int m = T_ * nu_;
+  SecondOrderAgent& out = out_[a];
+  out.active = na;
+  Mat Z;  // empty if na == 0 (Z = I)
+  if (na > 0) {
+    Eigen::ColPivHouseholderQR<Mat> qr(C_.topRows(na).transpose());
+    qr.setThreshold(1e-9);
+    const int r = static_cast<int>(qr.rank());
+    const Mat Q = qr.householderQ();
+    Z = Q.rightCols(m - r);
+  }
+  out.free_directions = na > 0 ? static_cast<int>(Z.cols()) : m;
+  out.direction.resize(0, 0);
+  if (out.free_directions == 0) {
+    out.min_eigenvalue = kInf;
+    out.max_abs_eigenvalue = 0;
+    return;
+  }
+  // The two extreme eigenvalues only (the test needs no others): the tridiagonal form, then bisection; an implicit
+  // QL sweep for the whole spectrum cost several times the tridiagonalisation. The eigenvector is needed only by an
+  // agent that fails.
+  if (na > 0) Rz_.noalias() = Z.transpose() * Hr_ * Z;
+  const Mat& R = na > 0 ? Rz_ : Hr_;
+  tri_.compute(R);
+  diag_ = tri_.diagonal();
+  subdiag_ = tri_.subDiagonal();
+  double lo, hi;
+  tridiagonal_extreme_eigenvalues(diag_, subdiag_, lo, hi);
+  out.min_eigenvalue = lo;  // NaN for a non-finite Hessian: the agent fails, with no direction
+  out.max_abs_eigenvalue = std::isnan(lo) ? 0.0 : std::max(std::abs(lo), std::abs(hi));
+  if (std::isnan(lo) || agent_passes(a, tol)) return;
+  es_.compute(R);
+  if (es_.info() != Eigen::Success) return;
+  const Vec d = na > 0 ? Vec(Z * es_.eigenvectors().col(0)) : Vec(es_.eigenvectors().col(0));
+  out.direction = Eigen::Map<const Mat>(d.data(), nu_, T_);
 }
 
 bool SecondOrderCheck::agent_passes(int a, double tol) const {

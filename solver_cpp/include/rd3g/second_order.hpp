@@ -62,6 +62,13 @@ class SecondOrderCheck {
   bool agent_passes(int a, double tol) const;
 
  private:
+  void stage_hessians(const Problem& p, int a, const std::vector<Mat>& x, const std::vector<Mat>& u,
+                      const std::vector<Mat>& lam);
+  int add_constraints(const Problem& p, int a, const std::vector<Constraint>& cons, const ConstraintEval& eval,
+                      const Vec& w_i, const Vec& w_j, double active_gap);
+  void condense_hessian();
+  void reduced_spectrum(int a, int na, double tol);
+
   int N_ = 0, T_ = 0, nx_ = 0, nu_ = 0;
   std::vector<Mat> S_;  // S_k = dx_k/dU, nx x (T nu), k = 0..T
   std::vector<Mat> A_, B_, Q_, M_, R_;  // per stage: dynamics Jacobians; Lagrangian Hessian blocks xx, xu, uu
