@@ -121,10 +121,11 @@ class PlannerConfig:
         restart=dict(count=0, deep_overlap=2.0, rho_progress=1.0, violation_memory=1, rho_on_stall=False)))
     # The first (cold) plan, computed before the start outside the real-time budget: `solver` with these
     # overrides; None = the solver's own default (here its full globalisation: restarts, Levenberg-Marquardt
-    # steps, line-search steps, rho_init). Its best-response sub-solves keep one restart each, as when this was
-    # tuned: without it one of tests/test_planning.py's defending cold plans on the oval fell back.
+    # steps, rho_init). It keeps two settings as they were when it was tuned, each of which the solver's default
+    # has since lowered: one restart in each best-response sub-solve and 30 line-search steps. With the solver's
+    # defaults (no restart; 10 steps) one of tests/test_planning.py's defending cold plans on the oval fell back.
     cold_start_solver: dict = field(default_factory=lambda: dict(
-        max_iter=200, restart=dict(count=3), line_search=dict(lm_tries=None, max_steps=None),
+        max_iter=200, restart=dict(count=3), line_search=dict(lm_tries=None, max_steps=30),
         barrier=dict(rho_init=None), best_response=dict(restarts=1)))
     # A non-converged solve is still used if its constraint violation is at most this (m), otherwise
     # the car tracks the previous plan in closed loop (fallback_* gains below).

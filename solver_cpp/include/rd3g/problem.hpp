@@ -147,7 +147,10 @@ struct BarrierSettings {
 struct LineSearchSettings {
   double alpha = 1e-2;  ///< sufficient decrease: ||r(y+t dy)|| <= (1 - alpha t) ||r(y)||
   double beta = 0.5;    ///< step shrink factor, in (0, 1)
-  int max_steps = 30;   ///< backtracking steps before the line search fails
+  /// Trials before the line search fails (the smallest t is beta^(max_steps-1), 2e-3 at beta 0.5): a shorter step
+  /// lowers ||r|| by under alpha t = 2e-5 of itself, and trials below it are where a hopeless attempt spends its
+  /// time before Levenberg-Marquardt, a stall or a restart takes over (docs/benchmarks.md, "Ten line-search steps").
+  int max_steps = 10;
   /// Non-monotone violation test of attempt 0 (restarts: RestartSettings::violation_memory): a trial may not raise
   /// the total violation above the largest of the last violation_memory iterates' (1 = monotone, the paper's rule).
   int violation_memory = 1;
