@@ -163,14 +163,15 @@ def test_polish_rescues_a_stalled_merge():
     assert report.passed, report.failures
 
 
-@pytest.mark.parametrize("cars, seed", [(5, 3), (6, 0)])
+@pytest.mark.parametrize("cars, seed", [(5, 3), (6, 79)])
 def test_deeply_overlapping_start_converges_with_the_central_path_rules(cars, seed):
     # crossing (bench/families.py): the zero-control rollout puts two cars within half their collision distance of
     # each other. With the paper's rules in every attempt (rho reduced every iteration, total violation never
     # allowed to grow) rho reaches its floor while the start is ~1 m infeasible and no attempt converges in 150
-    # iterations (6 cars, seed 0 did not converge in 1000 either); the defaults' first attempt, which starts with
-    # the restart rules (rho reduced once its subproblem is nearly solved or stalls, violation compared with the
-    # last 4 iterates'), converges. The answer is checked independently of the solver.
+    # iterations (6 cars, seed 79 did not converge in 1000 either: only the bounded start after them did); the
+    # defaults' first attempt, which starts with the restart rules (rho reduced once its subproblem is nearly solved
+    # or stalls, violation compared with the last 4 iterates'), converges. The answer is checked independently of
+    # the solver.
     problem = family_problem("crossing", cars, seed)
     paper = solve(problem, max_iter=150, **PAPER_RULES)
     # No attempt converges: the solve fails, or the domain rescue or the bounded start ran (only after attempts that

@@ -143,15 +143,16 @@ def test_solve_command_writes_the_orders_and_rejects_a_bad_setting(tmp_path, cap
     assert f"{bad}: solver.order.polish_iter must be >= 1" in capsys.readouterr().err
 
 
-# A head-on pair (bench.families, tuned family, a tuning seed) under a short restart schedule that ends without an
-# equilibrium: one restart, no best-response attempt, no escape from a saddle.
+# A head-on pair (bench.families, tuned family, seed 24) under a short restart schedule that ends without an
+# equilibrium (line_search_failed): one restart, no best-response attempt, no escape from a saddle. The search solves
+# both orders and returns one.
 SHORT_SCHEDULE = dict(restart=dict(count=1), best_response=dict(rounds=0), second_order=dict(escapes=0))
 
 
 def test_the_rescue_turns_a_failed_schedule_into_a_verified_equilibrium():
     from bench.families import family_problem
 
-    problem = family_problem("head-on", 2, 0)
+    problem = family_problem("head-on", 2, 24)
     failed = solve(problem, tol=TOL, time_limit=0, order=dict(candidates=0), **SHORT_SCHEDULE)
     assert failed.status != "converged" and failed.order_attempts == 0
     rescued = solve(problem, tol=TOL, time_limit=0, **SHORT_SCHEDULE)

@@ -21,10 +21,11 @@ def test_solver_settings_are_the_solvers_own_names():
     warm = solver_settings(cfg.solver)
     cold = solver_settings(cfg.solver, cfg.cold_start_solver)
     assert (warm.max_iter, warm.restart.count, warm.line_search.lm_tries, warm.barrier.rho_init) == (15, 0, 0, 1e-3)
-    # None = the solver's default: the cold start gets the solver's own globalisation, except the two settings it
-    # keeps as tuned.
-    assert (cold.line_search.lm_tries, cold.barrier.rho_init) == (defaults.line_search.lm_tries, defaults.barrier.rho_init)
-    assert (cold.line_search.max_steps, cold.best_response.restarts) == (30, 1)
+    # None = the solver's default: the cold start gets the solver's Levenberg-Marquardt and line-search steps; its
+    # barrier weight is the warm plans'.
+    assert (cold.line_search.lm_tries, cold.line_search.max_steps) == \
+        (defaults.line_search.lm_tries, defaults.line_search.max_steps)
+    assert cold.barrier.rho_init == warm.barrier.rho_init
     assert (cold.max_iter, cold.restart.count, cold.barrier.rho_progress) == (200, 3, warm.barrier.rho_progress)
     assert warm.tol == cold.tol == defaults.tol
 

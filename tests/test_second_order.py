@@ -161,12 +161,12 @@ def test_reduced_hessian_matches_finite_differences(case):
 
 
 def test_restart_on_saddle_finds_a_local_equilibrium():
-    """head-on 2 cars seed 9: the first attempt converges to a saddle (the detection), the restarts kept going
+    """head-on 2 cars seed 151: the first attempt converges to a saddle (the detection), the restarts kept going
     by restart_on_saddle reach a point that the second-order test accepts and where, independently, SLSQP on
     each player's own problem (others fixed) finds no profitable deviation, while at the saddle it does."""
     from bench.families import family_problem
 
-    problem = family_problem("head-on", 2, 9)
+    problem = family_problem("head-on", 2, 151)
     kept = solve(problem, second_order=dict(restart_on_saddle=False), order=dict(candidates=0))  # the schedule alone
     assert kept.status == "saddle"
     assert max(best_response_gap(problem, kept.x, kept.u, i) for i in range(2)) > 1e-3

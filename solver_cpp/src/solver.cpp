@@ -65,7 +65,7 @@ void Solver::setup(const Problem& p, const Settings& s) {
 void Solver::list_and_allocate() {
   cons_ = list_constraints(prob_);
   const int C = static_cast<int>(cons_.size());
-  for (Iterate* it : {&y_, &trial_, &best_, &best_seen_}) {
+  for (Iterate* it : {&y_, &trial_, &best_seen_}) {
     it->x.assign(N_, Mat::Zero(nx_, T_ + 1));
     it->u.assign(N_, Mat::Zero(nu_, T_));
     it->lam.assign(N_, Mat::Zero(nx_, T_));

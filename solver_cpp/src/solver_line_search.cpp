@@ -13,11 +13,9 @@ namespace rd3g {
 namespace {
 // Fixed constants (settings before; never set by any caller): the primal-dual barrier keeps z >= (1 - 0.99) z along a
 // step (IPOPT's fraction to the boundary), and a step backtracked to a crossing stops at 0.99 of it;
-// Levenberg-Marquardt's nu = 1e-6 10^q ||r||, and its tries compete with an accepted Newton step shorter than
-// t = 0.01.
+// Levenberg-Marquardt's nu = 1e-6 10^q ||r||.
 constexpr double kFractionToBoundary = 0.99;
 constexpr double kLmNuInit = 1e-6;
-constexpr double kLmBelowStep = 1e-2;
 }  // namespace
 
 void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const {
@@ -149,26 +147,8 @@ double Solver::take_step(double rnorm, Info& info) {
   t0 = Clock::now();
   double t = line_search(rnorm);
   newton_at_edge_ = domain_blocked_;
-  if (t > 0 && t < kLmBelowStep) {
-    // A tiny accepted Newton step means a nearly singular Newton matrix (huge step, merit only
-    // decreasing for t -> 0). Keep it, but let Levenberg-Marquardt steps compete with it: from the
-    // largest nu down (it wins most often), until a smaller nu no longer lowers the merit; each try
-    // costs a factorisation.
-    best_ = trial_;
-    double best_m = merit(r_trial_, rc_trial_);
-    double last_m = HUGE_VAL;
-    bool lm_won = false;
-    for (int q = settings_.line_search.lm_tries - 1; q >= 0 && !past_deadline(); --q) {
-      if (!solve_levenberg_marquardt(kLmNuInit * std::pow(10.0, q) * rnorm, dy_)) break;
-      const double tl = line_search(rnorm);
-      const double m = tl > 0 ? merit(r_trial_, rc_trial_) : HUGE_VAL;
-      if (m < best_m) { best_m = m; std::swap(best_, trial_); t = tl; lm_won = true; }
-      if (m >= last_m) break;
-      last_m = m;
-    }
-    std::swap(trial_, best_);
-    if (lm_won) info.lm_steps++;
-  }
+  // The Newton step failed the line search (a nearly singular Newton matrix: a huge step, the merit decreasing only
+  // for t -> 0): Levenberg-Marquardt steps from the smallest nu up, the first that passes taken.
   for (int q = 0; t == 0.0 && q < settings_.line_search.lm_tries; ++q) {
     if (past_deadline()) { timed_out_ = true; break; }
     if (!solve_levenberg_marquardt(kLmNuInit * std::pow(10.0, q) * rnorm, dy_)) break;

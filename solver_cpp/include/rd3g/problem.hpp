@@ -156,8 +156,7 @@ struct LineSearchSettings {
   int violation_memory = 1;
   /// When the Newton step fails the line search (near-singular Jacobian), try Levenberg-Marquardt steps
   /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = 1e-6 * 10^q ||r||, q = 0..lm_tries-1
-  /// (the first that passes the line search is taken). After a Newton step shorter than t = 0.01 they compete
-  /// with it instead: q from lm_tries-1 down while the merit keeps falling, the best step taken. 0 = off.
+  /// (the first that passes the line search is taken). 0 = off.
   int lm_tries = 4;
   /// After a trial t that crosses constraints satisfied at the current point, once rho has fallen below
   /// barrier.rho_init, the next trial is the larger of beta t and 0.99 of the secant estimate of the first crossing

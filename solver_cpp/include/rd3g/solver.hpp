@@ -376,7 +376,7 @@ class Solver {
   double best_merit_ = 0;               // with a time limit: lowest merit seen, its iterate in best_seen_
 
   // buffers (allocated in setup)
-  Iterate y_, trial_, best_, best_seen_;
+  Iterate y_, trial_, best_seen_;
   StageLayout layout_;
   std::vector<StagePattern> stage_patterns_;  // per agent: its model's Jacobian entries (set up and on update)
   StageWorkspace stage_;
