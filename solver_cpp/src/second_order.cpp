@@ -411,18 +411,22 @@ bool Solver::leave_saddle(int escapes) {
   }
   if (!moved) return false;
   std::swap(y_, trial_);
-  // Multipliers: the others' kept; constraints now inside the margin go to the barrier on the central path of a
-  // moderate rho (at rho's floor the barrier would hold the moved agent near the saddle's contacts).
-  rho_ = kEscapeRho;
+  // The attempt keeps this partition. Constraints still within the margin stay held: the active ones with their
+  // multipliers, the barrier's nearly active contacts as equalities (their duals the multipliers). Released to the
+  // first partition's Free state, they would be invisible to Newton, whose first step crosses them, and no step
+  // length keeps the violation at 0 (authors 6 cars seed 6: both escapes' attempts failed so at once).
   eval_all_constraints(y_, h_);
+  hold_near_contacts(h_, margin);
+  // Constraints inside the margin go to the barrier on the central path of a moderate rho (at rho's floor the
+  // barrier would hold the moved agent near the saddle's contacts).
+  rho_ = kEscapeRho;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    if (h_[c] < -margin) {
-      y_.mu[c] = y_.mu2[c] = 0;
-      y_.z[c] = rho_ / -h_[c];
-    } else {
-      y_.z[c] = 0;
-    }
+    if (h_[c] >= -margin) continue;
+    state_[c] = ConstraintState::Barrier;
+    y_.mu[c] = y_.mu2[c] = 0;
+    y_.z[c] = rho_ / -h_[c];
   }
+  keep_partition_ = true;
   return true;
 }
 

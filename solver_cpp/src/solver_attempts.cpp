@@ -473,7 +473,7 @@ bool Solver::handle_stall(bool& polished, double& merit_now, bool& stalled, Info
   // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per
   // attempt). A stall with rho at its floor is often the barrier's ill-conditioning around a contact
   // that the equilibrium needs; the equality form has no such curvature.
-  if (polished || settings_.stall.polish_gap <= 0 || !polish(h_)) { stalled = true; return false; }
+  if (polished || settings_.stall.polish_gap <= 0 || !hold_near_contacts(h_, settings_.stall.polish_gap)) { stalled = true; return false; }
   polished = true;
   number_multipliers();
   evaluate(y_, h_, true, r_, rc_);
@@ -482,10 +482,10 @@ bool Solver::handle_stall(bool& polished, double& merit_now, bool& stalled, Info
   return true;
 }
 
-bool Solver::polish(const Vec& h) {
+bool Solver::hold_near_contacts(const Vec& h, double gap) {
   bool any = false;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    if (state_[c] != ConstraintState::Barrier || h[c] < -settings_.stall.polish_gap) continue;
+    if (state_[c] != ConstraintState::Barrier || h[c] < -gap) continue;
     state_[c] = ConstraintState::Active;
     // The barrier dual (or -rho/h in the primal form) is the multiplier estimate.
     const double mu = barrier_ == BarrierMode::PrimalDual ? y_.z[c] : -rho_ / h[c];

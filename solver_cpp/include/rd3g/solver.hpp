@@ -325,9 +325,9 @@ class Solver {
   /// domain is one-sided or free.
   bool domain_box(int i, int q, double& lo, double& hi);
   double violation_sum(const Vec& h) const;
-  /// On a stall: barrier constraints with h >= -polish_gap become equalities, their multiplier the barrier's
-  /// estimate. Returns false if there is none.
-  bool polish(const Vec& h);
+  /// Barrier constraints with h >= -gap become equalities, their multiplier the barrier's dual estimate (the stall's
+  /// polish, and the nearly active contacts of a saddle an escape leaves). True if any did.
+  bool hold_near_contacts(const Vec& h, double gap);
 
   Problem prob_;
   Settings settings_;
