@@ -119,6 +119,7 @@ int Solver::start_best_response_attempt(int budget) {
     roll_out(y_, i);
   }
   const int used = best_response_sweeps(settings_.best_response.rounds, budget);
+  start_holds_contacts_ = true;
   y_.mu.setZero();
   y_.mu2.setZero();
   y_.z.setZero();

@@ -273,6 +273,7 @@ bool Solver::polish_candidate(int c, Result& found, Info& info, int& total_iter)
   rho_ = settings_.barrier.rho_init;
   barrier_ = settings_.barrier.mode;
   inertia_on_ = false;
+  start_holds_contacts_ = true;
   ++info.attempts;
   ++info.order_attempts;
   const int start = total_iter;

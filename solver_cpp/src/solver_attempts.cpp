@@ -396,6 +396,7 @@ Solver::AttemptEnd Solver::run_attempt(Info& info, int& total_iter) {
   for (;; ++total_iter) {
     const bool ok = assemble(first, info);
     first = false;
+    start_holds_contacts_ = false;
     if (!ok) { info.status = Status::NumericalError; break; }
     const double rnorm = merit(r_, rc_);
     record_iterate(rnorm, total_iter, info);

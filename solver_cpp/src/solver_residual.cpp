@@ -56,13 +56,17 @@ double Solver::violation_sum(const Vec& h) const { return h.cwiseMax(0.0).sum();
 // (Free) until it is far enough inside to be handed to the barrier.
 void Solver::classify(const Vec& h, bool first) {
   const double margin = settings_.barrier.margin;
+  // A guess built by single-agent sub-solves has each agent's own constraints a hair inside (its barrier at the
+  // sub-solve's floor): held as equalities, not left Free where Newton would not see them.
+  const double active_from = start_holds_contacts_ ? -margin : 0.0;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
     ConstraintState& st = state_[c];
     if (first) {
       // Duals start at zero (warm-start multipliers aside): the first Newton step carries no barrier
       // curvature, and z is then driven towards rho/(-h) by the complementarity rows. (Starting on the
       // central path was measured to converge less often on the merging games.)
-      st = h[c] >= 0 ? ConstraintState::Active : (h[c] < -margin ? ConstraintState::Barrier : ConstraintState::Free);
+      st = h[c] >= active_from ? ConstraintState::Active
+                               : (h[c] < -margin ? ConstraintState::Barrier : ConstraintState::Free);
       continue;
     }
     switch (st) {

@@ -364,6 +364,9 @@ class Solver {
   std::vector<double> violations_;      // total violation per iteration of the current attempt
   bool timed_out_ = false;              // the deadline passed inside a step
   int edge_attempts_ = 0;               // attempts of this solve that ended domain_edge
+  // The next attempt's first partition holds constraints within barrier.margin as equalities (attempts from a
+  // guess built by single-agent sub-solves: the best-response attempt, the ordered guesses' polishes).
+  bool start_holds_contacts_ = false;
   bool keep_partition_ = false;         // the next attempt starts with the partition as set (domain rescue)
   bool domain_blocked_ = false;         // the last line search: a control at its domain box's edge, the step out
   bool newton_at_edge_ = false;         // this iteration's Newton step was blocked so (domain_edge if it ends here)
