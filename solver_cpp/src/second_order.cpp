@@ -414,7 +414,7 @@ bool Solver::leave_saddle(int escapes) {
   // The attempt keeps this partition. Constraints still within the margin stay held: the active ones with their
   // multipliers, the barrier's nearly active contacts as equalities (their duals the multipliers). Released to the
   // first partition's Free state, they would be invisible to Newton, whose first step crosses them, and no step
-  // length keeps the violation at 0 (authors 6 cars seed 6: both escapes' attempts failed so at once).
+  // length would keep the violation at 0.
   eval_all_constraints(y_, h_);
   hold_near_contacts(h_, margin);
   // Constraints inside the margin go to the barrier on the central path of a moderate rho (at rho's floor the

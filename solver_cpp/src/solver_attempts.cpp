@@ -474,7 +474,10 @@ bool Solver::handle_stall(bool& polished, double& merit_now, bool& stalled, Info
   // Before giving the attempt up: hold the nearly active barrier constraints as equalities (once per
   // attempt). A stall with rho at its floor is often the barrier's ill-conditioning around a contact
   // that the equilibrium needs; the equality form has no such curvature.
-  if (polished || settings_.stall.polish_gap <= 0 || !hold_near_contacts(h_, settings_.stall.polish_gap)) { stalled = true; return false; }
+  if (polished || settings_.stall.polish_gap <= 0 || !hold_near_contacts(h_, settings_.stall.polish_gap)) {
+    stalled = true;
+    return false;
+  }
   polished = true;
   number_multipliers();
   evaluate(y_, h_, true, r_, rc_);
