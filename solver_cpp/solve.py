@@ -46,17 +46,23 @@ REMOVED_SETTING_NAMES = {
     "multiplier_tol": 1e-6, "fraction_to_boundary": 0.99, "lm_below_step": 0.01, "lm_nu_init": 1e-6,
     "refinement_steps": 2, "restart_u_std": 0.2, "saddle_step": 1.0, "saddle_rho": 0.01,
 }
+# Removed settings whose rule is gone altogether (no fixed value stands in for them): what the solver does instead.
+REMOVED_RULES = {
+    "lm_below_step": "Levenberg-Marquardt steps run only after a failed line search, never beside a short Newton step",
+}
 
 
 def grouped_settings(overrides: Mapping, where: str = "solver", stacklevel: int = 3, source: str = "") -> dict:
     """Overrides in the grouped form: a flat name of the previous release moves into its group with a
     DeprecationWarning naming the new name (``barrier="primal"`` becomes ``barrier={"mode": "primal"}``); a removed
-    setting (REMOVED_SETTING_NAMES) is dropped with a DeprecationWarning giving the value the solver uses."""
+    setting (REMOVED_SETTING_NAMES) is dropped with a DeprecationWarning giving the value the solver uses, or what it
+    does instead where the rule is gone (REMOVED_RULES)."""
     out: dict = {}
     for name, value in overrides.items():
         if name in REMOVED_SETTING_NAMES:
-            warnings.warn(f"{source}{where}.{name} is deprecated and ignored: the solver uses the fixed value "
-                          f"{REMOVED_SETTING_NAMES[name]}", DeprecationWarning, stacklevel=stacklevel)
+            instead = REMOVED_RULES.get(name, f"the solver uses the fixed value {REMOVED_SETTING_NAMES[name]}")
+            warnings.warn(f"{source}{where}.{name} is deprecated and ignored: {instead}", DeprecationWarning,
+                          stacklevel=stacklevel)
         elif name in SETTING_GROUPS and isinstance(value, Mapping):
             out.setdefault(name, {}).update(value)
         elif name in FLAT_SETTING_NAMES:

@@ -2,6 +2,7 @@
 release's flat names (accepted with a DeprecationWarning naming the new name), errors naming the grouped field,
 and the same form in problem files and on the bench command line."""
 import json
+import re
 import warnings
 
 import pytest
@@ -10,7 +11,7 @@ from app.cli import main
 from bench.merging import merging_problem
 from solver_cpp import Solver, _core, make_settings, settings_dict, solve
 from solver_cpp.problem_file import ProblemFileError, problem_from_dict, problem_to_dict
-from solver_cpp.solve import FLAT_SETTING_NAMES, REMOVED_SETTING_NAMES, SETTING_GROUPS, merge_settings
+from solver_cpp.solve import FLAT_SETTING_NAMES, REMOVED_RULES, REMOVED_SETTING_NAMES, SETTING_GROUPS, merge_settings
 
 
 def test_every_group_and_field_of_the_cpp_struct_is_reachable_and_documented_once():
@@ -60,8 +61,8 @@ def test_settings_surface_is_smaller_than_the_51_flat_fields_it_replaced():
 @pytest.mark.parametrize("name", sorted(REMOVED_SETTING_NAMES))
 def test_removed_setting_warns_giving_its_fixed_value_and_changes_nothing(name):
     value = REMOVED_SETTING_NAMES[name]
-    with pytest.warns(DeprecationWarning, match=rf"solver\.{name} is deprecated and ignored: the solver uses the fixed "
-                                                rf"value {value}"):
+    instead = re.escape(REMOVED_RULES[name]) if name in REMOVED_RULES else rf"the solver uses the fixed value {value}"
+    with pytest.warns(DeprecationWarning, match=rf"solver\.{name} is deprecated and ignored: {instead}"):
         s = make_settings(**{name: 3 * value})
     assert settings_dict(s) == settings_dict(_core.Settings())
 
