@@ -1,7 +1,7 @@
 """`python -m app bench saddles`: which way of steering away from saddles works, on the game families.
 
-Scan: every (family, cars, seed) solved with `restart_on_saddle` off; the instances whose first converged attempt is
-a saddle (status `saddle`) are the cases. Each case is then solved with every method (solver settings below) at
+Scan: every (family, cars, seed) solved with `restart_on_saddle` and the passing-order rescue off; the instances
+whose first converged attempt is a saddle (status `saddle`) are the cases. Each case is then solved with every method (solver settings below) at
 `time_limit` 0 and the default `max_iter`, so that machine load does not decide the outcome, and judged by the
 common test of `app bench merge` (bench/merge_bench.record), the solver's second-order test and, for the first
 `best_response` cases, an SLSQP best response per player (bench/verify.best_response_gap). CPU time is the worker
@@ -30,7 +30,9 @@ Case = tuple[str, int, int]  # (family, cars, seed)
 
 
 def _scan_one(case: Case) -> tuple[Case, str]:
-    r = solve(family_problem(*case), second_order=dict(restart_on_saddle=False))
+    # Without restart_on_saddle the first converged attempt ends the schedule; the passing-order rescue, which would
+    # run after a schedule that ended at a saddle, is off so that the status is that attempt's.
+    r = solve(family_problem(*case), second_order=dict(restart_on_saddle=False), order=dict(candidates=0))
     return case, r.status
 
 
@@ -116,7 +118,7 @@ def markdown(summary: list[dict], runs: list[SaddleRun], command: str, machine: 
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
         (f"Cases: the {len({(r.family, r.cars, r.seed) for r in runs})} instances (of {scanned} scanned) "
          if scanned else "Cases: the instances given by --cases, ") +
-        "whose first converged attempt is a saddle (`restart_on_saddle` off). Each solved with "
+        "whose first converged attempt is a saddle (`restart_on_saddle` and the passing-order rescue off). Each solved with "
         "`time_limit` 0 and the default `max_iter` (1000) per method (settings in bench/saddles.py, docs/solver.md "
         "'Second-order test'). equilibria = the common test of `app bench merge` and the solver's second-order test; "
         f"best response = SLSQP per player from the result and one perturbed start finds no gain above "
