@@ -1,11 +1,11 @@
 """`python -m app bench saddles`: which way of steering away from saddles works, on the game families.
 
 Scan: every (family, cars, seed) solved with `restart_on_saddle` and the passing-order rescue off; the instances
-whose first converged attempt is a saddle (status `saddle`) are the cases. Each case is then solved with every method (solver settings below) at
-`time_limit` 0 and the default `max_iter`, so that machine load does not decide the outcome, and judged by the
-common test of `app bench merge` (bench/merge_bench.record), the solver's second-order test and, for the first
-`best_response` cases, an SLSQP best response per player (bench/verify.best_response_gap). CPU time is the worker
-process's time for the solve alone."""
+whose first converged attempt is a saddle (status `saddle`) are the cases. Each case is then solved with every
+method (solver settings below) at `time_limit` 0 and the default `max_iter`, so that machine load does not decide
+the outcome, and judged by the common test of `app bench merge` (bench/merge_bench.record), the solver's
+second-order test and, for the first `best_response` cases, an SLSQP best response per player
+(bench/verify.best_response_gap). CPU time is the worker process's time for the solve alone."""
 from __future__ import annotations
 
 import time
@@ -118,9 +118,9 @@ def markdown(summary: list[dict], runs: list[SaddleRun], command: str, machine: 
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}.",
         (f"Cases: the {len({(r.family, r.cars, r.seed) for r in runs})} instances (of {scanned} scanned) "
          if scanned else "Cases: the instances given by --cases, ") +
-        "whose first converged attempt is a saddle (`restart_on_saddle` and the passing-order rescue off). Each solved with "
-        "`time_limit` 0 and the default `max_iter` (1000) per method (settings in bench/saddles.py, docs/solver.md "
-        "'Second-order test'). equilibria = the common test of `app bench merge` and the solver's second-order test; "
+        "whose first converged attempt is a saddle (`restart_on_saddle` and the passing-order rescue off). "
+        "Each solved with `time_limit` 0 and the default `max_iter` (1000) per method (settings in bench/saddles.py, "
+        "docs/solver.md 'Second-order test'). equilibria = the common test of `app bench merge` and the solver's second-order test; "
         f"best response = SLSQP per player from the result and one perturbed start finds no gain above "
         f"{verify.BEST_RESPONSE_TOL:g} (relative), on the first cases only. CPU = process time of the solves.",
         "",
