@@ -368,12 +368,25 @@ bool Solver::leave_saddle(int escapes) {
   Vec w_i, w_j;
   constraint_weights(w_i, w_j);
   const Vec h0 = h_;  // the saddle's constraint values (write_result evaluated them at y_)
-  const double margin = settings_.barrier.margin;
   trial_ = y_;
+  bool moved = false;
+  for (int a = 0; a < N_; ++a) moved = escape_agent(a, h0, w_i, w_j) || moved;
+  if (!moved) return false;
+  std::swap(y_, trial_);
+  start_escape_partition();
+  return true;
+}
+
+bool Solver::escape_agent(int a, const Vec& h0, const Vec& w_i, const Vec& w_j) {
+  const SecondOrderAgent& ag = second_order_->agents()[a];
+  if (second_order_->agent_passes(a, settings_.second_order.tol) || !(ag.min_eigenvalue < 0) ||
+      ag.direction.cols() != T_)
+    return false;
+  const double margin = settings_.barrier.margin;
   // Agent a's constraints stay feasible: those inside by more than the barrier margin stay so (the restart hands
   // them to the barrier), the nearly active ones (the test's null space, moved along to first order only) may
   // not become violated.
-  auto feasible = [&](int a) {
+  auto feasible = [&] {
     for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
       if (!cons_[c].involves(a)) continue;
       const double h = constraint_value(trial_, c);
@@ -381,36 +394,33 @@ bool Solver::leave_saddle(int escapes) {
     }
     return true;
   };
-  bool moved = false;
-  for (int a = 0; a < N_; ++a) {
-    const SecondOrderAgent& ag = agents[a];
-    if (second_order_->agent_passes(a, tol) || !(ag.min_eigenvalue < 0) || ag.direction.cols() != T_) continue;
-    double max_h;
-    const double L0 = agent_lagrangian(a, trial_, w_i, w_j, max_h);
-    const Mat u0 = trial_.u[a];
-    double step = kEscapeStep, best_sign = 0;
-    for (int q = 0; q < settings_.line_search.max_steps && best_sign == 0; ++q, step *= settings_.line_search.beta) {
-      // Along +-d the quadratic model predicts L0 + 0.5 step^2 lambda_min; ask for a tenth of that decrease.
-      double best_L = L0 + 0.05 * step * step * ag.min_eigenvalue;
-      for (const double sign : {1.0, -1.0}) {
-        trial_.u[a] = u0 + sign * step * ag.direction;
-        roll_out(trial_, a);
-        const double L = agent_lagrangian(a, trial_, w_i, w_j, max_h);
-        if (L <= best_L && feasible(a)) { best_L = L; best_sign = sign; }
-      }
-      if (best_sign != 0) {
-        trial_.u[a] = u0 + best_sign * step * ag.direction;
-        if (settings_.verbose)
-          std::printf("saddle: agent %d moves %.3g along %s its negative curvature (eigenvalue %.3e), L %.6e -> %.6e\n",
-                      a, step, best_sign > 0 ? "+" : "-", ag.min_eigenvalue, L0, best_L);
-      }
+  double max_h;
+  const double L0 = agent_lagrangian(a, trial_, w_i, w_j, max_h);
+  const Mat u0 = trial_.u[a];
+  double step = kEscapeStep, best_sign = 0;
+  for (int q = 0; q < settings_.line_search.max_steps && best_sign == 0; ++q, step *= settings_.line_search.beta) {
+    // Along +-d the quadratic model predicts L0 + 0.5 step^2 lambda_min; ask for a tenth of that decrease.
+    double best_L = L0 + 0.05 * step * step * ag.min_eigenvalue;
+    for (const double sign : {1.0, -1.0}) {
+      trial_.u[a] = u0 + sign * step * ag.direction;
+      roll_out(trial_, a);
+      const double L = agent_lagrangian(a, trial_, w_i, w_j, max_h);
+      if (L <= best_L && feasible()) { best_L = L; best_sign = sign; }
     }
-    if (best_sign == 0) trial_.u[a] = u0;  // no acceptable move: this agent stays
-    else moved = true;
-    roll_out(trial_, a);
+    if (best_sign != 0) {
+      trial_.u[a] = u0 + best_sign * step * ag.direction;
+      if (settings_.verbose)
+        std::printf("saddle: agent %d moves %.3g along %s its negative curvature (eigenvalue %.3e), L %.6e -> %.6e\n",
+                    a, step, best_sign > 0 ? "+" : "-", ag.min_eigenvalue, L0, best_L);
+    }
   }
-  if (!moved) return false;
-  std::swap(y_, trial_);
+  if (best_sign == 0) trial_.u[a] = u0;  // no acceptable move: this agent stays
+  roll_out(trial_, a);
+  return best_sign != 0;
+}
+
+void Solver::start_escape_partition() {
+  const double margin = settings_.barrier.margin;
   // The attempt keeps this partition. Constraints still within the margin stay held: the active ones with their
   // multipliers, the barrier's nearly active contacts as equalities (their duals the multipliers). Released to the
   // first partition's Free state, they would be invisible to Newton, whose first step crosses them, and no step
@@ -427,7 +437,6 @@ bool Solver::leave_saddle(int escapes) {
     y_.z[c] = rho_ / -h_[c];
   }
   keep_partition_ = true;
-  return true;
 }
 
 void Solver::add_inertia_correction(double rnorm) {

@@ -415,6 +415,13 @@ class Solver {
   /// second_order.escapes), moves them along negative curvature and prepares y_, rho_ and the partition for an attempt
   /// from there. Returns true if it did (y_ is unchanged otherwise).
   bool leave_saddle(int escapes);
+  /// Moves agent a of trial_ along its direction of negative curvature, both signs, the step shortened until its
+  /// Lagrangian (weights w_i, w_j) falls by a tenth of the quadratic model's prediction and its constraints stay as
+  /// feasible as at the saddle (values h0); rolls a out either way. True if it moved.
+  bool escape_agent(int a, const Vec& h0, const Vec& w_i, const Vec& w_j);
+  /// The escape attempt's partition at y_ (kept by the attempt, keep_partition_): contacts within barrier.margin held
+  /// as equalities, the other constraints in the barrier on the central path of rho = kEscapeRho.
+  void start_escape_partition();
   /// Agent a's shooting Lagrangian J^a + sum_c w_c h_c at y (its constraints only) and the largest of their h.
   double agent_lagrangian(int a, const Iterate& y, const Vec& w_i, const Vec& w_j, double& max_h) const;
   /// Adds the inertia correction (second_order.inertia) to this iteration's Newton matrix (trip_).
