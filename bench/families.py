@@ -7,6 +7,7 @@ cars, seed) alone. `FAMILIES` maps the names `python -m app bench merge --family
 them and measured only on seeds 50-99."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -264,7 +265,26 @@ def family_names(text: str) -> list[str]:
     return names
 
 
-def family_problem(name: str, num_cars: int, seed: int) -> GameProblem:
+def family_problem(name: str, num_cars: int, seed: int, steering_bound: float = math.inf) -> GameProblem:
+    """Instance `seed` of family `name` with `num_cars` cars; steering_bound (rad, > 0): every car's |delta| bounded
+    at it as well (the tighter of it and the family's own bound), a variant of the family, not one of them."""
     if name not in FAMILIES:
         raise ValueError(f"unknown family {name!r}; choose from {', '.join(FAMILIES)}")
-    return FAMILIES[name].problem(num_cars, seed)
+    problem = FAMILIES[name].problem(num_cars, seed)
+    return problem if math.isinf(steering_bound) else bound_steering(problem, steering_bound)
+
+
+def bound_steering(problem: GameProblem, bound: float) -> GameProblem:
+    """problem with every car's steering (control 1 of the bicycles, u = (a, delta)) bounded at |delta| <= bound
+    (rad), keeping a tighter bound the car has."""
+    if not bound > 0:
+        raise ValueError(f"steering bound must be > 0 rad, got {bound}")
+    agents = []
+    for i, a in enumerate(problem.agents):
+        if not isinstance(a.dynamics, (KinematicBicycle, KinematicBicycleFrenet)):
+            raise ValueError(f"agent {i}: a steering bound needs a bicycle model, got {type(a.dynamics).__name__}")
+        lo = list(a.u_min) if a.u_min is not None else [-math.inf, -math.inf]
+        hi = list(a.u_max) if a.u_max is not None else [math.inf, math.inf]
+        lo[1], hi[1] = max(lo[1], -bound), min(hi[1], bound)
+        agents.append(dataclasses.replace(a, u_min=tuple(lo), u_max=tuple(hi)))
+    return dataclasses.replace(problem, agents=agents)

@@ -4,6 +4,7 @@ Every solver gets the same instances and time limit; success is decided here, by
 the returned trajectories (bench/verify.py), not by the solvers' own status."""
 from __future__ import annotations
 
+import math
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -101,6 +102,7 @@ class Job:
     settings: tuple = ()  # RD3G's setting overrides, (name, value) pairs
     repeats: int = 1  # runs of a short solve; the fastest one's times are kept (REPEAT_BELOW_MS)
     best_response_check: int = -1  # >= 0: check each success by SLSQP best responses from it and this many perturbations
+    steering_bound: float = math.inf  # rad: every car's |delta| bounded at it too (bench.families.family_problem)
 
 
 # A solve that stays far from its time limit (or has none) is deterministic, so running it again changes only its
@@ -125,7 +127,7 @@ def failure_feasibility(problem, x: np.ndarray, u: np.ndarray) -> tuple[str, str
 def one_run(job: Job) -> RunRecord:
     import time
 
-    problem = family_problem(job.family, job.cars, job.seed)
+    problem = family_problem(job.family, job.cars, job.seed, job.steering_bound)
     best = None
     for run in range(job.repeats):
         cpu0 = time.process_time()
@@ -191,16 +193,16 @@ def record(name: str, problem, r, setup_s: float, cars: int, seed: int, family: 
 def run(solvers: list[str], cars: list[int], instances, workers: int, time_limit_s: float,
         families: tuple[str, ...] = ("authors",), best_response_rounds: int = 0,
         max_iter: int | None = None, settings: tuple = (), repeats: int = 1,
-        best_response_check: int = -1) -> list[RunRecord]:
+        best_response_check: int = -1, steering_bound: float = math.inf) -> list[RunRecord]:
     """instances: a count (seeds 0..instances-1) or the seeds themselves. best_response_rounds > 0: RD3G starts
     from solver_cpp.best_response.best_response_guess (its time counts, within the time limit). time_limit_s <= 0: none.
     settings: RD3G setting overrides, (name, value) pairs. repeats: a solve faster than REPEAT_BELOW_MS (and than
     a tenth of its time limit) runs up to this many times and the fastest run's times are reported. best_response_check >= 0:
     every success is also checked by SLSQP best responses (best_response_gap) from it and that many perturbations;
-    its time is not counted."""
+    its time is not counted. steering_bound (rad): the families' variant with every car's steering bounded at it."""
     seeds = list(range(instances)) if isinstance(instances, int) else [int(s) for s in instances]
     jobs = [Job(s, n, seed, time_limit_s, f, best_response_rounds, max_iter, tuple(settings), repeats,
-                best_response_check)
+                best_response_check, steering_bound)
             for f in families for n in cars for s in solvers for seed in seeds]
     records: list[RunRecord] = []
     with tqdm(total=len(jobs), desc="bench merge", unit="solve") as bar:

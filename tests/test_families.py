@@ -1,9 +1,11 @@
 """The generated game families (bench/families.py): reproducible from (family, cars, seed), documented geometry,
 feasible starts, and the authors' family equal to bench/merging.py's instances."""
+import dataclasses
+
 import numpy as np
 import pytest
 
-from bench.families import FAMILIES, family_problem
+from bench.families import FAMILIES, bound_steering, family_problem
 from bench.merging import merging_problem
 
 
@@ -51,6 +53,39 @@ def test_merge_long_bounds_steering_only():
             assert np.all(np.asarray(a.u_min) < 0) and np.all(np.asarray(a.u_max) > 0)  # zero controls interior
     for name in ("authors", "merge-dense", "merge-narrow"):
         assert all(a.u_min is None and a.u_max is None for a in family_problem(name, 4, 0).agents)
+
+
+def test_steering_bound_variant_bounds_every_car_and_keeps_tighter_bounds():
+    """family_problem(..., steering_bound=b): |delta| <= b for every car, acceleration free, a family's tighter bound
+    kept; and the ring's lane swap of seed 92, which without a bound steers at the domain box's edge (1.555 rad) at
+    its first step, converges inside the bound with the common test passed (bench/verify.py)."""
+    from bench.verify import verify_equilibrium
+    from solver_cpp import solve
+
+    for name in ("ring", "four-way", "merge-close"):
+        for a in family_problem(name, 3, 92, steering_bound=0.6).agents:
+            assert tuple(a.u_min) == (-np.inf, -0.6) and tuple(a.u_max) == (np.inf, 0.6)
+    for a in family_problem("merge-long", 3, 0, steering_bound=0.9).agents:
+        assert tuple(a.u_min) == (-np.inf, -0.6) and tuple(a.u_max) == (np.inf, 0.6)
+    problem = family_problem("ring", 3, 92, steering_bound=0.6)
+    r = solve(problem, time_limit=0)
+    assert r.status == "converged"
+    assert np.max(np.abs(np.asarray(r.u)[:, :, 1])) <= 0.6 + 1e-9
+    assert verify_equilibrium(problem, r.x, r.u, best_response=False).passed
+    with pytest.raises(ValueError, match="must be > 0"):
+        family_problem("ring", 3, 0, steering_bound=0.0)
+    p = family_problem("authors", 2, 0)
+    p.agents[0] = dataclasses.replace(p.agents[0], dynamics=object())
+    with pytest.raises(ValueError, match="agent 0: a steering bound needs a bicycle model"):
+        bound_steering(p, 0.5)
+
+
+def test_bench_merge_steering_bound_is_for_families_only():
+    from app.cli import main
+
+    assert main(["bench", "merge", "--cars", "2", "--instances", "1", "--steering-bound", "0.5", "--no-docs"]) == 2
+    assert main(["bench", "merge", "--family", "ring", "--cars", "2", "--seeds", "0:1", "--steering-bound", "0",
+                 "--no-docs"]) == 2
 
 
 def test_unknown_family_is_named():

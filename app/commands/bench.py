@@ -3,6 +3,7 @@ the modules that own their options (`add_arguments(parser)`, `run(args)`) are li
 from __future__ import annotations
 
 import json
+import math
 import shlex
 import sys
 import time
@@ -95,6 +96,10 @@ def register(sub) -> None:
                    help="with --family: check every solved RD3G result by each player's SLSQP best response "
                         "(bench/verify.py) from the result and STARTS seeded perturbations of it (0: from the result "
                         "only); a player lowering its cost by more than 1e-3 of it refutes the equilibrium; not timed")
+    m.add_argument("--steering-bound", type=float, metavar="RAD",
+                   help="with --family: bound every car's steering at |delta| <= RAD as well (the tighter of it and "
+                        "the family's own bound): a variant of the families, for asking what a physical steering "
+                        "limit changes; none by default")
     m.add_argument("--repeat", type=int, default=3,
                    help="run each solve faster than 200 ms CPU (and than a tenth of --time-limit) up to this many "
                         "times and report its fastest run's times (the results are identical; the noise of a shared "
@@ -252,6 +257,8 @@ def run_merge(args) -> int:
     cars = parse_range(args.cars)
     if args.family:
         return _run_families(args, cars)
+    if args.steering_bound is not None:
+        raise UserError("--steering-bound applies to --family runs only (the Table I games are the authors')")
     solvers, seeds = _merge_options(args, default_solvers="rd3g,ilqgames,algames")
     t0 = time.perf_counter()
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, max_iter=args.max_iter,
@@ -351,12 +358,16 @@ def _run_families(args, cars: list[int]) -> int:
         raise UserError("--best-response-rounds must be >= 0")
     if args.best_response_check < -1:
         raise UserError("--best-response-check must be >= 0 (or -1: off)")
+    steering_bound = math.inf if args.steering_bound is None else args.steering_bound
+    if not steering_bound > 0:
+        raise UserError(f"--steering-bound must be > 0 rad, got {args.steering_bound}")
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     repeats = _repeats(args)
     records = merge_bench.run(solvers, cars, seeds, args.workers, args.time_limit, tuple(names),
                               args.best_response_rounds, max_iter=args.max_iter, settings=args.rd3g_settings,
-                              repeats=repeats, best_response_check=args.best_response_check)
+                              repeats=repeats, best_response_check=args.best_response_check,
+                              steering_bound=steering_bound)
     summary = merge_bench.summarize_families(records)
     command = "python -m app " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     machine = f"{machine_description()}; 1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
@@ -376,7 +387,8 @@ def _run_families(args, cars: list[int]) -> int:
         failed = [f for r in summary for f in r["failed_instances"]]
         meta = {"max_iter": args.max_iter, "time_limit_s": args.time_limit, "seeds": [seeds[0], seeds[-1] + 1],
                 "load_average_start": load0, "load_average_end": os.getloadavg()[0],
-                "rd3g_settings": dict(args.rd3g_settings), "repeats": repeats}
+                "rd3g_settings": dict(args.rd3g_settings), "repeats": repeats,
+                "steering_bound_rad": None if math.isinf(steering_bound) else steering_bound}
         atomic_write_text(args.json, json.dumps({"results": summary, "budget": meta, "failed_instances": failed,
                                                  "speed_goal": goal}, indent=1))
         print(f"wrote {args.json}")
