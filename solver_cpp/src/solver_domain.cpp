@@ -18,8 +18,9 @@ namespace {
 using ConstraintKey = std::array<int, 5>;
 ConstraintKey key_of(const Constraint& c) { return {static_cast<int>(c.kind), c.i, c.j, c.k, c.idx}; }
 // The bounded start's steering bound, as a fraction of the half-width of the box the domain and the control's own
-// bounds leave (the bicycles without a bound: 0.6 * 0.99 * pi/2 = 0.93 rad). Chosen on the seen held-out seeds 80-99 (docs/benchmarks.md): bounds of 0.5, 0.9 and 1.3 rad each
-// led the three four-way failures there to an equilibrium; the middle one is taken.
+// bounds leave (the bicycles without a bound: 0.6 * 0.99 * pi/2 = 0.93 rad). Chosen on the seen held-out seeds 80-99
+// (docs/benchmarks.md): bounds of 0.5, 0.9 and 1.3 rad each led the three four-way failures there to an equilibrium;
+// the middle one is taken.
 constexpr double kBoundedStartFraction = 0.6;
 }  // namespace
 
