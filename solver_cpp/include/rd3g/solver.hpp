@@ -209,10 +209,10 @@ class Solver {
   /// No stage before found an equilibrium: the bounded start is worth running.
   bool bounded_start_wanted(const Info& info) const;
   /// The bounded start (solver_domain.cpp): the same game with every two-sided domain control bounded to
-  /// kBoundedStartFraction of the box its domain and its own bounds leave, solved by a nested solver from the initial guess (its own budget, at
-  /// most max_iter), then this game's restart schedule again from that solve's controls and dynamics multipliers
-  /// (its own budget, max_iter). True if `found` holds an equilibrium; otherwise info gets the counters, and `outer`
-  /// that schedule's first saddle if it had none of its own.
+  /// kBoundedStartFraction of the box its domain and its own bounds leave, solved by a nested solver from the initial
+  /// guess (its own budget, at most max_iter), then this game's restart schedule again from that solve's controls and
+  /// dynamics multipliers (its own budget, max_iter). True if `found` holds an equilibrium; otherwise info gets the
+  /// counters, and `outer` that schedule's first saddle if it had none of its own.
   bool bounded_start(Result& found, Info& info, Schedule& outer);
   /// p = this game with each control that has a two-sided domain box bounded to `fraction` of the part of that box
   /// its own bounds leave (shrunk about that part's centre) where that is tighter than its own bounds (p null: only
