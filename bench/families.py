@@ -46,11 +46,10 @@ class MergeFamily:
     def problem(self, num_cars: int, seed: int) -> GameProblem:
         x0 = merging.initial_states(num_cars, seed, self.spacing, self.main_lane_y, self.merge_lane_y)
         cost = QuadraticCost(x_ref=(0.0, self.y_ref, self.v_ref, 0.0), Q_ref=self.Q_ref, R=self.R, Q=(0.0,) * 4)
-        bounds = {} if math.isinf(self.steering_bound) else {
-            "u_min": (-math.inf, -self.steering_bound), "u_max": (math.inf, self.steering_bound)}
-        agents = [Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x, cost, **bounds) for x in x0]
-        return GameProblem(dt=self.dt, horizon=self.horizon, agents=agents,
-                           collision=Collision(min_distance=self.min_distance, form=self.form))
+        agents = [Agent(KinematicBicycle(lf=self.lf, lr=self.lr), x, cost) for x in x0]
+        problem = GameProblem(dt=self.dt, horizon=self.horizon, agents=agents,
+                              collision=Collision(min_distance=self.min_distance, form=self.form))
+        return problem if math.isinf(self.steering_bound) else bound_steering(problem, self.steering_bound)
 
 
 @dataclass(frozen=True)
