@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from bench import baselines, verify
 from fileio import atomic_write_with
-from bench.families import family_problem
+from bench.families import TUNED_FAMILIES, family_problem
 from bench.merging import MAIN_LANE_Y, MERGE_LANE_Y, lane_counts, merging_problem
 from solver_cpp import solve
 from solver_cpp.best_response import best_response_guess
@@ -304,9 +304,12 @@ def family_markdown(summary: list[dict], command: str, machine: str, seconds: fl
     solvers = solvers_in(summary)
     guess = (f" (initial guess: {best_response_rounds} rounds of iterated best response, time included)"
              if best_response_rounds else "")
+    # Named in the heading unless they are the tuned group, so that each selection's block is told apart.
+    families = list(dict.fromkeys(r["family"] for r in summary))
+    named = "" if sorted(families) == sorted(TUNED_FAMILIES) else f" ({', '.join(families)})"
     lines = [
         ("## Game families: RD3G beyond the authors' merging benchmark" if len(solvers) < 2 else
-         "## Game families: " + ", ".join(solvers) + " side by side") + guess,
+         "## Game families: " + ", ".join(solvers) + " side by side") + named + guess,
         "",
         f"Command: `{command}` ({seconds:.0f} s). Machine: {machine}." + (f" Budget per solve: {budget}." if budget else ""),
         "Families: docs/merging.md, 'Other families'. solved = the common test of the three-solver table (dynamics, "

@@ -65,8 +65,33 @@ def test_bench_merge_no_docs_writes_no_figures(tmp_path, monkeypatch):
 def test_benchmarks_md_holds_each_generated_block_once():
     # write_section rewrites every copy of a block, so a second copy would silently repeat the first.
     from bench.report import BENCHMARKS_MD
-    starts = re.findall(r"<!-- ([\w-]+):start -->", BENCHMARKS_MD.read_text())
+    starts = re.findall(r"<!-- ([\w.-]+):start -->", BENCHMARKS_MD.read_text())
     assert starts and len(starts) == len(set(starts)), sorted(n for n in starts if starts.count(n) > 1)
+
+
+def test_family_runs_keep_a_block_per_selection_and_variant():
+    # The tuned group keeps the blocks docs/benchmarks.md has; the held-out group and a steering-bounded variant get
+    # their own, so that recording one does not overwrite another.
+    import argparse
+    import math
+
+    from app.commands.bench import _families_section
+
+    def name(family, solvers, bound=math.inf, rounds=0):
+        return _families_section(argparse.Namespace(family=family, best_response_rounds=rounds), solvers, bound)
+
+    three = ["rd3g", "ilqgames", "algames"]
+    assert name("tuned", ["rd3g"]) == "merge-families"
+    assert name("tuned", three) == "merge-families-rd3g-ilqgames-algames"
+    assert name("held-out", three) == "merge-families-held-out-rd3g-ilqgames-algames"
+    assert name("held-out", three, 0.6) == "merge-families-held-out-rd3g-ilqgames-algames-steering-bound-0.6"
+    assert name("ring,four-way", ["rd3g"], rounds=2) == "merge-families-ring-four-way-best-response-2"
+
+
+def test_family_tables_name_a_selection_other_than_the_tuned_group(capsys):
+    assert main(["bench", "merge", "--family", "ring", "--cars", "2", "--seeds", "50:51", "--repeat", "1",
+                 "--no-docs"]) == 0
+    assert "## Game families: RD3G beyond the authors' merging benchmark (ring)\n" in capsys.readouterr().out
 
 
 def test_write_section_replaces_the_block_and_leaves_no_temporary(tmp_path):

@@ -347,6 +347,17 @@ def _family_names(text: str) -> list[str]:
         raise UserError(f"--family: {exc}") from None
 
 
+def _families_section(args, solvers: list[str], steering_bound: float) -> str:
+    """The docs/benchmarks.md block a family run writes: one per family selection (the tuned group keeps the bare
+    name), solver set, best-response start and steering bound, so that the tuned and held-out tables, and a variant
+    of either, do not overwrite each other."""
+    selection = args.family.strip().replace(",", "-")
+    return ("merge-families" + ("" if selection == "tuned" else f"-{selection}")
+            + ("" if solvers == ["rd3g"] else "-" + "-".join(solvers))
+            + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")
+            + ("" if math.isinf(steering_bound) else f"-steering-bound-{steering_bound:g}"))
+
+
 def _run_families(args, cars: list[int]) -> int:
     from pathlib import Path
 
@@ -393,10 +404,7 @@ def _run_families(args, cars: list[int]) -> int:
                                                  "speed_goal": goal}, indent=1))
         print(f"wrote {args.json}")
     if not args.no_docs:
-        # The RD3G-only table and a comparison with the baselines are kept as separate sections.
-        section = ("merge-families" + ("" if solvers == ["rd3g"] else "-" + "-".join(solvers))
-                   + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else ""))
-        print(f"recorded in {write_section(section, md)}")
+        print(f"recorded in {write_section(_families_section(args, solvers, steering_bound), md)}")
     return 0
 
 
