@@ -85,7 +85,7 @@ def test_family_runs_keep_a_block_per_selection_and_variant():
     assert name("tuned", three) == "merge-families-rd3g-ilqgames-algames"
     assert name("held-out", three) == "merge-families-held-out-rd3g-ilqgames-algames"
     assert name("held-out", three, 0.6) == "merge-families-held-out-rd3g-ilqgames-algames-steering-bound-0.6"
-    assert name("ring,four-way", ["rd3g"], rounds=2) == "merge-families-ring-four-way-best-response-2"
+    assert name("ring, four-way", ["rd3g"], rounds=2) == "merge-families-ring-four-way-best-response-2"
 
 
 def test_family_tables_name_a_selection_other_than_the_tuned_group(capsys):

@@ -351,7 +351,7 @@ def _families_section(args, solvers: list[str], steering_bound: float) -> str:
     """The docs/benchmarks.md block a family run writes: one per family selection (the tuned group keeps the bare
     name), solver set, best-response start and steering bound, so that the tuned and held-out tables, and a variant
     of either, do not overwrite each other."""
-    selection = args.family.strip().replace(",", "-")
+    selection = "-".join(part.strip() for part in args.family.split(",") if part.strip())
     return ("merge-families" + ("" if selection == "tuned" else f"-{selection}")
             + ("" if solvers == ["rd3g"] else "-" + "-".join(solvers))
             + (f"-best-response-{args.best_response_rounds}" if args.best_response_rounds else "")
