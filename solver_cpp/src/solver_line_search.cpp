@@ -43,8 +43,9 @@ void Solver::apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out)
 
 // Backtracking line search (paper, Algorithm 1), with the partition and rho of this iteration:
 // accept t when ||r(y + t dy)|| <= (1 - alpha t) ||r(y)|| and the total violation does not exceed the
-// largest of the last violation_memory iterates' (1: does not grow). A rejected t shrinks by beta, or after a trial
-// that crossed constraints, in the game's attempts once rho has fallen, to just before the first crossing.
+// largest of the last violation_memory iterates' (1: does not grow). In the game's attempts the first trial stops just
+// before the first bound it would cross, and a rejected t shrinks by beta, or after a trial that crossed constraints,
+// once rho has fallen, to just before the first crossing.
 double Solver::line_search(double merit0) {
   double hsum = violation_sum(h_);
   const int mem = std::min<int>(rules_.violation_memory, static_cast<int>(violations_.size()));
@@ -59,6 +60,7 @@ double Solver::line_search(double merit0) {
   } else {
     dz_.setZero();
   }
+  if (rules_.backtrack_to_crossing) t = bound_step(t);
   domain_blocked_ = false;
   if (settings_.domain_fraction > 0) {
     t = domain_step(t);
@@ -86,6 +88,28 @@ double Solver::line_search(double merit0) {
     t *= beta;
   }
   return 0.0;
+}
+
+// Fraction to the boundary of the state and control bounds in the barrier (IPOPT's rule for its bounds): they are
+// linear in the variables, so the step at which each would be crossed is exact, and a trial past it would only be
+// rejected by the violation test and halved (merge-long 2 cars, steering bounded at 0.6 rad: two to four trials in
+// each of the first eight iterations).
+double Solver::bound_step(double t) const {
+  using K = Constraint::Kind;
+  for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
+    if (state_[c] != ConstraintState::Barrier) continue;
+    const Constraint& cn = cons_[c];
+    double dv;
+    switch (cn.kind) {
+      case K::StateMax: dv = dy_[col_x(cn.i, cn.k) + cn.idx]; break;
+      case K::StateMin: dv = -dy_[col_x(cn.i, cn.k) + cn.idx]; break;
+      case K::ControlMax: dv = dy_[col_u(cn.i, cn.k) + cn.idx]; break;
+      case K::ControlMin: dv = -dy_[col_u(cn.i, cn.k) + cn.idx]; break;
+      default: continue;
+    }
+    if (dv > 0 && h_[c] < 0) t = std::min(t, kFractionToBoundary * (-h_[c]) / dv);
+  }
+  return t;
 }
 
 // Near a barrier solution every full Newton step crosses the nearest constraint by a little (its curvature), and

@@ -158,10 +158,12 @@ struct LineSearchSettings {
   /// d = -(J'J + nu I)^-1 J' r, a descent direction for ||r||^2, with nu = 1e-6 * 10^q ||r||, q = 0..lm_tries-1
   /// (the first that passes the line search is taken). 0 = off.
   int lm_tries = 4;
-  /// After a trial t that crosses constraints satisfied at the current point, once rho has fallen below
-  /// barrier.rho_init, the next trial is the larger of beta t and 0.99 of the secant estimate of the first crossing
-  /// (docs/solver.md, "Backtracking to just before a crossing"); false = beta t, the paper's. In the game's own
-  /// attempts only, not in its best-response and passing-order sub-solves.
+  /// Steps stop just before a crossing (docs/solver.md, "Backtracking to just before a crossing"): the first trial
+  /// at 0.99 of the step to the first state or control bound in the barrier (bounds are linear: exact), and after a
+  /// trial t that crosses constraints satisfied at the current point, once rho has fallen below barrier.rho_init,
+  /// the next trial is the larger of beta t and 0.99 of the secant estimate of the first crossing. false = the
+  /// full step, then beta t, the paper's. In the game's own attempts only, not in its best-response and
+  /// passing-order sub-solves.
   bool to_crossing = true;
 };
 

@@ -319,6 +319,9 @@ class Solver {
   /// The step, of the trial t, at which the first constraint satisfied at y_ and violated at the trial crosses
   /// (secant estimate); 0 if a constraint violated at y_ grew (line_search.cpp).
   double step_to_first_crossing(double t) const;
+  /// The largest t' <= t at which every state and control bound in the barrier keeps 1 - 0.99 of its slack along dy_
+  /// (the bounds are linear in the variables, so this is exact).
+  double bound_step(double t) const;
   void apply_step(const Iterate& y, const Vec& dy, double t, Iterate& out) const;
   /// The largest t' <= t at which y_'s held controls stay in their models' domain boxes along dy_ (domain_fraction).
   double domain_step(double t);
@@ -347,7 +350,9 @@ class Solver {
     double rho_progress = 0;
     int violation_memory = 1;
     bool rho_on_stall = false;
-    bool backtrack_to_crossing = false;  // in the game's attempts, not its sub-solves (step_to_first_crossing)
+    // In the game's attempts, not its sub-solves: the first trial stops before the bounds (bound_step), a trial that
+    // crosses constraints is followed by one just before the crossing (step_to_first_crossing).
+    bool backtrack_to_crossing = false;
   };
   AttemptRules rules_;
 
