@@ -92,8 +92,7 @@ double Solver::line_search(double merit0) {
 
 // Fraction to the boundary of the state and control bounds in the barrier (IPOPT's rule for its bounds): they are
 // linear in the variables, so the step at which each would be crossed is exact, and a trial past it would only be
-// rejected by the violation test and halved (merge-long 2 cars, steering bounded at 0.6 rad: two to four trials in
-// each of the first eight iterations).
+// rejected by the violation test and halved, several times per iteration while a bound is near.
 double Solver::bound_step(double t) const {
   using K = Constraint::Kind;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
