@@ -95,18 +95,14 @@ double Solver::line_search(double merit0) {
 // rejected by the violation test and halved, several times per iteration while a bound is near.
 double Solver::bound_step(double t) const {
   using K = Constraint::Kind;
+  Eigen::Vector2d g;
+  double h;
   for (int c = 0; c < static_cast<int>(cons_.size()); ++c) {
-    if (state_[c] != ConstraintState::Barrier) continue;
-    const Constraint& cn = cons_[c];
-    double dv;
-    switch (cn.kind) {
-      case K::StateMax: dv = dy_[col_x(cn.i, cn.k) + cn.idx]; break;
-      case K::StateMin: dv = -dy_[col_x(cn.i, cn.k) + cn.idx]; break;
-      case K::ControlMax: dv = dy_[col_u(cn.i, cn.k) + cn.idx]; break;
-      case K::ControlMin: dv = -dy_[col_u(cn.i, cn.k) + cn.idx]; break;
-      default: continue;
-    }
-    if (dv > 0 && h_[c] < 0) t = std::min(t, kFractionToBoundary * (-h_[c]) / dv);
+    const K kind = cons_[c].kind;
+    if (state_[c] != ConstraintState::Barrier || kind == K::Pair || kind == K::Obstacle) continue;
+    eval_constraint(y_, c, h, &g, nullptr);  // a bound: g[0] = dh/d(its component), +-1
+    const double dh = g[0] * dy_[constraint_rows(c).ci[0]];
+    if (dh > 0 && h < 0) t = std::min(t, kFractionToBoundary * (-h) / dh);
   }
   return t;
 }
