@@ -118,7 +118,8 @@ enum class LinearSolver {
   Riccati,   ///< default: variational multipliers; a stage-wise (coupled, nonsymmetric) Riccati recursion, with
              ///< the multipliers of equality-held constraints eliminated by a Schur complement; SparseLU if it
              ///< fails its residual check
-  SparseLU,  ///< variational multipliers (mu_ij = mu_ji), square system, Eigen SparseLU with reused symbolic analysis
+  SparseLU,  ///< variational multipliers (mu_ij = mu_ji), square system, Eigen SparseLU with reused symbolic analysis;
+             ///< a regularised least-squares step (LDLT of J'J + delta I) where LU finds the matrix singular
   LSCG,      ///< paper: per-agent multipliers, least-squares conjugate gradient, SparseQR fallback
   SparseQR,  ///< paper's fallback alone: per-agent multipliers, Eigen SparseQR
 };
@@ -287,11 +288,12 @@ struct Settings {
   /// start's bounded games a nested solve each, and the bounded start's second schedule max_iter again.
   int max_iter = 1000;
   /// (s), 0 = none. Checked every iteration, between Levenberg-Marquardt tries, inside LSCG (in chunks of 50
-  /// iterations) and before a SparseQR factorisation, which is started only if this solver's previous QR
-  /// took less than the time left (never before one was measured); otherwise a regularised least-squares step
-  /// (LDLT of J'J + delta I, started only if its flop count fits) takes its place. The overshoot is at most
-  /// one line search, one LSCG chunk or one factorisation. On time_limit the result is the iterate with the
-  /// lowest merit seen.
+  /// iterations) and before a least-squares step or a SparseQR factorisation. The least-squares step (LDLT of
+  /// J'J + delta I; the fallback of a singular Newton matrix on the Riccati / SparseLU path, with or without a
+  /// limit) is started only if its flop count fits; SparseQR (LSCG's fallback, SparseQR) only if this solver's
+  /// previous QR took less than the time left (never before one was measured), else the least-squares step takes
+  /// its place. The overshoot is at most one line search, one LSCG chunk or one factorisation. On time_limit the
+  /// result is the iterate with the lowest merit seen.
   double time_limit = 0.0;
   double violation_tol = 1e-6;   ///< converged only if every h <= violation_tol (constraint units)
   double dynamics_tol = 1e-7;    ///< converged only if every dynamics defect <= dynamics_tol (state units)
@@ -366,7 +368,7 @@ struct Info {
   double rho = 0;              ///< final barrier weight
   int active_constraints = 0;  ///< constraints held as equalities at the end
   int symbolic_factorizations = 0;  ///< how often the sparse pattern was analysed
-  int qr_fallbacks = 0;        ///< linear solves that fell back to SparseQR
+  int qr_fallbacks = 0;        ///< linear solves that fell back to a least-squares step (after LU or LSCG failed)
   int riccati_solves = 0;      ///< Newton steps solved by the stage-wise Riccati recursion
   int lm_steps = 0;            ///< iterations that took a Levenberg-Marquardt step instead of Newton
   int attempts = 0;            ///< 1 + restarts used (escapes from saddles included)

@@ -270,7 +270,7 @@ class Solver {
   bool qr_would_overrun() const;  // with a time limit: no QR of this solver measured yet, or the last one does not fit
   bool next_iteration_overruns();  // with a time limit: the deadline passed or the next iteration would pass it
   double time_left() const;  // (s) until the time limit (only meaningful with one)
-  // Bounded linear-solve fallback under a time limit (see solve_linear).
+  // The regularised least-squares step (after LU; under a time limit also in place of SparseQR) and its cost.
   double flop_rate() const;
   double normal_matrix_flops() const;
   bool bounded_least_squares(Vec& dy);
@@ -306,12 +306,13 @@ class Solver {
   /// Primal-dual: recover dz of the barrier constraints from the condensed step.
   void recover_dual_step(const Iterate& y, const Vec& h, const Vec& rc, const Vec& dy, Vec& dz) const;
   /// Newton step into dy; false if every linear solver failed (or, with a time limit, the deadline passed
-  /// before the SparseQR fallback: then timed_out_ is set).
+  /// before the least-squares fallback, or it would not fit: then timed_out_ is set).
   bool solve_linear(Vec& dy, Info& info);
   /// The linear solvers of solve_linear on rhs_ (Riccati) or neg_rhs_ and J_ (the others); false if one fails.
   bool solve_riccati(Vec& dy, Info& info);  // also false if its step fails the residual check
   bool solve_lu(Vec& dy, Info& info);
   bool solve_lscg(Vec& dy, bool& timed_out);
+  bool solve_least_squares(Vec& dy, Info& info);  // the regularised least-squares step (bounded_least_squares)
   bool solve_qr(Vec& dy, Info& info);  // or the bounded least-squares step under a time limit
   bool solve_levenberg_marquardt(double nu, Vec& dy);
   /// Backtracking line search along dy_ from y_ into trial_; returns the accepted t or 0.
