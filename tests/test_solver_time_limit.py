@@ -1,5 +1,5 @@
 """time_limit holds on the slow linear-solver paths (issue 17): the deadline is checked inside LSCG and
-before a SparseQR factorisation, and the result is the iterate with the lowest merit seen. Wall-time bounds
+before a least-squares step or a SparseQR factorisation, and the result is the iterate with the lowest merit seen. Wall-time bounds
 are deliberately loose (5x the limit plus the one uninterruptible factorisation and half a second: the
 machine is shared); the status and the returned iterate are what is asserted."""
 import time
@@ -7,8 +7,9 @@ import time
 import numpy as np
 import pytest
 
+from bench.families import family_problem
 from bench.merging import merging_problem
-from solver_cpp import solve
+from solver_cpp import GameProblem, Obstacle, Solver, _core, solve
 
 LIMIT_S = 0.05
 
@@ -74,3 +75,24 @@ def test_unmeasured_sparse_qr_is_replaced_by_the_bounded_least_squares_step(capf
     assert result.residual_norm < 0.5 * result.residual_history[0]
     if result.converged:
         np.testing.assert_allclose(result.x, reference.x, atol=1e-3)
+
+
+def test_a_limit_the_solve_does_not_reach_leaves_its_singular_steps_unchanged():
+    """A car that starts inside an obstacle's disc: the constraint is held at its first steps, whose positions its
+    controls barely move, and sparse LU finds the Newton matrix singular. The fallback is the regularised
+    least-squares step with or without a time limit, so a limit the solve does not reach changes nothing; the
+    reference is the same solve without a limit."""
+    merge = family_problem("merge-long", 2, 0)
+    car = merge.agents[1]
+    ahead = np.tile([car.x0[merge.collision.pos_x] + 1.0, car.x0[merge.collision.pos_y]], (merge.horizon + 1, 1))
+    inside = GameProblem(dt=merge.dt, horizon=merge.horizon, agents=[car], collision=merge.collision,
+                         obstacles=[Obstacle(positions=ahead, min_distance=merge.collision.min_distance)])
+    budget = dict(max_iter=30, restart=dict(count=0))
+    free = Solver(inside, **budget)._solver.solve(None)
+    limited = Solver(inside, time_limit=60.0, **budget)._solver.solve(None)
+    assert free.info.qr_fallbacks > 0  # the singular case arose
+    assert limited.info.status != _core.Status.time_limit
+    assert limited.info.iterations == free.info.iterations
+    assert list(limited.info.residual_history) == list(free.info.residual_history)
+    for a, b in zip(limited.u, free.u):
+        np.testing.assert_array_equal(a, b)

@@ -138,8 +138,8 @@ bool Solver::solve_lscg(Vec& dy, bool& timed_out) {
 }
 
 // A singular Newton matrix (LU failed): the regularised least-squares step, with or without a time limit, so
-// that a limit the solve does not reach leaves its path unchanged. SparseQR gave this step at 5-12 ms per
-// single-agent sub-solve iteration of the passing-order search (merge-long 7 cars seed 3: 2.4 of 3.4 s).
+// that a limit the solve does not reach leaves its path unchanged; its cost, unlike SparseQR's, is known
+// before it starts.
 bool Solver::solve_least_squares(Vec& dy, Info& info) {
   if (past_deadline()) {
     timed_out_ = true;
