@@ -160,10 +160,7 @@ bool Solver::solve_qr(Vec& dy, Info& info) {
   }
   if (settings_.time_limit > 0 && qr_would_overrun()) {
     if (settings_.verbose) std::printf("   SparseQR would overrun the time limit: regularised least squares\n");
-    if (bounded_least_squares(dy)) {
-      info.qr_fallbacks++;
-      return true;
-    }
+    if (solve_least_squares(dy, info)) return true;
     timed_out_ = true;
     return false;
   }
