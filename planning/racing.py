@@ -598,11 +598,13 @@ class _RecedingHorizon:
             return "accepted"
         return "fallback"
 
-    def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = ()) -> Plan:
+    def _finish(self, problem: GameProblem, d_min: float, ey_bound: float, ids: tuple = (),
+                fallback_top: float | None = None) -> Plan:
         """Solve; a converged solve is used as is. A non-converged one is used only if its controls,
         re-simulated with the planning model (removing any dynamics defect), keep the constraints
         _violation checks within accept_violation_m; otherwise ("fallback") the car tracks the last plan it
-        used in closed loop (tracking_control) for this step."""
+        used in closed loop (tracking_control) for this step, at most at fallback_top (m/s; default the
+        plan's own speed bound)."""
         warm = self._inside_bounds(problem, self._warm_start(ids))
         # Cold start (first plan, before the race starts): no real-time budget yet, so the solver gets
         # its full globalisation (config.cold_start_solver).
@@ -633,7 +635,8 @@ class _RecedingHorizon:
                 u_all = result.u if finite else np.zeros_like(result.u)
             else:
                 others = [a.x0[:2] for a in problem.agents[1:]] + [np.asarray(o.positions)[0] for o in problem.obstacles]
-                u_all = self._track_previous(problem.agents[0].x0, ey_bound, problem.agents[0].x_max[V],
+                top = problem.agents[0].x_max[V] if fallback_top is None else fallback_top
+                u_all = self._track_previous(problem.agents[0].x0, ey_bound, top,
                                              result.u if from_iterate else warm.u, others)
         x = self._rollout(problem, u_all)
         keep_result_lam = used != "fallback" or warm is None or from_iterate or warm.lam is None
@@ -661,7 +664,7 @@ class RacingPlanner(_RecedingHorizon):
         super().__init__(track_model, mapper, config, control_period_s)
         self.opponent_top_speed = float(opponent_top_speed_mps)
 
-    def follow_speed_cap(self, x_self, x_others, inside_collision_distance) -> float:
+    def follow_speed_cap(self, x_self, x_others, inside_collision_distance, beside_too: bool = False) -> float:
         """Our car's speed bound for this plan: normally its top speed. In line behind the other car
         (it is ahead in s and the lateral gap |ey gap| is below the clearance W_c = 2 * the
         footprint's lateral half-extent at the allowed yaw + collision_margin_m, so our front can
@@ -681,14 +684,19 @@ class RacingPlanner(_RecedingHorizon):
         stay free: once the lateral gap reaches W_c (pulling out to pass) or the separation is back
         above the collision distance, the bound is lifted.
 
+        ``beside_too`` (a fallback step's bound): the bound holds at any lateral gap. Why: a fallback tracks a
+        stale plan, not a pass the game planned, so it may not gain on a car it is already too close to; two
+        RD3G cars side by side whose solves kept failing converged on each other's lines, the rear one still
+        gaining, into contact (4-car races on `full` with the racing line, seeds 17 and 68).
+
         Several other cars (rows of x_others, inside_collision_distance one flag per car or one for
         all): the lowest of the bounds for each."""
         rows = _rows(x_others)
         inside = np.broadcast_to(np.asarray(inside_collision_distance, dtype=bool), (len(rows),))
-        return min([self._follow_cap(x_self, x, bool(f)) for x, f in zip(rows, inside)],
+        return min([self._follow_cap(x_self, x, bool(f), beside_too) for x, f in zip(rows, inside)],
                    default=self.config.top_speed_mps)
 
-    def _follow_cap(self, x_self, x_other, inside_collision_distance: bool) -> float:
+    def _follow_cap(self, x_self, x_other, inside_collision_distance: bool, beside_too: bool = False) -> float:
         top = self.config.top_speed_mps
         ahead = float(x_other[S] - x_self[S])
         clearance = 2.0 * self.tm.lateral_half_extent + self.config.collision_margin_m
@@ -698,7 +706,7 @@ class RacingPlanner(_RecedingHorizon):
         drift = [float(x[V]) * math.sin(float(x[EPSI])) * t for x in (x_self, x_other)]
         gap_now = float(x_other[EY] - x_self[EY])
         in_line = min(abs(gap_now), abs(gap_now + drift[1] - drift[0])) < clearance
-        if not (inside_collision_distance and ahead > 0 and in_line):
+        if not (inside_collision_distance and ahead > 0 and (in_line or beside_too)):
             return top
         kappa = self.tm.track.curvature(np.mod([x_self[S], x_other[S]], self.tm.track.length))
         stretch = [1.0 - float(kappa[i]) * float(x[EY]) for i, x in enumerate((x_self, x_other))]
@@ -777,7 +785,9 @@ class RacingPlanner(_RecedingHorizon):
         predicted = [self.predict_other(x) for x in far]
         limits, d_min, pair = self._feasible_limits([x_self, *rows], limits, d_min, scale, predicted)
         ey_bound = max(-limits[0], limits[1])
-        top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], pair[0, 1:] < nominal_d_min))
+        inside = pair[0, 1:] < nominal_d_min
+        top = min(own_top, self.follow_speed_cap(x_self, [*rows, *far], inside))
+        fallback_top = min(top, self.follow_speed_cap(x_self, [*rows, *far], inside, beside_too=True))
         agents = [self._agent(x_self, top, limits, own_cost, c.lead_weight),
                   *(self._agent(x, t, limits, self._cost(t, r, x, st), c.lead_weight)
                     for x, t, r, st in zip(rows, other_top, refs, other_stages))]
@@ -796,7 +806,7 @@ class RacingPlanner(_RecedingHorizon):
         problem = GameProblem(dt=c.plan_dt_s, horizon=c.horizon, agents=agents, collision=collision,
                               obstacles=[Obstacle(positions=o, min_distance=steps.get((0, n + k), nominal_d_min))
                                          for k, o in enumerate(predicted)])
-        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound, ids)
+        plan = self._finish(problem, self._distance_steps(d_min, nominal_d_min), ey_bound, ids, fallback_top)
         if far:
             plan.x = np.concatenate([plan.x, *(self._predicted_other_states(x)[None] for x in far)], axis=0)
         return plan

@@ -181,9 +181,9 @@ def test_only_the_car_that_starts_too_close_is_relaxed(cls, monkeypatch):
     seen = {}
     original = cls._finish
 
-    def capture(self, problem, d, ey, ids=()):
+    def capture(self, problem, d, ey, *args):
         seen["problem"] = problem
-        return original(self, problem, d, ey, ids)
+        return original(self, problem, d, ey, *args)
 
     monkeypatch.setattr(cls, "_finish", capture)
     me, close, far = np.array([1.0, 0.0, 1.0, 0.0]), np.array([1.12, 0.05, 1.0, 0.0]), np.array([2.5, 0.0, 1.0, 0.0])

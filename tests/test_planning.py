@@ -294,6 +294,40 @@ def test_follow_speed_cap_drops_back_only_in_line_behind(track, car):
     assert p.follow_speed_cap(beside, np.array([s_turn, 0.0, 1.6, 0.1]), True) == p.config.top_speed_mps  # turning away
     fast = np.array([s_turn - 0.2, 0.1, 2.0, 0.0])  # far faster: at most 0.2 m/s drop per plan
     assert p.follow_speed_cap(fast, x_other, True) == pytest.approx(1.8)
+    # A fallback step's bound (beside_too) holds beside the other car as well: progress rate 1.3 /s at our
+    # offset -(clearance + 0.02) on the outside, v = 1.3 (1 + clearance + 0.02).
+    assert p.follow_speed_cap(beside, x_other, True, beside_too=True) == pytest.approx(1.3 * (1 + clearance + 0.02))
+    assert p.follow_speed_cap(beside, x_other, False, beside_too=True) == p.config.top_speed_mps
+    assert p.follow_speed_cap(x_other, beside, True, beside_too=True) == p.config.top_speed_mps
+
+
+def test_a_fallback_does_not_gain_on_a_car_beside_it_inside_the_collision_distance(track, car):
+    """On the oval's straight (kappa = 0), our car at ey = +0.09 m and 1.4 m/s, the other 0.12 m ahead at ey = -0.09 m
+    and 1.0 m/s: a lateral gap of 0.18 m, beyond the clearance (no follow bound on the plan), and a separation
+    below the collision distance. A step whose solve is not usable (forced here) falls back, and its speed
+    loop may not gain on that car: the bound is max(1.0 - 0.3, 1.4 - 0.2) = 1.2 m/s, so the fallback's
+    acceleration is (1.2 - 1.4) / plan_dt_s = -2 m/s^2, or the car's braking limit if that is less. With the
+    other car 0.6 m ahead (outside the collision distance) the same fallback does not brake that hard."""
+    p = _planner(RacingPlanner, track, car, opponent_top_speed_mps=1.0)
+    c = p.config
+    s0 = 4.5
+    assert np.all(track.curvature(np.linspace(s0 - 0.3, s0 + 1.5, 30)) == 0)
+    x_self = np.array([s0, 0.09, 1.4, 0.0])
+    clearance = 2.0 * p.tm.lateral_half_extent + c.collision_margin_m
+    assert 0.18 > clearance and math.hypot(p.tm.along_track_scale([s0]) * 0.12, 0.18) < p.tm.collision_distance()
+    a_min = p.mapper.acceleration_bounds(1.4)[0]
+    accel = {}
+    for ahead in (0.12, 0.6):
+        p.reset()
+        other = np.array([s0 + ahead, -0.09, 1.0, 0.0])
+        p.plan(x_self, np.array([s0 + ahead + 1.0, -0.09, 1.0, 0.0]))  # a plan to fall back on, the other car far
+        p._usable = lambda problem, result: "fallback"
+        plan = p.plan(x_self, other)
+        del p._usable
+        assert plan.used == "fallback"
+        accel[ahead] = float(plan.u[0][0])
+    assert accel[0.12] == pytest.approx(max(a_min, -0.2 / c.plan_dt_s), abs=1e-9)
+    assert accel[0.6] > accel[0.12] + 0.5
 
 
 def test_separation_below_the_collision_distance_is_recovered_over_the_plan(track, car):
